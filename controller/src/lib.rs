@@ -1,0 +1,1 @@
+//! comanip's processes.

@@ -1,0 +1,215 @@
+//! Least-squares intersection of 3-D lines (the paper's Eq. 3-8), as O(1) sliding sums.
+//!
+//! For a line through `p` with unit direction `z`, `M = I − z zᵀ` projects onto the plane
+//! normal to the line, and the distance from a point F to the line is `|M (F − p)|`. The
+//! point minimising `Σ |M_i (F − p_i)|²` solves the normal equations
+//! `(Σ M_i) F = Σ M_i p_i` (Eq. 7; `M` is symmetric and idempotent, so `AᵀA = Σ M_i`).
+//! [`NormalSums`] keeps `A = Σ M_i`, `b = Σ M_i p_i` and `c = Σ p_iᵀ M_i p_i`, so lines can be
+//! added and removed in O(1), and the sum of squared residuals at the optimum is
+//! `c − bᵀF` without revisiting the lines.
+
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+
+use super::LineSample;
+
+/// Running sums of the normal equations over a set of lines (metres, robot base frame).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NormalSums {
+    /// `Σ (I − z zᵀ)` (dimensionless).
+    a: Matrix3<f64>,
+    /// `Σ (I − z zᵀ) p`, metres.
+    b: Vector3<f64>,
+    /// `Σ pᵀ (I − z zᵀ) p`, square metres.
+    c: f64,
+    /// Number of lines in the sums.
+    count: u32,
+}
+
+impl Default for NormalSums {
+    fn default() -> Self {
+        Self { a: Matrix3::zeros(), b: Vector3::zeros(), c: 0.0, count: 0 }
+    }
+}
+
+/// Why a least-squares fulcrum could not be computed.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    /// Fewer than two lines.
+    #[error("fewer than two lines ({count})")]
+    TooFewLines {
+        /// Lines available.
+        count: u32,
+    },
+    /// The lines are (nearly) parallel: the smallest eigenvalue of `Σ(I − z zᵀ)` divided by
+    /// the number of lines is below the gate, so the intersection is undetermined.
+    #[error("lines nearly parallel: conditioning {conditioning:.3e} below {gate:.3e}")]
+    IllConditioned {
+        /// `λ_min(Σ(I − z zᵀ)) / q`.
+        conditioning: f64,
+        /// The gate it failed.
+        gate: f64,
+    },
+    /// Non-finite arithmetic (cannot happen with finite unit inputs; kept as a last guard).
+    #[error("non-finite least-squares solution")]
+    NonFinite,
+}
+
+/// A least-squares fulcrum and its quality figures.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LsFit {
+    /// Point closest to all lines, metres, robot base frame.
+    pub fulcrum_base_m: Vector3<f64>,
+    /// Sum of squared distances from the point to the lines, square metres.
+    pub ssr_m2: f64,
+    /// Root-mean-square distance from the point to the lines, metres.
+    pub rms_m: f64,
+    /// `λ_min(Σ(I − z zᵀ)) / q`: 0 for parallel lines, at most 2/3; roughly the mean squared
+    /// angular spread (rad²) of the lines about their mean direction.
+    pub conditioning: f64,
+    /// Standard deviation (metres) of the fulcrum along its worst direction, for a per-line
+    /// noise `sigma_m`: `sigma_m / sqrt(λ_min)`. Multiply by the noise you assume.
+    pub std_per_unit_noise: f64,
+    /// Number of lines.
+    pub count: u32,
+}
+
+impl LsFit {
+    /// Standard deviation (metres) of the fulcrum along its worst direction for a per-line
+    /// noise of `sigma_m` metres.
+    pub fn fulcrum_std_m(&self, sigma_m: f64) -> f64 {
+        sigma_m * self.std_per_unit_noise
+    }
+
+    /// Unbiased estimate (metres) of the per-line noise: `sqrt(SSR / (2q − 3))` (each line
+    /// gives two constraints, the fulcrum takes three).
+    pub fn noise_estimate_m(&self) -> f64 {
+        let dof = (2 * self.count as i64 - 3).max(1) as f64;
+        libm_sqrt(self.ssr_m2 / dof)
+    }
+}
+
+#[inline]
+fn libm_sqrt(x: f64) -> f64 {
+    nalgebra::ComplexField::sqrt(x)
+}
+
+/// Squared distance (m²) from `point` to the line `(p, z)`; `z` must be unit.
+#[inline]
+pub fn line_distance_sq(line: &LineSample, point: &Vector3<f64>) -> f64 {
+    let v = point - line.wrist_base_m;
+    let along = line.axis_base.dot(&v);
+    (v.norm_squared() - along * along).max(0.0)
+}
+
+/// Distance (m) from `point` to the line `(p, z)`.
+#[inline]
+pub fn line_distance(line: &LineSample, point: &Vector3<f64>) -> f64 {
+    libm_sqrt(line_distance_sq(line, point))
+}
+
+/// Signed depth (m) of `point` along the line from the wrist: `zᵀ(F − P)`. Positive when the
+/// point lies in front of the wrist, towards the instrument tip.
+#[inline]
+pub fn signed_depth(line: &LineSample, point: &Vector3<f64>) -> f64 {
+    line.axis_base.dot(&(point - line.wrist_base_m))
+}
+
+impl NormalSums {
+    /// Empty sums.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Number of lines in the sums.
+    pub fn count(&self) -> u32 {
+        self.count
+    }
+
+    #[inline]
+    fn terms(line: &LineSample) -> (Matrix3<f64>, Vector3<f64>, f64) {
+        let z = &line.axis_base;
+        let m = Matrix3::identity() - z * z.transpose();
+        let mp = m * line.wrist_base_m;
+        (m, mp, line.wrist_base_m.dot(&mp))
+    }
+
+    /// Adds a line.
+    #[inline]
+    pub fn add(&mut self, line: &LineSample) {
+        let (m, mp, c) = Self::terms(line);
+        self.a += m;
+        self.b += mp;
+        self.c += c;
+        self.count += 1;
+    }
+
+    /// Removes a line previously added (sliding window).
+    #[inline]
+    pub fn remove(&mut self, line: &LineSample) {
+        let (m, mp, c) = Self::terms(line);
+        self.a -= m;
+        self.b -= mp;
+        self.c -= c;
+        self.count = self.count.saturating_sub(1);
+        if self.count == 0 {
+            *self = Self::default();
+        }
+    }
+
+    /// Rebuilds the sums from scratch (guard against floating-point drift of long runs of
+    /// add/remove).
+    pub fn rebuild<'a>(&mut self, lines: impl Iterator<Item = &'a LineSample>) {
+        *self = Self::default();
+        for l in lines {
+            self.add(l);
+        }
+    }
+
+    /// Solves Eq. 7. `min_conditioning` gates `λ_min(A)/q`: below it the lines are taken as
+    /// parallel and no point is returned.
+    pub fn solve(&self, min_conditioning: f64) -> Result<LsFit, SolveError> {
+        if self.count < 2 {
+            return Err(SolveError::TooFewLines { count: self.count });
+        }
+        let q = self.count as f64;
+        let eig = SymmetricEigen::new(self.a);
+        let mut i_min = 0;
+        for i in 1..3 {
+            if eig.eigenvalues[i] < eig.eigenvalues[i_min] {
+                i_min = i;
+            }
+        }
+        let lambda_min = eig.eigenvalues[i_min];
+        let conditioning = lambda_min / q;
+        if !conditioning.is_finite() || conditioning < min_conditioning || lambda_min <= 0.0 {
+            return Err(SolveError::IllConditioned { conditioning: if conditioning.is_finite() { conditioning } else { 0.0 }, gate: min_conditioning });
+        }
+        // F = V Λ⁻¹ Vᵀ b
+        let vt_b = eig.eigenvectors.transpose() * self.b;
+        let scaled = Vector3::new(vt_b[0] / eig.eigenvalues[0], vt_b[1] / eig.eigenvalues[1], vt_b[2] / eig.eigenvalues[2]);
+        let f = eig.eigenvectors * scaled;
+        let ssr = (self.c - self.b.dot(&f)).max(0.0);
+        if !(f.iter().all(|x| x.is_finite()) && ssr.is_finite()) {
+            return Err(SolveError::NonFinite);
+        }
+        Ok(LsFit {
+            fulcrum_base_m: f,
+            ssr_m2: ssr,
+            rms_m: libm_sqrt(ssr / q),
+            conditioning,
+            std_per_unit_noise: 1.0 / libm_sqrt(lambda_min),
+            count: self.count,
+        })
+    }
+}
+
+/// Mean distance from `point` to the lines (the paper's Eq. 8 error `e_q`), metres.
+pub fn mean_distance<'a>(lines: impl Iterator<Item = &'a LineSample>, point: &Vector3<f64>) -> f64 {
+    let mut sum = 0.0;
+    let mut n = 0u32;
+    for l in lines {
+        sum += line_distance(l, point);
+        n += 1;
+    }
+    if n == 0 { 0.0 } else { sum / n as f64 }
+}

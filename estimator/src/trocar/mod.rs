@@ -1,0 +1,217 @@
+//! Trocar detection and fulcrum localisation from the instrument's axis lines.
+//!
+//! Each 1 ms sample gives a line `(P, z)`: the wrist centre P (metres, robot base frame) and
+//! the unit instrument axis z (robot base frame). When the instrument passes through a
+//! trocar, all lines pass (nearly) through the fulcrum F; when it does not, they do not, or
+//! they pivot about the wrist P itself (the paper's false-positive trap).
+//!
+//! Two detectors sit behind [`Detector`], chosen by [`DetectorConfig::mode`]:
+//! - [`paper::PaperDetector`]: Dong & Morel's Algorithms 1 and 2, faithfully (two circular
+//!   windows, batch least squares, mean-residual thresholds). The reference.
+//! - [`fast::FastDetector`]: comanip's own method (O(1) sliding normal equations over the
+//!   longest self-consistent recent segment of lines, a conditioning gate, a fulcrum
+//!   covariance, a per-sample innovation test for extraction, a signed depth guard, and,
+//!   when configured, the instrument length and a memory of known trocars).
+//!
+//! See `docs/trocar-detection.md` for the method, the paper's ambiguities and our choices.
+//! Both detectors are allocation-free after construction, and no output field is ever NaN
+//! or Inf.
+
+pub mod config;
+pub mod fast;
+pub mod lsq;
+pub mod paper;
+
+pub use config::{ConfigError, DetectorConfig, DetectorMode, FastConfig, PaperConfig};
+
+use nalgebra::Vector3;
+
+/// Compiled capacity of every line window (lines). Config window sizes must not exceed it.
+pub const WINDOW_CAPACITY: usize = 256;
+
+/// Most trocars the fast detector remembers (trocar memory and trocar identities).
+pub const MEMORY_CAPACITY: usize = 8;
+
+/// One instrument line: the sample every detector consumes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LineSample {
+    /// Wrist centre P, metres, robot base frame.
+    pub wrist_base_m: Vector3<f64>,
+    /// Instrument axis z, unit vector, robot base frame, pointing from the wrist towards the tip.
+    pub axis_base: Vector3<f64>,
+}
+
+impl LineSample {
+    /// A line through `wrist_base_m` (metres) along `axis_base` (unit vector), both in the
+    /// robot base frame. Nothing is checked here: detectors check every sample.
+    pub fn new(wrist_base_m: Vector3<f64>, axis_base: Vector3<f64>) -> Self {
+        Self { wrist_base_m, axis_base }
+    }
+
+    /// Checks that every component is finite, that |P| is below 100 m and that |z| is 1
+    /// within 1e-6; renormalises z.
+    pub fn validated(&self) -> Result<Self, SampleError> {
+        if !self.wrist_base_m.iter().all(|v| v.is_finite()) {
+            return Err(SampleError::NonFiniteWrist);
+        }
+        if !self.axis_base.iter().all(|v| v.is_finite()) {
+            return Err(SampleError::NonFiniteAxis);
+        }
+        if self.wrist_base_m.norm() > 100.0 {
+            return Err(SampleError::WristOutOfRange);
+        }
+        let n = self.axis_base.norm();
+        if (n - 1.0).abs() > 1e-6 {
+            return Err(SampleError::AxisNotUnit);
+        }
+        Ok(Self { wrist_base_m: self.wrist_base_m, axis_base: self.axis_base / n })
+    }
+}
+
+/// Why a sample was refused (it is then ignored, and the estimate says so).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum SampleError {
+    /// The wrist position has a NaN or infinite component.
+    #[error("wrist position is not finite")]
+    NonFiniteWrist,
+    /// The axis has a NaN or infinite component.
+    #[error("instrument axis is not finite")]
+    NonFiniteAxis,
+    /// The wrist is more than 100 m from the base: a corrupt sample.
+    #[error("wrist position more than 100 m from the base")]
+    WristOutOfRange,
+    /// The axis is not a unit vector (|z| differs from 1 by more than 1e-6).
+    #[error("instrument axis is not a unit vector")]
+    AxisNotUnit,
+}
+
+/// Is the instrument in a trocar?
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum TrocarState {
+    /// No trocar is detected: no fulcrum may be used.
+    #[default]
+    Outside,
+    /// The instrument passes through trocar `id` (an index, stable while the detector lives,
+    /// in the order trocars were first found; identical ids mean the same place within the
+    /// fast mode's merge distance; the paper mode numbers every insertion anew).
+    Inside {
+        /// Trocar identity.
+        id: u8,
+    },
+}
+
+impl TrocarState {
+    /// True in [`TrocarState::Inside`].
+    pub fn is_inside(&self) -> bool {
+        matches!(self, TrocarState::Inside { .. })
+    }
+}
+
+/// Figures of the latest least-squares fit on the window the detector currently decides on.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FitSummary {
+    /// Least-squares fulcrum of that window, metres, robot base frame (may be meaningless
+    /// when the state is `Outside`: it is not a trocar, only the best intersection).
+    pub point_base_m: Vector3<f64>,
+    /// Residual of the window, metres: the mean line distance (Eq. 8) in paper mode, the
+    /// root-mean-square line distance in fast mode.
+    pub residual_m: f64,
+    /// `λ_min(Σ(I − z zᵀ)) / q`, dimensionless (0 for parallel lines, at most 2/3).
+    pub conditioning: f64,
+    /// One-sigma uncertainty of the point along its worst direction, metres, from the
+    /// residual-based noise estimate (floored by the configured noise floor in fast mode).
+    pub std_m: f64,
+    /// Lines in the fit.
+    pub lines: u16,
+}
+
+/// What one step reports. Every float is finite.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Estimate {
+    /// Detector state after this sample.
+    pub state: TrocarState,
+    /// The fulcrum to use, metres, robot base frame: `Some` exactly when `state` is `Inside`.
+    pub fulcrum_base_m: Option<Vector3<f64>>,
+    /// The latest fit on the deciding window, when that window could be solved.
+    pub fit: Option<FitSummary>,
+    /// Lines in the deciding window (paper: `L_m` while outside or while `L_n` is not full,
+    /// else `L_n`; fast: the current consistent segment).
+    pub window_fill: u16,
+    /// Capacity of that window (paper: `m` or `n`; fast: `window`).
+    pub window_len: u16,
+    /// Why this sample was refused, if it was (the state is then carried over unchanged).
+    pub rejected: Option<SampleError>,
+    /// True when this sample was included in the line windows (Algorithm 1's test passed).
+    pub included: bool,
+}
+
+impl Estimate {
+    fn outside() -> Self {
+        Self {
+            state: TrocarState::Outside,
+            fulcrum_base_m: None,
+            fit: None,
+            window_fill: 0,
+            window_len: 0,
+            rejected: None,
+            included: false,
+        }
+    }
+}
+
+/// Algorithm 1's inclusion test: is `new` far enough from `last` (the last included line)?
+/// `d = |(I − z_last z_lastᵀ)(P_last − P_new)|` (Eq. 9) and `θ = acos(z_last · z_new)`
+/// (Eq. 10); included when `d > delta_d_m` or `θ > delta_theta_rad`.
+#[inline]
+pub(crate) fn differs_enough(last: &LineSample, new: &LineSample, delta_d_m: f64, cos_delta_theta: f64) -> bool {
+    let d = lsq::line_distance(last, &new.wrist_base_m);
+    // θ > δθ  ⇔  cos θ < cos δθ (acos is decreasing; avoids acos on the hot path)
+    d > delta_d_m || last.axis_base.dot(&new.axis_base) < cos_delta_theta
+}
+
+/// Either detector, chosen by configuration. `step` once per sample.
+#[derive(Clone, Debug)]
+pub enum Detector {
+    /// The paper's method.
+    Paper(paper::PaperDetector),
+    /// comanip's method.
+    Fast(fast::FastDetector),
+}
+
+impl Detector {
+    /// Validates `config` and builds the selected detector (the only allocation-free-after
+    /// point: everything is sized here).
+    pub fn new(config: &DetectorConfig) -> Result<Self, ConfigError> {
+        config.validate()?;
+        Ok(match config.mode {
+            DetectorMode::Paper => Detector::Paper(paper::PaperDetector::new(&config.paper)?),
+            DetectorMode::Fast => Detector::Fast(fast::FastDetector::new(&config.fast, config.sample_period_s)?),
+        })
+    }
+
+    /// Feeds one sample (one control cycle) and returns the estimate after it.
+    #[inline]
+    pub fn step(&mut self, sample: &LineSample) -> Estimate {
+        match self {
+            Detector::Paper(d) => d.step(sample),
+            Detector::Fast(d) => d.step(sample),
+        }
+    }
+
+    /// Forgets every line and returns to `Outside` (used when the input goes stale). The fast
+    /// detector keeps its trocar memory.
+    pub fn reset(&mut self) {
+        match self {
+            Detector::Paper(d) => d.reset(),
+            Detector::Fast(d) => d.reset(),
+        }
+    }
+
+    /// The active mode.
+    pub fn mode(&self) -> DetectorMode {
+        match self {
+            Detector::Paper(_) => DetectorMode::Paper,
+            Detector::Fast(_) => DetectorMode::Fast,
+        }
+    }
+}

@@ -1,0 +1,423 @@
+//! Surgeon-motion scenarios: cycles of insertion, manipulation, extraction and free motion
+//! to the next trocar, with ground truth.
+//!
+//! Geometry (metres, robot base frame): the instrument is a straight shaft of length
+//! `instrument_length_m` from the wrist centre P to the tip; the tip is at `P + L·z`.
+//! A trocar is a point T on the patient's skin. The instrument is **inside** trocar i from
+//! the instant its tip crosses T going in (true insertion instant) to the instant the tip
+//! crosses T coming out (true extraction instant). While inside, the axis passes through
+//! the trocar's current pivot `T + w(t)`, where `w` is a slow wander of about
+//! `compliance_m` (trocar compliance and backlash) plus optional breathing motion.
+
+use nalgebra::{Rotation3, Unit, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
+
+use estimator::trocar::LineSample;
+
+/// Parameters of a scenario. Durations in seconds, lengths in metres, angles in degrees.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ScenarioConfig {
+    /// Seed of every random choice.
+    pub seed: u64,
+    /// Trocar positions, metres, robot base frame.
+    pub trocars_base_m: Vec<[f64; 3]>,
+    /// Insert/extract cycles.
+    pub cycles: usize,
+    /// Sample period, seconds.
+    pub sample_period_s: f64,
+    /// Instrument length from the wrist centre to the tip, metres.
+    pub instrument_length_m: f64,
+    /// Time inside a trocar per cycle, seconds (uniform in the range).
+    pub inside_s: [f64; 2],
+    /// Time outside between two trocars, seconds (uniform in the range).
+    pub outside_s: [f64; 2],
+    /// Peak pivot amplitude about the entry direction, degrees.
+    pub pivot_amplitude_deg: f64,
+    /// Pivot motion frequencies, hertz (uniform in the range).
+    pub pivot_frequency_hz: [f64; 2],
+    /// Trocar compliance and backlash: amplitude of the pivot's wander, metres.
+    pub compliance_m: f64,
+    /// Breathing: vertical amplitude of the trocars' motion, metres (0 disables).
+    pub breathing_m: f64,
+    /// Breathing period, seconds.
+    pub breathing_period_s: f64,
+    /// Probability that a free motion contains a pure rotation about the wrist (the paper's
+    /// false-positive trap).
+    pub wrist_rotation_probability: f64,
+    /// Measurement noise on the wrist position, metres (one sigma, per axis).
+    pub wrist_noise_m: f64,
+    /// Measurement noise on the axis direction, degrees (one sigma, per axis).
+    pub axis_noise_deg: f64,
+}
+
+impl Default for ScenarioConfig {
+    fn default() -> Self {
+        Self {
+            seed: 1,
+            trocars_base_m: vec![[0.42, -0.09, 0.02], [0.50, -0.02, 0.04], [0.44, 0.07, 0.03], [0.36, 0.01, 0.01]],
+            cycles: 8,
+            sample_period_s: 0.001,
+            instrument_length_m: 0.30,
+            inside_s: [8.0, 12.0],
+            outside_s: [1.6, 2.6],
+            pivot_amplitude_deg: 14.0,
+            pivot_frequency_hz: [0.15, 0.45],
+            compliance_m: 0.001,
+            breathing_m: 0.0,
+            breathing_period_s: 4.0,
+            wrist_rotation_probability: 0.3,
+            wrist_noise_m: 0.0001,
+            axis_noise_deg: 0.03,
+        }
+    }
+}
+
+/// True state of the instrument at one sample.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum TruthState {
+    /// Not in any trocar.
+    Outside,
+    /// Inside trocar `index` (index into `trocars_base_m`).
+    Inside {
+        /// Trocar index.
+        index: usize,
+    },
+}
+
+/// Ground truth of one sample.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Truth {
+    /// Time since the start, seconds.
+    pub t_s: f64,
+    /// True state.
+    pub state: TruthState,
+    /// True pivot point while inside (trocar point plus wander), metres, robot base frame.
+    pub fulcrum_base_m: Option<Vector3<f64>>,
+    /// Noise-free instrument line.
+    pub line: LineSample,
+}
+
+/// A true insertion or extraction.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrueEvent {
+    /// Instant the tip crosses the trocar point, seconds.
+    pub t_s: f64,
+    /// Sample index of that instant (first sample of the new state).
+    pub sample: usize,
+    /// Trocar index.
+    pub trocar: usize,
+    /// True for an insertion, false for an extraction.
+    pub insertion: bool,
+}
+
+/// A generated scenario: measured lines and ground truth, sample by sample.
+#[derive(Clone, Debug)]
+pub struct Scenario {
+    /// Parameters it was generated from.
+    pub config: ScenarioConfig,
+    /// Measured lines (with measurement noise), one per sample.
+    pub measured: Vec<LineSample>,
+    /// Ground truth, one per sample.
+    pub truth: Vec<Truth>,
+    /// True insertions and extractions, in time order.
+    pub events: Vec<TrueEvent>,
+}
+
+/// A smooth random scalar signal: a sum of three sinusoids, zero at t = 0.
+#[derive(Clone, Copy, Debug)]
+struct Wave {
+    amp: [f64; 3],
+    omega: [f64; 3],
+    phase: [f64; 3],
+}
+
+impl Wave {
+    fn new(rng: &mut ChaCha8Rng, amplitude: f64, f_hz: [f64; 2]) -> Self {
+        let mut w = Wave { amp: [0.0; 3], omega: [0.0; 3], phase: [0.0; 3] };
+        for k in 0..3 {
+            w.amp[k] = amplitude * rng.random_range(0.3..1.0) / 1.8;
+            w.omega[k] = 2.0 * std::f64::consts::PI * rng.random_range(f_hz[0]..f_hz[1].max(f_hz[0] + 1e-9));
+            w.phase[k] = rng.random_range(0.0..2.0 * std::f64::consts::PI);
+        }
+        w
+    }
+    fn at(&self, t: f64) -> f64 {
+        (0..3).map(|k| self.amp[k] * ((self.omega[k] * t + self.phase[k]).sin() - self.phase[k].sin())).sum()
+    }
+}
+
+/// Minimum-jerk blend from 0 to 1 over `u` in [0, 1].
+fn min_jerk(u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
+}
+
+/// A unit vector perpendicular to `z`.
+fn perpendicular(z: &Vector3<f64>) -> Vector3<f64> {
+    let a = if z.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    z.cross(&a).normalize()
+}
+
+struct Builder<'a> {
+    cfg: &'a ScenarioConfig,
+    rng: ChaCha8Rng,
+    t: f64,
+    out: Scenario,
+    /// Current pose (noise-free): wrist and axis.
+    wrist: Vector3<f64>,
+    axis: Vector3<f64>,
+    wrist_noise: Normal<f64>,
+    axis_noise: Normal<f64>,
+}
+
+impl Builder<'_> {
+    fn trocar_at(&self, index: usize, t: f64) -> Vector3<f64> {
+        let c = self.cfg.trocars_base_m[index];
+        let breath = if self.cfg.breathing_m > 0.0 {
+            self.cfg.breathing_m * 0.5 * (1.0 - (2.0 * std::f64::consts::PI * t / self.cfg.breathing_period_s).cos())
+        } else {
+            0.0
+        };
+        Vector3::new(c[0], c[1], c[2] + breath)
+    }
+
+    fn push(&mut self, wrist: Vector3<f64>, axis: Vector3<f64>, state: TruthState, fulcrum: Option<Vector3<f64>>) {
+        let axis = axis.normalize();
+        self.wrist = wrist;
+        self.axis = axis;
+        let line = LineSample::new(wrist, axis);
+        let noisy_wrist = wrist
+            + Vector3::new(
+                self.wrist_noise.sample(&mut self.rng),
+                self.wrist_noise.sample(&mut self.rng),
+                self.wrist_noise.sample(&mut self.rng),
+            );
+        let tilt = Vector3::new(
+            self.axis_noise.sample(&mut self.rng),
+            self.axis_noise.sample(&mut self.rng),
+            self.axis_noise.sample(&mut self.rng),
+        );
+        let noisy_axis = (Rotation3::new(tilt) * axis).normalize();
+        self.out.measured.push(LineSample::new(noisy_wrist, noisy_axis));
+        self.out.truth.push(Truth { t_s: self.t, state, fulcrum_base_m: fulcrum, line });
+        self.t += self.cfg.sample_period_s;
+    }
+
+    fn samples(&self, seconds: f64) -> usize {
+        (seconds / self.cfg.sample_period_s).round().max(1.0) as usize
+    }
+
+    fn event(&mut self, trocar: usize, insertion: bool) {
+        let sample = self.out.truth.len();
+        self.out.events.push(TrueEvent { t_s: self.t, sample, trocar, insertion });
+    }
+
+    /// Free motion from the current pose to (wrist, axis), with wobble and, sometimes, the
+    /// wrist-rotation trap in the middle.
+    fn free_motion(&mut self, seconds: f64, target_wrist: Vector3<f64>, target_axis: Vector3<f64>) {
+        let n = self.samples(seconds);
+        let (w0, a0) = (self.wrist, self.axis);
+        let q0 = UnitQuaternion::identity();
+        let q1 = UnitQuaternion::rotation_between(&a0, &target_axis).unwrap_or(q0);
+        let wob: [Wave; 3] = core::array::from_fn(|_| Wave::new(&mut self.rng, 0.02, [0.3, 0.8]));
+        let trap = self.rng.random_bool(self.cfg.wrist_rotation_probability.clamp(0.0, 1.0));
+        let trap_axis = perpendicular(&a0);
+        let trap_amp = self.rng.random_range(0.2..0.4);
+        for i in 0..n {
+            let u = (i + 1) as f64 / n as f64;
+            let s = min_jerk(u);
+            let env = (std::f64::consts::PI * u).sin();
+            let t = i as f64 * self.cfg.sample_period_s;
+            let wobble = Vector3::new(wob[0].at(t), wob[1].at(t), wob[2].at(t)) * env;
+            let mut wrist = w0 + (target_wrist - w0) * s + wobble;
+            let mut axis = q0.slerp(&q1, s) * a0;
+            if trap && (0.2..0.6).contains(&u) {
+                // Hold the wrist still and rotate the instrument about it.
+                let v = (u - 0.2) / 0.4;
+                let hold = w0 + (target_wrist - w0) * min_jerk(0.2);
+                wrist = hold;
+                axis = UnitQuaternion::from_axis_angle(&Unit::new_normalize(trap_axis), trap_amp * (2.0 * std::f64::consts::PI * v).sin()) * (q0.slerp(&q1, min_jerk(0.2)) * a0);
+            } else if trap && u >= 0.6 {
+                let v = (u - 0.6) / 0.4;
+                let hold = w0 + (target_wrist - w0) * min_jerk(0.2);
+                wrist = hold + (target_wrist - hold) * min_jerk(v) + wobble;
+                axis = q0.slerp(&q1, min_jerk(0.2) + (1.0 - min_jerk(0.2)) * min_jerk(v)) * a0;
+            }
+            self.push(wrist, axis, TruthState::Outside, None);
+        }
+    }
+
+    /// One insertion, manipulation and extraction at trocar `index`, starting from the
+    /// approach pose (tip `approach_m` above the trocar along `entry`).
+    fn visit(&mut self, index: usize, entry: Vector3<f64>, inside_s: f64, approach_m: f64) {
+        let l = self.cfg.instrument_length_m;
+        let speed = self.rng.random_range(0.08..0.16); // m/s along the axis
+        let depth0 = self.rng.random_range(0.05..0.09);
+        // Insertion: the tip goes from -approach to depth0 below the trocar along `entry`.
+        let n_in = self.samples((depth0 + approach_m) / speed);
+        let mut inside = false;
+        for i in 0..n_in {
+            let u = (i + 1) as f64 / n_in as f64;
+            let depth = -approach_m + (depth0 + approach_m) * u; // tip depth past the trocar
+            let trocar = self.trocar_at(index, self.t);
+            if !inside && depth >= 0.0 {
+                inside = true;
+                self.event(index, true);
+            }
+            let wrist = trocar - entry * (l - depth);
+            let state = if inside { TruthState::Inside { index } } else { TruthState::Outside };
+            self.push(wrist, entry, state, inside.then_some(trocar));
+        }
+        // Manipulation: pivot about the (wandering) trocar, vary the depth.
+        let amp = self.cfg.pivot_amplitude_deg.to_radians();
+        let f = self.cfg.pivot_frequency_hz;
+        let pitch = Wave::new(&mut self.rng, amp, f);
+        let yaw = Wave::new(&mut self.rng, amp, f);
+        let dep = Wave::new(&mut self.rng, 0.03, [0.1, 0.3]);
+        let wander: [Wave; 3] = core::array::from_fn(|_| Wave::new(&mut self.rng, self.cfg.compliance_m, [0.2, 1.0]));
+        let e1 = perpendicular(&entry);
+        let e2 = entry.cross(&e1);
+        let n_man = self.samples(inside_s - (depth0 + approach_m) / speed);
+        for i in 0..n_man {
+            let t = i as f64 * self.cfg.sample_period_s;
+            let rot = UnitQuaternion::from_scaled_axis(e1 * pitch.at(t) + e2 * yaw.at(t));
+            let axis = rot * entry;
+            let depth = (depth0 + dep.at(t)).max(0.02);
+            let pivot = self.trocar_at(index, self.t) + Vector3::new(wander[0].at(t), wander[1].at(t), wander[2].at(t));
+            self.push(pivot - axis * (l - depth), axis, TruthState::Inside { index }, Some(pivot));
+        }
+        // Extraction: pull out along the current axis until the tip is `approach_m` out.
+        let axis = self.axis;
+        let pivot = self.out.truth.last().and_then(|t| t.fulcrum_base_m).unwrap_or(self.wrist + axis * (l - depth0));
+        let depth_start = tip_depth(&self.wrist, &axis, &pivot, l);
+        let n_out = self.samples((depth_start + approach_m) / speed);
+        let mut out = false;
+        for i in 0..n_out {
+            let u = (i + 1) as f64 / n_out as f64;
+            let depth = depth_start - (depth_start + approach_m) * u;
+            if !out && depth < 0.0 {
+                out = true;
+                self.event(index, false);
+            }
+            let state = if out { TruthState::Outside } else { TruthState::Inside { index } };
+            self.push(pivot - axis * (l - depth), axis, state, (!out).then_some(pivot));
+        }
+    }
+}
+
+/// Tip depth past `pivot` along `axis` (metres) for a wrist at `wrist`.
+fn tip_depth(wrist: &Vector3<f64>, axis: &Vector3<f64>, pivot: &Vector3<f64>, l: f64) -> f64 {
+    l - axis.dot(&(pivot - wrist))
+}
+
+/// A random entry direction for a trocar: pointing down into the patient, tilted up to 25°.
+fn entry_direction(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+    let tilt = rng.random_range(0.0_f64..25.0).to_radians();
+    let az = rng.random_range(0.0..2.0 * std::f64::consts::PI);
+    Vector3::new(tilt.sin() * az.cos(), tilt.sin() * az.sin(), -tilt.cos())
+}
+
+/// Generates a scenario. Deterministic: the same config gives the same samples.
+///
+/// Panics only on an empty trocar list or non-positive sample period (programming errors
+/// of the caller; use [`ScenarioConfig::check`] on user input first).
+pub fn generate(cfg: &ScenarioConfig) -> Scenario {
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let approach_m = 0.03;
+    let l = cfg.instrument_length_m;
+    let start_axis = Vector3::new(0.0, 0.0, -1.0);
+    let start_wrist = Vector3::new(0.40, 0.0, 0.35);
+    let mut b = Builder {
+        cfg,
+        rng: ChaCha8Rng::seed_from_u64(rng.random()),
+        t: 0.0,
+        out: Scenario { config: cfg.clone(), measured: Vec::new(), truth: Vec::new(), events: Vec::new() },
+        wrist: start_wrist,
+        axis: start_axis,
+        wrist_noise: Normal::new(0.0, cfg.wrist_noise_m).expect("finite sigma"),
+        axis_noise: Normal::new(0.0, cfg.axis_noise_deg.to_radians()).expect("finite sigma"),
+    };
+    // Start: hold still for a moment.
+    for _ in 0..b.samples(0.2) {
+        b.push(start_wrist, start_axis, TruthState::Outside, None);
+    }
+    let mut last = usize::MAX;
+    for _ in 0..cfg.cycles {
+        let mut index = rng.random_range(0..cfg.trocars_base_m.len());
+        if cfg.trocars_base_m.len() > 1 {
+            while index == last {
+                index = rng.random_range(0..cfg.trocars_base_m.len());
+            }
+        }
+        last = index;
+        let entry = entry_direction(&mut rng);
+        let outside_s = rng.random_range(cfg.outside_s[0]..cfg.outside_s[1].max(cfg.outside_s[0] + 1e-9));
+        let inside_s = rng.random_range(cfg.inside_s[0]..cfg.inside_s[1].max(cfg.inside_s[0] + 1e-9));
+        // Free motion: retreat away from the patient (lift and tilt), then travel to the
+        // approach pose of the next trocar; the end of the approach is the insertion itself.
+        let trocar = b.trocar_at(index, b.t + outside_s);
+        let approach_wrist = trocar - entry * (l + approach_m);
+        let lift = Vector3::new(rng.random_range(-0.05..0.05), rng.random_range(-0.05..0.05), rng.random_range(0.05..0.10));
+        let retreat_wrist = b.wrist + lift;
+        let tilt = UnitQuaternion::from_scaled_axis(perpendicular(&b.axis) * rng.random_range(0.15..0.5));
+        let retreat_axis = tilt * b.axis;
+        let split = rng.random_range(0.35..0.55);
+        b.free_motion(outside_s * split, retreat_wrist, retreat_axis);
+        b.free_motion(outside_s * (1.0 - split), approach_wrist, entry);
+        b.visit(index, entry, inside_s, approach_m);
+    }
+    // Leave: a last stretch of free motion away from the patient.
+    let away = b.wrist + Vector3::new(0.0, 0.0, 0.1);
+    let axis = b.axis;
+    b.free_motion(1.5, away, axis);
+    b.out
+}
+
+impl ScenarioConfig {
+    /// Checks user-supplied parameters.
+    pub fn check(&self) -> Result<(), String> {
+        if self.trocars_base_m.is_empty() {
+            return Err("scenario.trocars_base_m: at least one trocar is needed".into());
+        }
+        if !(self.sample_period_s > 0.0 && self.sample_period_s <= 0.1) {
+            return Err(format!("scenario.sample_period_s = {}: allowed (0, 0.1] s", self.sample_period_s));
+        }
+        if !(self.instrument_length_m > 0.1 && self.instrument_length_m < 1.0) {
+            return Err(format!("scenario.instrument_length_m = {}: allowed (0.1, 1) m", self.instrument_length_m));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn deterministic_and_consistent() {
+        let cfg = ScenarioConfig { cycles: 3, ..Default::default() };
+        let a = generate(&cfg);
+        let b = generate(&cfg);
+        assert_eq!(a.measured, b.measured);
+        assert_eq!(a.events.len(), 6);
+        assert_eq!(a.measured.len(), a.truth.len());
+        // While inside, the true line passes through the true pivot, and the tip is beyond it.
+        for t in &a.truth {
+            if let Some(f) = t.fulcrum_base_m {
+                let v = f - t.line.wrist_base_m;
+                let along = t.line.axis_base.dot(&v);
+                let dist = (v - t.line.axis_base * along).norm();
+                assert!(dist < 1e-9, "line misses the pivot by {dist}");
+                assert!(along < cfg.instrument_length_m + 1e-9, "tip not beyond the trocar");
+            }
+        }
+        // Events alternate insertion / extraction.
+        for (i, e) in a.events.iter().enumerate() {
+            assert_eq!(e.insertion, i % 2 == 0);
+        }
+    }
+}

@@ -1,0 +1,133 @@
+//! Scoring a detector's output against a scenario's ground truth.
+//!
+//! Definitions (also in `docs/trocar-detection.md`):
+//! - **Insertion delay**: first sample at or after the true insertion at which the detector
+//!   is inside, minus the true insertion instant, seconds. Missed when the detector does not
+//!   get inside before the true extraction.
+//! - **Extraction delay**: first sample at or after the true extraction at which the detector
+//!   is outside, minus the true extraction instant. Missed when the detector is still inside
+//!   at the next true insertion (or the end).
+//! - **False detection**: an outside→inside transition while the truth is outside, or at the
+//!   wrong trocar: the reported fulcrum is nearer to another trocar of the scenario than to
+//!   the true one, or farther than `wrong_trocar_m` from the true pivot.
+//! - **Localisation error**: distance from the reported fulcrum to the true pivot, at first
+//!   detection and over every sample the detector and the truth are both inside.
+
+use nalgebra::Vector3;
+
+use crate::scenario::{Scenario, TruthState};
+
+/// What the detector said at one sample.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Detected {
+    /// Inside a trocar.
+    pub inside: bool,
+    /// Reported fulcrum, metres, robot base frame (when inside).
+    pub fulcrum_base_m: Option<Vector3<f64>>,
+}
+
+/// Scores of one run.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Score {
+    /// True insertions.
+    pub insertions: usize,
+    /// Insertions detected before the true extraction.
+    pub insertions_detected: usize,
+    /// Insertion delays, seconds.
+    pub insertion_delays_s: Vec<f64>,
+    /// True extractions.
+    pub extractions: usize,
+    /// Extractions detected before the next insertion.
+    pub extractions_detected: usize,
+    /// Extraction delays, seconds.
+    pub extraction_delays_s: Vec<f64>,
+    /// False detections (outside, or wrong trocar).
+    pub false_detections: usize,
+    /// Localisation error at each first detection, metres.
+    pub first_errors_m: Vec<f64>,
+    /// Root-mean-square localisation error over all inside/inside samples, metres.
+    pub rms_error_m: f64,
+    /// Sample indices of the false detections.
+    pub false_detection_samples: Vec<usize>,
+}
+
+/// Scores `detected` (one entry per sample of `scenario`). `wrong_trocar_m`: a fulcrum
+/// farther than this from the true pivot counts as a wrong trocar.
+pub fn score(scenario: &Scenario, detected: &[Detected], wrong_trocar_m: f64) -> Score {
+    let dt = scenario.config.sample_period_s;
+    let n = detected.len().min(scenario.truth.len());
+    let mut s = Score::default();
+    let mut sq = 0.0;
+    let mut sq_n = 0usize;
+    for i in 0..n {
+        let d = &detected[i];
+        let truth = &scenario.truth[i];
+        let prev_inside = i > 0 && detected[i - 1].inside;
+        if d.inside && !prev_inside {
+            let wrong = match (truth.state, truth.fulcrum_base_m, d.fulcrum_base_m) {
+                (TruthState::Inside { index }, Some(t), Some(f)) => {
+                    (f - t).norm() > wrong_trocar_m || nearest_trocar(scenario, &f) != Some(index)
+                }
+                _ => true,
+            };
+            if wrong {
+                s.false_detections += 1;
+                s.false_detection_samples.push(i);
+            }
+        }
+        if let (true, Some(t), Some(f)) = (d.inside, truth.fulcrum_base_m, d.fulcrum_base_m) {
+            sq += (f - t).norm_squared();
+            sq_n += 1;
+        }
+    }
+    s.rms_error_m = if sq_n > 0 { (sq / sq_n as f64).sqrt() } else { 0.0 };
+    let events = &scenario.events;
+    for (k, e) in events.iter().enumerate() {
+        let end = events.get(k + 1).map(|x| x.sample).unwrap_or(n).min(n);
+        if e.insertion {
+            s.insertions += 1;
+            if let Some(j) = (e.sample..end).find(|&j| detected[j].inside) {
+                s.insertions_detected += 1;
+                s.insertion_delays_s.push((j - e.sample) as f64 * dt);
+                if let (Some(t), Some(f)) = (scenario.truth[j].fulcrum_base_m, detected[j].fulcrum_base_m) {
+                    s.first_errors_m.push((f - t).norm());
+                }
+            }
+        } else {
+            s.extractions += 1;
+            if let Some(j) = (e.sample..end).find(|&j| !detected[j].inside) {
+                s.extractions_detected += 1;
+                s.extraction_delays_s.push((j - e.sample) as f64 * dt);
+            }
+        }
+    }
+    s
+}
+
+/// Index of the scenario's trocar nearest to `point` (nominal positions).
+pub fn nearest_trocar(scenario: &Scenario, point: &Vector3<f64>) -> Option<usize> {
+    scenario
+        .config
+        .trocars_base_m
+        .iter()
+        .enumerate()
+        .map(|(i, t)| (i, (Vector3::new(t[0], t[1], t[2]) - point).norm()))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i)
+}
+
+/// Mean of a slice (0 when empty).
+pub fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() { 0.0 } else { v.iter().sum::<f64>() / v.len() as f64 }
+}
+
+/// Quantile `q` in [0, 1] of a slice by nearest rank (0 when empty).
+pub fn quantile(v: &[f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mut w = v.to_vec();
+    w.sort_by(f64::total_cmp);
+    let idx = ((q * w.len() as f64).ceil() as usize).clamp(1, w.len()) - 1;
+    w[idx]
+}

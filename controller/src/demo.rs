@@ -2,7 +2,7 @@
 //! changes printed next to the ground truth.
 
 use estimator::trocar::{Detector, DetectorConfig, LineSample, TrocarState};
-use sim::scenario::{generate, ScenarioConfig};
+use sim::scenario::{ScenarioConfig, generate};
 use sim::score::{self, Detected, Score};
 
 /// A fulcrum farther than this from the true trocar (metres) is a wrong-trocar detection.

@@ -3,10 +3,10 @@
 //!
 //! `cargo bench -p estimator --bench detector_step`
 
-use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
+use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
 use estimator::kinematics::{Achilles, AchillesConfig};
 use estimator::trocar::{Detector, DetectorConfig, DetectorMode, FastConfig, LineSample};
-use sim::scenario::{generate, ScenarioConfig};
+use sim::scenario::{ScenarioConfig, generate};
 
 fn lines() -> Vec<LineSample> {
     let s = generate(&ScenarioConfig { seed: 3, cycles: 6, ..Default::default() });
@@ -48,7 +48,11 @@ fn bench_modes(c: &mut Criterion) {
 
     let arm = Achilles::new(&AchillesConfig::default()).unwrap();
     c.bench_function("forward_kinematics", |b| {
-        b.iter_batched(|| [0.1, 0.9, 0.4, 0.2, 0.3, 0.1], |q| arm.forward(std::hint::black_box(&q)), BatchSize::SmallInput)
+        b.iter_batched(
+            || [0.1, 0.9, 0.4, 0.2, 0.3, 0.1],
+            |q| arm.forward(std::hint::black_box(&q)),
+            BatchSize::SmallInput,
+        )
     });
 }
 

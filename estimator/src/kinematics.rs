@@ -300,10 +300,7 @@ mod tests {
 
     #[test]
     fn non_finite_joint_is_an_error() {
-        assert_eq!(
-            arm().forward(&[0.0, f64::NAN, 0.0, 0.0, 0.0, 0.0]),
-            Err(ForwardError::NonFiniteJoint { joint: 1 })
-        );
+        assert_eq!(arm().forward(&[0.0, f64::NAN, 0.0, 0.0, 0.0, 0.0]), Err(ForwardError::NonFiniteJoint { joint: 1 }));
     }
 
     #[test]

@@ -240,7 +240,10 @@ impl Builder<'_> {
                 let v = (u - 0.2) / 0.4;
                 let hold = w0 + (target_wrist - w0) * min_jerk(0.2);
                 wrist = hold;
-                axis = UnitQuaternion::from_axis_angle(&Unit::new_normalize(trap_axis), trap_amp * (2.0 * std::f64::consts::PI * v).sin()) * (q0.slerp(&q1, min_jerk(0.2)) * a0);
+                axis = UnitQuaternion::from_axis_angle(
+                    &Unit::new_normalize(trap_axis),
+                    trap_amp * (2.0 * std::f64::consts::PI * v).sin(),
+                ) * (q0.slerp(&q1, min_jerk(0.2)) * a0);
             } else if trap && u >= 0.6 {
                 let v = (u - 0.6) / 0.4;
                 let hold = w0 + (target_wrist - w0) * min_jerk(0.2);
@@ -361,7 +364,8 @@ pub fn generate(cfg: &ScenarioConfig) -> Scenario {
         // approach pose of the next trocar; the end of the approach is the insertion itself.
         let trocar = b.trocar_at(index, b.t + outside_s);
         let approach_wrist = trocar - entry * (l + approach_m);
-        let lift = Vector3::new(rng.random_range(-0.05..0.05), rng.random_range(-0.05..0.05), rng.random_range(0.05..0.10));
+        let lift =
+            Vector3::new(rng.random_range(-0.05..0.05), rng.random_range(-0.05..0.05), rng.random_range(0.05..0.10));
         let retreat_wrist = b.wrist + lift;
         let tilt = UnitQuaternion::from_scaled_axis(perpendicular(&b.axis) * rng.random_range(0.15..0.5));
         let retreat_axis = tilt * b.axis;

@@ -8,7 +8,7 @@ use std::cell::Cell;
 use estimator::kinematics::{Achilles, AchillesConfig};
 use estimator::trocar::{Detector, DetectorConfig, DetectorMode, FastConfig, LineSample};
 use nalgebra::Vector3;
-use sim::scenario::{generate, ScenarioConfig};
+use sim::scenario::{ScenarioConfig, generate};
 
 struct Counting;
 

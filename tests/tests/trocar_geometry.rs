@@ -94,7 +94,10 @@ fn parallel_lines_are_never_a_trocar() {
             // A wrist sliding sideways with a fixed axis (slightly noisy): nearly parallel lines.
             let t = k as f64 * 0.001;
             let wobble = Vector3::new(1e-5 * (7.0 * t).sin(), 1e-5 * (5.0 * t).cos(), 0.0);
-            let l = LineSample::new(Vector3::new(0.3 + 0.05 * (0.5 * t).sin(), 0.05 * (0.3 * t).cos(), 0.3), (axis + wobble).normalize());
+            let l = LineSample::new(
+                Vector3::new(0.3 + 0.05 * (0.5 * t).sin(), 0.05 * (0.3 * t).cos(), 0.3),
+                (axis + wobble).normalize(),
+            );
             let e = d.step(&l);
             assert_finite(&e);
             assert!(!e.state.is_inside(), "{mode:?} declared a trocar from parallel lines at {t} s");

@@ -6,8 +6,8 @@ mod common;
 use common::*;
 use estimator::trocar::{Detector, DetectorConfig, DetectorMode, FastConfig};
 use nalgebra::Vector3;
-use sim::scenario::{generate, ScenarioConfig};
-use sim::score::{score, Detected};
+use sim::scenario::{ScenarioConfig, generate};
+use sim::score::{Detected, score};
 
 struct Delays {
     insertion_s: Vec<f64>,
@@ -97,7 +97,10 @@ fn known_instrument_length_makes_axial_extraction_immediate() {
     }
     let tip_out_sample = pull_start + ((length - depth_at_end) / 0.0001).ceil() as usize - 1;
     for (length_known, must_detect) in [(Some(length), true), (None, false)] {
-        let cfg = DetectorConfig { fast: FastConfig { instrument_length_m: length_known, ..Default::default() }, ..Default::default() };
+        let cfg = DetectorConfig {
+            fast: FastConfig { instrument_length_m: length_known, ..Default::default() },
+            ..Default::default()
+        };
         let mut d = Detector::new(&cfg).unwrap();
         let mut out_at = None;
         for (i, l) in lines.iter().enumerate() {

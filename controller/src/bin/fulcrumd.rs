@@ -78,7 +78,10 @@ fn main() -> ExitCode {
             _ => println!("{:8.3} s  DETECTED  outside", c.t_s),
         },
         |t, trocar, insertion| {
-            println!("{t:8.3} s  truth     {} trocar {trocar}", if insertion { "inserted into" } else { "extracted from" })
+            println!(
+                "{t:8.3} s  truth     {} trocar {trocar}",
+                if insertion { "inserted into" } else { "extracted from" }
+            )
         },
     );
     let s = match result {

@@ -34,7 +34,12 @@ pub struct DetectorConfig {
 
 impl Default for DetectorConfig {
     fn default() -> Self {
-        Self { mode: DetectorMode::Fast, sample_period_s: 0.001, paper: PaperConfig::default(), fast: FastConfig::default() }
+        Self {
+            mode: DetectorMode::Fast,
+            sample_period_s: 0.001,
+            paper: PaperConfig::default(),
+            fast: FastConfig::default(),
+        }
     }
 }
 
@@ -207,22 +212,44 @@ impl PaperConfig {
         let m = self.window_short;
         let n = self.window_long;
         if m < 3 {
-            return Err(ConfigError::OutOfRange { key: "paper.window_short", value: m as f64, allowed: "3 ..= paper.window_long" });
+            return Err(ConfigError::OutOfRange {
+                key: "paper.window_short",
+                value: m as f64,
+                allowed: "3 ..= paper.window_long",
+            });
         }
         if n > WINDOW_CAPACITY {
-            return Err(ConfigError::OutOfRange { key: "paper.window_long", value: n as f64, allowed: "paper.window_short ..= 256 (compiled capacity)" });
+            return Err(ConfigError::OutOfRange {
+                key: "paper.window_long",
+                value: n as f64,
+                allowed: "paper.window_short ..= 256 (compiled capacity)",
+            });
         }
         at_least("paper.window_long", n as f64, "paper.window_short", m as f64)?;
         positive("paper.include_distance_m", self.include_distance_m, 1.0, "(0, 1] m")?;
         if !(self.include_angle_deg.is_finite() && self.include_angle_deg > 0.0 && self.include_angle_deg < 180.0) {
-            return Err(ConfigError::OutOfRange { key: "paper.include_angle_deg", value: self.include_angle_deg, allowed: "(0, 180) degrees" });
+            return Err(ConfigError::OutOfRange {
+                key: "paper.include_angle_deg",
+                value: self.include_angle_deg,
+                allowed: "(0, 180) degrees",
+            });
         }
         positive("paper.insert_max_residual_m", self.insert_max_residual_m, 1.0, "(0, 1] m")?;
         positive("paper.insert_min_depth_m", self.insert_min_depth_m, 2.0, "(0, 2] m")?;
         positive("paper.extract_residual_short_m", self.extract_residual_short_m, 1.0, "(0, 1] m")?;
         positive("paper.extract_residual_long_m", self.extract_residual_long_m, 1.0, "(0, 1] m")?;
-        at_least("paper.extract_residual_short_m", self.extract_residual_short_m, "paper.insert_max_residual_m", self.insert_max_residual_m)?;
-        at_least("paper.extract_residual_long_m", self.extract_residual_long_m, "paper.insert_max_residual_m", self.insert_max_residual_m)?;
+        at_least(
+            "paper.extract_residual_short_m",
+            self.extract_residual_short_m,
+            "paper.insert_max_residual_m",
+            self.insert_max_residual_m,
+        )?;
+        at_least(
+            "paper.extract_residual_long_m",
+            self.extract_residual_long_m,
+            "paper.insert_max_residual_m",
+            self.insert_max_residual_m,
+        )?;
         Ok(())
     }
 }
@@ -231,10 +258,18 @@ impl FastConfig {
     /// Checks every fast-mode key.
     pub fn validate(&self) -> Result<(), ConfigError> {
         if self.min_lines < 3 {
-            return Err(ConfigError::OutOfRange { key: "fast.min_lines", value: self.min_lines as f64, allowed: "3 ..= fast.window" });
+            return Err(ConfigError::OutOfRange {
+                key: "fast.min_lines",
+                value: self.min_lines as f64,
+                allowed: "3 ..= fast.window",
+            });
         }
         if self.window > WINDOW_CAPACITY {
-            return Err(ConfigError::OutOfRange { key: "fast.window", value: self.window as f64, allowed: "fast.min_lines ..= 256 (compiled capacity)" });
+            return Err(ConfigError::OutOfRange {
+                key: "fast.window",
+                value: self.window as f64,
+                allowed: "fast.min_lines ..= 256 (compiled capacity)",
+            });
         }
         at_least("fast.window", self.window as f64, "fast.min_lines", self.min_lines as f64)?;
         positive("fast.include_distance_m", self.include_distance_m, 0.1, "(0, 0.1] m")?;
@@ -244,14 +279,22 @@ impl FastConfig {
         positive("fast.consistency_rms_m", self.consistency_rms_m, 0.1, "(0, 0.1] m")?;
         positive("fast.insert_min_depth_m", self.insert_min_depth_m, 2.0, "(0, 2] m")?;
         if !(self.min_persistence_s.is_finite() && (0.0..=10.0).contains(&self.min_persistence_s)) {
-            return Err(ConfigError::OutOfRange { key: "fast.min_persistence_s", value: self.min_persistence_s, allowed: "[0, 10] s" });
+            return Err(ConfigError::OutOfRange {
+                key: "fast.min_persistence_s",
+                value: self.min_persistence_s,
+                allowed: "[0, 10] s",
+            });
         }
         positive("fast.break_gate_m", self.break_gate_m, 0.5, "(0, 0.5] m")?;
         positive("fast.extract_gate_m", self.extract_gate_m, 0.5, "(0, 0.5] m")?;
         at_least("fast.break_gate_m", self.break_gate_m, "fast.consistency_rms_m", self.consistency_rms_m)?;
         at_least("fast.extract_gate_m", self.extract_gate_m, "fast.consistency_rms_m", self.consistency_rms_m)?;
         if !(self.extract_persistence_s.is_finite() && (0.0..=10.0).contains(&self.extract_persistence_s)) {
-            return Err(ConfigError::OutOfRange { key: "fast.extract_persistence_s", value: self.extract_persistence_s, allowed: "[0, 10] s" });
+            return Err(ConfigError::OutOfRange {
+                key: "fast.extract_persistence_s",
+                value: self.extract_persistence_s,
+                allowed: "[0, 10] s",
+            });
         }
         if let Some(l) = self.instrument_length_m {
             positive("fast.instrument_length_m", l, 2.0, "(0, 2] m")?;
@@ -260,11 +303,19 @@ impl FastConfig {
         positive("fast.tip_margin_m", self.tip_margin_m, 0.1, "(0, 0.1] m")?;
         positive("fast.memory_gate_m", self.memory_gate_m, 0.1, "(0, 0.1] m")?;
         if !(self.memory_persistence_s.is_finite() && (0.0..=10.0).contains(&self.memory_persistence_s)) {
-            return Err(ConfigError::OutOfRange { key: "fast.memory_persistence_s", value: self.memory_persistence_s, allowed: "[0, 10] s" });
+            return Err(ConfigError::OutOfRange {
+                key: "fast.memory_persistence_s",
+                value: self.memory_persistence_s,
+                allowed: "[0, 10] s",
+            });
         }
         positive("fast.memory_merge_m", self.memory_merge_m, 0.5, "(0, 0.5] m")?;
         if self.rebuild_every == 0 {
-            return Err(ConfigError::OutOfRange { key: "fast.rebuild_every", value: 0.0, allowed: "1 ..= 4294967295 updates" });
+            return Err(ConfigError::OutOfRange {
+                key: "fast.rebuild_every",
+                value: 0.0,
+                allowed: "1 ..= 4294967295 updates",
+            });
         }
         Ok(())
     }

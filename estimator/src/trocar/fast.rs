@@ -37,7 +37,7 @@ use nalgebra::Vector3;
 
 use super::config::{ConfigError, FastConfig};
 use super::lsq::{self, LsFit, NormalSums};
-use super::{differs_enough, Estimate, FitSummary, LineSample, TrocarState, MEMORY_CAPACITY, WINDOW_CAPACITY};
+use super::{Estimate, FitSummary, LineSample, MEMORY_CAPACITY, TrocarState, WINDOW_CAPACITY, differs_enough};
 
 /// Numerical guard on `λ_min/q` for the solve itself (the real gate is `insert_max_std_m`).
 const MIN_CONDITIONING: f64 = 1e-9;
@@ -107,7 +107,11 @@ impl FastDetector {
     pub fn new(cfg: &FastConfig, sample_period_s: f64) -> Result<Self, ConfigError> {
         cfg.validate()?;
         if !(sample_period_s.is_finite() && sample_period_s > 0.0 && sample_period_s <= 1.0) {
-            return Err(ConfigError::OutOfRange { key: "sample_period_s", value: sample_period_s, allowed: "(0, 1] s" });
+            return Err(ConfigError::OutOfRange {
+                key: "sample_period_s",
+                value: sample_period_s,
+                allowed: "(0, 1] s",
+            });
         }
         Ok(Self {
             cfg: *cfg,

@@ -182,11 +182,15 @@ impl NormalSums {
         let lambda_min = eig.eigenvalues[i_min];
         let conditioning = lambda_min / q;
         if !conditioning.is_finite() || conditioning < min_conditioning || lambda_min <= 0.0 {
-            return Err(SolveError::IllConditioned { conditioning: if conditioning.is_finite() { conditioning } else { 0.0 }, gate: min_conditioning });
+            return Err(SolveError::IllConditioned {
+                conditioning: if conditioning.is_finite() { conditioning } else { 0.0 },
+                gate: min_conditioning,
+            });
         }
         // F = V Λ⁻¹ Vᵀ b
         let vt_b = eig.eigenvectors.transpose() * self.b;
-        let scaled = Vector3::new(vt_b[0] / eig.eigenvalues[0], vt_b[1] / eig.eigenvalues[1], vt_b[2] / eig.eigenvalues[2]);
+        let scaled =
+            Vector3::new(vt_b[0] / eig.eigenvalues[0], vt_b[1] / eig.eigenvalues[1], vt_b[2] / eig.eigenvalues[2]);
         let f = eig.eigenvectors * scaled;
         let ssr = (self.c - self.b.dot(&f)).max(0.0);
         if !(f.iter().all(|x| x.is_finite()) && ssr.is_finite()) {

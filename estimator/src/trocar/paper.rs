@@ -25,7 +25,7 @@ use nalgebra::Vector3;
 
 use super::config::{ConfigError, PaperConfig};
 use super::lsq::{self, LsFit, NormalSums};
-use super::{differs_enough, Estimate, FitSummary, LineSample, TrocarState, WINDOW_CAPACITY};
+use super::{Estimate, FitSummary, LineSample, TrocarState, WINDOW_CAPACITY, differs_enough};
 
 /// Numerical guard on `λ_min(AᵀA)/q` (choice 3 above).
 const PAPER_MIN_CONDITIONING: f64 = 1e-9;

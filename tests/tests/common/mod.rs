@@ -27,7 +27,12 @@ pub enum Phase {
 /// A scripted sequence: `cycles` × (free motion `outside_s`, pivoting about a trocar for
 /// `inside_s`), at 1 kHz. Returns the lines, the phase of each sample and the trocar of each
 /// inside sample.
-pub fn scripted(trocars: &[Vector3<f64>], cycles: usize, outside_s: f64, inside_s: f64) -> (Vec<LineSample>, Vec<Phase>, Vec<Vector3<f64>>) {
+pub fn scripted(
+    trocars: &[Vector3<f64>],
+    cycles: usize,
+    outside_s: f64,
+    inside_s: f64,
+) -> (Vec<LineSample>, Vec<Phase>, Vec<Vector3<f64>>) {
     let mut lines = Vec::new();
     let mut phases = Vec::new();
     let mut fulcrums = Vec::new();

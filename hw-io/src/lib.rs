@@ -2,4 +2,16 @@
 //!
 //! CAN frames and bus backends, shared-memory messages and files. Typed errors for every
 //! malformed input; nothing here panics on any byte pattern.
+//!
+//! ## Modules
+//! - [`can`]: the encoder bus. Our own allocation-free [`can::CanFrame`], the CANopen-style
+//!   protocol (SYNC every 1 ms, one TPDO1 per encoder node, heartbeat, EMCY; see
+//!   `docs/can-protocol.md`), encoder counts to radians, and the bus backends behind the
+//!   one trait [`can::CanBus`]: Linux SocketCAN, an in-process bus, candump-log replay.
+//!
+//! Units: times are microseconds since the Unix epoch (`unix_time_us`) or
+//! [`std::time::Duration`]s; joint positions on the bus are encoder counts, and radians
+//! after [`can::EncoderConfig::counts_to_rad`].
 #![warn(missing_docs)]
+
+pub mod can;

@@ -117,11 +117,7 @@ impl JointAssembler {
 
     /// Take one node's two joint readings, counts, into the current cycle.
     pub fn accept_tpdo(&mut self, node: NodeId, counts: [i32; 2]) -> Result<(), AcceptError> {
-        let slot = self
-            .nodes
-            .iter()
-            .position(|&n| n == node)
-            .ok_or(AcceptError::UnknownNode { node })?;
+        let slot = self.nodes.iter().position(|&n| n == node).ok_or(AcceptError::UnknownNode { node })?;
         let first = slot * JOINTS_PER_NODE;
         self.counts[first..first + JOINTS_PER_NODE].copy_from_slice(&counts);
         let bit = 1u8 << slot;

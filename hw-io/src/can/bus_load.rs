@@ -47,8 +47,7 @@ pub const fn worst_case_frame_bits(dlc: u8) -> u32 {
 /// heartbeats averaged over their 100 ms period.
 pub fn encoder_bus_worst_case_bits_per_period(nodes: u32) -> f64 {
     let cyclic = worst_case_frame_bits(SYNC_DLC) + nodes * worst_case_frame_bits(TPDO_DLC);
-    let heartbeats = f64::from(nodes * worst_case_frame_bits(HEARTBEAT_DLC))
-        * f64::from(SYNC_PERIOD_US)
+    let heartbeats = f64::from(nodes * worst_case_frame_bits(HEARTBEAT_DLC)) * f64::from(SYNC_PERIOD_US)
         / f64::from(HEARTBEAT_PERIOD_US);
     f64::from(cyclic) + heartbeats
 }

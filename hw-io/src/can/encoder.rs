@@ -96,8 +96,8 @@ impl JointEncoder {
         if !rad.is_finite() {
             return Err(ToCountsError::NotFinite { rad });
         }
-        let counts = (self.sign_f64() * rad * self.counts_per_rev_f64() / TAU).round()
-            + f64::from(self.zero_offset_counts);
+        let counts =
+            (self.sign_f64() * rad * self.counts_per_rev_f64() / TAU).round() + f64::from(self.zero_offset_counts);
         if counts < f64::from(i32::MIN) || counts > f64::from(i32::MAX) {
             return Err(ToCountsError::OutOfRange { rad });
         }
@@ -205,9 +205,7 @@ impl EncoderConfig {
     pub fn rad_to_counts(&self, rad: &[f64; JOINTS]) -> Result<[i32; JOINTS], JointToCountsError> {
         let mut out = [0i32; JOINTS];
         for (joint, (o, r)) in out.iter_mut().zip(rad).enumerate() {
-            *o = self.joints[joint]
-                .rad_to_counts(*r)
-                .map_err(|error| JointToCountsError { joint, error })?;
+            *o = self.joints[joint].rad_to_counts(*r).map_err(|error| JointToCountsError { joint, error })?;
         }
         Ok(out)
     }

@@ -113,13 +113,7 @@ impl CanFrame {
     /// `id` is 11 bits when `extended` is false, else 29 bits; `dlc` is 0..=8 bytes.
     /// Data bytes at and beyond `dlc` (and all bytes of a remote frame) are ignored and
     /// stored as zero.
-    pub fn from_parts(
-        id: u32,
-        extended: bool,
-        remote: bool,
-        dlc: u8,
-        data: [u8; 8],
-    ) -> Result<Self, FrameError> {
+    pub fn from_parts(id: u32, extended: bool, remote: bool, dlc: u8, data: [u8; 8]) -> Result<Self, FrameError> {
         let id = if extended {
             CanId::Extended(id)
         } else {
@@ -199,9 +193,7 @@ impl core::fmt::Debug for CanFrame {
 
 fn check_id(id: CanId) -> Result<(), FrameError> {
     match id {
-        CanId::Standard(id) if id > MAX_STANDARD_ID => {
-            Err(FrameError::StandardIdTooLarge { id: u32::from(id) })
-        }
+        CanId::Standard(id) if id > MAX_STANDARD_ID => Err(FrameError::StandardIdTooLarge { id: u32::from(id) }),
         CanId::Extended(id) if id > MAX_EXTENDED_ID => Err(FrameError::ExtendedIdTooLarge { id }),
         _ => Ok(()),
     }
@@ -226,9 +218,7 @@ pub fn unix_time_now_us() -> u64 {
 /// A `SystemTime` as microseconds since the Unix epoch (0 before the epoch, saturating
 /// at `u64::MAX`).
 pub fn system_time_to_unix_us(t: std::time::SystemTime) -> u64 {
-    t.duration_since(std::time::UNIX_EPOCH)
-        .map(|d| u64::try_from(d.as_micros()).unwrap_or(u64::MAX))
-        .unwrap_or(0)
+    t.duration_since(std::time::UNIX_EPOCH).map(|d| u64::try_from(d.as_micros()).unwrap_or(u64::MAX)).unwrap_or(0)
 }
 
 #[cfg(test)]
@@ -238,15 +228,9 @@ mod tests {
     #[test]
     fn ids_are_range_checked() {
         assert!(CanFrame::new_standard(0x7FF, &[]).is_ok());
-        assert_eq!(
-            CanFrame::new_standard(0x800, &[]),
-            Err(FrameError::StandardIdTooLarge { id: 0x800 })
-        );
+        assert_eq!(CanFrame::new_standard(0x800, &[]), Err(FrameError::StandardIdTooLarge { id: 0x800 }));
         assert!(CanFrame::new_extended(0x1FFF_FFFF, &[]).is_ok());
-        assert_eq!(
-            CanFrame::new_extended(0x2000_0000, &[]),
-            Err(FrameError::ExtendedIdTooLarge { id: 0x2000_0000 })
-        );
+        assert_eq!(CanFrame::new_extended(0x2000_0000, &[]), Err(FrameError::ExtendedIdTooLarge { id: 0x2000_0000 }));
         assert_eq!(
             CanFrame::from_parts(0x1_0000, false, false, 0, [0; 8]),
             Err(FrameError::StandardIdTooLarge { id: 0x1_0000 })
@@ -256,10 +240,7 @@ mod tests {
     #[test]
     fn dlc_is_limited_and_padding_is_zero() {
         assert_eq!(CanFrame::new_standard(1, &[0; 9]), Err(FrameError::TooLong { len: 9 }));
-        assert_eq!(
-            CanFrame::from_parts(1, false, false, 9, [0; 8]),
-            Err(FrameError::TooLong { len: 9 })
-        );
+        assert_eq!(CanFrame::from_parts(1, false, false, 9, [0; 8]), Err(FrameError::TooLong { len: 9 }));
         let a = CanFrame::from_parts(1, false, false, 2, [1, 2, 3, 4, 5, 6, 7, 8]).unwrap();
         let b = CanFrame::new_standard(1, &[1, 2]).unwrap();
         assert_eq!(a, b);

@@ -163,8 +163,7 @@ impl InProcessBus {
     /// slot.
     pub fn endpoint(&self) -> Result<InProcessEndpoint, EndpointError> {
         for (index, port) in self.shared.ports.iter().enumerate() {
-            if port.in_use.compare_exchange(false, true, Ordering::AcqRel, Ordering::Acquire).is_ok()
-            {
+            if port.in_use.compare_exchange(false, true, Ordering::AcqRel, Ordering::Acquire).is_ok() {
                 lock(&port.queue).clear();
                 port.dropped.store(0, Ordering::Relaxed);
                 return Ok(InProcessEndpoint { shared: Arc::clone(&self.shared), index });
@@ -254,10 +253,7 @@ impl CanBus for InProcessEndpoint {
                     if now >= deadline {
                         return Ok(None);
                     }
-                    port.ready
-                        .wait_timeout(queue, deadline - now)
-                        .unwrap_or_else(PoisonError::into_inner)
-                        .0
+                    port.ready.wait_timeout(queue, deadline - now).unwrap_or_else(PoisonError::into_inner).0
                 }
             };
             if let Some(f) = queue.pop() {

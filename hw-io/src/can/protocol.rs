@@ -256,11 +256,7 @@ impl Message {
         }
         let d = frame.data_padded();
         let expect_dlc = |expected: u8| {
-            if frame.dlc() == expected {
-                Ok(())
-            } else {
-                Err(DecodeError::WrongDlc { id, expected, got: frame.dlc() })
-            }
+            if frame.dlc() == expected { Ok(()) } else { Err(DecodeError::WrongDlc { id, expected, got: frame.dlc() }) }
         };
         // Function code = upper 4 bits of the 11-bit COB-ID; node = lower 7 bits.
         let function = id & 0x780;
@@ -295,8 +291,7 @@ impl Message {
             }
             (0x700, Some(node)) => {
                 expect_dlc(HEARTBEAT_DLC)?;
-                let state = NmtState::from_byte(d[0])
-                    .ok_or(DecodeError::UnknownNmtState { node, state: d[0] })?;
+                let state = NmtState::from_byte(d[0]).ok_or(DecodeError::UnknownNmtState { node, state: d[0] })?;
                 Ok(Message::Heartbeat { node, state })
             }
             _ => Err(DecodeError::UnknownId { id }),
@@ -329,18 +324,13 @@ mod tests {
         assert_eq!(f.id(), CanId::Standard(0x183));
         assert_eq!(f.data(), &[1, 2, 3, 4, 0xFE, 0xFF, 0xFF, 0xFF]);
 
-        let f = Message::Heartbeat { node: node(1), state: NmtState::Operational }
-            .encode()
-            .unwrap();
+        let f = Message::Heartbeat { node: node(1), state: NmtState::Operational }.encode().unwrap();
         assert_eq!((f.id(), f.data()), (CanId::Standard(0x701), &[0x05u8][..]));
-        let f = Message::Heartbeat { node: node(2), state: NmtState::PreOperational }
-            .encode()
-            .unwrap();
+        let f = Message::Heartbeat { node: node(2), state: NmtState::PreOperational }.encode().unwrap();
         assert_eq!((f.id(), f.data()), (CanId::Standard(0x702), &[0x7Fu8][..]));
 
-        let f = Message::Emcy { node: node(2), code: 0x7305, register: 0x81, vendor: [1, 2, 3, 4, 5] }
-            .encode()
-            .unwrap();
+        let f =
+            Message::Emcy { node: node(2), code: 0x7305, register: 0x81, vendor: [1, 2, 3, 4, 5] }.encode().unwrap();
         assert_eq!(f.id(), CanId::Standard(0x082));
         assert_eq!(f.data(), &[0x05, 0x73, 0x81, 1, 2, 3, 4, 5]);
     }
@@ -363,20 +353,11 @@ mod tests {
 
     #[test]
     fn sync_counter_range_is_enforced_both_ways() {
-        assert_eq!(
-            Message::Sync { counter: 0 }.encode(),
-            Err(EncodeError::SyncCounterOutOfRange { counter: 0 })
-        );
-        assert_eq!(
-            Message::Sync { counter: 241 }.encode(),
-            Err(EncodeError::SyncCounterOutOfRange { counter: 241 })
-        );
+        assert_eq!(Message::Sync { counter: 0 }.encode(), Err(EncodeError::SyncCounterOutOfRange { counter: 0 }));
+        assert_eq!(Message::Sync { counter: 241 }.encode(), Err(EncodeError::SyncCounterOutOfRange { counter: 241 }));
         for bad in [0u8, 241, 255] {
             let f = CanFrame::new_standard(0x080, &[bad]).unwrap();
-            assert_eq!(
-                Message::decode(&f),
-                Err(DecodeError::SyncCounterOutOfRange { counter: bad })
-            );
+            assert_eq!(Message::decode(&f), Err(DecodeError::SyncCounterOutOfRange { counter: bad }));
         }
     }
 
@@ -411,9 +392,6 @@ mod tests {
     #[test]
     fn unknown_nmt_state_is_reported() {
         let f = CanFrame::new_standard(0x703, &[0x06]).unwrap();
-        assert_eq!(
-            Message::decode(&f),
-            Err(DecodeError::UnknownNmtState { node: node(3), state: 0x06 })
-        );
+        assert_eq!(Message::decode(&f), Err(DecodeError::UnknownNmtState { node: node(3), state: 0x06 }));
     }
 }

@@ -70,12 +70,9 @@ pub struct SocketCanBus {
 impl SocketCanBus {
     /// Open `interface` and enable kernel receive timestamps.
     pub fn open(interface: &str) -> Result<Self, OpenError> {
-        let socket = socketcan::CanSocket::open(interface)
-            .map_err(|e| classify_open_error(interface, e, kernel_lacks_can))?;
-        socket.set_recv_timestamp(true).map_err(|source| OpenError::Io {
-            interface: interface.to_owned(),
-            source,
-        })?;
+        let socket =
+            socketcan::CanSocket::open(interface).map_err(|e| classify_open_error(interface, e, kernel_lacks_can))?;
+        socket.set_recv_timestamp(true).map_err(|source| OpenError::Io { interface: interface.to_owned(), source })?;
         Ok(Self { socket, interface: interface.to_owned() })
     }
 
@@ -90,11 +87,11 @@ impl SocketCanBus {
     }
 }
 
-/// `true` if creating an `AF_CAN` socket fails with `EAFNOSUPPORT`.
-fn kernel_lacks_can() -> bool {
+/// The error of creating an `AF_CAN` socket, if that fails with `EAFNOSUPPORT`.
+fn kernel_lacks_can() -> Option<io::Error> {
     // Interface index 0 binds a raw socket to all CAN interfaces; only the socket() call
     // matters here.
-    matches!(socketcan::CanSocket::open_iface(0), Err(e) if is_no_can(&e))
+    socketcan::CanSocket::open_iface(0).err().filter(is_no_can)
 }
 
 fn is_no_can(e: &io::Error) -> bool {
@@ -103,24 +100,22 @@ fn is_no_can(e: &io::Error) -> bool {
 
 /// Map an error of `CanSocket::open` to an [`OpenError`]. An unknown interface name
 /// (`ENODEV`) is looked at twice: on a kernel without CAN there cannot be a CAN interface,
-/// and "no kernel support" is the useful message.
+/// and "no kernel support" is the useful message. `kernel_lacks_can` returns the
+/// `EAFNOSUPPORT` error of a probe socket, or `None` if the kernel has CAN.
 pub(crate) fn classify_open_error(
     interface: &str,
     source: io::Error,
-    kernel_lacks_can: impl FnOnce() -> bool,
+    kernel_lacks_can: impl FnOnce() -> Option<io::Error>,
 ) -> OpenError {
     let interface = interface.to_owned();
     if is_no_can(&source) {
         return OpenError::NoKernelCan { interface, source };
     }
     match source.raw_os_error() {
-        Some(c) if c == Errno::ENODEV as i32 || c == Errno::ENXIO as i32 => {
-            if kernel_lacks_can() {
-                OpenError::NoKernelCan { interface, source }
-            } else {
-                OpenError::NoSuchInterface { interface, source }
-            }
-        }
+        Some(c) if c == Errno::ENODEV as i32 || c == Errno::ENXIO as i32 => match kernel_lacks_can() {
+            Some(probe) => OpenError::NoKernelCan { interface, source: probe },
+            None => OpenError::NoSuchInterface { interface, source },
+        },
         _ => OpenError::Io { interface, source },
     }
 }
@@ -177,9 +172,8 @@ pub(crate) fn from_socketcan(f: &socketcan::CanFrame) -> Result<CanFrame, RecvEr
 
 impl CanBus for SocketCanBus {
     fn send(&mut self, frame: &CanFrame) -> Result<(), SendError> {
-        let f = to_socketcan(frame).ok_or_else(|| {
-            SendError::Io(io::Error::new(io::ErrorKind::InvalidInput, "CAN identifier out of range"))
-        })?;
+        let f = to_socketcan(frame)
+            .ok_or_else(|| SendError::Io(io::Error::new(io::ErrorKind::InvalidInput, "CAN identifier out of range")))?;
         self.socket.write_frame(&f).map_err(send_error)
     }
 
@@ -220,12 +214,14 @@ mod tests {
 
     #[test]
     fn enodev_is_classified_by_probing_the_kernel() {
-        let e = classify_open_error("vcan9", os_err(Errno::ENODEV), || true);
-        assert!(matches!(e, OpenError::NoKernelCan { .. }));
-        let e = classify_open_error("vcan9", os_err(Errno::ENODEV), || false);
+        let e = classify_open_error("vcan9", os_err(Errno::ENODEV), || Some(os_err(Errno::EAFNOSUPPORT)));
+        assert!(
+            matches!(&e, OpenError::NoKernelCan { source, .. } if source.raw_os_error() == Some(Errno::EAFNOSUPPORT as i32))
+        );
+        let e = classify_open_error("vcan9", os_err(Errno::ENODEV), || None);
         assert!(matches!(e, OpenError::NoSuchInterface { .. }));
         assert!(e.to_string().contains("ip link add dev vcan9 type vcan"));
-        let e = classify_open_error("vcan9", os_err(Errno::EPERM), || false);
+        let e = classify_open_error("vcan9", os_err(Errno::EPERM), || None);
         assert!(matches!(e, OpenError::Io { .. }));
     }
 
@@ -252,9 +248,7 @@ mod tests {
             let s = to_socketcan(&f).unwrap();
             assert_eq!(from_socketcan(&s).unwrap(), f);
         }
-        let err = socketcan::CanFrame::Error(
-            socketcan::CanErrorFrame::new_error(0x0000_0040, &[0; 8]).unwrap(),
-        );
+        let err = socketcan::CanFrame::Error(socketcan::CanErrorFrame::new_error(0x0000_0040, &[0; 8]).unwrap());
         assert!(matches!(from_socketcan(&err), Err(RecvError::ErrorFrame(w)) if w & 0x40 != 0));
     }
 }

@@ -278,8 +278,8 @@ mod tests {
 
     #[test]
     fn full_reach_is_upper_arm_plus_forearm() {
-        // Elbow straight: q3 = -90° aligns the forearm with the upper arm.
-        let pose = arm().forward(&[0.0, 0.0, -FRAC_PI_2, 0.0, 0.0, 0.0]).unwrap();
+        // Elbow straight: q3 = +90° aligns the forearm with the upper arm (at q3 = 0 it hangs down).
+        let pose = arm().forward(&[0.0, 0.0, FRAC_PI_2, 0.0, 0.0, 0.0]).unwrap();
         let shoulder = Vector3::new(0.0, 0.0, 0.35);
         assert!(((pose.wrist_base_m - shoulder).norm() - 0.60).abs() < 1e-12, "{}", pose.wrist_base_m);
     }

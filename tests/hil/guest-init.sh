@@ -1,179 +1,154 @@
 #!/bin/bash
 # guest-init.sh: PID 1 inside the user-mode-linux (UML) guest started by run-in-vcan.sh.
 #
-# Do not run this on the host. run-in-vcan.sh copies it into the per-run results directory
-# (so that it is executable whatever the checkout's file modes are) and boots
-#   linux.uml ... rootfstype=hostfs rootflags=/ ro init=<results dir>/init HIL_RESULTS_HOST=<results dir>
+# Do not run this on the host. run-in-vcan.sh copies it into the per-run results directory R (so it
+# is executable whatever the checkout's file modes are), prepares the files it reads there, and boots
+#   linux.uml ... rootfstype=hostfs rootflags=/ ro init=R/init HIL_RESULTS_HOST=R
+# (unknown key=value kernel parameters become init's environment).
 #
-# The guest sees the host's root filesystem read-only through hostfs. This script:
-#   1. mounts proc, sysfs, devtmpfs extras (/dev/fd, /dev/shm, /dev/pts, /dev/mqueue) and a tmpfs on /run;
-#   2. mounts the host results directory read-write (hostfs) on /run/hil: this is the only channel
-#      back to the host (stdout, stderr, exit code, timings);
-#   3. gives /tmp and /var/tmp (and any HIL_OVERLAY_DIRS) a private writable view: an overlay whose
-#      lower layer is the host directory (so host-built files there stay visible) and whose upper
-#      layer is a tmpfs (so writes stay inside this VM and vanish when it halts);
-#   4. mounts the --rw directories read-write (hostfs, writes go straight to the host);
-#   5. insmods can, can-raw, can-dev, vcan (and overlay), brings up lo and the vcan interfaces;
-#   6. runs the command (launch.sh: caller's environment, caller's cwd) under `timeout`, with its
-#      stdout/stderr appended to /run/hil/stdout and /run/hil/stderr;
-#   7. writes the exit code to /run/hil/rc (atomically: rc.tmp then mv), syncs and powers off.
+# The guest sees the host root filesystem read-only through hostfs. Files prepared by the host in R:
+#   params.sh    HIL_TIMEOUT, HIL_CWD, HIL_HOSTNAME, HIL_OVERLAY_DIRS, HIL_RW_DIRS, HIL_IFACES_LIST, ...
+#   skel/dev     /dev/fd, /dev/std{in,out,err} links and the /dev/shm, /dev/pts, /dev/mqueue dirs
+#   fstab.base   proc, sysfs, devpts, mqueue, tmpfs on /dev/shm and on /run
+#   skel/run     /run/hil (results mount point), overlay upper/work dirs (mode/owner of the host
+#                dirs), /run/hil-mods/lib/modules -> /usr/lib/uml/modules (a modprobe root)
+#   fstab.hil    hostfs R on /run/hil (read-write), the overlays, the --rw hostfs mounts
+#   ip.batch     lo up, `link add dev vcanN type vcan`, `link set dev vcanN up`
+#   env.sh       the caller's exported environment; argv: the command, NUL-separated
+# and it reads back: stdout, stderr, rc (exit code), t_init_start/t_cmd_start/t_cmd_end (timestamps),
+# setup-error (why setup failed). The guest writes them through the read-write hostfs mount /run/hil.
 #
-# Error policy: this script never exits (PID 1 exiting panics the kernel). Any setup failure is written
-# to /run/hil/setup-error (when that mount exists) and on the console, NO rc file is written, and the
-# guest powers off. The host then reports a harness failure (exit 125); a failure is never a skip.
+# Why batches (cp -a of a skeleton, mount -a, modprobe -a, ip -batch): every exec costs about 50 ms
+# under UML (each guest process is a ptraced host process), so 30 separate commands cost 1.5 s.
 #
-# Note: deliberately no `set -e` here: errors are handled explicitly so the guest always reaches poweroff.
+# Error policy: this script never exits (PID 1 exiting panics the kernel). A setup failure is written
+# to /run/hil/setup-error (when that mount exists) and to the console (R/boot.log), NO rc file is
+# written, and the guest powers off; the host then fails with 125. A failure is never a skip.
+#
+# Deliberately no `set -e`: errors are handled explicitly so that the guest always powers off.
 set -uo pipefail
+shopt -s nullglob
+T_INIT=$EPOCHREALTIME   # when the kernel handed over to us; written to t_init_start below
 
 export PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
 umask 022
 
-# Where the host results dir is mounted read-write inside the guest.
-readonly G=/run/hil
+readonly G=/run/hil                          # the results dir, read-write, inside the guest
+HOST_R=${HIL_RESULTS_HOST:-${0%/*}}          # the results dir's host path (readable via the ro root)
 
-# The host path of the results dir: passed on the kernel command line (unknown key=value parameters
-# become init's environment), or else the directory this script was started from.
-HOST_R=${HIL_RESULTS_HOST:-$(dirname -- "$0")}
+say() { echo "[hil-guest] $*"; }   # PID 1's stdout is the UML console -> R/boot.log on the host
 
-say() { echo "[hil-guest] $*"; }   # stdout of PID 1 is the UML console -> host's boot.log
-
-# Write time stamps with bash's own clock (no fork): seconds.micros since the epoch.
+# Timestamp files with bash's own clock (no fork): seconds.micros since the epoch. UML takes its
+# wall clock from the host's, so these compare with host time stamps.
 stamp() { echo "${EPOCHREALTIME}" > "$G/$1" 2>/dev/null || true; }
 
-poweroff_now() {
-    sync
-    umount "$G" 2>/dev/null || true
-    sync
-    # reboot(LINUX_REBOOT_MAGIC1, LINUX_REBOOT_MAGIC2, LINUX_REBOOT_CMD_POWER_OFF); syscall 169 on x86_64.
-    # perl-base is Essential in Debian; systemd's /sbin/poweroff would try to talk to a manager that
-    # is not running here.
-    perl -e 'syscall(169, 0xfee1dead, 672274793, 0x4321fedc)' 2>/dev/null
-    # Fallback: magic SysRq "o" (power off).
-    echo o > /proc/sysrq-trigger 2>/dev/null
-    # Last resort: wait; the host's watchdog kills the VM.
-    while :; do sleep 60; done
+# mounted PATH: is PATH a mount point? (reads /proc/mounts with builtins only)
+mounted() {
+    local _dev mnt _rest
+    while read -r _dev mnt _rest; do [[ $mnt == "$1" ]] && return 0; done < /proc/mounts
+    return 1
 }
 
-# A setup step failed: record why (host prints it), never write rc, power off.
+poweroff_now() {
+    # hostfs writes through to the host at write() time; sync anyway for anything else.
+    sync
+    # reboot(MAGIC1, MAGIC2, LINUX_REBOOT_CMD_POWER_OFF); 169 = reboot on x86_64. perl-base is
+    # Essential in Debian; /sbin/poweroff here is systemctl, which wants a running systemd.
+    perl -e 'syscall(169, 0xfee1dead, 672274793, 0x4321fedc)' 2>/dev/null
+    echo o > /proc/sysrq-trigger 2>/dev/null     # fallback: magic SysRq power-off
+    while :; do sleep 60; done                   # last resort: the host watchdog kills the VM
+}
+
+# A setup step failed: record why, never write rc, power off.
 fatal() {
     say "SETUP FAILED: $*"
-    if mountpoint -q "$G" 2>/dev/null; then
-        echo "$*" >> "$G/setup-error"
-    fi
+    mounted "$G" 2>/dev/null && echo "$*" >> "$G/setup-error"
     poweroff_now
 }
 
-# Parameters generated by the host (HIL_IFACES_LIST, HIL_TIMEOUT, HIL_CWD, HIL_OVERLAY_DIRS,
-# HIL_RW_DIRS, HIL_HOSTNAME, HIL_MODULES_DIR, HIL_KILL_AFTER). Read through the read-only root.
 # shellcheck source=/dev/null
 source "$HOST_R/params.sh" || fatal "cannot read $HOST_R/params.sh"
 
-# --- 1. basic mounts ---------------------------------------------------------------------------------
-mount -t proc proc /proc || fatal "mount /proc"
-mount -t sysfs sysfs /sys || fatal "mount /sys"
-# CONFIG_DEVTMPFS_MOUNT=y normally mounts /dev already; do it if not.
-mountpoint -q /dev || mount -t devtmpfs devtmpfs /dev || fatal "mount /dev"
-# devtmpfs has no /dev/fd & co.; bash process substitution and many tools need them.
-ln -sfn /proc/self/fd /dev/fd
-ln -sfn /proc/self/fd/0 /dev/stdin
-ln -sfn /proc/self/fd/1 /dev/stdout
-ln -sfn /proc/self/fd/2 /dev/stderr
-mkdir -p /dev/shm /dev/pts /dev/mqueue
-# /dev/shm must be writable (iceoryx2 and POSIX shm_open live there).
-mount -t tmpfs -o mode=1777,nosuid,nodev shm /dev/shm || fatal "mount tmpfs on /dev/shm"
-mount -t devpts -o gid=5,mode=620,ptmxmode=666 devpts /dev/pts 2>/dev/null || say "warning: no devpts"
-mount -t mqueue mqueue /dev/mqueue 2>/dev/null || say "warning: no mqueue fs"
-# /run: private tmpfs (hosts the results mount point and the overlay upper layers).
-mount -t tmpfs -o mode=0755,nosuid,nodev tmpfs /run || fatal "mount tmpfs on /run"
-mkdir -p /run/lock "$G" /run/hil-ovl
+# --- 1. /dev extras, proc, sysfs, devpts, mqueue, /dev/shm and /run tmpfs -----------------------------
+# CONFIG_DEVTMPFS_MOUNT=y has mounted devtmpfs on /dev already (checked after /proc is up).
+if ! cp -a "$HOST_R/skel/dev/." /dev/ 2>/dev/null; then
+    mount -t devtmpfs devtmpfs /dev || fatal "mount devtmpfs on /dev"
+    cp -a "$HOST_R/skel/dev/." /dev/ || fatal "populate /dev"
+fi
+mount -a -T "$HOST_R/fstab.base" || fatal "mount -a -T fstab.base (proc, sys, devpts, mqueue, shm, run)"
+cp -a "$HOST_R/skel/run/." /run/ || fatal "populate /run"
 
-# --- 2. results channel back to the host ---------------------------------------------------------------
-mount -t hostfs -o "$HOST_R" hostfs "$G" || fatal "mount hostfs $HOST_R on $G"
-stamp t_init_start
-
-# --- 3./5a. kernel modules -----------------------------------------------------------------------------
-# Module tree: the one matching this kernel, else the only/newest tree under /usr/lib/uml/modules
-# that has CAN modules (a mismatched tree then fails loudly at insmod).
-find_moddir() {
-    local d
-    if [[ -n ${HIL_MODULES_DIR:-} ]]; then echo "$HIL_MODULES_DIR"; return; fi
-    d=/usr/lib/uml/modules/$(uname -r)
-    if compgen -G "$d/kernel/net/can/can.ko*" > /dev/null; then echo "$d"; return; fi
-    for d in $(ls -d /usr/lib/uml/modules/*/ 2>/dev/null | sort -rV); do
-        if compgen -G "${d%/}/kernel/net/can/can.ko*" > /dev/null; then echo "${d%/}"; return; fi
+# --- 2. kernel modules: can, can-raw, can-dev, vcan (+ overlay) ---------------------------------------
+read -r KVER < /proc/sys/kernel/osrelease
+modprobe_all() {   # modprobe -a resolves the order (can before can-raw, can-dev before vcan)
+    modprobe -d /run/hil-mods -S "$1" -a can_raw vcan overlay 2> /run/hil-modprobe.err
+}
+if ! modprobe_all "$KVER"; then
+    # Slow, robust path: find a module tree (this kernel's, else the newest one that has CAN modules)
+    # and insmod file by file; overlay is optional. A mismatched tree fails loudly at insmod.
+    say "modprobe failed ($(< /run/hil-modprobe.err)); falling back to insmod"
+    MODDIR=${HIL_MODULES_DIR:-}
+    if [[ -z $MODDIR ]]; then
+        for d in "/usr/lib/uml/modules/$KVER" /usr/lib/uml/modules/*; do
+            f=("$d"/kernel/net/can/can.ko*)
+            if ((${#f[@]})); then MODDIR=$d; break; fi
+        done
+    fi
+    [[ -n $MODDIR ]] || fatal "no UML module tree with CAN modules under /usr/lib/uml/modules (kernel $KVER)"
+    for spec in can:net/can/can.ko can_raw:net/can/can-raw.ko can_dev:drivers/net/can/dev/can-dev.ko \
+        vcan:drivers/net/can/vcan.ko overlay:fs/overlayfs/overlay.ko; do
+        name=${spec%%:*} rel=${spec#*:}
+        [[ -d /sys/module/$name ]] && continue          # built in or already loaded
+        f=("$MODDIR/kernel/$rel"*)
+        if ((${#f[@]} == 0)); then
+            [[ $name == overlay ]] && continue
+            fatal "module $rel not found under $MODDIR/kernel"
+        fi
+        out=$(insmod "${f[0]}" 2>&1) || { [[ $name == overlay ]] || fatal "insmod ${f[0]}: $out"; }
     done
-    return 1
-}
-MODDIR=$(find_moddir) || fatal "no UML module tree with CAN modules under /usr/lib/uml/modules (kernel $(uname -r))"
+fi
 
-# load_module NAME RELPATH [optional]: skip when already present (built in or loaded).
-load_module() {
-    local name=$1 rel=$2 optional=${3:-} f
-    [[ -d /sys/module/$name ]] && return 0
-    f=$(compgen -G "$MODDIR/kernel/$rel*" | head -n1) || true
-    if [[ -z $f ]]; then
-        [[ -n $optional ]] && return 1
-        fatal "module $rel not found under $MODDIR/kernel"
-    fi
-    command -v insmod > /dev/null || fatal "insmod not found (install kmod on the host)"
-    if ! out=$(insmod "$f" 2>&1); then
-        [[ -n $optional ]] && { say "warning: insmod $f: $out"; return 1; }
-        fatal "insmod $f: $out"
-    fi
-}
-# Order matters: can-raw needs can; vcan needs can-dev.
-load_module can       net/can/can.ko
-load_module can_raw   net/can/can-raw.ko
-load_module can_dev   drivers/net/can/dev/can-dev.ko
-load_module vcan      drivers/net/can/vcan.ko
-have_overlay=1
-load_module overlay   fs/overlayfs/overlay.ko optional || have_overlay=0
-
-# --- 3. private writable /tmp, /var/tmp (+ HIL_OVERLAY_DIRS) -------------------------------------------
-n=0
-for d in "${HIL_OVERLAY_DIRS[@]}"; do
-    [[ -d $d ]] || { say "warning: overlay dir $d does not exist on the host, skipped"; continue; }
-    n=$((n + 1))
-    up=/run/hil-ovl/$n/upper wk=/run/hil-ovl/$n/work
-    mkdir -p "$up" "$wk"
-    # The overlay root takes mode/owner from the upper dir: copy them from the host dir (/tmp is 1777).
-    chmod --reference="$d" "$up"; chown --reference="$d" "$up"
-    if [[ $have_overlay == 1 ]] &&
-        mount -t overlay overlay -o "lowerdir=$d,upperdir=$up,workdir=$wk" "$d" 2>/dev/null; then
-        :
-    else
-        # Fallback: an empty tmpfs. Writable, but host files under $d are hidden in the guest.
-        say "warning: overlay on $d failed; using an empty tmpfs (host files in $d are hidden)"
-        mount -t tmpfs -o "mode=$(stat -c %a "$d")" tmpfs "$d" || fatal "mount tmpfs on $d"
-    fi
-done
-
-# --- 4. read-write host directories (--rw) --------------------------------------------------------------
+# --- 3. results channel (hostfs rw), private /tmp + /var/tmp (overlay), --rw dirs (hostfs rw) ----------
+mount -a -T "$HOST_R/fstab.hil" 2>/run/hil-mount.err
+mounted "$G" || fatal "hostfs mount of $HOST_R on $G failed: $(< /run/hil-mount.err)"
+echo "$T_INIT" > "$G/t_init_start"
 for d in "${HIL_RW_DIRS[@]}"; do
-    mount -t hostfs -o "$d" hostfs "$d" || fatal "mount hostfs $d read-write"
+    mounted "$d" || fatal "hostfs mount of $d (--rw) failed: $(< /run/hil-mount.err)"
+done
+for d in "${HIL_OVERLAY_DIRS[@]}"; do
+    mounted "$d" && continue
+    # Fallback: an empty tmpfs. Writable, but the host's files under $d are hidden in the guest.
+    say "warning: overlay on $d failed ($(< /run/hil-mount.err)); using an empty tmpfs"
+    mount -t tmpfs -o mode=1777 tmpfs "$d" || fatal "mount tmpfs on $d"
 done
 
-# --- 5b. network: lo and the vcan interfaces ------------------------------------------------------------
-[[ -n ${HIL_HOSTNAME:-} ]] && hostname "$HIL_HOSTNAME" 2>/dev/null
-ip link set dev lo up || fatal "ip link set lo up"
-for i in "${HIL_IFACES_LIST[@]}"; do
-    if [[ ! -e /sys/class/net/$i ]]; then
-        ip link add dev "$i" type vcan || fatal "ip link add dev $i type vcan"
-    fi
-    ip link set dev "$i" up || fatal "ip link set dev $i up"
-done
+# --- 4. network: lo and the vcan interfaces; hostname ------------------------------------------------
+ip -batch "$G/ip.batch" > /run/hil-ip.err 2>&1 || fatal "ip -batch failed: $(< /run/hil-ip.err)"
+[[ -n ${HIL_HOSTNAME:-} ]] && echo "$HIL_HOSTNAME" > /proc/sys/kernel/hostname
 
-# --- 6. run the command -----------------------------------------------------------------------------------
-# env -i: the command sees the caller's environment (env.sh, sourced by launch.sh), not PID 1's.
-# timeout: 0 disables it; on expiry the exit code is 124 (137 if it had to SIGKILL).
+# --- 5. run the command -------------------------------------------------------------------------------
+# In a subshell (a fork, no extra exec): drop PID 1's environment, load the caller's, cd to the
+# caller's directory, then exec `timeout` (0 = no limit; 124 on expiry, 137 if it had to SIGKILL),
+# which execs the command (127 if not found). 125 = the launch itself failed.
 stamp t_cmd_start
-timeout --kill-after="${HIL_KILL_AFTER:-10}" "$HIL_TIMEOUT" \
-    env -i /bin/bash --noprofile --norc "$G/launch.sh" "$G/env.sh" "$G/argv" "$HIL_CWD" \
-    < /dev/null >> "$G/stdout" 2>> "$G/stderr"
+(
+    set +u
+    while read -r v; do unset "$v"; done <<< "$(compgen -e)"
+    # shellcheck source=/dev/null
+    source "$G/env.sh" || { echo "[hil-guest] cannot load $G/env.sh" >&2; exit 125; }
+    export PATH=${PATH:+$PATH:}/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
+    export HOME=${HOME:-/root} HIL_IN_GUEST=1 HIL_MODE=uml
+    # TMPDIR must be writable: the host's value may point into the read-only root.
+    if [[ -n ${TMPDIR:-} && ! -w $TMPDIR ]]; then export TMPDIR=/tmp; fi
+    cd -- "$HIL_CWD" || { echo "[hil-guest] cannot cd to $HIL_CWD inside the guest" >&2; exit 125; }
+    mapfile -d '' -t argv < "$G/argv"
+    exec timeout --kill-after="${HIL_KILL_AFTER:-10}" "$HIL_TIMEOUT" "${argv[@]}"
+) < /dev/null >> "$G/stdout" 2>> "$G/stderr"
 rc=$?
 stamp t_cmd_end
-[[ $rc == 124 ]] && echo "[hil-guest] command timed out after ${HIL_TIMEOUT}s (exit 124)" >> "$G/stderr"
+((rc == 124)) && echo "[hil-guest] command timed out after ${HIL_TIMEOUT}s (exit 124)" >> "$G/stderr"
 
-# --- 7. exit code back to the host, then halt ------------------------------------------------------------
-echo "$rc" > "$G/rc.tmp" && mv -f "$G/rc.tmp" "$G/rc" || say "ERROR: cannot write exit code"
+# --- 6. exit code back to the host, then power off ------------------------------------------------------
+# The host reads rc only after the VM process has exited, so a plain write is enough.
+echo "$rc" > "$G/rc" || say "ERROR: cannot write the exit code"
 poweroff_now

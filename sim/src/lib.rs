@@ -5,5 +5,7 @@
 //! and fulcrum of every sample. Virtual encoder nodes on the CAN bus build on it.
 #![warn(missing_docs)]
 
+pub mod encoders;
+pub mod robot;
 pub mod scenario;
 pub mod score;

@@ -232,7 +232,18 @@ impl Builder<'_> {
             let s = min_jerk(u);
             let env = (std::f64::consts::PI * u).sin();
             let t = i as f64 * self.cfg.sample_period_s;
-            let wobble = Vector3::new(wob[0].at(t), wob[1].at(t), wob[2].at(t)) * env;
+            // With the trap, the wobble fades out before the wrist holds still and back in
+            // after, so the motion stays continuous.
+            let fade = if !trap {
+                1.0
+            } else if u < 0.2 {
+                min_jerk((0.2 - u) / 0.2)
+            } else if u < 0.6 {
+                0.0
+            } else {
+                min_jerk((u - 0.6) / 0.4)
+            };
+            let wobble = Vector3::new(wob[0].at(t), wob[1].at(t), wob[2].at(t)) * env * fade;
             let mut wrist = w0 + (target_wrist - w0) * s + wobble;
             let mut axis = q0.slerp(&q1, s) * a0;
             if trap && (0.2..0.6).contains(&u) {
@@ -403,7 +414,7 @@ mod tests {
 
     #[test]
     fn deterministic_and_consistent() {
-        let cfg = ScenarioConfig { cycles: 3, ..Default::default() };
+        let cfg = ScenarioConfig { cycles: 3, wrist_rotation_probability: 1.0, ..Default::default() };
         let a = generate(&cfg);
         let b = generate(&cfg);
         assert_eq!(a.measured, b.measured);
@@ -419,6 +430,10 @@ mod tests {
                 assert!(along < cfg.instrument_length_m + 1e-9, "tip not beyond the trocar");
             }
         }
+        // The motion is continuous: the wrist moves less than 2 mm per 1 ms sample (2 m/s).
+        let max_step =
+            a.truth.windows(2).map(|w| (w[1].line.wrist_base_m - w[0].line.wrist_base_m).norm()).fold(0.0, f64::max);
+        assert!(max_step < 0.002, "wrist jumps {max_step} m in one sample");
         // Events alternate insertion / extraction.
         for (i, e) in a.events.iter().enumerate() {
             assert_eq!(e.insertion, i % 2 == 0);

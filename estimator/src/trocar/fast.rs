@@ -188,16 +188,17 @@ impl FastDetector {
 
     /// Segment maintenance for an included line (steps 2-3 of the module doc).
     fn include(&mut self, line: &LineSample) {
-        if let Some(fit) = self.fit {
-            if self.well_determined(&fit) && lsq::line_distance(line, &fit.fulcrum_base_m) > self.cfg.break_gate_m {
-                if self.state.is_inside() {
-                    // Inside, an outlier does not enter the fit; the per-sample test decides
-                    // whether the instrument has left.
-                    return;
-                }
-                self.restart_segment(line);
+        if let Some(fit) = self.fit
+            && self.well_determined(&fit)
+            && lsq::line_distance(line, &fit.fulcrum_base_m) > self.cfg.break_gate_m
+        {
+            if self.state.is_inside() {
+                // Inside, an outlier does not enter the fit; the per-sample test decides
+                // whether the instrument has left.
                 return;
             }
+            self.restart_segment(line);
+            return;
         }
         while self.segment.len() >= self.cfg.window {
             self.pop_oldest();
@@ -355,12 +356,13 @@ impl FastDetector {
             if self.check_extraction(&line) {
                 self.leave(&line);
             }
-        } else if self.cfg.trocar_memory && !self.memory.is_empty() {
-            if let Some((f, id)) = self.check_memory(&line) {
-                self.enter(f, id);
-                self.restart_segment(&line);
-                self.last_included = Some(line);
-            }
+        } else if self.cfg.trocar_memory
+            && !self.memory.is_empty()
+            && let Some((f, id)) = self.check_memory(&line)
+        {
+            self.enter(f, id);
+            self.restart_segment(&line);
+            self.last_included = Some(line);
         }
 
         let included = match &self.last_included {
@@ -383,15 +385,13 @@ impl FastDetector {
                 }
             }
             TrocarState::Inside { .. } => {
-                if included {
-                    if let Some(fit) = self.fit {
-                        if self.segment.len() >= self.cfg.min_lines
-                            && self.well_determined(&fit)
-                            && fit.rms_m <= self.cfg.consistency_rms_m
-                        {
-                            self.fulcrum_base_m = fit.fulcrum_base_m;
-                        }
-                    }
+                if included
+                    && let Some(fit) = self.fit
+                    && self.segment.len() >= self.cfg.min_lines
+                    && self.well_determined(&fit)
+                    && fit.rms_m <= self.cfg.consistency_rms_m
+                {
+                    self.fulcrum_base_m = fit.fulcrum_base_m;
                 }
             }
         }

@@ -170,6 +170,9 @@ pub(crate) fn differs_enough(last: &LineSample, new: &LineSample, delta_d_m: f64
 }
 
 /// Either detector, chosen by configuration. `step` once per sample.
+// Both variants are large fixed buffers (tens of KiB) held inline on purpose: no heap, no
+// indirection on the 1 kHz path. Construct once, keep it in a long-lived place.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum Detector {
     /// The paper's method.

@@ -193,6 +193,15 @@ fn positive(key: &'static str, v: f64, max: f64, allowed: &'static str) -> Resul
     if v.is_finite() && v > 0.0 && v <= max { Ok(()) } else { Err(ConfigError::OutOfRange { key, value: v, allowed }) }
 }
 
+/// A duration in [0, 10] s.
+fn duration(key: &'static str, v: f64) -> Result<(), ConfigError> {
+    if v.is_finite() && (0.0..=10.0).contains(&v) {
+        Ok(())
+    } else {
+        Err(ConfigError::OutOfRange { key, value: v, allowed: "[0, 10] s" })
+    }
+}
+
 fn at_least(key: &'static str, v: f64, other: &'static str, o: f64) -> Result<(), ConfigError> {
     if v >= o { Ok(()) } else { Err(ConfigError::Ordering { key, value: v, other, other_value: o }) }
 }
@@ -278,37 +287,19 @@ impl FastConfig {
         positive("fast.insert_max_std_m", self.insert_max_std_m, 0.1, "(0, 0.1] m")?;
         positive("fast.consistency_rms_m", self.consistency_rms_m, 0.1, "(0, 0.1] m")?;
         positive("fast.insert_min_depth_m", self.insert_min_depth_m, 2.0, "(0, 2] m")?;
-        if !(self.min_persistence_s.is_finite() && (0.0..=10.0).contains(&self.min_persistence_s)) {
-            return Err(ConfigError::OutOfRange {
-                key: "fast.min_persistence_s",
-                value: self.min_persistence_s,
-                allowed: "[0, 10] s",
-            });
-        }
+        duration("fast.min_persistence_s", self.min_persistence_s)?;
         positive("fast.break_gate_m", self.break_gate_m, 0.5, "(0, 0.5] m")?;
         positive("fast.extract_gate_m", self.extract_gate_m, 0.5, "(0, 0.5] m")?;
         at_least("fast.break_gate_m", self.break_gate_m, "fast.consistency_rms_m", self.consistency_rms_m)?;
         at_least("fast.extract_gate_m", self.extract_gate_m, "fast.consistency_rms_m", self.consistency_rms_m)?;
-        if !(self.extract_persistence_s.is_finite() && (0.0..=10.0).contains(&self.extract_persistence_s)) {
-            return Err(ConfigError::OutOfRange {
-                key: "fast.extract_persistence_s",
-                value: self.extract_persistence_s,
-                allowed: "[0, 10] s",
-            });
-        }
+        duration("fast.extract_persistence_s", self.extract_persistence_s)?;
         if let Some(l) = self.instrument_length_m {
             positive("fast.instrument_length_m", l, 2.0, "(0, 2] m")?;
             at_least("fast.instrument_length_m", l, "fast.insert_min_depth_m", self.insert_min_depth_m)?;
         }
         positive("fast.tip_margin_m", self.tip_margin_m, 0.1, "(0, 0.1] m")?;
         positive("fast.memory_gate_m", self.memory_gate_m, 0.1, "(0, 0.1] m")?;
-        if !(self.memory_persistence_s.is_finite() && (0.0..=10.0).contains(&self.memory_persistence_s)) {
-            return Err(ConfigError::OutOfRange {
-                key: "fast.memory_persistence_s",
-                value: self.memory_persistence_s,
-                allowed: "[0, 10] s",
-            });
-        }
+        duration("fast.memory_persistence_s", self.memory_persistence_s)?;
         positive("fast.memory_merge_m", self.memory_merge_m, 0.5, "(0, 0.5] m")?;
         if self.rebuild_every == 0 {
             return Err(ConfigError::OutOfRange {

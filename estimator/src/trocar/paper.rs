@@ -161,24 +161,24 @@ impl PaperDetector {
             (fit, self.short.len(), m)
         } else if self.long.len() < n {
             let fit = self.short_fit();
-            if let Some(f) = fit {
-                if f.mean_residual_m > self.cfg.extract_residual_short_m {
-                    self.extract();
-                } else {
-                    self.fulcrum_base_m = f.ls.fulcrum_base_m;
-                }
-            }
+            self.extract_or_follow(fit, self.cfg.extract_residual_short_m);
             (fit, self.short.len(), m)
         } else {
             let fit = self.long_fit();
-            if let Some(f) = fit {
-                if f.mean_residual_m > self.cfg.extract_residual_long_m {
-                    self.extract();
-                } else {
-                    self.fulcrum_base_m = f.ls.fulcrum_base_m;
-                }
-            }
+            self.extract_or_follow(fit, self.cfg.extract_residual_long_m);
             (fit, self.long.len(), n)
+        }
+    }
+
+    /// Inside: extraction when the window's mean residual exceeds `threshold_m` (Δ_em or
+    /// Δ_en), else the fulcrum follows the window's fit.
+    fn extract_or_follow(&mut self, fit: Option<WindowFit>, threshold_m: f64) {
+        if let Some(f) = fit {
+            if f.mean_residual_m > threshold_m {
+                self.extract();
+            } else {
+                self.fulcrum_base_m = f.ls.fulcrum_base_m;
+            }
         }
     }
 

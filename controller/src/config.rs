@@ -7,16 +7,145 @@ use std::path::{Path, PathBuf};
 
 use estimator::kinematics::{AchillesConfig, KinematicsConfigError};
 use estimator::trocar::{ConfigError as DetectorConfigError, DetectorConfig};
+use hw_io::can::{ConfigError as EncoderConfigError, EncoderConfig};
 use serde::{Deserialize, Serialize};
+
+use crate::health::{HealthConfig, HealthConfigError};
+use crate::recorder::{RecorderConfig, RecorderConfigError};
+use crate::rt::{RealtimeConfig, RealtimeConfigError};
 
 /// The whole configuration of fulcrumd.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Config {
+    /// The control cycle.
+    #[serde(rename = "loop")]
+    pub cycle: LoopConfig,
+    /// The encoder bus.
+    pub bus: BusConfig,
+    /// Data-health thresholds.
+    pub health: HealthConfig,
     /// Arm geometry and joint calibration.
     pub kinematics: AchillesConfig,
     /// Trocar detector.
     pub detector: DetectorConfig,
+    /// The shared-memory output.
+    pub output: OutputConfig,
+    /// Real-time set-up of the loop's thread.
+    pub realtime: RealtimeConfig,
+    /// The flight recorder.
+    pub recorder: RecorderConfig,
+}
+
+/// The control cycle (`[loop]`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LoopConfig {
+    /// Cycle period, microseconds (100 ..= 100 000; default 1000 = 1 kHz). Must equal
+    /// `detector.sample_period_s`.
+    pub period_us: u32,
+    /// After sending SYNC, the cycle waits at most this long for the nodes' TPDOs,
+    /// microseconds (50 ..= period_us − 50; default 700). Frames arriving later are counted
+    /// as late and not used.
+    pub frame_deadline_us: u32,
+}
+
+impl Default for LoopConfig {
+    fn default() -> Self {
+        Self { period_us: 1000, frame_deadline_us: 700 }
+    }
+}
+
+/// The encoder bus (`[bus]`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BusConfig {
+    /// SocketCAN interface (`can0`, `vcan0`, ...). Empty: the built-in simulated robot on an
+    /// in-process bus.
+    pub iface: String,
+    /// Encoder nodes and counts-to-radians conversion.
+    pub encoder: EncoderConfig,
+}
+
+impl Default for BusConfig {
+    fn default() -> Self {
+        Self { iface: String::new(), encoder: EncoderConfig::default() }
+    }
+}
+
+/// The shared-memory output (`[output]`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OutputConfig {
+    /// iceoryx2 service name the estimates are published on.
+    pub service: String,
+}
+
+impl Default for OutputConfig {
+    fn default() -> Self {
+        Self { service: "comanip/fulcrum".into() }
+    }
+}
+
+/// Why the daemon-level keys (`[loop]`, `[bus]`, `[output]`) were refused; names the key.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DaemonConfigError {
+    /// `loop.period_us` outside 100 ..= 100 000.
+    #[error("loop.period_us = {0}: must be in 100 ..= 100000 microseconds")]
+    Period(u32),
+    /// `loop.frame_deadline_us` outside 50 ..= period − 50.
+    #[error("loop.frame_deadline_us = {deadline}: must be in 50 ..= loop.period_us - 50 = {max} microseconds")]
+    FrameDeadline {
+        /// Value given, microseconds.
+        deadline: u32,
+        /// Largest allowed, microseconds.
+        max: u32,
+    },
+    /// `detector.sample_period_s` differs from `loop.period_us`.
+    #[error("detector.sample_period_s = {sample_s} s differs from loop.period_us = {period_us} us: they must match")]
+    PeriodMismatch {
+        /// `detector.sample_period_s`, seconds.
+        sample_s: f64,
+        /// `loop.period_us`, microseconds.
+        period_us: u32,
+    },
+    /// `bus.iface` is not a valid interface name.
+    #[error("bus.iface = {0:?}: an interface name has 1 to 15 characters, no '/', no whitespace")]
+    Iface(String),
+    /// `bus.encoder` is invalid.
+    #[error("bus.{0}")]
+    Encoders(EncoderConfigError),
+    /// `output.service` is not a valid service name.
+    #[error("output.service = {0:?}: must have 1 to 200 printable ASCII characters")]
+    Service(String),
+}
+
+impl Config {
+    /// Checks the daemon-level keys and their consistency with the detector.
+    pub fn validate_daemon(&self) -> Result<(), DaemonConfigError> {
+        let p = self.cycle.period_us;
+        if !(100..=100_000).contains(&p) {
+            return Err(DaemonConfigError::Period(p));
+        }
+        let max = p - 50;
+        if !(50..=max).contains(&self.cycle.frame_deadline_us) {
+            return Err(DaemonConfigError::FrameDeadline { deadline: self.cycle.frame_deadline_us, max });
+        }
+        let s = self.detector.sample_period_s;
+        if (s * 1e6 - f64::from(p)).abs() > 1e-6 {
+            return Err(DaemonConfigError::PeriodMismatch { sample_s: s, period_us: p });
+        }
+        let iface = &self.bus.iface;
+        if iface.len() > 15 || iface.contains('/') || iface.chars().any(char::is_whitespace) {
+            return Err(DaemonConfigError::Iface(iface.clone()));
+        }
+        self.bus.encoder.validate().map_err(DaemonConfigError::Encoders)?;
+        let svc = &self.output.service;
+        if svc.is_empty() || svc.len() > 200 || !svc.chars().all(|c| c.is_ascii_graphic()) {
+            return Err(DaemonConfigError::Service(svc.clone()));
+        }
+        Ok(())
+    }
 }
 
 /// Why a configuration could not be loaded.
@@ -54,6 +183,38 @@ pub enum LoadError {
         /// Which key, and why.
         source: DetectorConfigError,
     },
+    /// A health threshold is out of range.
+    #[error("config file {path}: {source}")]
+    Health {
+        /// File path.
+        path: PathBuf,
+        /// Which key, and why.
+        source: HealthConfigError,
+    },
+    /// A real-time key is out of range.
+    #[error("config file {path}: {source}")]
+    Realtime {
+        /// File path.
+        path: PathBuf,
+        /// Which key, and why.
+        source: RealtimeConfigError,
+    },
+    /// A recorder key is out of range.
+    #[error("config file {path}: {source}")]
+    Recorder {
+        /// File path.
+        path: PathBuf,
+        /// Which key, and why.
+        source: RecorderConfigError,
+    },
+    /// A loop, bus or output key is out of range or inconsistent.
+    #[error("config file {path}: {source}")]
+    Daemon {
+        /// File path.
+        path: PathBuf,
+        /// Which key, and why.
+        source: DaemonConfigError,
+    },
 }
 
 impl Config {
@@ -63,6 +224,10 @@ impl Config {
             toml::from_str(text).map_err(|e| LoadError::Parse { path: path.to_owned(), message: e.to_string() })?;
         cfg.kinematics.validate().map_err(|source| LoadError::Kinematics { path: path.to_owned(), source })?;
         cfg.detector.validate().map_err(|source| LoadError::Detector { path: path.to_owned(), source })?;
+        cfg.health.validate().map_err(|source| LoadError::Health { path: path.to_owned(), source })?;
+        cfg.realtime.validate().map_err(|source| LoadError::Realtime { path: path.to_owned(), source })?;
+        cfg.recorder.validate().map_err(|source| LoadError::Recorder { path: path.to_owned(), source })?;
+        cfg.validate_daemon().map_err(|source| LoadError::Daemon { path: path.to_owned(), source })?;
         Ok(cfg)
     }
 
@@ -131,6 +296,24 @@ mod tests {
         let err = parse("[[kinematics.joints]]\nsign = 2.0\nzero_offset_rad = 0.0\n").unwrap_err();
         // Five joints missing: the array must have exactly six entries.
         assert!(matches!(err, LoadError::Parse { .. }), "{err}");
+    }
+
+    #[test]
+    fn daemon_keys_are_validated_by_name() {
+        for (text, key) in [
+            ("[loop]\nperiod_us = 50\n", "loop.period_us"),
+            ("[loop]\nframe_deadline_us = 990\n", "loop.frame_deadline_us"),
+            ("[loop]\nperiod_us = 2000\nframe_deadline_us = 700\n", "detector.sample_period_s"),
+            ("[bus]\niface = \"can 0\"\n", "bus.iface"),
+            ("[bus.encoder]\nnode_ids = [1, 1, 3]\n", "node_ids"),
+            ("[output]\nservice = \"\"\n", "output.service"),
+            ("[health]\nstale_after_cycles = 0\n", "health.stale_after_cycles"),
+        ] {
+            let err = parse(text).unwrap_err();
+            assert!(err.to_string().contains(key), "{text:?}: {err}");
+        }
+        let ok = parse("[loop]\nperiod_us = 2000\n[detector]\nsample_period_s = 0.002\n").unwrap();
+        assert_eq!(ok.cycle.period_us, 2000);
     }
 
     #[test]

@@ -1,9 +1,26 @@
 //! # comanip controller: the processes
 //!
-//! - `fulcrumd`: the trocar daemon. Today it runs the detector over the built-in simulated
-//!   surgeon ([`demo`]); the 1 kHz CAN loop and iceoryx2 output build on the same pieces.
+//! - `fulcrumd` ([`daemon`]): the trocar daemon. A 1 kHz loop ([`rt_loop`]) sends SYNC on
+//!   the encoder bus, assembles the TPDOs and checks the nodes' health ([`cycle`],
+//!   [`health`]), runs forward kinematics and the trocar detector, and publishes one
+//!   estimate per cycle over iceoryx2 (`hw_io::ipc`). Around it: real-time set-up ([`rt`]),
+//!   systemd notifications ([`watchdog`]), the flight recorder ([`recorder`]), `replay`
+//!   ([`replay`], [`scoring`]) and the built-in simulated robot ([`sim_robot`]).
 //! - [`config`]: the TOML configuration, validated at load with messages that name the key.
+//! - [`demo`]: the detector over an in-memory simulated scenario (no bus), for quick scoring.
+//! - [`timing`]: allocation-free latency histograms.
 #![warn(missing_docs)]
 
 pub mod config;
+pub mod cycle;
+pub mod daemon;
 pub mod demo;
+pub mod health;
+pub mod recorder;
+pub mod replay;
+pub mod rt;
+pub mod rt_loop;
+pub mod scoring;
+pub mod sim_robot;
+pub mod timing;
+pub mod watchdog;

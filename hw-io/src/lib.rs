@@ -8,6 +8,11 @@
 //!   protocol (SYNC every 1 ms, one TPDO1 per encoder node, heartbeat, EMCY; see
 //!   `docs/can-protocol.md`), encoder counts to radians, and the bus backends behind the
 //!   one trait [`can::CanBus`]: Linux SocketCAN, an in-process bus, candump-log replay.
+//! - [`ipc`]: the daemon's shared-memory output (iceoryx2): the [`ipc::FulcrumSample`]
+//!   message, [`ipc::FulcrumPublisher`] and the client library [`ipc::FulcrumSubscriber`]
+//!   (see `docs/output.md`).
+//! - [`rt_alloc`]: a global allocator that serves the small allocations of real-time threads
+//!   (iceoryx2's 48 bytes per published sample) from a static lock-free pool.
 //!
 //! Units: times are microseconds since the Unix epoch (`unix_time_us`) or
 //! [`std::time::Duration`]s; joint positions on the bus are encoder counts, and radians
@@ -16,3 +21,4 @@
 
 pub mod can;
 pub mod ipc;
+pub mod rt_alloc;

@@ -1,11 +1,24 @@
 //! # sim: the world outside the controller, with ground truth
 //!
-//! Deterministic from a seed. Today: the surgeon's motion of the instrument through several
-//! trocars ([`scenario`]), as instrument lines in the robot base frame with the true state
-//! and fulcrum of every sample. Virtual encoder nodes on the CAN bus build on it.
+//! Deterministic from a seed:
+//! - [`scenario`]: the surgeon's motion of the instrument through several trocars, as
+//!   instrument lines in the robot base frame (metres) with the true state and fulcrum of
+//!   every sample;
+//! - [`robot`]: the simulated arm (nominal DH table plus a calibration error) and its
+//!   inverse kinematics;
+//! - [`encoders`]: the three virtual encoder nodes on the CAN bus;
+//! - [`twin`]: all of it together, the simulated robot answering the controller's SYNCs
+//!   ([`twin::SimRobot`]);
+//! - [`truth_file`]: the ground-truth file of a run (JSON Lines) and scoring against it;
+//! - [`score`]: scoring a detector against ground truth.
+//!
+//! The `simrobot` binary writes a run to a candump log plus its ground truth, or plays the
+//! robot live on a SocketCAN interface; see `docs/simulator.md`.
 #![warn(missing_docs)]
 
 pub mod encoders;
 pub mod robot;
 pub mod scenario;
 pub mod score;
+pub mod truth_file;
+pub mod twin;

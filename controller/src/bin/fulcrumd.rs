@@ -1,36 +1,124 @@
-//! fulcrumd: the trocar daemon.
+//! fulcrumd: the trocar daemon, and its tools (`monitor`, `replay`).
 //!
-//! Today it runs the trocar detector over the built-in simulated surgeon and prints every
-//! state change next to the ground truth, then a summary. The command line stays the same
-//! when the 1 kHz CAN loop lands.
+//! `fulcrumd` runs the 1 kHz loop: on the CAN interface of the config (or `--iface`), or,
+//! when none is configured, on the built-in simulated robot (an in-process bus), printing
+//! detections as the simulated surgeon moves. See `docs/operations.md`.
 
+use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
-use clap::Parser;
+use clap::{Args, Parser, Subcommand};
 use controller::config::Config;
-use controller::demo;
-use estimator::trocar::{DetectorMode, TrocarState};
-use sim::scenario::ScenarioConfig;
-use sim::score;
+use controller::daemon::{self, RunOptions, health_names, state_name};
+use controller::replay;
+use estimator::trocar::DetectorMode;
+use hw_io::ipc::{Continuity, FulcrumSubscriber, STATE_INSIDE};
+
+#[global_allocator]
+static ALLOC: hw_io::rt_alloc::RtPoolAllocator = hw_io::rt_alloc::RtPoolAllocator::new();
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_: libc::c_int) {
+    STOP.store(true, Ordering::Relaxed);
+}
 
 /// Command line of fulcrumd.
 #[derive(Parser, Debug)]
-#[command(version, about = "comanip trocar daemon (today: on the built-in simulated robot)")]
+#[command(version, about = "comanip trocar daemon: 1 kHz fulcrum estimates from the encoder bus, over iceoryx2")]
+#[command(args_conflicts_with_subcommands = true)]
 struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run the daemon (the default).
+    Run(RunArgs),
+    /// Show the live estimates of a running daemon.
+    Monitor(MonitorArgs),
+    /// Rerun the detector over a flight recording or a candump log.
+    Replay(ReplayArgs),
+}
+
+#[derive(Args, Debug, Clone)]
+struct RunArgs {
     /// Configuration file (TOML). Without it, the built-in defaults (identical to
     /// configs/fulcrumd.toml) are used.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Override the detector mode of the config: paper or fast.
+    /// CAN interface (overrides bus.iface): can0, vcan0, ... Without one, the built-in
+    /// simulated robot.
+    #[arg(long)]
+    iface: Option<String>,
+    /// Detector mode (overrides detector.mode): paper or fast.
     #[arg(long, value_parser = parse_mode)]
     mode: Option<DetectorMode>,
-    /// Simulated insert/extract cycles.
-    #[arg(long, default_value_t = 6)]
-    cycles: usize,
-    /// Seed of the simulated surgeon.
+    /// Stop after this many cycles (default: run until SIGINT/SIGTERM).
+    #[arg(long)]
+    cycles: Option<u64>,
+    /// Recording directory (overrides recorder.dir).
+    #[arg(long)]
+    record_dir: Option<PathBuf>,
+    /// Do not record (overrides recorder.enabled).
+    #[arg(long)]
+    no_record: bool,
+    /// Output service name (overrides output.service).
+    #[arg(long)]
+    service: Option<String>,
+    /// Seed of the built-in simulated surgeon.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Write the run summary (counters, timing, allocations) as JSON to this file at exit.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct MonitorArgs {
+    /// Output service name.
+    #[arg(long, default_value = "comanip/fulcrum")]
+    service: String,
+    /// Exit after receiving this many samples.
+    #[arg(long)]
+    count: Option<u64>,
+    /// Exit after this many seconds.
+    #[arg(long)]
+    duration_s: Option<f64>,
+    /// Print every sample (default: state and health changes, and a status line per second).
+    #[arg(long)]
+    all: bool,
+    /// Write the subscriber's counters as JSON to this file at exit.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct ReplayArgs {
+    /// A flight recording: its directory, or one of its files (the whole run is read).
+    #[arg(long)]
+    recording: Option<PathBuf>,
+    /// A candump log (`candump -l` format).
+    #[arg(long)]
+    candump: Option<PathBuf>,
+    /// Configuration for a candump replay (default: the recording's, else the defaults).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Detector mode for a candump replay (overrides the configuration).
+    #[arg(long, value_parser = parse_mode)]
+    mode: Option<DetectorMode>,
+    /// Ground truth (truth.jsonl from `simrobot generate`) to score a candump replay against.
+    #[arg(long)]
+    truth: Option<PathBuf>,
+    /// Write the replay report as JSON to this file.
+    #[arg(long)]
+    report_json: Option<PathBuf>,
 }
 
 fn parse_mode(s: &str) -> Result<DetectorMode, String> {
@@ -41,66 +129,299 @@ fn parse_mode(s: &str) -> Result<DetectorMode, String> {
     }
 }
 
-fn main() -> ExitCode {
-    let cli = Cli::parse();
-    let mut cfg = match &cli.config {
-        Some(p) => match Config::load(p) {
-            Ok(c) => c,
-            Err(e) => {
-                eprintln!("fulcrumd: {e}");
-                return ExitCode::from(2);
-            }
-        },
-        None => Config::default(),
-    };
-    if let Some(m) = cli.mode {
+fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let terminal = std::io::stderr().is_terminal();
+    // journald adds its own timestamps: none when not on a terminal, and never ANSI colours.
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(terminal);
+    if terminal {
+        builder.init();
+    } else {
+        builder.without_time().init();
+    }
+}
+
+fn install_signal_handlers() {
+    use nix::sys::signal::{SaFlags, SigAction, SigHandler, SigSet, Signal, sigaction};
+    let action = SigAction::new(SigHandler::Handler(on_signal), SaFlags::SA_RESTART, SigSet::empty());
+    for sig in [Signal::SIGINT, Signal::SIGTERM] {
+        // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
+        if let Err(e) = unsafe { sigaction(sig, &action) } {
+            tracing::warn!("cannot install the {sig} handler: {e}");
+        }
+    }
+}
+
+fn load_config(path: &Option<PathBuf>) -> Result<(Config, String), String> {
+    match path {
+        Some(p) => {
+            let text =
+                std::fs::read_to_string(p).map_err(|e| format!("cannot read config file {}: {e}", p.display()))?;
+            let cfg = Config::from_toml(&text, p).map_err(|e| e.to_string())?;
+            Ok((cfg, text))
+        }
+        None => Ok((Config::default(), String::new())),
+    }
+}
+
+fn write_json(path: &Option<PathBuf>, value: &impl serde::Serialize) -> Result<(), String> {
+    if let Some(p) = path {
+        let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
+        std::fs::write(p, text).map_err(|e| format!("cannot write {}: {e}", p.display()))?;
+    }
+    Ok(())
+}
+
+fn run(args: RunArgs) -> Result<(), String> {
+    let (mut cfg, _) = load_config(&args.config)?;
+    if let Some(i) = args.iface {
+        cfg.bus.iface = i;
+    }
+    if let Some(m) = args.mode {
         cfg.detector.mode = m;
     }
-    let scenario = ScenarioConfig { seed: cli.seed, cycles: cli.cycles, ..Default::default() };
-    println!(
-        "fulcrumd: built-in simulated robot, {} cycles through {} trocars, detector mode {:?}",
-        scenario.cycles,
-        scenario.trocars_base_m.len(),
-        cfg.detector.mode
+    if let Some(d) = args.record_dir {
+        cfg.recorder.dir = d;
+    }
+    if args.no_record {
+        cfg.recorder.enabled = false;
+    }
+    if let Some(s) = args.service {
+        cfg.output.service = s;
+    }
+    // Re-validate the overridden configuration; record the effective one.
+    let config_toml = toml::to_string(&cfg).map_err(|e| format!("cannot serialise the configuration: {e}"))?;
+    let cfg = Config::from_toml(&config_toml, std::path::Path::new("<command line>")).map_err(|e| e.to_string())?;
+    install_signal_handlers();
+    let summary =
+        daemon::run(RunOptions { config: cfg, config_toml, max_cycles: args.cycles, sim_seed: args.seed }, &STOP)
+            .map_err(|e| e.to_string())?;
+    let t = &summary.timing;
+    tracing::info!(
+        "stopped after {} cycles ({} valid, {} published, {} publish errors, {} overruns); \
+         period error p50/p99/p99.9/max {:.0}/{:.0}/{:.0}/{:.0} us; compute {:.1}/{:.1}/{:.1}/{:.1} us; \
+         real-time thread allocations {}",
+        summary.cycles,
+        summary.valid_cycles,
+        summary.published,
+        summary.publish_errors,
+        summary.overruns,
+        t.wake_late.p50_us,
+        t.wake_late.p99_us,
+        t.wake_late.p999_us,
+        t.wake_late.max_us,
+        t.compute.p50_us,
+        t.compute.p99_us,
+        t.compute.p999_us,
+        t.compute.max_us,
+        summary.alloc.rt_thread_system_allocs
     );
-    let result = demo::run(
-        &cfg.detector,
-        &scenario,
-        |c| match (c.state, c.fulcrum_base_m) {
-            (TrocarState::Inside { id }, Some(f)) => println!(
-                "{:8.3} s  DETECTED  inside trocar #{id} at ({:+.4}, {:+.4}, {:+.4}) m, error {:.1} mm",
-                c.t_s,
+    let a = &summary.acquisition;
+    tracing::info!(
+        "bus: {} frames, {} incomplete cycles, {} late TPDOs, {} unknown-id, {} wrong-DLC, {} malformed, {} EMCY; \
+         recorder: {} records dropped at the queue",
+        a.frames,
+        a.incomplete_cycles,
+        a.late_tpdos,
+        a.unknown_id_frames,
+        a.wrong_dlc_frames,
+        a.malformed_frames,
+        a.emcy_frames,
+        summary.recorder_queue_drops
+    );
+    write_json(&args.summary_json, &summary)
+}
+
+#[derive(Default, serde::Serialize)]
+struct MonitorSummary {
+    received: u64,
+    missed: u64,
+    restarts: u64,
+    rejected: u64,
+    valid: u64,
+    invalid: u64,
+    inside: u64,
+    /// Samples flagged valid although a data-invalidating health flag was set (must be 0).
+    valid_with_invalidating_flags: u64,
+    /// Samples with a non-finite float (must be 0).
+    non_finite: u64,
+    first_sequence: Option<u64>,
+    last_sequence: Option<u64>,
+    /// Longest time between two consecutive samples, milliseconds.
+    max_gap_ms: f64,
+}
+
+fn monitor(args: MonitorArgs) -> Result<(), String> {
+    install_signal_handlers();
+    let mut sub = FulcrumSubscriber::connect(&args.service).map_err(|e| e.to_string())?;
+    tracing::info!("monitor: waiting for samples on {:?}", args.service);
+    let start = Instant::now();
+    let mut s = MonitorSummary::default();
+    let (mut last_state, mut last_health) = (u32::MAX, u32::MAX);
+    let mut last_status = Instant::now();
+    let mut last_rx: Option<Instant> = None;
+    while !STOP.load(Ordering::Relaxed)
+        && args.count.is_none_or(|c| s.received < c)
+        && args.duration_s.is_none_or(|d| start.elapsed().as_secs_f64() < d)
+    {
+        let r = match sub.wait(Duration::from_millis(200)) {
+            Ok(Some(r)) => r,
+            Ok(None) => continue,
+            Err(e) => {
+                tracing::warn!("monitor: {e}");
+                continue;
+            }
+        };
+        let now = Instant::now();
+        if let Some(prev) = last_rx {
+            s.max_gap_ms = s.max_gap_ms.max(now.duration_since(prev).as_secs_f64() * 1e3);
+        }
+        last_rx = Some(now);
+        let x = &r.sample;
+        s.received += 1;
+        s.first_sequence.get_or_insert(x.sequence);
+        s.last_sequence = Some(x.sequence);
+        if x.is_valid() {
+            s.valid += 1;
+            if x.health & hw_io::ipc::health::INVALIDATING != 0 {
+                s.valid_with_invalidating_flags += 1;
+            }
+        } else {
+            s.invalid += 1;
+        }
+        if x.state == STATE_INSIDE {
+            s.inside += 1;
+        }
+        let floats = x.fulcrum_base_m.iter().chain(&x.wrist_base_m).chain(&x.axis_base).chain(&x.joints_rad);
+        if !floats.chain([x.residual_m, x.fulcrum_std_m, x.conditioning].iter()).all(|v| v.is_finite()) {
+            s.non_finite += 1;
+        }
+        match r.event {
+            Continuity::Restart => tracing::info!("daemon (re)started: run {:016x}", x.run_id),
+            Continuity::Gap { missed } => tracing::warn!("missed {missed} samples before {}", x.sequence),
+            _ => {}
+        }
+        if args.all || x.state != last_state || x.health != last_health {
+            let f = x.fulcrum_base_m;
+            println!(
+                "seq {:>9}  {:<7}  trocar {}  fulcrum ({:+.4}, {:+.4}, {:+.4}) m  std {:.2} mm  health {}",
+                x.sequence,
+                state_name(x.state),
+                x.trocar_id,
                 f[0],
                 f[1],
                 f[2],
-                c.error_m.map_or(f64::NAN, |e| e * 1e3)
-            ),
-            _ => println!("{:8.3} s  DETECTED  outside", c.t_s),
-        },
-        |t, trocar, insertion| {
+                x.fulcrum_std_m * 1e3,
+                health_names(x.health)
+            );
+            last_state = x.state;
+            last_health = x.health;
+        } else if last_status.elapsed() >= Duration::from_secs(1) {
             println!(
-                "{t:8.3} s  truth     {} trocar {trocar}",
-                if insertion { "inserted into" } else { "extracted from" }
-            )
-        },
+                "seq {:>9}  {:<7}  ({} received, {} missed)",
+                x.sequence,
+                state_name(x.state),
+                s.received,
+                s.missed
+            );
+            last_status = Instant::now();
+        }
+    }
+    let c = sub.counters();
+    s.missed = c.missed;
+    s.restarts = c.restarts;
+    s.rejected = c.rejected;
+    tracing::info!(
+        "monitor: {} received, {} missed, {} restarts, {} valid, {} invalid",
+        s.received,
+        s.missed,
+        s.restarts,
+        s.valid,
+        s.invalid
     );
-    let s = match result {
-        Ok(s) => s,
+    write_json(&args.summary_json, &s)
+}
+
+fn replay_cmd(args: ReplayArgs) -> Result<bool, String> {
+    match (&args.recording, &args.candump) {
+        (Some(rec), None) => {
+            let r = replay::replay_recording(rec).map_err(|e| e.to_string())?;
+            println!(
+                "replay of run {:016x}: {} records, {} identical, {} mismatches{}{}",
+                r.run_id,
+                r.records,
+                r.identical,
+                r.mismatches,
+                r.starts_at.map_or(String::new(), |s| format!(
+                    "; the recording starts at cycle {s} (older files deleted): not comparable"
+                )),
+                r.gap_at.map_or(String::new(), |s| format!("; records missing at cycle {s}: compared up to there"))
+            );
+            for t in &r.truncations {
+                println!("truncated frame (the daemon was stopped mid-write): {t}");
+            }
+            write_json(&args.report_json, &r)?;
+            Ok(r.reproduced())
+        }
+        (rec, Some(log)) => {
+            let (mut cfg, records) = match rec {
+                Some(rec) => {
+                    let (cfg, _, records, _) = replay::load_recording(rec).map_err(|e| e.to_string())?;
+                    (cfg, Some(records))
+                }
+                None => (load_config(&args.config)?.0, None),
+            };
+            if let Some(m) = args.mode {
+                cfg.detector.mode = m;
+            }
+            let out = replay::replay_candump(log, &cfg).map_err(|e| e.to_string())?;
+            let a = &out.acquisition;
+            println!(
+                "candump replay ({:?} mode): {} cycles, {} incomplete, {} late TPDOs, {} unknown-id, {} wrong-DLC frames",
+                cfg.detector.mode,
+                out.cycles.len(),
+                a.incomplete_cycles,
+                a.late_tpdos,
+                a.unknown_id_frames,
+                a.wrong_dlc_frames
+            );
+            let mut ok = true;
+            if let Some(records) = records {
+                let c = replay::compare_with_recording(&out, &records, &cfg).map_err(|e| e.to_string())?;
+                println!(
+                    "against the recording: aligned at log cycle {:?}, {} compared, {} identical inputs, {} identical outputs",
+                    c.offset, c.compared, c.identical_inputs, c.identical_outputs
+                );
+                ok = c.offset.is_some() && c.compared > 0 && c.identical_outputs == c.compared;
+                write_json(&args.report_json, &c)?;
+            }
+            if let Some(truth) = &args.truth {
+                let score = controller::scoring::score_log(&out, truth).map_err(|e| e.to_string())?;
+                println!("{}", score.describe());
+                write_json(&args.report_json, &score)?;
+            }
+            Ok(ok)
+        }
+        (None, None) => Err("give --recording, --candump, or both".into()),
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    init_logging();
+    let result = match cli.command {
+        None => run(cli.run).map(|()| true),
+        Some(Command::Run(a)) => run(a).map(|()| true),
+        Some(Command::Monitor(a)) => monitor(a).map(|()| true),
+        Some(Command::Replay(a)) => replay_cmd(a),
+    };
+    match result {
+        Ok(true) => ExitCode::SUCCESS,
+        Ok(false) => ExitCode::from(1),
         Err(e) => {
             eprintln!("fulcrumd: {e}");
-            return ExitCode::from(2);
+            ExitCode::from(2)
         }
-    };
-    println!(
-        "summary: insertions {}/{} (mean delay {:.3} s), extractions {}/{} (mean delay {:.3} s), false detections {}, RMS error {:.2} mm",
-        s.insertions_detected,
-        s.insertions,
-        score::mean(&s.insertion_delays_s),
-        s.extractions_detected,
-        s.extractions,
-        score::mean(&s.extraction_delays_s),
-        s.false_detections,
-        s.rms_error_m * 1e3
-    );
-    ExitCode::SUCCESS
+    }
 }

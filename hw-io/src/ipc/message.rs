@@ -5,6 +5,8 @@
 //! layout is versioned by [`FULCRUM_SAMPLE_VERSION`]; a subscriber refuses any other
 //! version. Units and frames are in each field's doc and in `docs/output.md`.
 
+use iceoryx2::prelude::ZeroCopySend;
+
 /// Layout version of [`FulcrumSample`]. Bumped on any change of field, order or meaning.
 pub const FULCRUM_SAMPLE_VERSION: u32 = 1;
 
@@ -59,7 +61,8 @@ pub mod health {
 /// One control cycle's estimate, as published by fulcrumd.
 ///
 /// Every float is finite. Vectors are in the robot base frame; positions in metres.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, ZeroCopySend)]
+#[type_name("comanip::FulcrumSample")]
 #[repr(C)]
 pub struct FulcrumSample {
     /// Layout version, [`FULCRUM_SAMPLE_VERSION`].

@@ -1,0 +1,535 @@
+//! One control cycle, in two deterministic stages shared by the live loop and `replay`.
+//!
+//! 1. [`Acquisition`]: the frames of the bus → this cycle's joint readings (encoder counts)
+//!    and the data-health flags ([`CycleInput`]). Frames are decoded; TPDOs are assembled;
+//!    EMCY and heartbeats feed the [`HealthMonitor`]; malformed frames (wrong DLC, unknown
+//!    COB-ID, RTR, extended IDs) and foreign nodes are counted, never fatal.
+//! 2. [`Estimation`]: a [`CycleInput`] → counts to radians → forward kinematics → trocar
+//!    detector → [`CycleOutput`]. Pure function of its inputs and its own state, so a
+//!    recording of the inputs reproduces the outputs bit for bit.
+//!
+//! ## Stale data policy
+//! - Input flagged by a node fault (stale node, EMCY, heartbeat lost or not operational):
+//!   the output is invalid and the detector is **reset** before it next steps (the surgeon
+//!   may have moved anywhere meanwhile). That first valid cycle carries `DETECTOR_RESET`.
+//! - Input of a single incomplete cycle, a failed SYNC, a bus error or a sample refused by
+//!   the kinematics or the detector: the output is invalid and the detector is **frozen**
+//!   (not stepped); it resumes with the next complete cycle.
+//! - Valid only when every invalidating flag is clear; every float of a valid output is
+//!   finite (checked), otherwise the output is downgraded to invalid with `BAD_SAMPLE`.
+//!
+//! Both stages are allocation-free after construction.
+
+use estimator::kinematics::{Achilles, AchillesConfig, KinematicsConfigError};
+use estimator::trocar::{ConfigError as DetectorConfigError, Detector, DetectorConfig, LineSample, TrocarState};
+use hw_io::can::{
+    CanFrame, ConfigError as EncoderConfigError, DecodeError, ENCODER_NODES, EncoderConfig, JOINTS, JointAssembler,
+    Message,
+};
+use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE, health as flags};
+use serde::{Deserialize, Serialize};
+
+use crate::health::{HealthConfig, HealthMonitor};
+
+/// Node flags that make the detector reset.
+const RESET_FLAGS: u32 = flags::NODE_STALE[0]
+    | flags::NODE_STALE[1]
+    | flags::NODE_STALE[2]
+    | flags::NODE_EMCY[0]
+    | flags::NODE_EMCY[1]
+    | flags::NODE_EMCY[2]
+    | flags::NODE_HEARTBEAT[0]
+    | flags::NODE_HEARTBEAT[1]
+    | flags::NODE_HEARTBEAT[2];
+
+/// One cycle's input to [`Estimation`]: what acquisition delivered.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct CycleInput {
+    /// Joint readings 1..6, encoder counts (meaningful for the nodes in `received_mask`).
+    pub counts: [i32; JOINTS],
+    /// Bit k set when node k (joint order: joints 1-2, 3-4, 5-6) delivered its TPDO.
+    pub received_mask: u8,
+    /// Acquisition health flags ([`hw_io::ipc::health`]).
+    pub flags: u32,
+}
+
+/// Counters of everything acquisition saw, since start-up.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AcquisitionStats {
+    /// Frames seen (in cycle and late).
+    pub frames: u64,
+    /// TPDOs taken into a cycle.
+    pub tpdos: u64,
+    /// TPDOs that arrived after their cycle's deadline (not used).
+    pub late_tpdos: u64,
+    /// Cycles closed.
+    pub cycles: u64,
+    /// Cycles closed without every TPDO.
+    pub incomplete_cycles: u64,
+    /// TPDOs missing at cycle ends, summed over nodes.
+    pub missing_tpdos: u64,
+    /// Frames with an unknown COB-ID (or an extended identifier, or RTR).
+    pub unknown_id_frames: u64,
+    /// Frames with a DLC that does not match their COB-ID.
+    pub wrong_dlc_frames: u64,
+    /// Frames that are otherwise malformed (SYNC counter out of range, unknown NMT state).
+    pub malformed_frames: u64,
+    /// Well-formed messages from nodes that are not ours.
+    pub foreign_node_frames: u64,
+    /// Second TPDO of a node within one cycle (the newer replaces the older).
+    pub duplicate_tpdos: u64,
+    /// SYNC frames seen from another master on the bus.
+    pub foreign_syncs: u64,
+    /// EMCY messages from our nodes (raise and clear).
+    pub emcy_frames: u64,
+    /// Bus errors reported by the interface.
+    pub bus_errors: u64,
+}
+
+/// Stage 1: frames → [`CycleInput`].
+#[derive(Clone, Copy, Debug)]
+pub struct Acquisition {
+    assembler: JointAssembler,
+    health: HealthMonitor,
+    stats: AcquisitionStats,
+    bus_error: bool,
+}
+
+/// Why acquisition could not be set up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum AcquisitionError {
+    /// The encoder configuration is invalid.
+    #[error(transparent)]
+    Encoders(#[from] EncoderConfigError),
+}
+
+impl Acquisition {
+    /// Acquisition for the encoder nodes of `encoders`, with health thresholds `health`.
+    pub fn new(encoders: &EncoderConfig, health: HealthConfig) -> Result<Self, AcquisitionError> {
+        let assembler = JointAssembler::from_config(encoders)?;
+        let health = HealthMonitor::new(health, assembler.nodes());
+        Ok(Self { assembler, health, stats: AcquisitionStats::default(), bus_error: false })
+    }
+
+    /// Counters since start-up.
+    pub fn stats(&self) -> &AcquisitionStats {
+        &self.stats
+    }
+
+    /// Decodes a frame and counts why it is malformed; `None` when it is.
+    fn decode(&mut self, frame: &CanFrame) -> Option<Message> {
+        self.stats.frames += 1;
+        match Message::decode(frame) {
+            Ok(m) => Some(m),
+            Err(DecodeError::UnknownId { .. } | DecodeError::ExtendedId { .. } | DecodeError::RemoteFrame { .. }) => {
+                self.stats.unknown_id_frames += 1;
+                None
+            }
+            Err(DecodeError::WrongDlc { .. }) => {
+                self.stats.wrong_dlc_frames += 1;
+                None
+            }
+            Err(_) => {
+                self.stats.malformed_frames += 1;
+                None
+            }
+        }
+    }
+
+    fn on_status(&mut self, msg: &Message, now_ns: u64) {
+        match msg {
+            Message::Sync { .. } => self.stats.foreign_syncs += 1,
+            Message::Emcy { .. } | Message::Heartbeat { .. } => {
+                if self.health.on_message(msg, now_ns) {
+                    if matches!(msg, Message::Emcy { .. }) {
+                        self.stats.emcy_frames += 1;
+                    }
+                } else {
+                    self.stats.foreign_node_frames += 1;
+                }
+            }
+            Message::Tpdo { .. } => {}
+        }
+    }
+
+    /// A frame received outside any cycle's collection window (before this cycle's SYNC):
+    /// EMCY and heartbeats count; a TPDO is late and not used.
+    pub fn on_frame_between_cycles(&mut self, frame: &CanFrame, now_ns: u64) {
+        let Some(msg) = self.decode(frame) else { return };
+        match msg {
+            Message::Tpdo { node, .. } => {
+                if self.assembler.nodes().contains(&node) {
+                    self.stats.late_tpdos += 1;
+                } else {
+                    self.stats.foreign_node_frames += 1;
+                }
+            }
+            _ => self.on_status(&msg, now_ns),
+        }
+    }
+
+    /// Opens a cycle: call right after sending SYNC.
+    pub fn start_cycle(&mut self) {
+        self.assembler.start_cycle();
+        self.bus_error = false;
+    }
+
+    /// A frame received during the cycle's collection window.
+    pub fn on_frame(&mut self, frame: &CanFrame, now_ns: u64) {
+        let Some(msg) = self.decode(frame) else { return };
+        match msg {
+            Message::Tpdo { node, .. } => match self.assembler.accept(&msg) {
+                Ok(()) => self.stats.tpdos += 1,
+                Err(hw_io::can::AcceptError::Duplicate { .. }) => self.stats.duplicate_tpdos += 1,
+                Err(_) => {
+                    let _ = node;
+                    self.stats.foreign_node_frames += 1
+                }
+            },
+            _ => self.on_status(&msg, now_ns),
+        }
+    }
+
+    /// The interface reported an error during this cycle.
+    pub fn on_bus_error(&mut self) {
+        self.stats.bus_errors += 1;
+        self.bus_error = true;
+    }
+
+    /// True when every node's TPDO of this cycle is in.
+    pub fn is_complete(&self) -> bool {
+        self.assembler.is_complete()
+    }
+
+    /// Closes the cycle at `now_ns`. `sync_failed`: this cycle's SYNC could not be sent.
+    pub fn end_cycle(&mut self, now_ns: u64, sync_failed: bool) -> CycleInput {
+        let (counts, missing) = self.assembler.counts_partial();
+        let nodes = self.assembler.nodes();
+        let mut received_mask = 0u8;
+        for (k, n) in nodes.iter().enumerate() {
+            if !missing.contains(*n) {
+                received_mask |= 1 << k;
+            }
+        }
+        let mut f = self.health.end_cycle(received_mask, now_ns);
+        self.stats.cycles += 1;
+        if !missing.is_empty() {
+            f |= flags::INCOMPLETE_CYCLE;
+            self.stats.incomplete_cycles += 1;
+            self.stats.missing_tpdos += missing.len() as u64;
+        }
+        if sync_failed {
+            f |= flags::SYNC_SEND_FAILED;
+        }
+        if self.bus_error {
+            f |= flags::BUS_ERROR;
+        }
+        CycleInput { counts, received_mask, flags: f }
+    }
+}
+
+/// One cycle's estimate: what is published (less the sequence and timing fields).
+#[derive(Clone, Copy, Debug, PartialEq, Default, Serialize, Deserialize)]
+pub struct CycleOutput {
+    /// `STATE_INVALID`, `STATE_OUTSIDE` or `STATE_INSIDE` ([`hw_io::ipc`]).
+    pub state: u32,
+    /// Trocar identity when inside, else 0.
+    pub trocar_id: u32,
+    /// Health flags: the input's plus `BAD_SAMPLE` / `DETECTOR_RESET`.
+    pub health: u32,
+    /// Fulcrum, metres, robot base frame (zero unless inside).
+    pub fulcrum_base_m: [f64; 3],
+    /// Fit residual, metres (0 without a fit).
+    pub residual_m: f64,
+    /// One-sigma fulcrum uncertainty, metres (0 without a fit).
+    pub fulcrum_std_m: f64,
+    /// Fit conditioning, dimensionless (0 without a fit).
+    pub conditioning: f64,
+    /// Wrist centre P, metres, robot base frame (zero when invalid).
+    pub wrist_base_m: [f64; 3],
+    /// Instrument axis z, unit, robot base frame (zero when invalid).
+    pub axis_base: [f64; 3],
+    /// Joint angles 1..6, radians (zero when the cycle is incomplete).
+    pub joints_rad: [f64; JOINTS],
+    /// Lines in the detector's deciding window.
+    pub window_fill: u16,
+    /// Capacity of that window.
+    pub window_len: u16,
+    /// Lines in the latest fit.
+    pub fit_lines: u16,
+}
+
+impl CycleOutput {
+    /// True when every float field has the same bits as in `other` and every other field is
+    /// equal (what `replay` checks).
+    pub fn bit_identical(&self, other: &Self) -> bool {
+        fn bits(a: &[f64], b: &[f64]) -> bool {
+            a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+        }
+        self.state == other.state
+            && self.trocar_id == other.trocar_id
+            && self.health == other.health
+            && bits(&self.fulcrum_base_m, &other.fulcrum_base_m)
+            && bits(
+                &[self.residual_m, self.fulcrum_std_m, self.conditioning],
+                &[other.residual_m, other.fulcrum_std_m, other.conditioning],
+            )
+            && bits(&self.wrist_base_m, &other.wrist_base_m)
+            && bits(&self.axis_base, &other.axis_base)
+            && bits(&self.joints_rad, &other.joints_rad)
+            && self.window_fill == other.window_fill
+            && self.window_len == other.window_len
+            && self.fit_lines == other.fit_lines
+    }
+
+    fn all_finite(&self) -> bool {
+        self.fulcrum_base_m
+            .iter()
+            .chain([self.residual_m, self.fulcrum_std_m, self.conditioning].iter())
+            .chain(self.wrist_base_m.iter())
+            .chain(self.axis_base.iter())
+            .chain(self.joints_rad.iter())
+            .all(|v| v.is_finite())
+    }
+
+    /// Fills the estimate fields of a published sample (the caller sets sequence, run id,
+    /// timestamp and timings).
+    pub fn to_sample(&self) -> FulcrumSample {
+        let mut s = FulcrumSample::invalid(self.health);
+        s.state = self.state;
+        s.trocar_id = self.trocar_id;
+        s.fulcrum_base_m = self.fulcrum_base_m;
+        s.residual_m = self.residual_m;
+        s.fulcrum_std_m = self.fulcrum_std_m;
+        s.conditioning = self.conditioning;
+        s.wrist_base_m = self.wrist_base_m;
+        s.axis_base = self.axis_base;
+        s.joints_rad = self.joints_rad;
+        s.window_fill = self.window_fill;
+        s.window_len = self.window_len;
+        s.fit_lines = self.fit_lines;
+        s
+    }
+}
+
+/// Why estimation could not be set up.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EstimationError {
+    /// The encoder configuration is invalid.
+    #[error(transparent)]
+    Encoders(#[from] EncoderConfigError),
+    /// The kinematic configuration is invalid.
+    #[error(transparent)]
+    Kinematics(#[from] KinematicsConfigError),
+    /// The detector configuration is invalid.
+    #[error(transparent)]
+    Detector(#[from] DetectorConfigError),
+}
+
+/// Stage 2: [`CycleInput`] → [`CycleOutput`]. Deterministic.
+#[derive(Clone, Debug)]
+pub struct Estimation {
+    encoders: EncoderConfig,
+    arm: Achilles,
+    detector: Detector,
+    reset_pending: bool,
+}
+
+impl Estimation {
+    /// Estimation with the given encoder conversion, arm model and detector.
+    pub fn new(
+        encoders: &EncoderConfig,
+        kinematics: &AchillesConfig,
+        detector: &DetectorConfig,
+    ) -> Result<Self, EstimationError> {
+        encoders.validate()?;
+        Ok(Self {
+            encoders: *encoders,
+            arm: Achilles::new(kinematics)?,
+            detector: Detector::new(detector)?,
+            reset_pending: false,
+        })
+    }
+
+    /// Processes one cycle's input.
+    pub fn process(&mut self, input: &CycleInput) -> CycleOutput {
+        let mut out = CycleOutput { state: STATE_INVALID, health: input.flags, ..Default::default() };
+        if input.flags & RESET_FLAGS != 0 {
+            self.reset_pending = true;
+        }
+        if input.flags & flags::INVALIDATING != 0 {
+            if input.received_mask == (1 << ENCODER_NODES) - 1 {
+                out.joints_rad = self.encoders.counts_to_rad(&input.counts);
+            }
+            return out;
+        }
+        let q = self.encoders.counts_to_rad(&input.counts);
+        out.joints_rad = q;
+        let Ok(pose) = self.arm.forward(&q) else {
+            out.health |= flags::BAD_SAMPLE;
+            return out;
+        };
+        if self.reset_pending {
+            self.detector.reset();
+            self.reset_pending = false;
+            out.health |= flags::DETECTOR_RESET;
+        }
+        let est = self.detector.step(&LineSample::new(pose.wrist_base_m, pose.axis_base));
+        out.wrist_base_m = pose.wrist_base_m.into();
+        out.axis_base = pose.axis_base.into();
+        out.window_fill = est.window_fill;
+        out.window_len = est.window_len;
+        if let Some(fit) = est.fit {
+            out.residual_m = fit.residual_m;
+            out.fulcrum_std_m = fit.std_m;
+            out.conditioning = fit.conditioning;
+            out.fit_lines = fit.lines;
+        }
+        if est.rejected.is_some() {
+            out.health |= flags::BAD_SAMPLE;
+            return out;
+        }
+        match (est.state, est.fulcrum_base_m) {
+            (TrocarState::Inside { id }, Some(f)) => {
+                out.state = STATE_INSIDE;
+                out.trocar_id = u32::from(id);
+                out.fulcrum_base_m = f.into();
+            }
+            _ => out.state = STATE_OUTSIDE,
+        }
+        if !out.all_finite() {
+            out.state = STATE_INVALID;
+            out.health |= flags::BAD_SAMPLE;
+            out.fulcrum_base_m = [0.0; 3];
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use hw_io::can::{NmtState, NodeId};
+
+    fn n(k: u8) -> NodeId {
+        NodeId::new(k).unwrap()
+    }
+
+    fn frame(m: Message) -> CanFrame {
+        m.encode().unwrap()
+    }
+
+    fn acquisition() -> Acquisition {
+        let mut a = Acquisition::new(&EncoderConfig::default(), HealthConfig::default()).unwrap();
+        for k in 1..=3 {
+            a.on_frame_between_cycles(&frame(Message::Heartbeat { node: n(k), state: NmtState::Operational }), 0);
+        }
+        a
+    }
+
+    fn full_cycle(a: &mut Acquisition, t: u64, counts: [i32; 6]) -> CycleInput {
+        a.start_cycle();
+        for k in 0..3u8 {
+            let c = [counts[2 * k as usize], counts[2 * k as usize + 1]];
+            a.on_frame(&frame(Message::Tpdo { node: n(k + 1), counts: c }), t);
+        }
+        assert!(a.is_complete());
+        a.end_cycle(t, false)
+    }
+
+    #[test]
+    fn a_complete_cycle_is_clean_and_malformed_frames_are_counted() {
+        let mut a = acquisition();
+        a.start_cycle();
+        a.on_frame(&CanFrame::new_standard(0x181, &[1, 2, 3]).unwrap(), 0); // wrong DLC
+        a.on_frame(&CanFrame::new_standard(0x555, &[0; 8]).unwrap(), 0); // unknown COB-ID
+        a.on_frame(&frame(Message::Tpdo { node: n(9), counts: [0, 0] }), 0); // foreign node
+        for k in 1..=3 {
+            a.on_frame(&frame(Message::Tpdo { node: n(k), counts: [k as i32, 0] }), 0);
+        }
+        let input = a.end_cycle(0, false);
+        assert_eq!(input.flags, 0);
+        assert_eq!(input.received_mask, 0b111);
+        assert_eq!(input.counts[0], 1);
+        let s = a.stats();
+        assert_eq!((s.wrong_dlc_frames, s.unknown_id_frames, s.foreign_node_frames, s.tpdos), (1, 1, 1, 3));
+    }
+
+    #[test]
+    fn missing_tpdo_gives_incomplete_then_stale() {
+        let mut a = acquisition();
+        a.start_cycle();
+        a.on_frame(&frame(Message::Tpdo { node: n(1), counts: [0, 0] }), 0);
+        a.on_frame(&frame(Message::Tpdo { node: n(3), counts: [0, 0] }), 0);
+        let input = a.end_cycle(0, false);
+        assert_eq!(input.flags, flags::INCOMPLETE_CYCLE);
+        assert_eq!(input.received_mask, 0b101);
+        for _ in 0..2 {
+            a.start_cycle();
+            a.end_cycle(0, false);
+        }
+        a.start_cycle();
+        let input = a.end_cycle(0, false);
+        assert_ne!(input.flags & flags::NODE_STALE[1], 0);
+        // A late TPDO is counted, not used.
+        a.on_frame_between_cycles(&frame(Message::Tpdo { node: n(2), counts: [0, 0] }), 0);
+        assert_eq!(a.stats().late_tpdos, 1);
+        assert_eq!(a.stats().incomplete_cycles, 4);
+    }
+
+    fn estimation() -> Estimation {
+        Estimation::new(&EncoderConfig::default(), &AchillesConfig::default(), &DetectorConfig::default()).unwrap()
+    }
+
+    #[test]
+    fn valid_input_gives_a_valid_outside_estimate_with_the_wrist_point() {
+        let mut a = acquisition();
+        let mut e = estimation();
+        let out = e.process(&full_cycle(&mut a, 0, [0, 0, 32768, 0, 0, 0]));
+        assert_eq!(out.state, STATE_OUTSIDE);
+        assert_eq!(out.health, 0);
+        assert!(out.wrist_base_m.iter().any(|v| *v != 0.0));
+        let sample = out.to_sample();
+        assert!(sample.is_valid());
+        assert_eq!(sample.fulcrum(), None);
+    }
+
+    #[test]
+    fn invalid_input_is_never_published_as_valid_and_resets_after_node_faults() {
+        let mut e = estimation();
+        let mut a = acquisition();
+        let good = full_cycle(&mut a, 0, [0, 0, 32768, 0, 0, 0]);
+        assert_eq!(e.process(&good).state, STATE_OUTSIDE);
+        // Incomplete: invalid, frozen, no reset afterwards.
+        let out = e.process(&CycleInput { flags: flags::INCOMPLETE_CYCLE, received_mask: 0b011, ..good });
+        assert_eq!(out.state, STATE_INVALID);
+        assert_eq!(out.joints_rad, [0.0; 6]);
+        let out = e.process(&good);
+        assert_eq!(out.health & flags::DETECTOR_RESET, 0);
+        // EMCY: invalid, and the next valid cycle resets the detector.
+        let out = e.process(&CycleInput { flags: flags::NODE_EMCY[0], ..good });
+        assert_eq!(out.state, STATE_INVALID);
+        assert_eq!(out.fulcrum_base_m, [0.0; 3]);
+        let out = e.process(&good);
+        assert_eq!(out.state, STATE_OUTSIDE);
+        assert_ne!(out.health & flags::DETECTOR_RESET, 0);
+        assert_eq!(e.process(&good).health & flags::DETECTOR_RESET, 0);
+    }
+
+    #[test]
+    fn replaying_inputs_reproduces_outputs_bit_for_bit() {
+        let mut a = acquisition();
+        let inputs: Vec<CycleInput> = (0..500)
+            .map(|i| full_cycle(&mut a, i * 1_000_000, [i as i32 * 7, 100, 32768 - i as i32, 5, i as i32, 9]))
+            .collect();
+        let run = |inputs: &[CycleInput]| {
+            let mut e = estimation();
+            inputs.iter().map(|i| e.process(i)).collect::<Vec<_>>()
+        };
+        let (x, y) = (run(&inputs), run(&inputs));
+        assert!(x.iter().zip(&y).all(|(a, b)| a.bit_identical(b)));
+        let mut z = y.clone();
+        z[100].wrist_base_m[0] = f64::from_bits(z[100].wrist_base_m[0].to_bits() ^ 1);
+        assert!(!x[100].bit_identical(&z[100]));
+    }
+}

@@ -1,0 +1,430 @@
+//! fulcrumd's process: threads, start-up, shutdown, summary.
+//!
+//! Threads:
+//! - `fulcrumd-rt`: the 1 kHz loop ([`RtLoop`]). Real-time set-up from `[realtime]`, then
+//!   creates its iceoryx2 publisher, marks itself real-time for the pool allocator
+//!   ([`hw_io::rt_alloc`]) and loops. Hands records and log events to lock-free queues.
+//! - `recorder-writer`: drains the flight recorder's queue to disk (lower priority).
+//! - `fulcrumd-watchdog`: systemd notifications (READY after the first valid cycle,
+//!   WATCHDOG pings while the loop advances, STATUS once a second).
+//! - `fulcrumd-sim`: the built-in simulated robot (only when no CAN interface is configured):
+//!   answers the loop's SYNC on the in-process bus.
+//! - the main thread: turns log events into `tracing` lines (journald-friendly), prints the
+//!   simulated truth next to them, and waits for the stop signal.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use hw_io::can::{CanBus, InProcessBus, SocketCanBus};
+use hw_io::ipc::{FulcrumPublisher, FulcrumSample, PublisherOptions, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE};
+use serde::Serialize;
+use tracing::{info, warn};
+
+use crate::config::Config;
+use crate::cycle::{Acquisition, AcquisitionStats, Estimation};
+use crate::recorder::{self, RecorderProducer, RecorderStatsSnapshot, RunInfo};
+use crate::rt::{self, RealtimeReport};
+use crate::rt_loop::{
+    CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopParams, RECORD_KIND, RtLoop, TimingSummary,
+};
+use crate::sim_robot::{self, SimRobotThread};
+use crate::watchdog::{self, LoopProgress, Watchdog};
+
+/// Capacity of the flight recorder queue, records (about 4 s at 1 kHz).
+pub const RECORDER_QUEUE: usize = 4096;
+
+/// How to run the daemon.
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    /// Validated configuration.
+    pub config: Config,
+    /// The configuration as TOML (stored in recordings so `replay` rebuilds the detector).
+    pub config_toml: String,
+    /// Stop after this many cycles (None: until SIGINT/SIGTERM).
+    pub max_cycles: Option<u64>,
+    /// Seed of the built-in simulated robot's surgeon.
+    pub sim_seed: u64,
+}
+
+/// Allocation figures of the real-time thread over its loop.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct AllocSummary {
+    /// System-allocator calls made by the real-time thread during the loop (target: 0).
+    pub rt_thread_system_allocs: u64,
+    /// Small blocks the pool served (iceoryx2's per-sample block, freed in the same cycle).
+    pub pool_allocs: u64,
+    /// Pool exhaustion fallbacks to the system allocator.
+    pub pool_fallbacks: u64,
+    /// Most pool blocks in use at once.
+    pub pool_high_water: usize,
+}
+
+/// What a run did; printed at exit and optionally written as JSON.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct RunSummary {
+    /// The bus the loop ran on (`in-process simulated robot` or the interface name).
+    pub bus: String,
+    /// Identifier of this run (in every published sample and recording file).
+    pub run_id: u64,
+    /// Cycle period, microseconds.
+    pub period_us: u32,
+    /// Cycles run.
+    pub cycles: u64,
+    /// Cycles with a valid estimate.
+    pub valid_cycles: u64,
+    /// Samples published.
+    pub published: u64,
+    /// Publications that failed.
+    pub publish_errors: u64,
+    /// Periods skipped by overruns.
+    pub overruns: u64,
+    /// Log events dropped (log queue full).
+    pub log_drops: u64,
+    /// Records dropped at the recorder's queue (full).
+    pub recorder_queue_drops: u64,
+    /// The flight recorder's own counters (None when recording was off).
+    pub recorder: Option<RecorderStatsSnapshot>,
+    /// First file of the recording (None when recording was off).
+    pub recording: Option<PathBuf>,
+    /// Frames the bus backend dropped (receive queue full).
+    pub bus_dropped_rx_frames: u64,
+    /// Acquisition counters.
+    pub acquisition: AcquisitionStats,
+    /// Loop timing, microseconds.
+    pub timing: TimingSummary,
+    /// Allocations of the real-time thread.
+    pub alloc: AllocSummary,
+    /// Real-time set-up, step by step.
+    pub realtime: Vec<String>,
+    /// Simulated robot: SYNCs answered (0 on a real bus).
+    pub sim_syncs_answered: u64,
+}
+
+/// Why the daemon could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum DaemonError {
+    /// The configuration cannot build the pipeline.
+    #[error("configuration: {0}")]
+    Config(String),
+    /// The CAN interface could not be opened.
+    #[error("CAN interface {iface}: {source}")]
+    Bus {
+        /// Interface name.
+        iface: String,
+        /// Why.
+        source: hw_io::can::OpenError,
+    },
+    /// The iceoryx2 publisher could not be created.
+    #[error("output service: {0}")]
+    Publisher(#[from] hw_io::ipc::CreateError),
+    /// The flight recorder could not start.
+    #[error("flight recorder: {0}")]
+    Recorder(#[from] recorder::StartError),
+    /// Real-time set-up failed with `realtime.require = true`.
+    #[error("real-time set-up: {0}")]
+    Realtime(#[from] rt::RealtimeError),
+    /// The built-in simulated robot could not start.
+    #[error("simulated robot: {0}")]
+    Sim(String),
+    /// A thread could not be spawned or died.
+    #[error("thread: {0}")]
+    Thread(String),
+}
+
+struct DaemonSink {
+    publisher: FulcrumPublisher,
+    recorder: Option<RecorderProducer<CycleRecord>>,
+    log: heapless::spsc::Producer<'static, LogEvent>,
+}
+
+impl CycleSink for DaemonSink {
+    fn publish(&mut self, sample: &FulcrumSample) -> bool {
+        self.publisher.publish(sample).is_ok()
+    }
+    fn record(&mut self, record: &CycleRecord) -> bool {
+        match &mut self.recorder {
+            Some(r) => r.push(*record),
+            None => true,
+        }
+    }
+    fn log(&mut self, event: LogEvent) -> bool {
+        self.log.enqueue(event).is_ok()
+    }
+}
+
+/// What the real-time thread returns.
+struct RtResult {
+    error: Option<String>,
+    cycles: u64,
+    acquisition: AcquisitionStats,
+    timing: TimingSummary,
+    alloc: AllocSummary,
+    bus_dropped: u64,
+}
+
+/// Names a state for people.
+pub fn state_name(state: u32) -> &'static str {
+    match state {
+        STATE_INVALID => "INVALID",
+        STATE_OUTSIDE => "outside",
+        STATE_INSIDE => "INSIDE",
+        _ => "unknown",
+    }
+}
+
+/// Names the set health flags for people (comma-separated; "ok" when none).
+pub fn health_names(flags: u32) -> String {
+    use hw_io::ipc::health as h;
+    let mut v = Vec::new();
+    for k in 0..3 {
+        if flags & h::NODE_STALE[k] != 0 {
+            v.push(format!("node{}-stale", k + 1));
+        }
+        if flags & h::NODE_EMCY[k] != 0 {
+            v.push(format!("node{}-emcy", k + 1));
+        }
+        if flags & h::NODE_HEARTBEAT[k] != 0 {
+            v.push(format!("node{}-heartbeat", k + 1));
+        }
+    }
+    for (bit, name) in [
+        (h::INCOMPLETE_CYCLE, "incomplete-cycle"),
+        (h::OVERRUN, "overrun"),
+        (h::SYNC_SEND_FAILED, "sync-send-failed"),
+        (h::BUS_ERROR, "bus-error"),
+        (h::BAD_SAMPLE, "bad-sample"),
+        (h::DETECTOR_RESET, "detector-reset"),
+    ] {
+        if flags & bit != 0 {
+            v.push(name.to_string());
+        }
+    }
+    if v.is_empty() { "ok".into() } else { v.join(",") }
+}
+
+fn log_event(e: &LogEvent, period_s: f64) {
+    match *e {
+        LogEvent::State { sequence, state, trocar_id, fulcrum_base_m: f } => {
+            let t = sequence as f64 * period_s;
+            if state == STATE_INSIDE {
+                info!(
+                    "{t:9.3} s  DETECTED inside trocar #{trocar_id}, fulcrum ({:+.4}, {:+.4}, {:+.4}) m",
+                    f[0], f[1], f[2]
+                );
+            } else {
+                info!("{t:9.3} s  DETECTED {}", state_name(state));
+            }
+        }
+        LogEvent::Health { sequence, old, new } => {
+            let t = sequence as f64 * period_s;
+            if new == 0 {
+                info!("{t:9.3} s  health ok (was {})", health_names(old));
+            } else {
+                warn!("{t:9.3} s  health {}", health_names(new));
+            }
+        }
+        LogEvent::Overrun { sequence, skipped } => {
+            warn!("cycle {sequence}: overrun, {skipped} period(s) skipped");
+        }
+        LogEvent::PublishFailed { sequence } => warn!("cycle {sequence}: publishing failed"),
+    }
+}
+
+/// Runs the daemon until `stop` is set (or `max_cycles`). Returns the summary.
+pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, DaemonError> {
+    let cfg = &opts.config;
+    let acquisition = Acquisition::new(&cfg.bus.encoder, cfg.health).map_err(|e| DaemonError::Config(e.to_string()))?;
+    let estimation = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector)
+        .map_err(|e| DaemonError::Config(e.to_string()))?;
+    let run_info = RunInfo::new(RECORD_KIND, opts.config_toml.clone());
+    let run_id = run_info.run_id;
+    let params = LoopParams {
+        period_ns: u64::from(cfg.cycle.period_us) * 1000,
+        frame_deadline_ns: u64::from(cfg.cycle.frame_deadline_us) * 1000,
+        run_id,
+        max_cycles: opts.max_cycles,
+    };
+    let period_s = f64::from(cfg.cycle.period_us) * 1e-6;
+
+    // Flight recorder.
+    let (rec_producer, rec_handle) = if cfg.recorder.enabled {
+        let (p, h) = recorder::start::<CycleRecord, RECORDER_QUEUE>(&cfg.recorder, run_info)?;
+        info!("flight recorder: {}", h.first_file().display());
+        (Some(p), Some(h))
+    } else {
+        info!("flight recorder: off");
+        (None, None)
+    };
+    let recording = rec_handle.as_ref().map(|h| h.first_file().to_path_buf());
+
+    // Log hand-off: one queue for the run, leaked (a few tens of KiB once per process run).
+    let queue: &'static mut LogQueue = Box::leak(Box::new(LogQueue::new()));
+    let (log_tx, mut log_rx) = queue.split();
+
+    let counters = Arc::new(LoopCounters::default());
+    let progress = LoopProgress::new();
+    let watchdog = match Watchdog::spawn(progress.clone(), watchdog::default_status) {
+        Ok(w) => Some(w),
+        Err(e) => {
+            warn!("systemd watchdog supervisor: {e}; running without it");
+            None
+        }
+    };
+
+    // The bus, and the simulated robot when there is no interface.
+    let mut sim: Option<SimRobotThread> = None;
+    let (bus, bus_name): (Box<dyn CanBus + Send>, String) = if cfg.bus.iface.is_empty() {
+        let bus = InProcessBus::new();
+        let endpoint = bus.endpoint().map_err(|e| DaemonError::Sim(e.to_string()))?;
+        let controller = bus.endpoint().map_err(|e| DaemonError::Sim(e.to_string()))?;
+        sim = Some(
+            sim_robot::spawn(endpoint, cfg, opts.sim_seed, stop, period_s)
+                .map_err(|e| DaemonError::Sim(e.to_string()))?,
+        );
+        (Box::new(controller), "in-process simulated robot".to_string())
+    } else {
+        let b = SocketCanBus::open(&cfg.bus.iface)
+            .map_err(|source| DaemonError::Bus { iface: cfg.bus.iface.clone(), source })?;
+        (Box::new(b), cfg.bus.iface.clone())
+    };
+    info!(
+        "fulcrumd: run {run_id:016x}, bus {bus_name}, {} Hz, detector {:?}, output service {:?}",
+        1_000_000 / cfg.cycle.period_us,
+        cfg.detector.mode,
+        cfg.output.service
+    );
+
+    // The real-time thread.
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<Vec<String>, DaemonError>>();
+    let rt_cfg = cfg.realtime.clone();
+    let service = cfg.output.service.clone();
+    let rt_counters = counters.clone();
+    let rt_progress = progress.clone();
+    let handle = std::thread::Builder::new()
+        .name("fulcrumd-rt".into())
+        .stack_size(8 << 20)
+        .spawn(move || -> Option<RtResult> {
+            let report: RealtimeReport = match rt::apply_to_current_thread(&rt_cfg) {
+                Ok(r) => r,
+                Err(e) => {
+                    let _ = ready_tx.send(Err(e.into()));
+                    return None;
+                }
+            };
+            let publisher = match FulcrumPublisher::create(&service, &PublisherOptions::default()) {
+                Ok(p) => p,
+                Err(e) => {
+                    let _ = ready_tx.send(Err(e.into()));
+                    return None;
+                }
+            };
+            let mut sink = DaemonSink { publisher, recorder: rec_producer, log: log_tx };
+            let mut lp = RtLoop::new(bus, acquisition, estimation, params, rt_counters, rt_progress);
+            hw_io::rt_alloc::prefault_pool();
+            let lines = report.steps().iter().map(|(step, outcome)| format!("{step}: {outcome}")).collect();
+            let _ = ready_tx.send(Ok(lines));
+            drop(ready_tx);
+            hw_io::rt_alloc::enter_realtime();
+            let before = hw_io::rt_alloc::thread_system_allocs();
+            let pool_before = hw_io::rt_alloc::stats();
+            let result = lp.run(&mut sink, || stop.load(Ordering::Relaxed));
+            let allocs = hw_io::rt_alloc::thread_system_allocs() - before;
+            hw_io::rt_alloc::leave_realtime();
+            let pool = hw_io::rt_alloc::stats();
+            Some(RtResult {
+                error: result.err().map(|e| e.to_string()),
+                cycles: lp.cycles(),
+                acquisition: *lp.acquisition_stats(),
+                timing: lp.timing().summary(),
+                alloc: AllocSummary {
+                    rt_thread_system_allocs: allocs,
+                    pool_allocs: pool.pool_allocs - pool_before.pool_allocs,
+                    pool_fallbacks: pool.pool_fallbacks - pool_before.pool_fallbacks,
+                    pool_high_water: pool.pool_high_water,
+                },
+                bus_dropped: lp.bus_dropped_rx_frames(),
+            })
+        })
+        .map_err(|e| DaemonError::Thread(e.to_string()))?;
+    let realtime = match ready_rx.recv() {
+        Ok(Ok(lines)) => lines,
+        Ok(Err(e)) => {
+            stop.store(true, Ordering::Relaxed);
+            let _ = handle.join();
+            return Err(e);
+        }
+        Err(_) => {
+            stop.store(true, Ordering::Relaxed);
+            let _ = handle.join();
+            return Err(DaemonError::Thread("the real-time thread died during set-up".into()));
+        }
+    };
+    for line in &realtime {
+        info!("real-time: {line}");
+    }
+
+    // Main thread: log hand-off and the simulated truth, until the loop ends.
+    while !handle.is_finished() {
+        std::thread::sleep(Duration::from_millis(10));
+        while let Some(e) = log_rx.dequeue() {
+            log_event(&e, period_s);
+        }
+        if let Some(s) = &sim {
+            s.drain_truth(|line| info!("{line}"));
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    let rt = handle.join().map_err(|_| DaemonError::Thread("the real-time thread panicked".into()))?;
+    while let Some(e) = log_rx.dequeue() {
+        log_event(&e, period_s);
+    }
+    let sim_syncs_answered = match sim {
+        Some(s) => {
+            s.drain_truth(|line| info!("{line}"));
+            s.join()
+        }
+        None => 0,
+    };
+    if let Some(w) = watchdog
+        && let Err(e) = w.shutdown()
+    {
+        warn!("{e}");
+    }
+    let recorder = match rec_handle {
+        Some(h) => match h.shutdown() {
+            Ok(s) => Some(s),
+            Err(e) => {
+                warn!("flight recorder shutdown: {e}");
+                None
+            }
+        },
+        None => None,
+    };
+    let rt = rt.ok_or_else(|| DaemonError::Thread("the real-time thread returned no result".into()))?;
+    if let Some(e) = &rt.error {
+        return Err(DaemonError::Thread(format!("the loop stopped: {e}")));
+    }
+    let p = &counters;
+    Ok(RunSummary {
+        bus: bus_name,
+        run_id,
+        period_us: cfg.cycle.period_us,
+        cycles: rt.cycles,
+        valid_cycles: p.valid_cycles.load(Ordering::Relaxed),
+        published: p.published.load(Ordering::Relaxed),
+        publish_errors: p.publish_errors.load(Ordering::Relaxed),
+        overruns: p.overruns.load(Ordering::Relaxed),
+        log_drops: p.log_drops.load(Ordering::Relaxed),
+        recorder_queue_drops: p.recorder_drops.load(Ordering::Relaxed),
+        recorder,
+        recording,
+        bus_dropped_rx_frames: rt.bus_dropped,
+        acquisition: rt.acquisition,
+        timing: rt.timing,
+        alloc: rt.alloc,
+        realtime,
+        sim_syncs_answered,
+    })
+}

@@ -1,0 +1,139 @@
+//! The daemon's side: one publisher per fulcrum output.
+
+use std::time::Duration;
+
+use iceoryx2::node::{Node, NodeCreationFailure, NodeWaitFailure};
+use iceoryx2::port::notifier::{Notifier, NotifierCreateError, NotifierNotifyError};
+use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
+use iceoryx2::port::{LoanError, SendError};
+use iceoryx2::prelude::{BackpressureStrategy, ipc};
+use iceoryx2::service::builder::event::EventOpenOrCreateError;
+use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
+use iceoryx2::service::service_name::ServiceNameError;
+
+use super::FulcrumSample;
+use super::service::{self, PublisherOptions};
+
+/// Why [`FulcrumPublisher::create`] failed.
+#[derive(Debug, thiserror::Error)]
+pub enum CreateError {
+    /// The options are out of range (the message says which).
+    #[error("invalid publisher options: {0}")]
+    InvalidOptions(&'static str),
+    /// The service name is empty, too long or has invalid characters.
+    #[error("invalid service name {name:?}: {source}")]
+    InvalidServiceName {
+        /// The name given.
+        name: String,
+        /// iceoryx2's reason.
+        source: ServiceNameError,
+    },
+    /// The iceoryx2 node could not be created (permissions on /tmp/iceoryx2 or /dev/shm).
+    #[error("cannot create the iceoryx2 node: {0}")]
+    Node(#[source] NodeCreationFailure),
+    /// The publish-subscribe service could not be opened or created; `IncompatibleTypes` or an
+    /// incompatible capacity means it exists with other settings (another layout version, or
+    /// subscribers started with other [`PublisherOptions`]).
+    #[error("cannot open or create the publish-subscribe service: {0}")]
+    Service(#[source] PublishSubscribeOpenOrCreateError),
+    /// The event service could not be opened or created.
+    #[error("cannot open or create the event service: {0}")]
+    EventService(#[source] EventOpenOrCreateError),
+    /// The publisher port could not be created; `ExceedsMaxSupportedPublishers` means another
+    /// live publisher (a second daemon) owns this output.
+    #[error("cannot create the publisher: {0}")]
+    Publisher(#[source] PublisherCreateError),
+    /// The notifier port could not be created (another live daemon owns this output).
+    #[error("cannot create the notifier: {0}")]
+    Notifier(#[source] NotifierCreateError),
+}
+
+/// Why [`FulcrumPublisher::publish`] failed. The sample was not delivered (`Loan`, `Send`) or
+/// delivered without waking blocking subscribers (`Notify`; they still get it within their
+/// wait's re-check interval).
+#[derive(Debug, thiserror::Error)]
+pub enum PublishError {
+    /// No free sample in the shared-memory data segment.
+    #[error("cannot loan a sample: {0}")]
+    Loan(#[source] LoanError),
+    /// Delivery to the subscribers failed.
+    #[error("cannot send the sample: {0}")]
+    Send(#[source] SendError),
+    /// The wake-up notification failed.
+    #[error("cannot notify the subscribers: {0}")]
+    Notify(#[source] NotifierNotifyError),
+}
+
+/// Publishes [`FulcrumSample`]s on a fulcrum output and wakes its blocking subscribers.
+///
+/// Created once at start-up on the thread that will publish (the iceoryx2 ports are
+/// single-threaded: `FulcrumPublisher` is neither `Send` nor `Sync`).
+///
+/// ## Real-time use
+/// [`publish`](Self::publish) copies the 200-byte sample into shared memory, sends it and
+/// notifies: no lock, no blocking (a full subscriber buffer overwrites its oldest sample), and
+/// no heap allocation except iceoryx2's one 48-byte `Rc` per sample, which
+/// [`crate::rt_alloc`] serves from a static pool on a thread that called
+/// [`crate::rt_alloc::enter_realtime`]. When a subscriber connects or goes away, the next
+/// `publish` also updates the connections (opening or closing shared memory: system calls and
+/// allocations, once per connect or disconnect).
+#[derive(Debug)]
+pub struct FulcrumPublisher {
+    publisher: Publisher<ipc::Service, FulcrumSample, ()>,
+    notifier: Notifier<ipc::Service>,
+    node: Node<ipc::Service>,
+    signal_handlers: bool,
+    published: u64,
+}
+
+impl FulcrumPublisher {
+    /// Opens (or creates) the fulcrum output `service_name` and its publisher.
+    ///
+    /// Creating the node also removes the iceoryx2 resources of dead processes, so a daemon
+    /// restarted after a crash or SIGKILL takes over its output while subscribers keep running.
+    pub fn create(service_name: &str, opts: &PublisherOptions) -> Result<Self, CreateError> {
+        opts.check().map_err(CreateError::InvalidOptions)?;
+        let name = service::service_name(service_name)
+            .map_err(|source| CreateError::InvalidServiceName { name: service_name.to_owned(), source })?;
+        let node = service::node("fulcrumd", opts.iceoryx2_signal_handlers).map_err(CreateError::Node)?;
+        let pubsub = service::open_pubsub(&node, &name, opts).map_err(CreateError::Service)?;
+        let event = service::open_event(&node, &name, opts).map_err(CreateError::EventService)?;
+        let publisher = pubsub
+            .publisher_builder()
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(CreateError::Publisher)?;
+        let notifier = event.notifier_builder().create().map_err(CreateError::Notifier)?;
+        let this = Self { publisher, notifier, node, signal_handlers: opts.iceoryx2_signal_handlers, published: 0 };
+        if opts.iceoryx2_signal_handlers {
+            // iceoryx2 registers its handlers on the first termination check.
+            let _ = this.termination_requested();
+        }
+        Ok(this)
+    }
+
+    /// Publishes one sample: loan a shared-memory slot, copy `sample` into it verbatim (the
+    /// caller sets every field, `version` included), send it to every connected subscriber,
+    /// then notify the event service so that blocking subscribers wake up.
+    pub fn publish(&mut self, sample: &FulcrumSample) -> Result<(), PublishError> {
+        let slot = self.publisher.loan_uninit().map_err(PublishError::Loan)?;
+        slot.write_payload(*sample).send().map_err(PublishError::Send)?;
+        self.published += 1;
+        self.notifier.notify().map_err(PublishError::Notify)?;
+        Ok(())
+    }
+
+    /// Samples sent since creation.
+    pub fn published(&self) -> u64 {
+        self.published
+    }
+
+    /// True when iceoryx2's signal handlers (option
+    /// [`PublisherOptions::iceoryx2_signal_handlers`]) caught a SIGINT or SIGTERM since the last
+    /// call. Always false when that option is off. Not for the real-time loop (a system call).
+    pub fn termination_requested(&self) -> bool {
+        // With the handlers on, iceoryx2 reports a caught SIGINT or SIGTERM as `TerminationRequest`
+        // (`Interrupt` only means that the zero-length sleep was interrupted).
+        self.signal_handlers && matches!(self.node.wait(Duration::ZERO), Err(NodeWaitFailure::TerminationRequest))
+    }
+}

@@ -1,0 +1,514 @@
+//! `simrobot`: the simulated Achilles robot on the encoder bus (see `docs/simulator.md`).
+//!
+//! - `simrobot generate --out DIR`: writes a whole run offline: `DIR/bus.log` (candump `-l`
+//!   format: the controller's SYNCs and the nodes' answers) and `DIR/truth.jsonl` (ground
+//!   truth). Deterministic: the same configuration and seed give the same bytes.
+//! - `simrobot live --iface vcan0`: answers the controller's SYNCs on a SocketCAN interface
+//!   and prints the true insertions and extractions as they happen.
+//!
+//! Exit codes: 0 success; 1 run-time error; 2 bad command line or configuration; 3 the CAN
+//! interface cannot be opened (no CAN in the kernel, no such interface).
+
+use std::fs::File;
+use std::io::{self, BufWriter, IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use clap::{Args, Parser, Subcommand};
+use hw_io::can::candump::CandumpWriter;
+use hw_io::can::{
+    CanBus, CanFrame, CanId, Message, OpenError, RecvError, SYNC_COB_ID, SocketCanBus, SyncCounter, SyncSource,
+    TimedFrame,
+};
+use sim::truth_file::{DEFAULT_STATE_EVERY, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
+use sim::twin::{SYNC_PERIOD_US, SimRobot, TwinConfig, TwinConfigError, TwinError, TwinEvent};
+
+/// Default epoch of `generate`: Unix time of the first SYNC, seconds (2023-11-14).
+const DEFAULT_EPOCH_S: u64 = 1_700_000_000;
+
+#[derive(Parser, Debug)]
+#[command(name = "simrobot", version, about = "The simulated Achilles robot on the encoder bus (docs/simulator.md)")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Write a whole run offline: DIR/bus.log (candump -l) and DIR/truth.jsonl.
+    Generate(GenerateArgs),
+    /// Answer the controller's SYNCs on a SocketCAN interface.
+    Live(LiveArgs),
+}
+
+#[derive(Args, Debug)]
+struct Common {
+    /// Twin configuration (TOML; see configs/simrobot.toml). Defaults when absent.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Scenario seed (overrides scenario.seed).
+    #[arg(long, value_name = "S")]
+    seed: Option<u64>,
+    /// Insert/extract cycles (overrides scenario.cycles).
+    #[arg(long, value_name = "N")]
+    cycles: Option<usize>,
+}
+
+#[derive(Args, Debug)]
+struct GenerateArgs {
+    /// Output directory (created if needed).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    #[command(flatten)]
+    common: Common,
+    /// About this many minutes of motion: sets the cycles from the mean cycle duration
+    /// (mean of scenario.inside_s plus mean of scenario.outside_s).
+    #[arg(long, value_name = "M", conflicts_with = "cycles")]
+    minutes: Option<f64>,
+    /// Write a state line to truth.jsonl every K samples (1 = every sample).
+    #[arg(long, value_name = "K", default_value_t = DEFAULT_STATE_EVERY)]
+    state_every: u64,
+    /// Unix time of the first SYNC, seconds.
+    #[arg(long, value_name = "SECONDS", default_value_t = DEFAULT_EPOCH_S)]
+    epoch_s: u64,
+    /// Interface name written in bus.log.
+    #[arg(long, value_name = "NAME", default_value = "vcan0")]
+    iface: String,
+}
+
+#[derive(Args, Debug)]
+struct LiveArgs {
+    /// SocketCAN interface.
+    #[arg(long, value_name = "IFACE", default_value = "vcan0")]
+    iface: String,
+    #[command(flatten)]
+    common: Common,
+    /// Go on with the next scenario (seed + 1) when one is over (overrides endless).
+    #[arg(long)]
+    endless: bool,
+    /// Also write the ground truth to this file (time base: the first SYNC's receive time).
+    #[arg(long, value_name = "FILE")]
+    truth: Option<PathBuf>,
+    /// With --truth: a state line every K samples.
+    #[arg(long, value_name = "K", default_value_t = DEFAULT_STATE_EVERY)]
+    state_every: u64,
+}
+
+/// Why the configuration could not be loaded.
+#[derive(Debug, thiserror::Error)]
+enum ConfigError {
+    #[error("cannot read {path}: {source}")]
+    Read { path: PathBuf, source: io::Error },
+    #[error("{path}: {source}")]
+    Parse { path: PathBuf, source: toml::de::Error },
+    #[error("--minutes {0}: must be a positive number of minutes up to 10000")]
+    Minutes(f64),
+    #[error("--state-every must be at least 1")]
+    StateEvery,
+    #[error(transparent)]
+    Twin(#[from] TwinConfigError),
+}
+
+/// Why `generate` failed.
+#[derive(Debug, thiserror::Error)]
+enum GenerateError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("--iface {0:?}: not a valid interface name")]
+    Iface(String),
+    #[error("cannot create {path}: {source}")]
+    Create { path: PathBuf, source: io::Error },
+    #[error("writing {path}: {source}")]
+    Write { path: PathBuf, source: io::Error },
+    #[error("{path}: {source}")]
+    Truth { path: PathBuf, source: TruthWriteError },
+    #[error("simulated robot: {0}")]
+    Twin(#[from] TwinError),
+}
+
+/// Why `live` failed.
+#[derive(Debug, thiserror::Error)]
+enum LiveError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Open(#[from] OpenError),
+    #[error("cannot install the SIGINT/SIGTERM handler: {0}")]
+    Signal(nix::Error),
+    #[error("receiving from the CAN bus: {0}")]
+    Recv(RecvError),
+    #[error("cannot create {path}: {source}")]
+    Create { path: PathBuf, source: io::Error },
+    #[error("{path}: {source}")]
+    Truth { path: PathBuf, source: TruthWriteError },
+    #[error("simulated robot: {0}")]
+    Twin(#[from] TwinError),
+}
+
+fn load_config(common: &Common) -> Result<TwinConfig, ConfigError> {
+    let mut config = match &common.config {
+        Some(path) => {
+            let text =
+                std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.clone(), source })?;
+            toml::from_str(&text).map_err(|source| ConfigError::Parse { path: path.clone(), source })?
+        }
+        None => TwinConfig::default(),
+    };
+    if let Some(seed) = common.seed {
+        config.scenario.seed = seed;
+    }
+    if let Some(cycles) = common.cycles {
+        config.scenario.cycles = cycles;
+    }
+    Ok(config)
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Generate(args) => match generate(&args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("simrobot generate: error: {e}");
+                ExitCode::from(if matches!(e, GenerateError::Config(_) | GenerateError::Iface(_)) { 2 } else { 1 })
+            }
+        },
+        Command::Live(args) => match live(&args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("simrobot live: error: {e}");
+                ExitCode::from(match e {
+                    LiveError::Config(_) => 2,
+                    LiveError::Open(_) => 3,
+                    _ => 1,
+                })
+            }
+        },
+    }
+}
+
+// ----------------------------------------------------------------------------------------
+// generate
+
+/// Frames written so far, and frames of earlier SYNCs still to be written (bus order).
+struct BusLog<W: Write> {
+    writer: CandumpWriter<W>,
+    pending: Vec<TimedFrame>,
+    frames: u64,
+}
+
+impl<W: Write> BusLog<W> {
+    /// Writes the pending frames that win the bus before `(t_us, id)`, all when `None`.
+    fn flush_before(&mut self, before: Option<(u64, u32)>) -> io::Result<()> {
+        let n = match before {
+            Some(key) => self.pending.partition_point(|f| (f.unix_time_us, f.frame.id().raw()) < key),
+            None => self.pending.len(),
+        };
+        for f in &self.pending[..n] {
+            self.writer.write(f)?;
+        }
+        self.frames += n as u64;
+        self.pending.drain(..n);
+        Ok(())
+    }
+
+    /// Writes `frame` at `t_us` after the pending frames that come before it.
+    fn write(&mut self, frame: TimedFrame) -> io::Result<()> {
+        self.flush_before(Some((frame.unix_time_us, frame.frame.id().raw())))?;
+        self.writer.write(&frame)?;
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// Queues frames for later (they are sent after the current SYNC).
+    fn queue(&mut self, frames: &[TimedFrame]) {
+        self.pending.extend_from_slice(frames);
+        // Stable: frames of one node with the same time and ID keep their order.
+        self.pending.sort_by_key(|f| (f.unix_time_us, f.frame.id().raw()));
+    }
+}
+
+fn create(path: &Path) -> Result<File, GenerateError> {
+    File::create(path).map_err(|source| GenerateError::Create { path: path.to_owned(), source })
+}
+
+fn progress_bar(total: u64) -> indicatif::ProgressBar {
+    if !io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(total);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} samples ({percent}%, eta {eta})",
+    ) {
+        bar.set_style(style);
+    }
+    bar
+}
+
+fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
+    let started = Instant::now();
+    let mut config = load_config(&args.common)?;
+    config.endless = false; // a file has an end
+    if args.state_every == 0 {
+        return Err(ConfigError::StateEvery.into());
+    }
+    if let Some(minutes) = args.minutes {
+        if !(minutes.is_finite() && minutes > 0.0 && minutes <= 10_000.0) {
+            return Err(ConfigError::Minutes(minutes).into());
+        }
+        let s = &config.scenario;
+        let mean_cycle_s = (s.inside_s[0] + s.inside_s[1]) / 2.0 + (s.outside_s[0] + s.outside_s[1]) / 2.0;
+        config.scenario.cycles = ((minutes * 60.0 / mean_cycle_s.max(1e-3)).round() as usize).max(1);
+    }
+    let mut robot = SimRobot::new(&config).map_err(ConfigError::from)?;
+    std::fs::create_dir_all(&args.out).map_err(|source| GenerateError::Create { path: args.out.clone(), source })?;
+    let bus_path = args.out.join("bus.log");
+    let truth_path = args.out.join("truth.jsonl");
+    let writer = CandumpWriter::new(BufWriter::with_capacity(1 << 20, create(&bus_path)?), &args.iface)
+        .map_err(|_| GenerateError::Iface(args.iface.clone()))?;
+    let mut bus = BusLog { writer, pending: Vec::with_capacity(64), frames: 0 };
+    let bus_err = |source| GenerateError::Write { path: bus_path.clone(), source };
+    let truth_err = |source| GenerateError::Truth { path: truth_path.clone(), source };
+    let t0_us = args.epoch_s.saturating_mul(1_000_000);
+    let mut header = TruthHeader::new(&config.scenario, t0_us, args.state_every);
+    header.twin = Some(config.clone());
+    let mut truth =
+        TruthWriter::new(BufWriter::with_capacity(1 << 16, create(&truth_path)?), &header).map_err(truth_err)?;
+    truth.scenario(ScenarioStart { sample: 0, seed: config.scenario.seed }).map_err(truth_err)?;
+
+    let total = robot.scenario().truth.len() as u64;
+    let bar = progress_bar(total);
+    let mut sync = SyncSource::new();
+    let mut twin_time = Duration::ZERO;
+    let mut events = 0u64;
+    let mut i = 0u64;
+    loop {
+        let t_us = t0_us.saturating_add(i.saturating_mul(SYNC_PERIOD_US));
+        let counter = sync.next_counter();
+        let step = Instant::now();
+        let answer = robot.on_sync(counter, t_us)?;
+        twin_time += step.elapsed();
+        let Some(frames) = answer else { break };
+        let sync_frame = CanFrame::new_standard(SYNC_COB_ID, &[counter]).map_err(|e| bus_err(io::Error::other(e)))?;
+        bus.write(TimedFrame { frame: sync_frame, unix_time_us: t_us }).map_err(bus_err)?;
+        bus.queue(&frames);
+        truth.sample(t_us, robot.truth(), robot.events()).map_err(truth_err)?;
+        events += robot.events().len() as u64;
+        i += 1;
+        if i.is_multiple_of(4096) {
+            bar.set_position(i);
+        }
+    }
+    bus.flush_before(None).map_err(bus_err)?;
+    bus.writer.flush().map_err(bus_err)?;
+    truth.finish().map_err(truth_err)?;
+    bar.finish_and_clear();
+
+    let elapsed = started.elapsed().as_secs_f64();
+    let size = |p: &Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
+    let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+    let motion_s = i as f64 * SYNC_PERIOD_US as f64 * 1e-6;
+    let twin_s = twin_time.as_secs_f64();
+    println!(
+        "simrobot generate: seed {}, {} cycles, {} samples = {:.1} s ({:.1} min) of motion, {} true events",
+        config.scenario.seed,
+        config.scenario.cycles,
+        i,
+        motion_s,
+        motion_s / 60.0,
+        events
+    );
+    println!("  {}: {} frames, {:.1} MiB", bus_path.display(), bus.frames, mib(size(&bus_path)));
+    println!("  {}: {:.1} MiB", truth_path.display(), mib(size(&truth_path)));
+    println!(
+        "  took {:.2} s: twin (inverse kinematics + nodes) {:.2} s = {:.2} us/sample, scenario generation and writing {:.2} s",
+        elapsed,
+        twin_s,
+        if i > 0 { twin_s * 1e6 / i as f64 } else { 0.0 },
+        elapsed - twin_s
+    );
+    Ok(())
+}
+
+// ----------------------------------------------------------------------------------------
+// live
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_: nix::libc::c_int) {
+    STOP.store(true, Ordering::SeqCst);
+}
+
+fn install_signal_handlers() -> Result<(), nix::Error> {
+    use nix::sys::signal::{SaFlags, SigAction, SigHandler, SigSet, Signal, sigaction};
+    let action = SigAction::new(SigHandler::Handler(on_signal), SaFlags::empty(), SigSet::empty());
+    // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
+    unsafe {
+        sigaction(Signal::SIGINT, &action)?;
+        sigaction(Signal::SIGTERM, &action)?;
+    }
+    Ok(())
+}
+
+fn print_event(e: &TwinEvent) {
+    let what = if e.insertion { "insertion into" } else { "extraction from" };
+    println!("{:>10.3} s  sample {:>9}  {what} trocar {}", e.t_s, e.sample, e.trocar);
+}
+
+#[derive(Debug, Default)]
+struct LiveCounts {
+    syncs: u64,
+    frames_sent: u64,
+    send_errors: u64,
+    last_send_error: Option<String>,
+    ignored: u64,
+    bad_syncs: u64,
+    sync_gaps: u64,
+    error_frames: u64,
+    events: u64,
+}
+
+fn live(args: &LiveArgs) -> Result<(), LiveError> {
+    let mut config = load_config(&args.common)?;
+    if args.endless {
+        config.endless = true;
+    }
+    if args.state_every == 0 {
+        return Err(ConfigError::StateEvery.into());
+    }
+    let mut robot = SimRobot::new(&config).map_err(ConfigError::from)?;
+    install_signal_handlers().map_err(LiveError::Signal)?;
+    let mut bus = SocketCanBus::open(&args.iface)?;
+    let truth_file = match &args.truth {
+        Some(path) => {
+            Some((path.clone(), File::create(path).map_err(|source| LiveError::Create { path: path.clone(), source })?))
+        }
+        None => None,
+    };
+    let mut truth_file = truth_file;
+    let mut truth: Option<(PathBuf, TruthWriter<BufWriter<File>>)> = None;
+    println!(
+        "simrobot live: {} answering SYNC (0x080) as nodes {:?}, seed {}, {} cycles{}",
+        args.iface,
+        config.encoder.node_ids,
+        config.scenario.seed,
+        config.scenario.cycles,
+        if config.endless { ", endless" } else { "" }
+    );
+    let mut counts = LiveCounts::default();
+    let mut counter_check = SyncCounter::new();
+    let mut seed = robot.scenario_seed();
+    let result = loop {
+        if STOP.load(Ordering::SeqCst) {
+            println!("simrobot live: stopped by signal");
+            break Ok(());
+        }
+        let rx = match bus.recv_timeout(Duration::from_millis(100)) {
+            Ok(Some(rx)) => rx,
+            Ok(None) => continue,
+            Err(RecvError::ErrorFrame(_)) => {
+                counts.error_frames += 1;
+                continue;
+            }
+            Err(RecvError::NotClassicCan) => {
+                counts.ignored += 1;
+                continue;
+            }
+            Err(e) => break Err(LiveError::Recv(e)),
+        };
+        if rx.frame.id() != CanId::Standard(SYNC_COB_ID) {
+            counts.ignored += 1;
+            continue;
+        }
+        let counter = match Message::decode(&rx.frame) {
+            Ok(Message::Sync { counter }) => counter,
+            _ => {
+                counts.bad_syncs += 1;
+                continue;
+            }
+        };
+        if counter_check.observe(counter).is_err() {
+            counts.sync_gaps += 1;
+        }
+        let frames = match robot.on_sync(counter, rx.unix_time_us) {
+            Ok(Some(frames)) => frames,
+            Ok(None) => {
+                println!("simrobot live: scenario over");
+                break Ok(());
+            }
+            Err(e) => break Err(e.into()),
+        };
+        for f in &frames {
+            match bus.send(&f.frame) {
+                Ok(()) => counts.frames_sent += 1,
+                Err(e) => {
+                    counts.send_errors += 1;
+                    counts.last_send_error = Some(e.to_string());
+                }
+            }
+        }
+        counts.syncs += 1;
+        if let Some((path, file)) = truth_file.take() {
+            let mut header = TruthHeader::new(&config.scenario, rx.unix_time_us, args.state_every);
+            header.twin = Some(config.clone());
+            let writer = TruthWriter::new(BufWriter::new(file), &header)
+                .map_err(|source| LiveError::Truth { path: path.clone(), source });
+            match writer {
+                Ok(mut w) => {
+                    let start = ScenarioStart { sample: 0, seed };
+                    if let Err(source) = w.scenario(start) {
+                        break Err(LiveError::Truth { path, source });
+                    }
+                    truth = Some((path, w));
+                }
+                Err(e) => break Err(e),
+            }
+        }
+        if robot.scenario_seed() != seed {
+            seed = robot.scenario_seed();
+            println!(
+                "simrobot live: next scenario, seed {seed}, starts at sample {} after a transition",
+                robot.scenario_start_sample()
+            );
+            if let Some((path, w)) = truth.as_mut()
+                && let Err(source) = w.scenario(ScenarioStart { sample: robot.scenario_start_sample(), seed })
+            {
+                break Err(LiveError::Truth { path: path.clone(), source });
+            }
+        }
+        if let Some((path, w)) = truth.as_mut()
+            && let Err(source) = w.sample(rx.unix_time_us, robot.truth(), robot.events())
+        {
+            break Err(LiveError::Truth { path: path.clone(), source });
+        }
+        for e in robot.events() {
+            print_event(e);
+            counts.events += 1;
+        }
+    };
+    if let Some((path, w)) = truth {
+        match w.finish() {
+            Ok(_) => println!("simrobot live: ground truth in {}", path.display()),
+            Err(source) => eprintln!("simrobot live: error: {}: {source}", path.display()),
+        }
+    }
+    println!(
+        "simrobot live: {} SYNCs answered, {} frames sent, {} send errors, {} true events, {} SYNC counter gaps, \
+         {} bad SYNCs, {} other frames ignored, {} error frames",
+        counts.syncs,
+        counts.frames_sent,
+        counts.send_errors,
+        counts.events,
+        counts.sync_gaps,
+        counts.bad_syncs,
+        counts.ignored,
+        counts.error_frames
+    );
+    if let Some(e) = &counts.last_send_error {
+        println!("simrobot live: last send error: {e}");
+    }
+    let _ = io::stdout().flush();
+    result
+}

@@ -226,7 +226,7 @@ fn log_event(e: &LogEvent, period_s: f64) {
             }
         }
         LogEvent::Overrun { sequence, skipped } => {
-            warn!("cycle {sequence}: overrun, {skipped} period(s) skipped");
+            tracing::debug!("cycle {sequence}: overrun, {skipped} period(s) skipped");
         }
         LogEvent::PublishFailed { sequence } => warn!("cycle {sequence}: publishing failed"),
     }
@@ -365,9 +365,24 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         info!("real-time: {line}");
     }
 
-    // Main thread: log hand-off and the simulated truth, until the loop ends.
+    // Main thread: log hand-off and the simulated truth, until the loop ends; every 10 s a
+    // line on the per-cycle conditions (incomplete cycles, overruns) if any occurred.
+    let mut last_report = std::time::Instant::now();
+    let mut reported = (0u64, 0u64);
     while !handle.is_finished() {
         std::thread::sleep(Duration::from_millis(10));
+        if last_report.elapsed() >= Duration::from_secs(10) {
+            last_report = std::time::Instant::now();
+            let now = (counters.incomplete_cycles.load(Ordering::Relaxed), counters.overruns.load(Ordering::Relaxed));
+            if now != reported {
+                warn!(
+                    "last 10 s: {} incomplete cycles (a TPDO missed its deadline; data not used), {} overruns",
+                    now.0 - reported.0,
+                    now.1 - reported.1
+                );
+                reported = now;
+            }
+        }
         while let Some(e) = log_rx.dequeue() {
             log_event(&e, period_s);
         }

@@ -315,8 +315,17 @@ impl<T, const N: usize> QueueStorage<T, N> {
         // `AtomicUsize(0)` and the buffer is `[UnsafeCell<MaybeUninit<T>>; N]`, for which any
         // bytes are valid. The block comes from the global allocator with the layout of the type,
         // as `Box::from_raw` in `Drop` requires.
-        let raw = unsafe { std::alloc::alloc_zeroed(layout) }.cast::<Queue<T, N>>();
-        NonNull::new(raw).map(|ptr| Self { ptr })
+        let raw = unsafe { std::alloc::alloc_zeroed(layout) };
+        let ptr = NonNull::new(raw.cast::<Queue<T, N>>())?;
+        // A large zeroed block is fresh mmap'd memory, not yet backed by pages: touch each page
+        // now, so that the real-time thread takes no page fault on its first pushes.
+        let mut offset = 0;
+        while offset < layout.size() {
+            // SAFETY: `offset < size`, inside the block; writing 0 keeps every byte as it is.
+            unsafe { std::ptr::write_volatile(raw.add(offset), 0) };
+            offset += 4096;
+        }
+        Some(Self { ptr })
     }
 
     /// Splits into the two halves, borrowed for `'static`.
@@ -1421,6 +1430,20 @@ mod tests {
         assert_eq!(c.max_file_bytes, 8192);
         assert_eq!(c.max_total_bytes, RecorderConfig::default().max_total_bytes);
         assert!(toml::from_str::<RecorderConfig>("max_file_byte = 1\n").is_err());
+    }
+
+    #[test]
+    fn queue_layout_is_two_counters_and_the_buffer() {
+        // `QueueStorage::allocate` relies on heapless 0.9's queue being exactly head, tail and
+        // the slot array (all valid when zeroed): a new field would change the size.
+        fn expected<T, const N: usize>() -> usize {
+            let align = std::mem::align_of::<Queue<T, N>>();
+            (2 * std::mem::size_of::<usize>() + N * std::mem::size_of::<T>()).next_multiple_of(align)
+        }
+        assert_eq!(std::mem::size_of::<Queue<u8, 5>>(), expected::<u8, 5>());
+        assert_eq!(std::mem::size_of::<Queue<u64, 4096>>(), expected::<u64, 4096>());
+        assert_eq!(std::mem::size_of::<Queue<[f64; 7], 64>>(), expected::<[f64; 7], 64>());
+        assert_eq!(std::mem::size_of::<Queue<u128, 8>>(), expected::<u128, 8>());
     }
 
     #[test]

@@ -107,6 +107,8 @@ pub struct LoopCounters {
     pub recorder_drops: AtomicU64,
     /// Log events the log queue refused (full).
     pub log_drops: AtomicU64,
+    /// Cycles that lacked at least one TPDO at their deadline.
+    pub incomplete_cycles: AtomicU64,
 }
 
 /// Where the loop puts its per-cycle outputs; implemented by the daemon (iceoryx2
@@ -343,7 +345,9 @@ impl<B: CanBus> RtLoop<B> {
             p.overruns.fetch_add(skipped, Ordering::Relaxed);
             log(LogEvent::Overrun { sequence: seq, skipped });
         }
-        if output.state != self.last_state || output.trocar_id != self.last_trocar {
+        // State changes of valid estimates only: a one-cycle data gap is not a state change
+        // (it is counted, and the daemon reports counts periodically).
+        if output.state != STATE_INVALID && (output.state != self.last_state || output.trocar_id != self.last_trocar) {
             log(LogEvent::State {
                 sequence: seq,
                 state: output.state,
@@ -353,10 +357,14 @@ impl<B: CanBus> RtLoop<B> {
             self.last_state = output.state;
             self.last_trocar = output.trocar_id;
         }
-        let h = output.health & !flags::OVERRUN;
+        // Lasting health conditions only; per-cycle ones are counted.
+        let h = output.health & !(flags::OVERRUN | flags::INCOMPLETE_CYCLE | flags::DETECTOR_RESET);
         if h != self.last_health {
             log(LogEvent::Health { sequence: seq, old: self.last_health, new: h });
             self.last_health = h;
+        }
+        if input.flags & flags::INCOMPLETE_CYCLE != 0 {
+            p.incomplete_cycles.fetch_add(1, Ordering::Relaxed);
         }
         if output.state != STATE_INVALID {
             p.valid_cycles.fetch_add(1, Ordering::Relaxed);

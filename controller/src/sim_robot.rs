@@ -32,11 +32,11 @@ pub enum SimStartError {
 }
 
 /// The twin the daemon simulates: the default surgeon (seeded), endless, on the controller's
-/// own nominal kinematics and encoder configuration.
+/// own nominal kinematics and encoder configuration. The twin advances one 1 ms sample per
+/// SYNC: with a loop period other than 1 ms the simulated surgeon moves faster or slower.
 pub fn twin_config(cfg: &Config, seed: u64) -> TwinConfig {
     let mut t = TwinConfig::default();
     t.scenario.seed = seed;
-    t.scenario.sample_period_s = f64::from(cfg.cycle.period_us) * 1e-6;
     t.kinematics = cfg.kinematics;
     t.encoder = cfg.bus.encoder;
     t.endless = true;
@@ -52,12 +52,23 @@ pub fn spawn(
     period_s: f64,
 ) -> Result<SimRobotThread, SimStartError> {
     let mut robot = SimRobot::new(&twin_config(cfg, seed))?;
+    let sim_priority = cfg.realtime.sched_fifo_priority.saturating_sub(1);
     let (tx, rx): (Sender<String>, Receiver<String>) = channel();
     let answered = Arc::new(AtomicU64::new(0));
     let count = answered.clone();
     let thread = std::thread::Builder::new()
         .name("fulcrumd-sim".into())
         .spawn(move || {
+            // The simulated robot plays hardware: give it real-time priority just below the
+            // loop's when permitted (quietly without), so that it answers in time.
+            let rt = crate::rt::RealtimeConfig {
+                sched_fifo_priority: sim_priority,
+                cpu_affinity: Vec::new(),
+                lock_memory: false,
+                prefault_stack_bytes: 0,
+                require: false,
+            };
+            let _ = crate::rt::apply_to_current_thread(&rt);
             let mut last_error_sample = u64::MAX;
             while !stop.load(Ordering::Relaxed) {
                 let rx = match endpoint.recv_timeout(Duration::from_millis(100)) {

@@ -62,6 +62,15 @@ use crate::scenario::{Scenario, ScenarioConfig, Truth, TruthState, generate};
 /// The SYNC period of the encoder bus, microseconds: one sample of the twin per SYNC.
 pub const SYNC_PERIOD_US: u64 = 1000;
 
+/// Default trocar positions of the twin, metres, robot base frame: those of
+/// [`ScenarioConfig::default`] moved 10-12 cm towards the robot (0.26-0.35 m from the base
+/// axis, 1 cm lower). With the scenario's defaults the wrist goes up to 0.72 m from the
+/// shoulder in about 1-2 % of the samples (entry tilt up to 25° plus pivoting, and the lift
+/// of the free motions), out of the 0.6 m reach of the default arm; with these, at most
+/// 0.582 m (20 seeds of 99 cycles), and the wrist stays at least 4 cm from the base axis.
+pub const DEFAULT_TROCARS_BASE_M: [[f64; 3]; 4] =
+    [[0.30, -0.09, 0.0], [0.34, -0.02, 0.02], [0.31, 0.07, 0.01], [0.26, 0.01, -0.01]];
+
 /// Most true events one sample can cross (an insertion and an extraction need at least one
 /// sample between them, so one is the practical maximum).
 pub const MAX_EVENTS_PER_SAMPLE: usize = 4;
@@ -205,7 +214,8 @@ impl NodeConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TwinConfig {
-    /// The surgeon's motion (trocars, cycles, timing). `sample_period_s` must be 0.001 s.
+    /// The surgeon's motion (trocars, cycles, timing). `sample_period_s` must be 0.001 s. The
+    /// default is [`ScenarioConfig::default`] with the trocars at [`DEFAULT_TROCARS_BASE_M`].
     pub scenario: ScenarioConfig,
     /// The nominal arm: the DH table the controller believes in (must match its
     /// `[kinematics]`).
@@ -231,7 +241,7 @@ pub struct TwinConfig {
 impl Default for TwinConfig {
     fn default() -> Self {
         Self {
-            scenario: ScenarioConfig::default(),
+            scenario: ScenarioConfig { trocars_base_m: DEFAULT_TROCARS_BASE_M.to_vec(), ..ScenarioConfig::default() },
             kinematics: AchillesConfig::default(),
             model_error: ModelErrorConfig::default(),
             encoder: EncoderConfig::default(),

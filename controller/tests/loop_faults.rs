@@ -1,0 +1,209 @@
+//! The real control loop ([`RtLoop`]) against a scripted bus on which the simulated robot
+//! answers each SYNC at once (virtual time: 1 ms per SYNC), with injected faults. Checks the
+//! health flags, that no estimate built on stale data is published as valid, that nothing
+//! is NaN, recovery, and that the loop allocates nothing.
+
+use std::cell::Cell;
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::Duration;
+
+use controller::config::Config;
+use controller::cycle::{Acquisition, Estimation};
+use controller::rt_loop::{CycleRecord, CycleSink, LogEvent, LoopCounters, LoopParams, RtLoop};
+use controller::watchdog::LoopProgress;
+use hw_io::can::{CanBus, CanFrame, Message, RecvError, SendError, TimedFrame};
+use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, health};
+use sim::twin::{EmcyConfig, SimRobot, TwinConfig};
+
+// ---- a counting allocator, per thread ----
+struct Counting;
+thread_local! { static ALLOCS: Cell<u64> = const { Cell::new(0) }; }
+unsafe impl std::alloc::GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: std::alloc::Layout) -> *mut u8 {
+        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
+        unsafe { std::alloc::System.alloc(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: std::alloc::Layout) {
+        unsafe { std::alloc::System.dealloc(p, l) }
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: std::alloc::Layout, n: usize) -> *mut u8 {
+        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
+        unsafe { std::alloc::System.realloc(p, l, n) }
+    }
+}
+#[global_allocator]
+static A: Counting = Counting;
+fn allocs() -> u64 {
+    ALLOCS.with(Cell::get)
+}
+
+/// The simulated robot's answers (computed before the loop runs, so that the robot's own
+/// work is not counted), delivered on the spot, plus injected junk frames.
+struct ScriptedBus {
+    answers: Vec<Vec<TimedFrame>>,
+    queue: VecDeque<TimedFrame>,
+    syncs: u64,
+    /// Junk frames injected after each SYNC's answer: (from sync, to sync, frames).
+    junk: Vec<CanFrame>,
+    junk_window: (u64, u64),
+}
+
+impl CanBus for ScriptedBus {
+    fn send(&mut self, frame: &CanFrame) -> Result<(), SendError> {
+        if let Ok(Message::Sync { .. }) = Message::decode(frame) {
+            let t_us = self.syncs * 1000;
+            if let Some(frames) = self.answers.get(self.syncs as usize) {
+                for f in frames {
+                    self.queue.push_back(*f);
+                }
+            }
+            if (self.junk_window.0..self.junk_window.1).contains(&self.syncs) {
+                for j in &self.junk {
+                    self.queue.push_back(TimedFrame { frame: *j, unix_time_us: t_us });
+                }
+            }
+            self.syncs += 1;
+        }
+        Ok(())
+    }
+    fn recv_timeout(&mut self, _timeout: Duration) -> Result<Option<TimedFrame>, RecvError> {
+        Ok(self.queue.pop_front())
+    }
+}
+
+#[derive(Default)]
+struct Collect {
+    samples: Vec<FulcrumSample>,
+}
+
+impl CycleSink for Collect {
+    fn publish(&mut self, sample: &FulcrumSample) -> bool {
+        if self.samples.len() < self.samples.capacity() {
+            self.samples.push(*sample);
+        }
+        true
+    }
+    fn record(&mut self, _: &CycleRecord) -> bool {
+        true
+    }
+    fn log(&mut self, _: LogEvent) -> bool {
+        true
+    }
+}
+
+fn run(
+    twin: TwinConfig,
+    cycles: u64,
+    junk: Vec<CanFrame>,
+    junk_window: (u64, u64),
+) -> (Vec<FulcrumSample>, RtLoop<ScriptedBus>, u64) {
+    let cfg = Config::default();
+    let mut robot = SimRobot::new(&twin).unwrap();
+    let mut sync = hw_io::can::SyncSource::new();
+    let answers = (0..cycles)
+        .map(|k| match robot.on_sync(sync.next_counter(), k * 1000).unwrap() {
+            Some(frames) => frames.to_vec(),
+            None => Vec::new(),
+        })
+        .collect();
+    let bus = ScriptedBus { answers, queue: VecDeque::with_capacity(1024), syncs: 0, junk, junk_window };
+    let acq = Acquisition::new(&cfg.bus.encoder, cfg.health).unwrap();
+    let est = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector).unwrap();
+    let params = LoopParams { period_ns: 20_000, frame_deadline_ns: 5_000_000, run_id: 7, max_cycles: Some(cycles) };
+    let mut lp = RtLoop::new(bus, acq, est, params, Arc::new(LoopCounters::default()), LoopProgress::new());
+    let mut sink = Collect { samples: Vec::with_capacity(cycles as usize) };
+    let before = allocs();
+    lp.run(&mut sink, || false).unwrap();
+    let n = allocs() - before;
+    (sink.samples, lp, n)
+}
+
+fn twin() -> TwinConfig {
+    let mut t = TwinConfig::default();
+    t.scenario.cycles = 2;
+    t.endless = true;
+    t
+}
+
+fn assert_never_invalid_data_as_valid(samples: &[FulcrumSample]) {
+    for s in samples {
+        let floats = s.fulcrum_base_m.iter().chain(&s.wrist_base_m).chain(&s.axis_base).chain(&s.joints_rad);
+        assert!(floats.chain([s.residual_m, s.fulcrum_std_m, s.conditioning].iter()).all(|v| v.is_finite()));
+        if s.health & health::INVALIDATING != 0 {
+            assert_eq!(s.state, STATE_INVALID, "seq {}: flags {:#x} but state {}", s.sequence, s.health, s.state);
+            assert_eq!(s.fulcrum(), None);
+        }
+    }
+}
+
+#[test]
+fn clean_run_detects_insertions_publishes_every_cycle_and_allocates_nothing() {
+    let (samples, lp, n_alloc) = run(twin(), 30_000, Vec::new(), (0, 0));
+    assert_eq!(samples.len(), 30_000);
+    assert!(samples.iter().enumerate().all(|(i, s)| s.sequence == i as u64 && s.run_id == 7));
+    assert_eq!(n_alloc, 0, "the loop allocated {n_alloc} times");
+    assert_eq!(lp.acquisition_stats().incomplete_cycles, 0);
+    let valid = samples.iter().filter(|s| s.is_valid()).count();
+    assert_eq!(valid, 30_000);
+    let inside = samples.iter().filter(|s| s.state == STATE_INSIDE).count();
+    assert!(inside > 5_000, "inside {inside} cycles");
+    assert_never_invalid_data_as_valid(&samples);
+}
+
+#[test]
+fn a_node_silent_for_200_ms_is_flagged_stale_then_recovers() {
+    let mut t = twin();
+    // Node 2 stops answering from 3.0 s to 3.2 s (inside the first trocar).
+    t.nodes[1].dropout_windows_us = vec![[3_000_000, 3_200_000]];
+    let (samples, lp, _) = run(t, 8_000, Vec::new(), (0, 0));
+    assert_never_invalid_data_as_valid(&samples);
+    let stale: Vec<_> = samples.iter().filter(|s| s.health & health::NODE_STALE[1] != 0).collect();
+    // Stale from the 3rd missed cycle to the end of the window.
+    assert!((195..=200).contains(&stale.len()), "{} stale cycles", stale.len());
+    assert!(samples[3_000..3_200].iter().all(|s| s.state == STATE_INVALID));
+    assert!(samples[3_200].is_valid(), "valid again at once: {:#x}", samples[3_200].health);
+    assert_ne!(samples[3_200].health & health::DETECTOR_RESET, 0);
+    let bad: Vec<_> = samples[3_300..].iter().filter(|s| !s.is_valid()).map(|s| (s.sequence, s.health)).collect();
+    assert!(bad.is_empty(), "{:?}", &bad[..bad.len().min(5)]);
+    assert_eq!(lp.acquisition_stats().incomplete_cycles, 200);
+}
+
+#[test]
+fn an_emcy_burst_invalidates_until_cleared() {
+    let mut t = twin();
+    t.nodes[2].emcy = (0..5)
+        .map(|k| EmcyConfig {
+            at_us: 2_000_000 + k * 10_000,
+            duration_us: 5_000,
+            code: 0x7305,
+            register: 1,
+            vendor: [0; 5],
+        })
+        .collect();
+    let (samples, lp, _) = run(t, 4_000, Vec::new(), (0, 0));
+    assert_never_invalid_data_as_valid(&samples);
+    let flagged = samples.iter().filter(|s| s.health & health::NODE_EMCY[2] != 0).count();
+    assert!((20..=35).contains(&flagged), "{flagged} cycles flagged");
+    assert!(samples[2_100..].iter().all(|s| s.is_valid()));
+    assert_eq!(lp.acquisition_stats().emcy_frames, 10);
+}
+
+#[test]
+fn a_flood_of_malformed_frames_is_counted_and_changes_nothing() {
+    let junk = vec![
+        CanFrame::new_standard(0x181, &[1, 2, 3]).unwrap(), // TPDO of node 1 with a wrong DLC
+        CanFrame::new_standard(0x7FF, &[0; 8]).unwrap(),    // unknown COB-ID
+        CanFrame::new_extended(0x181, &[0; 8]).unwrap(),    // extended ID
+        CanFrame::new_standard(0x701, &[0x42]).unwrap(),    // unknown NMT state
+    ];
+    let (clean, _, _) = run(twin(), 3_000, Vec::new(), (0, 0));
+    let (flooded, lp, n_alloc) = run(twin(), 3_000, junk, (500, 2_500));
+    assert_eq!(n_alloc, 0);
+    let s = lp.acquisition_stats();
+    assert_eq!(s.wrong_dlc_frames, 2_000);
+    assert_eq!(s.unknown_id_frames, 4_000);
+    assert_eq!(s.malformed_frames, 2_000);
+    // Junk arrives after the TPDOs: the estimates are those of the clean run.
+    assert!(clean.iter().zip(&flooded).all(|(a, b)| a.state == b.state && a.fulcrum_base_m == b.fulcrum_base_m));
+}

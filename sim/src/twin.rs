@@ -76,7 +76,12 @@ pub const DEFAULT_TROCARS_BASE_M: [[f64; 3]; 4] =
 pub const MAX_EVENTS_PER_SAMPLE: usize = 4;
 
 /// Calibration error of the simulated arm: the true arm is the nominal arm plus a random,
-/// fixed error drawn from `seed` ([`ModelError::from_seed`]).
+/// fixed error drawn from `seed` ([`ModelError::from_seed`]), except that the passive wrist
+/// stays spherical: the lengths that must be zero for the axes of joints 4, 5 and 6 to meet
+/// in one point (`a_m` of joints 4, 5 and 6, `d_m` of joint 5) get no error. A wrist whose
+/// axes miss each other by a fraction of a millimetre makes some lines near the wrist
+/// singularity (instrument parallel to the forearm) unreachable: 2 inverse-kinematics
+/// failures in 7.7 million samples of default scenarios, none with the spherical wrist.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ModelErrorConfig {
@@ -102,9 +107,14 @@ impl ModelErrorConfig {
         Self { seed: 0, link_length_m: 0.0, joint_offset_rad: 0.0 }
     }
 
-    /// The error these bounds and seed give.
+    /// The error these bounds and seed give (with a spherical wrist, see above).
     pub fn model_error(&self) -> ModelError {
-        ModelError::from_seed(self.seed, self.link_length_m, self.joint_offset_rad)
+        let mut e = ModelError::from_seed(self.seed, self.link_length_m, self.joint_offset_rad);
+        // [d_m, a_m] of joints 1..6: keep a4, d5, a5 and a6 exact.
+        e.link_length_errors_m[3][1] = 0.0;
+        e.link_length_errors_m[4] = [0.0, 0.0];
+        e.link_length_errors_m[5][1] = 0.0;
+        e
     }
 }
 
@@ -602,9 +612,10 @@ impl SimRobot {
         self.scenarios_started
     }
 
-    /// `true` while the twin runs the transition between two scenarios (endless mode).
+    /// `true` when the sample answered by the last [`SimRobot::on_sync`] belongs to the
+    /// transition into the current scenario (endless mode).
     pub fn in_transition(&self) -> bool {
-        matches!(self.next, Next::Transition(_))
+        self.sample().is_some_and(|s| s < self.scenario_start_sample)
     }
 
     /// Measured joint angles of the last sample (radians, joints 1..6), `None` before the

@@ -17,8 +17,10 @@
 //!
 //! Lines are in the order they happen. The state is piecewise constant between events, so
 //! the state of every sample is exact; the pivot and the line between two state lines are
-//! interpolated linearly (exact at the state lines, so at full rate, `state_every = 1`;
-//! within a micrometre at the default 10 ms for the default scenario).
+//! interpolated linearly: exact at the state lines, so everywhere at full rate
+//! (`state_every = 1`); at the default 10 ms the pivot is off by up to about 10 µm where its
+//! path has a kink (start and end of the manipulation), the wrist by up to millimetres where
+//! the free motion has one.
 
 use std::fs::File;
 use std::io::{self, BufRead, BufReader, Write};

@@ -225,7 +225,9 @@ impl NodeConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct TwinConfig {
     /// The surgeon's motion (trocars, cycles, timing). `sample_period_s` must be 0.001 s. The
-    /// default is [`ScenarioConfig::default`] with the trocars at [`DEFAULT_TROCARS_BASE_M`].
+    /// default is [`ScenarioConfig::default`] with the trocars at [`DEFAULT_TROCARS_BASE_M`];
+    /// a key missing from a given `[scenario]` table takes that default too.
+    #[serde(deserialize_with = "scenario_with_twin_defaults")]
     pub scenario: ScenarioConfig,
     /// The nominal arm: the DH table the controller believes in (must match its
     /// `[kinematics]`).
@@ -248,10 +250,29 @@ pub struct TwinConfig {
     pub endless: bool,
 }
 
+/// The twin's default scenario.
+fn default_scenario() -> ScenarioConfig {
+    ScenarioConfig { trocars_base_m: DEFAULT_TROCARS_BASE_M.to_vec(), ..ScenarioConfig::default() }
+}
+
+/// A `[scenario]` table whose missing keys take the twin's defaults (not those of
+/// [`ScenarioConfig::default`], whose trocars are partly out of the arm's reach).
+fn scenario_with_twin_defaults<'de, D: serde::Deserializer<'de>>(d: D) -> Result<ScenarioConfig, D::Error> {
+    use serde::de::Error;
+    use serde_json::{Map, Value};
+    let given = Map::<String, Value>::deserialize(d)?;
+    let mut merged = match serde_json::to_value(default_scenario()) {
+        Ok(Value::Object(m)) => m,
+        _ => Map::new(),
+    };
+    merged.extend(given);
+    serde_json::from_value(Value::Object(merged)).map_err(D::Error::custom)
+}
+
 impl Default for TwinConfig {
     fn default() -> Self {
         Self {
-            scenario: ScenarioConfig { trocars_base_m: DEFAULT_TROCARS_BASE_M.to_vec(), ..ScenarioConfig::default() },
+            scenario: default_scenario(),
             kinematics: AchillesConfig::default(),
             model_error: ModelErrorConfig::default(),
             encoder: EncoderConfig::default(),

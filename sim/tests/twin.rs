@@ -66,6 +66,7 @@ fn truth_line(robot: &SimRobot) -> (Vector3<f64>, Vector3<f64>) {
 fn without_model_error_the_decoded_line_is_the_truth_within_quantisation() {
     let config = TwinConfig { model_error: ModelErrorConfig::zero(), ..small(1, 3) };
     let (wrist_m, axis_rad) = decoded_errors(&config, truth_line);
+    eprintln!("no model error: wrist within {wrist_m:e} m, axis within {axis_rad:e} rad");
     // One count is 2π / 2^17 = 48 µrad per joint; rounding gives half of it, over a
     // 0.6 m arm some 15 µm at the wrist.
     assert!(wrist_m < 5e-5, "wrist off by {wrist_m} m");
@@ -78,6 +79,7 @@ fn with_the_default_model_error_the_decoded_line_is_biased() {
     let config = small(1, 3);
     assert_ne!(config.model_error, ModelErrorConfig::zero(), "the default has a calibration error");
     let (wrist_m, axis_rad) = decoded_errors(&config, truth_line);
+    eprintln!("default model error: wrist off by up to {wrist_m:e} m, axis by {axis_rad:e} rad");
     assert!(wrist_m > 2e-4, "±0.5 mm / ±1 mrad should bias the wrist by a fraction of a millimetre: {wrist_m} m");
     assert!(wrist_m < 5e-3, "bias {wrist_m} m is too large for ±0.5 mm / ±1 mrad");
     assert!(axis_rad > 1e-4, "axis bias {axis_rad} rad");
@@ -219,12 +221,24 @@ fn an_unreachable_line_is_an_error_and_nothing_advances() {
     let mut config = small(1, 7);
     config.scenario.trocars_base_m = vec![[1.5, 0.0, 0.0]];
     let mut robot = SimRobot::new(&config).unwrap();
-    let err = robot.on_sync(1, 0).unwrap_err();
-    assert!(matches!(err, TwinError::Ik { sample: 0, source: IkError::NotConverged { .. } }), "{err:?}");
-    assert!(err.to_string().starts_with("sample 0: inverse kinematics"), "{err}");
-    assert_eq!(robot.samples_done(), 0);
-    assert_eq!(robot.sample(), None);
-    assert_eq!(robot.nodes().tpdos_sent(0), 0);
+    // The start pose is reachable; the way to the trocar 1.5 m away is not.
+    let mut t_us = 0;
+    let err = loop {
+        match robot.on_sync(1, t_us) {
+            Ok(Some(_)) => t_us += 1000,
+            Ok(None) => panic!("the scenario ended without an error"),
+            Err(e) => break e,
+        }
+    };
+    let done = robot.samples_done();
+    assert!(done > 0);
+    let TwinError::Ik { sample, source: IkError::NotConverged { .. } } = err else { panic!("{err:?}") };
+    assert_eq!(sample, done, "the error names the sample");
+    assert!(err.to_string().starts_with(&format!("sample {done}: inverse kinematics")), "{err}");
+    // Retrying fails the same way at the same sample: nothing advanced.
+    assert_eq!(robot.on_sync(2, t_us + 1000).unwrap_err(), err);
+    assert_eq!(robot.samples_done(), done);
+    assert_eq!(robot.nodes().tpdos_sent(0), done);
 }
 
 /// Angle between two unit vectors, radians.
@@ -279,6 +293,10 @@ fn motion_statistics_match_the_configuration() {
     cfg.inside_s = [3.0, 5.0];
     cfg.outside_s = [1.6, 2.6];
     let s = statistics(cfg.clone());
+    eprintln!(
+        "inside {:?} s, outside {:?} s, axis speed inside: max {:.3} rad/s, mean {:.3} rad/s",
+        s.inside_s, s.outside_s, s.max_rate_rad_s, s.mean_rate_rad_s
+    );
     assert_eq!(s.inside_s.len(), 4);
     assert_eq!(s.outside_s.len(), 3);
     // Inside time = inside_s, minus the approach (3 cm at 8-16 cm/s: 0.19-0.38 s), plus the

@@ -581,7 +581,7 @@ impl Parser {
                     Some(p) if s.sample <= p.sample => {
                         return Err(TruthLineError::Order("sample index goes backwards"));
                     }
-                    Some(p) if p.state != state && s.sample != p.sample + 1 => {
+                    Some(p) if p.state != state && s.sample != p.sample.saturating_add(1) => {
                         return Err(TruthLineError::Inconsistent(
                             "the state changes between two state lines that are not adjacent samples",
                         ));
@@ -615,7 +615,7 @@ impl Parser {
                 if self.pending_event.is_some() {
                     return Err(TruthLineError::Inconsistent("an event has no state line at its sample"));
                 }
-                let samples = self.file.last().map_or(0, |r| r.sample + 1);
+                let samples = self.file.last().map_or(0, |r| r.sample.saturating_add(1));
                 let events = self.events.len() as u64;
                 if end.samples != samples || end.events != events {
                     return Err(TruthLineError::EndCounts {
@@ -839,13 +839,13 @@ pub fn score_detections(
             At::UnixTimeUs(t) => truth.sample_at_unix_time_us(t).ok_or(ScoreInputError::BeforeStart { index })?,
         };
         let len = dense.len() as u64;
-        if len > 0 && sample + 1 < len {
+        if len > 0 && sample.saturating_add(1) < len {
             return Err(ScoreInputError::OutOfOrder { index, sample, previous: len - 1 });
         }
         if sample >= truth.samples {
             break;
         }
-        if len > 0 && sample + 1 == len {
+        if len > 0 && sample.saturating_add(1) == len {
             if let Some(last) = dense.last_mut() {
                 *last = d;
             }

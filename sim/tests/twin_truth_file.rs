@@ -191,6 +191,9 @@ fn bad_detection_sequences_are_refused() {
         score_detections(&file, [(At::UnixTimeUs(T0_US - 1), d)], 0.03),
         Err(ScoreInputError::BeforeStart { index: 0 })
     );
+    // Past the end: ignored, nothing scored.
+    let s = score_detections(&file, [(At::Sample(u64::MAX), d)], 0.03).unwrap();
+    assert_eq!((s.insertions, s.insertions_detected), (1, 0));
     assert_eq!(file.sample_at_unix_time_us(T0_US), Some(0));
     assert_eq!(file.sample_at_unix_time_us(T0_US + 1999), Some(1));
     assert_eq!(file.sample_at_unix_time_us(u64::MAX), Some(file.samples() - 1));

@@ -64,7 +64,7 @@ struct GenerateArgs {
     #[command(flatten)]
     common: Common,
     /// About this many minutes of motion: sets the cycles from the mean cycle duration
-    /// (mean of scenario.inside_s plus mean of scenario.outside_s).
+    /// (mean of scenario.inside_s, plus mean of scenario.outside_s, plus 0.9 s of extraction).
     #[arg(long, value_name = "M", conflicts_with = "cycles")]
     minutes: Option<f64>,
     /// Write a state line to truth.jsonl every K samples (1 = every sample).
@@ -259,7 +259,9 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
             return Err(ConfigError::Minutes(minutes).into());
         }
         let s = &config.scenario;
-        let mean_cycle_s = (s.inside_s[0] + s.inside_s[1]) / 2.0 + (s.outside_s[0] + s.outside_s[1]) / 2.0;
+        // The extraction (from the final depth, some 7 cm, plus 3 cm out at 8-16 cm/s) comes
+        // on top of inside_s: about 0.9 s per cycle.
+        let mean_cycle_s = (s.inside_s[0] + s.inside_s[1]) / 2.0 + (s.outside_s[0] + s.outside_s[1]) / 2.0 + 0.9;
         config.scenario.cycles = ((minutes * 60.0 / mean_cycle_s.max(1e-3)).round() as usize).max(1);
     }
     let mut robot = SimRobot::new(&config).map_err(ConfigError::from)?;

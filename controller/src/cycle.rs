@@ -178,13 +178,10 @@ impl Acquisition {
     pub fn on_frame(&mut self, frame: &CanFrame, now_ns: u64) {
         let Some(msg) = self.decode(frame) else { return };
         match msg {
-            Message::Tpdo { node, .. } => match self.assembler.accept(&msg) {
+            Message::Tpdo { .. } => match self.assembler.accept(&msg) {
                 Ok(()) => self.stats.tpdos += 1,
                 Err(hw_io::can::AcceptError::Duplicate { .. }) => self.stats.duplicate_tpdos += 1,
-                Err(_) => {
-                    let _ = node;
-                    self.stats.foreign_node_frames += 1
-                }
+                Err(_) => self.stats.foreign_node_frames += 1,
             },
             _ => self.on_status(&msg, now_ns),
         }

@@ -90,11 +90,10 @@ pub const LOG_QUEUE: usize = 1024;
 /// Lock-free single-producer single-consumer queue of [`LogEvent`]s.
 pub type LogQueue = heapless::spsc::Queue<LogEvent, LOG_QUEUE>;
 
-/// Counters the loop updates (relaxed atomics), readable from any thread while it runs.
+/// Counters the loop updates (relaxed atomics), readable from any thread while it runs. The
+/// cycle count itself lives in [`LoopProgress`] (shared with the watchdog), not twice.
 #[derive(Debug, Default)]
 pub struct LoopCounters {
-    /// Cycles completed.
-    pub cycles: AtomicU64,
     /// Cycles whose published estimate was valid.
     pub valid_cycles: AtomicU64,
     /// Samples published.
@@ -369,7 +368,6 @@ impl<B: CanBus> RtLoop<B> {
         if output.state != STATE_INVALID {
             p.valid_cycles.fetch_add(1, Ordering::Relaxed);
         }
-        p.cycles.fetch_add(1, Ordering::Relaxed);
         self.progress.record_cycle(output.state != STATE_INVALID, output.state, output.health);
         self.sequence += 1;
     }

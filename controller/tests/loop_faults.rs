@@ -3,7 +3,6 @@
 //! health flags, that no estimate built on stale data is published as valid, that nothing
 //! is NaN, recovery, and that the loop allocates nothing.
 
-use std::cell::Cell;
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
@@ -16,26 +15,10 @@ use hw_io::can::{CanBus, CanFrame, Message, RecvError, SendError, TimedFrame};
 use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, health};
 use sim::twin::{EmcyConfig, SimRobot, TwinConfig};
 
-// ---- a counting allocator, per thread ----
-struct Counting;
-thread_local! { static ALLOCS: Cell<u64> = const { Cell::new(0) }; }
-unsafe impl std::alloc::GlobalAlloc for Counting {
-    unsafe fn alloc(&self, l: std::alloc::Layout) -> *mut u8 {
-        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
-        unsafe { std::alloc::System.alloc(l) }
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: std::alloc::Layout) {
-        unsafe { std::alloc::System.dealloc(p, l) }
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: std::alloc::Layout, n: usize) -> *mut u8 {
-        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
-        unsafe { std::alloc::System.realloc(p, l, n) }
-    }
-}
 #[global_allocator]
-static A: Counting = Counting;
+static GLOBAL: hw_io::rt_alloc::RtPoolAllocator = hw_io::rt_alloc::RtPoolAllocator::new();
 fn allocs() -> u64 {
-    ALLOCS.with(Cell::get)
+    hw_io::rt_alloc::thread_system_allocs()
 }
 
 /// The simulated robot's answers (computed before the loop runs, so that the robot's own

@@ -85,6 +85,15 @@ pub fn thread_system_allocs() -> u64 {
     THREAD_SYSTEM_ALLOCS.try_with(Cell::get).unwrap_or(0)
 }
 
+/// Runs `f` and returns the system-allocator calls (alloc, alloc_zeroed, realloc) it made on
+/// the calling thread, with its result. Needs [`RtPoolAllocator`] as the `#[global_allocator]`
+/// (otherwise it always reports 0): the allocation tests of every crate use this one counter.
+pub fn count_thread_allocs<T>(f: impl FnOnce() -> T) -> (u64, T) {
+    let before = thread_system_allocs();
+    let out = f();
+    (thread_system_allocs().wrapping_sub(before), out)
+}
+
 /// A snapshot of the allocator's process-wide counters (see [`stats`]). Counts since the process
 /// started; `pool_in_use` and `pool_high_water` are block counts.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

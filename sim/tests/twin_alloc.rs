@@ -2,48 +2,14 @@
 //! watches it over thousands of SYNCs (insertions and extractions included). Only endless
 //! mode's next scenario may allocate.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
-
 use sim::twin::{SimRobot, TwinConfig};
 
-struct Counting;
-
-thread_local! {
-    // Per thread: tests running in parallel do not mix their counts.
-    static ARMED: Cell<bool> = const { Cell::new(false) };
-    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
-}
-
-fn bump() {
-    if ARMED.with(|a| a.get()) {
-        ALLOCATIONS.with(|c| c.set(c.get() + 1));
-    }
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        bump();
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        bump();
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: hw_io::rt_alloc::RtPoolAllocator = hw_io::rt_alloc::RtPoolAllocator::new();
 
 fn count_allocations<T>(f: impl FnOnce() -> T) -> (usize, T) {
-    let before = ALLOCATIONS.with(|c| c.get());
-    ARMED.with(|a| a.set(true));
-    let out = f();
-    ARMED.with(|a| a.set(false));
-    (ALLOCATIONS.with(|c| c.get()) - before, out)
+    let (n, out) = hw_io::rt_alloc::count_thread_allocs(f);
+    (n as usize, out)
 }
 
 fn config(endless: bool) -> TwinConfig {

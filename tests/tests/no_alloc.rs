@@ -2,53 +2,17 @@
 //! over 100 000 steps of a simulated surgeon (insertions, extractions, free motion, and bad
 //! samples), in both modes and with every fast-mode option on.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
-
 use estimator::kinematics::{Achilles, AchillesConfig};
 use estimator::trocar::{Detector, DetectorConfig, DetectorMode, FastConfig, LineSample};
 use nalgebra::Vector3;
 use sim::scenario::{ScenarioConfig, generate};
 
-struct Counting;
-
-thread_local! {
-    // Per thread: only the armed thread counts, and tests running in parallel do not mix
-    // their counts.
-    static ARMED: Cell<bool> = const { Cell::new(false) };
-    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
-}
-
-fn bump() {
-    if ARMED.with(|a| a.get()) {
-        ALLOCATIONS.with(|c| c.set(c.get() + 1));
-    }
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        bump();
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        bump();
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: hw_io::rt_alloc::RtPoolAllocator = hw_io::rt_alloc::RtPoolAllocator::new();
 
 /// Counts the allocations `f` makes on this thread.
 fn count_allocations(f: impl FnOnce()) -> usize {
-    let before = ALLOCATIONS.with(|c| c.get());
-    ARMED.with(|a| a.set(true));
-    f();
-    ARMED.with(|a| a.set(false));
-    ALLOCATIONS.with(|c| c.get()) - before
+    hw_io::rt_alloc::count_thread_allocs(f).0 as usize
 }
 
 #[test]

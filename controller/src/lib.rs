@@ -11,6 +11,7 @@
 //! - [`timing`]: allocation-free latency histograms.
 #![warn(missing_docs)]
 
+pub mod bench;
 pub mod config;
 pub mod cycle;
 pub mod daemon;

@@ -112,11 +112,26 @@ pub struct FastConfig {
     /// An included line farther than this from a well-determined segment fulcrum starts a new
     /// segment, metres. Must be ≥ `consistency_rms_m`.
     pub break_gate_m: f64,
+    /// Outside, a pure slide of the instrument along its own axis by more than this since the
+    /// last included line starts a new segment, metres: entering a port is an axial slide,
+    /// and the lines of the approach before it belong to no trocar. Range (0, 1].
+    pub slide_restart_m: f64,
     /// While inside, a sample whose line passes farther than this from the fulcrum counts as
     /// evidence of extraction, metres. Must be ≥ `consistency_rms_m`.
     pub extract_gate_m: f64,
     /// Extraction needs that evidence for this long without interruption, seconds.
     pub extract_persistence_s: f64,
+    /// Adaptive extraction gate: while inside, the gate shrinks from `extract_gate_m` to this
+    /// many times the RMS distance of the recent lines to the fulcrum (the trocar's own
+    /// noise: compliance, calibration error), but never below `extract_gate_min_m`.
+    /// Range [1, 100].
+    pub extract_gate_sigmas: f64,
+    /// Smallest adaptive extraction gate, metres. Range (0, `extract_gate_m`].
+    pub extract_gate_min_m: f64,
+    /// While inside, the fulcrum is the least-squares point of the included lines since the
+    /// insertion with exponential forgetting over about this many lines (averages the noise,
+    /// follows a slowly moving trocar). Range [10, 100000].
+    pub inside_memory_lines: f64,
     /// Instrument length from the wrist centre to the tip, metres, when known (omit the key
     /// when not). Extraction is then declared when the tip comes back over the fulcrum, and
     /// insertion needs the tip beyond it.
@@ -148,8 +163,12 @@ impl Default for FastConfig {
             insert_min_depth_m: 0.05,
             min_persistence_s: 0.15,
             break_gate_m: 0.006,
+            slide_restart_m: 0.01,
             extract_gate_m: 0.008,
             extract_persistence_s: 0.02,
+            extract_gate_sigmas: 5.0,
+            extract_gate_min_m: 0.003,
+            inside_memory_lines: 400.0,
             instrument_length_m: None,
             tip_margin_m: 0.003,
             trocar_memory: false,
@@ -289,6 +308,23 @@ impl FastConfig {
         positive("fast.insert_min_depth_m", self.insert_min_depth_m, 2.0, "(0, 2] m")?;
         duration("fast.min_persistence_s", self.min_persistence_s)?;
         positive("fast.break_gate_m", self.break_gate_m, 0.5, "(0, 0.5] m")?;
+        positive("fast.slide_restart_m", self.slide_restart_m, 1.0, "(0, 1] m")?;
+        if !(self.extract_gate_sigmas.is_finite() && (1.0..=100.0).contains(&self.extract_gate_sigmas)) {
+            return Err(ConfigError::OutOfRange {
+                key: "fast.extract_gate_sigmas",
+                value: self.extract_gate_sigmas,
+                allowed: "[1, 100]",
+            });
+        }
+        positive("fast.extract_gate_min_m", self.extract_gate_min_m, 0.5, "(0, fast.extract_gate_m] m")?;
+        at_least("fast.extract_gate_m", self.extract_gate_m, "fast.extract_gate_min_m", self.extract_gate_min_m)?;
+        if !(self.inside_memory_lines.is_finite() && (10.0..=100_000.0).contains(&self.inside_memory_lines)) {
+            return Err(ConfigError::OutOfRange {
+                key: "fast.inside_memory_lines",
+                value: self.inside_memory_lines,
+                allowed: "[10, 100000] lines",
+            });
+        }
         positive("fast.extract_gate_m", self.extract_gate_m, 0.5, "(0, 0.5] m")?;
         at_least("fast.break_gate_m", self.break_gate_m, "fast.consistency_rms_m", self.consistency_rms_m)?;
         at_least("fast.extract_gate_m", self.extract_gate_m, "fast.consistency_rms_m", self.consistency_rms_m)?;
@@ -352,6 +388,10 @@ mod tests {
             (|c| c.fast.insert_min_depth_m = 0.0, "fast.insert_min_depth_m"),
             (|c| c.fast.min_persistence_s = -1.0, "fast.min_persistence_s"),
             (|c| c.fast.break_gate_m = 0.001, "fast.break_gate_m"),
+            (|c| c.fast.slide_restart_m = 0.0, "fast.slide_restart_m"),
+            (|c| c.fast.extract_gate_sigmas = 0.5, "fast.extract_gate_sigmas"),
+            (|c| c.fast.extract_gate_min_m = 0.02, "fast.extract_gate_m"),
+            (|c| c.fast.inside_memory_lines = 1.0, "fast.inside_memory_lines"),
             (|c| c.fast.extract_gate_m = 0.001, "fast.extract_gate_m"),
             (|c| c.fast.extract_persistence_s = 11.0, "fast.extract_persistence_s"),
             (|c| c.fast.instrument_length_m = Some(-0.3), "fast.instrument_length_m"),

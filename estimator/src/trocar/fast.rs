@@ -37,6 +37,11 @@ use nalgebra::Vector3;
 
 use super::config::{ConfigError, FastConfig};
 use super::lsq::{self, LsFit, NormalSums};
+
+#[inline]
+fn libm_sqrt(x: f64) -> f64 {
+    nalgebra::ComplexField::sqrt(x)
+}
 use super::{Estimate, FitSummary, LineSample, MEMORY_CAPACITY, TrocarState, WINDOW_CAPACITY, differs_enough};
 
 /// Numerical guard on `λ_min/q` for the solve itself (the real gate is `insert_max_std_m`).
@@ -47,6 +52,9 @@ const MAX_TRIMS_PER_STEP: usize = 2;
 const MIN_SEGMENT_AFTER_TRIM: usize = 3;
 /// Samples of uninterrupted tip-over-fulcrum evidence before extraction (debounce).
 const TIP_DEBOUNCE_SAMPLES: u32 = 3;
+/// Weight of one sample in the running mean square distance of the lines to the fulcrum
+/// while inside (about 2 s of memory at 1 kHz).
+const INNOVATION_ALPHA: f64 = 1.0 / 2000.0;
 /// Axis rotation (radians) a memory re-insertion needs when the instrument length is unknown.
 const MEMORY_MIN_SWEEP_RAD: f64 = 0.02;
 
@@ -90,6 +98,8 @@ pub struct FastDetector {
     fulcrum_base_m: Vector3<f64>,
     out_count: u32,
     tip_count: u32,
+    inside_sums: NormalSums,
+    innovation_ms_m2: f64,
     memory: Vec<KnownTrocar, MEMORY_CAPACITY>,
     next_id: u8,
     candidate: Option<MemoryCandidate>,
@@ -129,6 +139,8 @@ impl FastDetector {
             fulcrum_base_m: Vector3::zeros(),
             out_count: 0,
             tip_count: 0,
+            inside_sums: NormalSums::new(),
+            innovation_ms_m2: 0.0,
             memory: Vec::new(),
             next_id: 0,
             candidate: None,
@@ -270,6 +282,9 @@ impl FastDetector {
     fn enter(&mut self, fulcrum: Vector3<f64>, id: u8) {
         self.state = TrocarState::Inside { id };
         self.fulcrum_base_m = fulcrum;
+        self.inside_sums = self.sums;
+        let g0 = self.cfg.extract_gate_m / self.cfg.extract_gate_sigmas;
+        self.innovation_ms_m2 = g0 * g0;
         self.out_count = 0;
         self.tip_count = 0;
         self.candidate = None;
@@ -286,10 +301,22 @@ impl FastDetector {
         self.last_included = Some(*line);
     }
 
+    /// The adaptive extraction gate, metres (step 7).
+    fn extract_gate_m(&self) -> f64 {
+        (self.cfg.extract_gate_sigmas * libm_sqrt(self.innovation_ms_m2))
+            .clamp(self.cfg.extract_gate_min_m, self.cfg.extract_gate_m)
+    }
+
     /// Extraction tests on every sample (steps 7-8).
     fn check_extraction(&mut self, line: &LineSample) -> bool {
         let d = lsq::line_distance(line, &self.fulcrum_base_m);
-        self.out_count = if d > self.cfg.extract_gate_m { self.out_count + 1 } else { 0 };
+        let gate = self.extract_gate_m();
+        if d > gate {
+            self.out_count += 1;
+        } else {
+            self.out_count = 0;
+            self.innovation_ms_m2 += INNOVATION_ALPHA * (d * d - self.innovation_ms_m2);
+        }
         if let Some(l) = self.cfg.instrument_length_m {
             let s = lsq::signed_depth(line, &self.fulcrum_base_m);
             self.tip_count = if s > l + self.cfg.tip_margin_m { self.tip_count + 1 } else { 0 };
@@ -369,6 +396,15 @@ impl FastDetector {
             None => true,
             Some(last) => differs_enough(last, &line, self.cfg.include_distance_m, self.cos_include),
         };
+        if !included
+            && !self.state.is_inside()
+            && let Some(last) = &self.last_included
+            && nalgebra::ComplexField::abs(lsq::signed_depth(last, &line.wrist_base_m)) > self.cfg.slide_restart_m
+        {
+            // A pure slide along the axis (step 3b): the lines before it were the approach.
+            self.restart_segment(&line);
+            self.last_included = Some(line);
+        }
         if included {
             self.last_included = Some(line);
             self.include(&line);
@@ -385,13 +421,14 @@ impl FastDetector {
                 }
             }
             TrocarState::Inside { .. } => {
-                if included
-                    && let Some(fit) = self.fit
-                    && self.segment.len() >= self.cfg.min_lines
-                    && self.well_determined(&fit)
-                    && fit.rms_m <= self.cfg.consistency_rms_m
-                {
-                    self.fulcrum_base_m = fit.fulcrum_base_m;
+                if included && lsq::line_distance(&line, &self.fulcrum_base_m) <= self.extract_gate_m() {
+                    self.inside_sums.decay(1.0 - 1.0 / self.cfg.inside_memory_lines);
+                    self.inside_sums.add(&line);
+                    if let Ok(fit) = self.inside_sums.solve(MIN_CONDITIONING)
+                        && self.well_determined(&fit)
+                    {
+                        self.fulcrum_base_m = fit.fulcrum_base_m;
+                    }
                 }
             }
         }

@@ -23,11 +23,13 @@ pub struct NormalSums {
     c: f64,
     /// Number of lines in the sums.
     count: u32,
+    /// Total weight of the lines (equal to `count` unless [`NormalSums::decay`] was used).
+    weight: f64,
 }
 
 impl Default for NormalSums {
     fn default() -> Self {
-        Self { a: Matrix3::zeros(), b: Vector3::zeros(), c: 0.0, count: 0 }
+        Self { a: Matrix3::zeros(), b: Vector3::zeros(), c: 0.0, count: 0, weight: 0.0 }
     }
 }
 
@@ -71,6 +73,8 @@ pub struct LsFit {
     pub std_per_unit_noise: f64,
     /// Number of lines.
     pub count: u32,
+    /// Total weight of the lines (`count` without forgetting).
+    pub weight: f64,
 }
 
 impl LsFit {
@@ -83,7 +87,7 @@ impl LsFit {
     /// Unbiased estimate (metres) of the per-line noise: `sqrt(SSR / (2q − 3))` (each line
     /// gives two constraints, the fulcrum takes three).
     pub fn noise_estimate_m(&self) -> f64 {
-        let dof = (2 * self.count as i64 - 3).max(1) as f64;
+        let dof = (2.0 * self.weight - 3.0).max(1.0);
         libm_sqrt(self.ssr_m2 / dof)
     }
 }
@@ -141,6 +145,18 @@ impl NormalSums {
         self.b += mp;
         self.c += c;
         self.count += 1;
+        self.weight += 1.0;
+    }
+
+    /// Forgets part of every line in the sums: each line's weight is multiplied by `keep`
+    /// (in (0, 1]). With one `decay` before each `add`, the sums weigh the k-th most recent
+    /// line by `keep^k` (exponential forgetting, memory about `1 / (1 − keep)` lines).
+    #[inline]
+    pub fn decay(&mut self, keep: f64) {
+        self.a *= keep;
+        self.b *= keep;
+        self.c *= keep;
+        self.weight *= keep;
     }
 
     /// Removes a line previously added (sliding window).
@@ -151,6 +167,7 @@ impl NormalSums {
         self.b -= mp;
         self.c -= c;
         self.count = self.count.saturating_sub(1);
+        self.weight -= 1.0;
         if self.count == 0 {
             *self = Self::default();
         }
@@ -171,7 +188,10 @@ impl NormalSums {
         if self.count < 2 {
             return Err(SolveError::TooFewLines { count: self.count });
         }
-        let q = self.count as f64;
+        let q = self.weight;
+        if !(q > 1.0) {
+            return Err(SolveError::TooFewLines { count: self.count });
+        }
         let eig = SymmetricEigen::new(self.a);
         let mut i_min = 0;
         for i in 1..3 {
@@ -203,6 +223,7 @@ impl NormalSums {
             conditioning,
             std_per_unit_noise: 1.0 / libm_sqrt(lambda_min),
             count: self.count,
+            weight: q,
         })
     }
 }

@@ -1,0 +1,14 @@
+//! `comanip-bench`: detection quality and loop timing, the paper's method and ours side by
+//! side, measured on the same traces in the same run (`docs/BENCHMARKS.md`).
+//!
+//! - [`trace`]: simulated sessions decoded as the daemon decodes them;
+//! - [`detection`]: the four detector settings, per-run scoring;
+//! - [`bound`]: the motion-only bound of each true event;
+//! - [`report`]: aggregation, Markdown tables and the Table III consistency check;
+//! - [`plots`]: SVG figures (plotters).
+
+pub mod bound;
+pub mod detection;
+pub mod plots;
+pub mod report;
+pub mod trace;

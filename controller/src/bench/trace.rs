@@ -1,0 +1,203 @@
+//! Benchmark traces: the simulated twin's bus, decoded exactly as the daemon decodes it.
+//!
+//! A [`Trace`] is one simulated session on the Achilles-type arm: the twin
+//! ([`sim::twin::SimRobot`]) answers a SYNC per millisecond with quantised encoder TPDOs of
+//! the *true* arm (nominal DH table plus a calibration error), and the controller's own
+//! acquisition ([`crate::cycle::Acquisition`]), counts-to-radians conversion and *nominal*
+//! forward kinematics turn them into one instrument line per sample. Every detector of the
+//! benchmark consumes the same lines. The ground truth (true state, true pivot, true
+//! events) comes from the twin.
+//!
+//! Frames: positions in metres and directions as unit vectors, robot base frame.
+
+use estimator::kinematics::Achilles;
+use estimator::trocar::LineSample;
+use nalgebra::{Rotation3, Vector3};
+use sim::scenario::{TrueEvent, TruthState};
+use sim::score::GroundTruth;
+use sim::twin::{DEFAULT_TROCARS_BASE_M, SimRobot, TwinConfig};
+
+use crate::cycle::Acquisition;
+use crate::health::HealthConfig;
+
+/// A placement of the trocar set relative to the robot base: the four default trocars
+/// rotated about the vertical axis through their centroid by `yaw_deg` and shifted by
+/// `shift_m` (metres, robot base frame). The trocars' relative geometry (their pairwise
+/// distances) is the same in every placement, as in the paper's Table III experiment.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placement {
+    /// Name in reports (C1, C2, ...).
+    pub name: &'static str,
+    /// Rotation about the vertical through the trocars' centroid, degrees.
+    pub yaw_deg: f64,
+    /// Translation, metres, robot base frame.
+    pub shift_m: [f64; 3],
+}
+
+/// The three placements of the benchmark (all within the default arm's reach).
+pub const PLACEMENTS: [Placement; 3] = [
+    Placement { name: "C1", yaw_deg: 0.0, shift_m: [0.0, 0.0, 0.0] },
+    Placement { name: "C2", yaw_deg: 12.0, shift_m: [0.01, 0.015, -0.005] },
+    Placement { name: "C3", yaw_deg: -10.0, shift_m: [-0.01, -0.01, 0.005] },
+];
+
+impl Placement {
+    /// The four trocars of this placement, metres, robot base frame.
+    pub fn trocars_base_m(&self) -> Vec<[f64; 3]> {
+        let pts: Vec<Vector3<f64>> = DEFAULT_TROCARS_BASE_M.iter().map(|t| Vector3::new(t[0], t[1], t[2])).collect();
+        let c = pts.iter().sum::<Vector3<f64>>() / pts.len() as f64;
+        let r = Rotation3::from_axis_angle(&Vector3::z_axis(), self.yaw_deg.to_radians());
+        let s = Vector3::from(self.shift_m);
+        pts.iter().map(|p| (c + r * (p - c) + s).into()).collect()
+    }
+}
+
+/// What one trace is made of.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TraceSpec {
+    /// Scenario seed (also seeds the arm's calibration error... no: that is fixed; see
+    /// [`sim::twin::ModelErrorConfig`]).
+    pub seed: u64,
+    /// Insert/extract cycles.
+    pub cycles: usize,
+    /// Trocar placement.
+    pub placement: Placement,
+}
+
+/// One decoded session with its ground truth. Implements [`GroundTruth`].
+#[derive(Clone, Debug)]
+pub struct Trace {
+    /// What it was generated from.
+    pub spec: TraceSpec,
+    /// Instrument line per sample as the daemon computes it (metres, unit axis, robot base
+    /// frame). `None` when the sample's cycle was incomplete (never with the benchmark's
+    /// fault-free nodes; kept so that a gap could not go unnoticed).
+    pub lines: Vec<Option<LineSample>>,
+    /// True state per sample.
+    pub states: Vec<TruthState>,
+    /// True pivot per sample while inside (metres, robot base frame).
+    pub pivots: Vec<Option<Vector3<f64>>>,
+    /// True events, in time order (sample indices into `lines`).
+    pub events: Vec<TrueEvent>,
+    /// Nominal trocar positions, metres, robot base frame.
+    pub trocars_base_m: Vec<[f64; 3]>,
+    /// Instrument length, wrist centre to tip, metres.
+    pub instrument_length_m: f64,
+}
+
+/// Why a trace could not be generated.
+#[derive(Debug, thiserror::Error)]
+pub enum TraceError {
+    /// The twin refused its configuration.
+    #[error("twin configuration: {0}")]
+    Config(#[from] sim::twin::TwinConfigError),
+    /// The twin failed during the run (e.g. a pose out of the arm's reach).
+    #[error("seed {seed}, placement {placement}: {source}")]
+    Twin {
+        /// Scenario seed.
+        seed: u64,
+        /// Placement name.
+        placement: &'static str,
+        /// What failed.
+        source: sim::twin::TwinError,
+    },
+    /// The controller's pipeline could not be built.
+    #[error("controller pipeline: {0}")]
+    Pipeline(String),
+}
+
+/// The twin configuration of a trace: the twin's defaults (1 mm trocar compliance, ±0.5 mm /
+/// ±1 mrad calibration error, 2^17-count encoders, fault-free nodes) with `spec`'s seed,
+/// cycles and trocars.
+pub fn twin_config(spec: &TraceSpec) -> TwinConfig {
+    let mut cfg = TwinConfig::default();
+    cfg.scenario.seed = spec.seed;
+    cfg.scenario.cycles = spec.cycles;
+    cfg.scenario.trocars_base_m = spec.placement.trocars_base_m();
+    cfg.nodes_seed = spec.seed;
+    cfg
+}
+
+/// Runs the twin for `spec` and decodes its bus as the daemon does.
+pub fn generate(spec: &TraceSpec) -> Result<Trace, TraceError> {
+    let cfg = twin_config(spec);
+    let mut twin = SimRobot::new(&cfg)?;
+    let mut acq =
+        Acquisition::new(&cfg.encoder, HealthConfig::default()).map_err(|e| TraceError::Pipeline(e.to_string()))?;
+    let arm = Achilles::new(&cfg.kinematics).map_err(|e| TraceError::Pipeline(e.to_string()))?;
+    let n_hint = twin.scenario().truth.len();
+    let mut out = Trace {
+        spec: *spec,
+        lines: Vec::with_capacity(n_hint),
+        states: Vec::with_capacity(n_hint),
+        pivots: Vec::with_capacity(n_hint),
+        events: Vec::new(),
+        trocars_base_m: cfg.scenario.trocars_base_m.clone(),
+        instrument_length_m: cfg.scenario.instrument_length_m,
+    };
+    let mut counter: u8 = 1;
+    let mut t_us: u64 = 1_000_000;
+    loop {
+        let answer = twin
+            .on_sync(counter, t_us)
+            .map_err(|source| TraceError::Twin { seed: spec.seed, placement: spec.placement.name, source })?;
+        let Some(frames) = answer else { break };
+        acq.start_cycle();
+        for f in frames.iter() {
+            acq.on_frame(&f.frame, f.unix_time_us * 1000);
+        }
+        let input = acq.end_cycle((t_us + 900) * 1000, false);
+        let line = if acq_complete(&input) {
+            let q = cfg.encoder.counts_to_rad(&input.counts);
+            arm.forward(&q).ok().map(|p| LineSample::new(p.wrist_base_m, p.axis_base))
+        } else {
+            None
+        };
+        let truth = twin.truth();
+        out.lines.push(line);
+        out.states.push(truth.state);
+        out.pivots.push(truth.fulcrum_base_m);
+        for e in twin.events() {
+            out.events.push(TrueEvent { t_s: e.t_s, sample: e.sample as usize, trocar: e.trocar, insertion: e.insertion });
+        }
+        counter = if counter >= 240 { 1 } else { counter + 1 };
+        t_us += 1000;
+    }
+    Ok(out)
+}
+
+fn acq_complete(input: &crate::cycle::CycleInput) -> bool {
+    input.received_mask == (1 << hw_io::can::ENCODER_NODES) - 1 && input.flags & hw_io::ipc::health::INVALIDATING == 0
+}
+
+impl Trace {
+    /// Duration, seconds.
+    pub fn duration_s(&self) -> f64 {
+        self.lines.len() as f64 * 1e-3
+    }
+    /// Insert/extract cycles actually simulated (true insertions).
+    pub fn insertions(&self) -> usize {
+        self.events.iter().filter(|e| e.insertion).count()
+    }
+}
+
+impl GroundTruth for Trace {
+    fn sample_period_s(&self) -> f64 {
+        1e-3
+    }
+    fn samples(&self) -> usize {
+        self.lines.len()
+    }
+    fn truth_at(&self, i: usize) -> (TruthState, Option<Vector3<f64>>) {
+        (self.states.get(i).copied().unwrap_or(TruthState::Outside), self.pivots.get(i).copied().flatten())
+    }
+    fn trocars_base_m(&self) -> &[[f64; 3]] {
+        &self.trocars_base_m
+    }
+    fn event_count(&self) -> usize {
+        self.events.len()
+    }
+    fn event(&self, k: usize) -> Option<TrueEvent> {
+        self.events.get(k).copied()
+    }
+}

@@ -3,6 +3,7 @@ use controller::bench::trace::{PLACEMENTS, TraceSpec, generate};
 use estimator::trocar::{Detector, TrocarState};
 use sim::score::GroundTruth;
 
+fn e_f(e: &estimator::trocar::Estimate) -> nalgebra::Vector3<f64> { e.fulcrum_base_m.unwrap() }
 fn main() {
     let key = std::env::args().nth(1).unwrap_or("fast".into());
     let seed: u64 = std::env::args().nth(2).map(|s| s.parse().unwrap()).unwrap_or(11);
@@ -23,13 +24,17 @@ fn main() {
         let ev = trace.events.iter().filter(|e| e.sample <= i).last();
         let nx = trace.events.iter().find(|e| e.sample > i).map(|e| (e.sample as f64 - i as f64) * 1e-3);
         let dur = (i..trace.lines.len()).take_while(|&j| ests[j].state.is_inside()).count();
-        print!("[next event in {:?}s, lasts {} ms] ", nx, dur);
+        let nt = trace.events.iter().find(|e| e.sample > i).map(|e| e.trocar).unwrap_or(0);
+        let t = nalgebra::Vector3::from(trace.trocars_base_m[nt]);
+        let l = trace.lines[i].unwrap();
+        print!("[next event in {:?}s, lasts {} ms, dist to next trocar {:.1} mm, depth {:.1} mm] ", nx, dur, (e_f(&ests[i]) - t).norm()*1e3, estimator::trocar::lsq::signed_depth(&l, &e_f(&ests[i]))*1e3);
         let e = ests[i];
         let f = e.fulcrum_base_m.unwrap();
         let fit = e.fit.unwrap();
+        if let estimator::trocar::Detector::Fast(_) = det {}
         println!(
-            "false at {:.3}s truth {:?} since-last-event {:?} err {:.1}mm fit rms {:.2}mm std {:.2}mm lines {} cond {:.2e}",
-            i as f64 * 1e-3,
+            "spread {:.2e} false at {:.3}s truth {:?} since-last-event {:?} err {:.1}mm fit rms {:.2}mm std {:.2}mm lines {} cond {:.2e}",
+            fit.minor_spread_rad2, i as f64 * 1e-3,
             st,
             ev.map(|ev| ((i - ev.sample) as f64 * 1e-3, ev.insertion)),
             p.map(|p| (f - p).norm() * 1e3).unwrap_or(f64::NAN),
@@ -44,7 +49,7 @@ fn main() {
         if let Some(d) = ev.insertion_delay_s {
             let i = ev.insertion_sample + (d * 1e3).round() as usize;
             let fit = ests[i].fit.unwrap();
-            println!("true det delay {:.3} err {:.1}mm rms {:.2} std {:.2} lines {}", d, ev.first_error_m.unwrap_or(0.0)*1e3, fit.residual_m*1e3, fit.std_m*1e3, fit.lines);
+            println!("spread {:.2e} true det delay {:.3} err {:.1}mm rms {:.2} std {:.2} lines {}", fit.minor_spread_rad2, d, ev.first_error_m.unwrap_or(0.0)*1e3, fit.residual_m*1e3, fit.std_m*1e3, fit.lines);
         }
     }
     {

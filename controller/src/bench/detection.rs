@@ -210,6 +210,8 @@ pub struct Analysis {
     pub false_outside: usize,
     /// Distinct trocar ids the detector used.
     pub distinct_ids: usize,
+    /// Inside→outside transitions while the truth was inside (spurious extractions).
+    pub false_extractions: usize,
 }
 
 /// Scores `run` against `trace`.
@@ -268,6 +270,10 @@ pub fn analyse(trace: &Trace, run: &Run) -> Analysis {
         .iter()
         .filter(|&&i| matches!(trace.truth_at(i).0, TruthState::Outside))
         .count();
+    let false_extractions = (1..n)
+        .filter(|&i| run.detected[i - 1].inside && !run.detected[i].inside)
+        .filter(|&i| matches!(trace.truth_at(i).0, TruthState::Inside { .. }))
+        .count();
     let distinct_ids = run.ids.iter().flatten().collect::<std::collections::BTreeSet<_>>().len();
-    Analysis { score, events, steady_errors_m: steady, all_errors_m: all, false_outside, distinct_ids }
+    Analysis { score, events, steady_errors_m: steady, all_errors_m: all, false_outside, distinct_ids, false_extractions }
 }

@@ -238,6 +238,10 @@ pub struct Headline {
     pub false_detections: usize,
     /// Of which while outside.
     pub false_outside: usize,
+    /// Spurious extractions (declared while the truth is inside).
+    pub false_extractions: usize,
+    /// Distinct trocar ids used, summed over traces (4 trocars per trace).
+    pub distinct_ids: usize,
     /// Insertion delays, seconds.
     pub insertion: Stats,
     /// Re-insertion delays (a trocar visited before in the trace), seconds.
@@ -274,6 +278,8 @@ impl SettingResult {
             h.extractions_missed += a.score.extractions - a.score.extractions_detected;
             h.false_detections += a.score.false_detections;
             h.false_outside += a.false_outside;
+            h.false_extractions += a.false_extractions;
+            h.distinct_ids += a.distinct_ids;
             for e in &a.events {
                 if let Some(d) = e.insertion_delay_s {
                     ins.push(d);
@@ -400,6 +406,10 @@ impl DetectionReport {
         row(&mut s, "insertions detected", &|h| format!("{}/{}", h.insertions_detected, h.insertions));
         row(&mut s, "false detections (while outside)", &|h| format!("{} ({})", h.false_detections, h.false_outside));
         row(&mut s, "missed extractions", &|h| format!("{}/{}", h.extractions_missed, h.extractions));
+        row(&mut s, "spurious extractions (truth inside)", &|h| h.false_extractions.to_string());
+        row(&mut s, "trocar ids used (4 trocars per trace)", &|h| {
+            format!("{:.1} per trace", h.distinct_ids as f64 / self.specs.len().max(1) as f64)
+        });
         row(&mut s, "insertion delay mean / p50 / p95 / max (ms)", &|h| {
             format!("{} / {} / {} / {}", ms(h.insertion.mean), ms(h.insertion.p50), ms(h.insertion.p95), ms(h.insertion.max))
         });

@@ -442,6 +442,7 @@ impl FastDetector {
                 conditioning: f.conditioning,
                 std_m: self.fulcrum_std_m(&f),
                 lines: f.count as u16,
+                minor_spread_rad2: f.minor_spread_rad2,
             }),
             window_fill: self.segment.len() as u16,
             window_len: self.cfg.window as u16,

@@ -75,6 +75,10 @@ pub struct LsFit {
     pub count: u32,
     /// Total weight of the lines (`count` without forgetting).
     pub weight: f64,
+    /// `1 − λ_max(Σ(I − z zᵀ)) / q`: about the mean squared angular spread (rad²) of the
+    /// lines' directions along their *narrowest* direction of spread (0 when every line lies
+    /// in one plane through the mean direction, as in a one-axis swing).
+    pub minor_spread_rad2: f64,
 }
 
 impl LsFit {
@@ -200,6 +204,7 @@ impl NormalSums {
             }
         }
         let lambda_min = eig.eigenvalues[i_min];
+        let lambda_max = eig.eigenvalues.iter().copied().fold(f64::MIN, f64::max);
         let conditioning = lambda_min / q;
         if !conditioning.is_finite() || conditioning < min_conditioning || lambda_min <= 0.0 {
             return Err(SolveError::IllConditioned {
@@ -224,6 +229,7 @@ impl NormalSums {
             std_per_unit_noise: 1.0 / libm_sqrt(lambda_min),
             count: self.count,
             weight: q,
+            minor_spread_rad2: (1.0 - lambda_max / q).max(0.0),
         })
     }
 }

@@ -123,6 +123,9 @@ pub struct FitSummary {
     pub std_m: f64,
     /// Lines in the fit.
     pub lines: u16,
+    /// Angular spread of the lines' directions along their narrowest direction, rad²
+    /// (mean squared; 0 for a one-axis swing). See [`lsq::LsFit::minor_spread_rad2`].
+    pub minor_spread_rad2: f64,
 }
 
 /// What one step reports. Every float is finite.

@@ -208,6 +208,7 @@ impl PaperDetector {
                 conditioning: f.ls.conditioning,
                 std_m: f.ls.fulcrum_std_m(f.ls.noise_estimate_m()),
                 lines: f.ls.count as u16,
+                minor_spread_rad2: f.ls.minor_spread_rad2,
             }),
             window_fill: fill as u16,
             window_len: len as u16,

@@ -27,7 +27,7 @@ use crate::cycle::{Acquisition, AcquisitionStats, Estimation};
 use crate::recorder::{self, RecorderProducer, RecorderStatsSnapshot, RunInfo};
 use crate::rt::{self, RealtimeReport};
 use crate::rt_loop::{
-    CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopParams, RECORD_KIND, RtLoop, TimingSummary,
+    CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopParams, LoopTiming, RECORD_KIND, RtLoop, TimingSummary,
 };
 use crate::sim_robot::{self, SimRobotThread};
 use crate::watchdog::{self, LoopProgress, Watchdog};
@@ -100,6 +100,10 @@ pub struct RunSummary {
     pub realtime: Vec<String>,
     /// Simulated robot: SYNCs answered (0 on a real bus).
     pub sim_syncs_answered: u64,
+    /// The loop's full timing histograms (nanoseconds, 1 µs buckets), for plots; not in the
+    /// JSON summary.
+    #[serde(skip)]
+    pub timing_histograms: Option<LoopTiming>,
 }
 
 /// Why the daemon could not run.
@@ -160,6 +164,7 @@ struct RtResult {
     cycles: u64,
     acquisition: AcquisitionStats,
     timing: TimingSummary,
+    histograms: LoopTiming,
     alloc: AllocSummary,
     bus_dropped: u64,
 }
@@ -338,6 +343,7 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
                 cycles: lp.cycles(),
                 acquisition: *lp.acquisition_stats(),
                 timing: lp.timing().summary(),
+                histograms: lp.timing().clone(),
                 alloc: AllocSummary {
                     rt_thread_system_allocs: allocs,
                     pool_allocs: pool.pool_allocs - pool_before.pool_allocs,
@@ -441,5 +447,6 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         alloc: rt.alloc,
         realtime,
         sim_syncs_answered,
+        timing_histograms: Some(rt.histograms),
     })
 }

@@ -26,7 +26,6 @@
 
 use estimator::trocar::LineSample;
 use estimator::trocar::lsq::{NormalSums, line_distance};
-use nalgebra::Vector3;
 
 use super::trace::Trace;
 

@@ -9,6 +9,7 @@
 
 pub mod bound;
 pub mod detection;
+pub mod ipc;
 pub mod plots;
 pub mod report;
 pub mod trace;

@@ -1,16 +1,29 @@
 //! `comanip-bench`: the benchmarks of docs/BENCHMARKS.md.
 //!
-//! `comanip-bench detection [--seeds 11,12,13,14] [--cycles 90] [--out DIR]`
+//! - `comanip-bench all` — everything below, then writes docs/BENCHMARKS.md and the SVG
+//!   figures under docs/benchmarks/ (run from the repository root, release build).
+//! - `comanip-bench detection [--seeds 11,12,13,14] [--cycles 90] [--config fulcrumd.toml]`
+//! - `comanip-bench loop [--seconds 60]` — the daemon on its in-process simulated robot.
+//! - `comanip-bench ipc [--samples 20000]` — iceoryx2 latency between two processes.
 
-use std::path::PathBuf;
+use std::fmt::Write as _;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::AtomicBool;
 
 use clap::{Parser, Subcommand};
-use controller::bench::report::{DetectionOptions, run_detection};
+use controller::bench::ipc::{self, IpcReport};
+use controller::bench::plots;
+use controller::bench::report::{DetectionOptions, DetectionReport, run_detection};
+use controller::config::Config;
+use controller::daemon::{self, RunOptions, RunSummary};
 use hw_io::rt_alloc::RtPoolAllocator;
 
 #[global_allocator]
 static ALLOC: RtPoolAllocator = RtPoolAllocator::new();
+
+static STOP: AtomicBool = AtomicBool::new(false);
 
 #[derive(Parser)]
 #[command(version, about = "comanip benchmarks: detection quality (paper vs fast), loop timing, IPC latency")]
@@ -21,8 +34,14 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Every benchmark; writes the Markdown report and the SVG figures.
+    All(AllArgs),
     /// Detection benchmark: the paper mode and the fast mode's three settings on the same traces.
     Detection(DetectionArgs),
+    /// Loop timing: the daemon on the in-process simulated robot.
+    Loop(LoopArgs),
+    /// iceoryx2 publish → blocking-wait receive latency between two processes.
+    Ipc(IpcArgs),
 }
 
 #[derive(clap::Args)]
@@ -33,45 +52,217 @@ struct DetectionArgs {
     /// Insert/extract cycles per trace.
     #[arg(long, default_value_t = 90)]
     cycles: usize,
-    /// Directory for the report and plots.
-    #[arg(long)]
-    out: Option<PathBuf>,
     /// fulcrumd configuration whose `[detector]` tables (paper and fast parameters) the
     /// benchmark uses; default: the built-in defaults (= configs/fulcrumd.toml).
     #[arg(long)]
     config: Option<PathBuf>,
 }
 
+#[derive(clap::Args)]
+struct LoopArgs {
+    /// Seconds of daemon run (1000 cycles per second).
+    #[arg(long, default_value_t = 60)]
+    seconds: u64,
+}
+
+#[derive(clap::Args)]
+struct IpcArgs {
+    /// Samples measured (1 kHz, after 500 warm-up samples).
+    #[arg(long, default_value_t = 20_000)]
+    samples: u64,
+}
+
+#[derive(clap::Args)]
+struct AllArgs {
+    #[command(flatten)]
+    detection: DetectionArgs,
+    #[command(flatten)]
+    looping: LoopArgs,
+    #[command(flatten)]
+    ipc: IpcArgs,
+    /// The Markdown report to write.
+    #[arg(long, default_value = "docs/BENCHMARKS.md")]
+    report: PathBuf,
+    /// Directory of the SVG figures (linked relative to the report).
+    #[arg(long, default_value = "docs/benchmarks")]
+    figures: PathBuf,
+}
+
+fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|m| m.trim().to_owned()))
+        .unwrap_or_else(|| "unknown CPU".into());
+    let kernel = std::fs::read_to_string("/proc/sys/kernel/osrelease").unwrap_or_default();
+    let nproc = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0);
+    let mem_gib = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|s| s.lines().next().and_then(|l| l.split_whitespace().nth(1)).and_then(|k| k.parse::<f64>().ok()))
+        .map_or(0.0, |kib| kib / 1024.0 / 1024.0);
+    format!("{cpu}, {nproc} CPUs, {mem_gib:.0} GiB, Linux {} (shared machine)", kernel.trim())
+}
+
+fn detection(a: &DetectionArgs) -> Result<DetectionReport, String> {
+    let detector = match &a.config {
+        Some(p) => Config::load(p).map_err(|e| e.to_string())?.detector,
+        None => Default::default(),
+    };
+    let opts =
+        DetectionOptions { seeds: a.seeds.clone(), cycles_per_trace: a.cycles, detector, ..Default::default() };
+    let traces = (opts.seeds.len() * opts.placements.len()) as u64;
+    let bar = if std::io::stderr().is_terminal() {
+        let b = indicatif::ProgressBar::new(traces);
+        b.set_message("traces");
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let r = run_detection(&opts, &|| bar.inc(1)).map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    Ok(r)
+}
+
+fn run_loop(a: &LoopArgs) -> Result<RunSummary, String> {
+    let mut config = Config::default();
+    config.recorder.enabled = false;
+    config.output.service = format!("comanip-bench/{}/loop", std::process::id());
+    let config_toml = toml::to_string(&config).map_err(|e| e.to_string())?;
+    let opts = RunOptions { config, config_toml, max_cycles: Some(a.seconds * 1000), sim_seed: 1 };
+    daemon::run(opts, &STOP).map_err(|e| e.to_string())
+}
+
+fn loop_markdown(s: &RunSummary) -> String {
+    let t = &s.timing;
+    let mut m = String::new();
+    let _ = writeln!(
+        m,
+        "{} cycles ({} s at {} µs), {} published, {} overruns, {} incomplete cycles, {} system allocations on the \
+         real-time thread.\n",
+        s.cycles,
+        s.cycles * u64::from(s.period_us) / 1_000_000,
+        s.period_us,
+        s.published,
+        s.overruns,
+        s.acquisition.incomplete_cycles,
+        s.alloc.rt_thread_system_allocs
+    );
+    let _ = writeln!(m, "| µs | p50 | p99 | p99.9 | max |");
+    let _ = writeln!(m, "|---|---|---|---|---|");
+    for (name, x) in [
+        ("period error (wake-up lateness)", &t.wake_late),
+        ("compute (frames in → published)", &t.compute),
+        ("whole cycle (wake-up → published)", &t.cycle),
+    ] {
+        let _ = writeln!(m, "| {name} | {:.0} | {:.0} | {:.0} | {:.0} |", x.p50_us, x.p99_us, x.p999_us, x.max_us);
+    }
+    m
+}
+
+fn ipc_markdown(r: &IpcReport) -> String {
+    format!(
+        "{} samples at 1 kHz (after {} warm-up), missed {}, gaps or restarts {}, {} system allocations on the \
+         publishing thread.\n\n| µs | p50 | p99 | p99.9 | max |\n|---|---|---|---|---|\n| publish → `wait()` returns \
+         | {:.1} | {:.1} | {:.1} | {:.1} |\n",
+        r.samples,
+        ipc::WARM_UP,
+        r.missed,
+        r.gaps_or_restarts,
+        r.publisher_rt_allocs,
+        r.latency_us[0],
+        r.latency_us[1],
+        r.latency_us[2],
+        r.latency_us[3]
+    )
+}
+
+fn all(a: &AllArgs) -> Result<(), String> {
+    let started = std::time::Instant::now();
+    std::fs::create_dir_all(&a.figures).map_err(|e| format!("{}: {e}", a.figures.display()))?;
+    eprintln!("comanip-bench: detection ...");
+    let det = detection(&a.detection)?;
+    eprintln!("comanip-bench: loop timing ({} s) ...", a.looping.seconds);
+    let lp = run_loop(&a.looping)?;
+    eprintln!("comanip-bench: iceoryx2 latency ({} samples) ...", a.ipc.samples);
+    let ipc = ipc::run(a.ipc.samples).map_err(|e| e.to_string())?;
+
+    let fig = |name: &str| a.figures.join(name);
+    let rel = |name: &str| {
+        let dir = a.report.parent().unwrap_or(Path::new("."));
+        a.figures.strip_prefix(dir).unwrap_or(&a.figures).join(name).display().to_string()
+    };
+    plots::delay_histograms(&det, &fig("delays.svg")).map_err(|e| e.to_string())?;
+    plots::timeline(&det.timeline, &fig("timeline.svg")).map_err(|e| e.to_string())?;
+    let steps: Vec<(&str, Vec<(f64, u64)>)> = det
+        .settings
+        .iter()
+        .filter(|s| s.setting.key == "paper" || s.setting.key == "fast")
+        .map(|s| (s.setting.key, s.step_times.buckets().map(|(ns, c)| (ns as f64, c)).collect()))
+        .collect();
+    plots::duration_histogram("detector step time", "ns", &steps, 3000.0, &fig("step_time.svg"))
+        .map_err(|e| e.to_string())?;
+    if let Some(h) = &lp.timing_histograms {
+        let conv = |hist: &controller::timing::Histogram| hist.buckets().map(|(us, c)| (us as f64, u64::from(c))).collect();
+        plots::duration_histogram(
+            "daemon loop timing (in-process simulated robot)",
+            "µs",
+            &[("period error", conv(&h.wake_late)), ("compute", conv(&h.compute)), ("whole cycle", conv(&h.cycle))],
+            1000.0,
+            &fig("loop_timing.svg"),
+        )
+        .map_err(|e| e.to_string())?;
+    }
+    let ipc_buckets: Vec<(f64, u64)> = ipc.buckets.iter().map(|(us, c)| (*us as f64, u64::from(*c))).collect();
+    plots::duration_histogram("iceoryx2 publish → receive latency", "µs", &[("blocking wait", ipc_buckets)], 500.0, &fig("ipc_latency.svg"))
+        .map_err(|e| e.to_string())?;
+
+    let mut md = String::new();
+    let _ = writeln!(md, "# Benchmarks\n");
+    let _ = writeln!(
+        md,
+        "Generated by `cargo run --release --bin comanip-bench -- all` (from the repository root; {:.0} s). \
+         Machine: {}. Medians and ratios come from this one run; the machine is shared, so tail latencies \
+         include other tenants' load. Method and definitions: [benchmarks.md](benchmarks.md).\n",
+        started.elapsed().as_secs_f64(),
+        machine()
+    );
+    let _ = writeln!(md, "## Detection: the paper's method and ours on the same traces\n");
+    md.push_str(&det.markdown());
+    let _ = writeln!(md, "![insertion and extraction delays]({})\n", rel("delays.svg"));
+    let _ = writeln!(md, "![timeline of the first trace]({})\n", rel("timeline.svg"));
+    let _ = writeln!(md, "![detector step time]({})\n", rel("step_time.svg"));
+    let _ = writeln!(md, "## Loop timing: fulcrumd on the in-process simulated robot\n");
+    md.push_str(&loop_markdown(&lp));
+    let _ = writeln!(md, "\n![loop timing]({})\n", rel("loop_timing.svg"));
+    let _ = writeln!(md, "## iceoryx2 latency between two processes\n");
+    md.push_str(&ipc_markdown(&ipc));
+    let _ = writeln!(md, "\n![iceoryx2 latency]({})", rel("ipc_latency.svg"));
+    std::fs::write(&a.report, md).map_err(|e| format!("{}: {e}", a.report.display()))?;
+    eprintln!("comanip-bench: wrote {} and {}/*.svg", a.report.display(), a.figures.display());
+    Ok(())
+}
+
 fn main() -> ExitCode {
-    let cli = Cli::parse();
-    match cli.command {
-        Command::Detection(a) => {
-            let detector = match &a.config {
-                Some(p) => match controller::config::Config::load(p) {
-                    Ok(c) => c.detector,
-                    Err(e) => {
-                        eprintln!("comanip-bench: {e}");
-                        return ExitCode::from(2);
-                    }
-                },
-                None => Default::default(),
-            };
-            let opts = DetectionOptions { seeds: a.seeds, cycles_per_trace: a.cycles, detector, ..Default::default() };
-            match run_detection(&opts, &|| eprint!(".")) {
-                Ok(r) => {
-                    eprintln!();
-                    println!("{}", r.markdown());
-                    if let Some(dir) = a.out {
-                        let _ = std::fs::create_dir_all(&dir);
-                        let _ = std::fs::write(dir.join("detection.md"), r.markdown());
-                    }
-                    ExitCode::SUCCESS
-                }
-                Err(e) => {
-                    eprintln!("comanip-bench: error: {e}");
-                    ExitCode::FAILURE
-                }
+    if std::env::var_os(ipc::ROLE_ENV).is_some() {
+        return match ipc::subscriber_main() {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("comanip-bench (ipc subscriber): {e}");
+                ExitCode::FAILURE
             }
+        };
+    }
+    let cli = Cli::parse();
+    let result = match &cli.command {
+        Command::All(a) => all(a),
+        Command::Detection(a) => detection(a).map(|r| println!("{}", r.markdown())),
+        Command::Loop(a) => run_loop(a).map(|s| println!("{}", loop_markdown(&s))),
+        Command::Ipc(a) => ipc::run(a.samples).map(|r| println!("{}", ipc_markdown(&r))).map_err(|e| e.to_string()),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("comanip-bench: error: {e}");
+            ExitCode::FAILURE
         }
     }
 }

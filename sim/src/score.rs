@@ -3,8 +3,10 @@
 //!
 //! Definitions (also in `docs/trocar-detection.md`):
 //! - **Insertion delay**: first sample at or after the true insertion at which the detector
-//!   is inside, minus the true insertion instant, seconds. Missed when the detector does not
-//!   get inside before the true extraction.
+//!   is inside *at the right trocar* (its fulcrum nearest to the true trocar and within
+//!   `wrong_trocar_m` of the true pivot), minus the true insertion instant, seconds. Being
+//!   inside somewhere else (a false detection carried over from before the insertion) does not
+//!   count. Missed when that does not happen before the true extraction.
 //! - **Extraction delay**: first sample at or after the true extraction at which the detector
 //!   is outside, minus the true extraction instant. Missed when the detector is still inside
 //!   at the next true insertion (or the end).
@@ -137,7 +139,13 @@ pub fn score_against<G: GroundTruth + ?Sized>(truth: &G, detected: &[Detected], 
         let end = truth.event(k + 1).map(|x| x.sample).unwrap_or(n).min(n);
         if e.insertion {
             s.insertions += 1;
-            if let Some(j) = (e.sample..end).find(|&j| detected[j].inside) {
+            let right = |j: usize| match (detected[j].inside, detected[j].fulcrum_base_m, truth.truth_at(j)) {
+                (true, Some(f), (TruthState::Inside { index }, Some(t))) => {
+                    (f - t).norm() <= wrong_trocar_m && nearest_trocar_of(truth.trocars_base_m(), &f) == Some(index)
+                }
+                _ => false,
+            };
+            if let Some(j) = (e.sample..end).find(|&j| right(j)) {
                 s.insertions_detected += 1;
                 s.insertion_delays_s.push((j - e.sample) as f64 * dt);
                 if let (Some(t), Some(f)) = (truth.truth_at(j).1, detected[j].fulcrum_base_m) {

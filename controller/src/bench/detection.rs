@@ -230,7 +230,14 @@ pub fn analyse(trace: &Trace, run: &Run) -> Analysis {
         }
         let extraction = evs[k + 1..].iter().find(|x| !x.insertion).map_or(n, |x| x.sample).min(n);
         let next_insertion = evs[k + 1..].iter().find(|x| x.insertion).map_or(n, |x| x.sample).min(n);
-        let detect = (e.sample..extraction).find(|&j| run.detected[j].inside);
+        // As the scorer: inside at the right trocar (nearest trocar, within WRONG_TROCAR_M).
+        let detect = (e.sample..extraction).find(|&j| match (run.detected[j].fulcrum_base_m, trace.pivots[j]) {
+            (Some(f), Some(p)) => {
+                (f - p).norm() <= WRONG_TROCAR_M
+                    && sim::score::nearest_trocar_of(&trace.trocars_base_m, &f) == Some(e.trocar)
+            }
+            _ => false,
+        });
         let out = if extraction < n {
             (extraction..next_insertion).find(|&j| !run.detected[j].inside).map(|j| (j - extraction) as f64 * 1e-3)
         } else {

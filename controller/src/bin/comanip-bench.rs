@@ -47,7 +47,7 @@ enum Command {
 #[derive(clap::Args)]
 struct DetectionArgs {
     /// Scenario seeds (each runs in each of the three placements).
-    #[arg(long, value_delimiter = ',', default_values_t = [11u64, 12, 13, 14])]
+    #[arg(long, value_delimiter = ',', default_values_t = [101u64, 102, 103, 104])]
     seeds: Vec<u64>,
     /// Insert/extract cycles per trace.
     #[arg(long, default_value_t = 90)]

@@ -100,6 +100,12 @@ pub struct FastConfig {
     pub noise_floor_m: f64,
     /// Insertion needs the fulcrum's one-sigma uncertainty (worst direction) below this, metres.
     pub insert_max_std_m: f64,
+    /// Insertion needs the lines' directions to spread out of their main swing plane by at
+    /// least this (RMS angle, degrees): a swing about one axis always has a virtual pivot (the
+    /// envelope of a one-parameter family of coplanar lines), so a point common to coplanar
+    /// lines is no evidence of a trocar; lines meeting in one point from a cone of directions
+    /// are. The default is just above the encoders' noise. Range [0, 10].
+    pub insert_min_cross_spread_deg: f64,
     /// Insertion needs the segment's RMS line distance below this, metres; a segment whose RMS
     /// exceeds it is trimmed from its oldest end.
     pub consistency_rms_m: f64,
@@ -157,8 +163,9 @@ impl Default for FastConfig {
             include_distance_m: 0.001,
             include_angle_deg: 0.5,
             min_lines: 8,
-            noise_floor_m: 0.0007,
+            noise_floor_m: 0.001,
             insert_max_std_m: 0.004,
+            insert_min_cross_spread_deg: 0.006,
             consistency_rms_m: 0.0006,
             insert_min_depth_m: 0.05,
             min_persistence_s: 0.3,
@@ -309,6 +316,13 @@ impl FastConfig {
         duration("fast.min_persistence_s", self.min_persistence_s)?;
         positive("fast.break_gate_m", self.break_gate_m, 0.5, "(0, 0.5] m")?;
         positive("fast.slide_restart_m", self.slide_restart_m, 1.0, "(0, 1] m")?;
+        if !(self.insert_min_cross_spread_deg.is_finite() && (0.0..=10.0).contains(&self.insert_min_cross_spread_deg)) {
+            return Err(ConfigError::OutOfRange {
+                key: "fast.insert_min_cross_spread_deg",
+                value: self.insert_min_cross_spread_deg,
+                allowed: "[0, 10] degrees",
+            });
+        }
         if !(self.extract_gate_sigmas.is_finite() && (1.0..=100.0).contains(&self.extract_gate_sigmas)) {
             return Err(ConfigError::OutOfRange {
                 key: "fast.extract_gate_sigmas",
@@ -387,8 +401,9 @@ mod tests {
             (|c| c.fast.consistency_rms_m = f64::NAN, "fast.consistency_rms_m"),
             (|c| c.fast.insert_min_depth_m = 0.0, "fast.insert_min_depth_m"),
             (|c| c.fast.min_persistence_s = -1.0, "fast.min_persistence_s"),
-            (|c| c.fast.break_gate_m = 0.001, "fast.break_gate_m"),
+            (|c| c.fast.break_gate_m = 0.0004, "fast.break_gate_m"),
             (|c| c.fast.slide_restart_m = 0.0, "fast.slide_restart_m"),
+            (|c| c.fast.insert_min_cross_spread_deg = -1.0, "fast.insert_min_cross_spread_deg"),
             (|c| c.fast.extract_gate_sigmas = 0.5, "fast.extract_gate_sigmas"),
             (|c| c.fast.extract_gate_min_m = 0.02, "fast.extract_gate_m"),
             (|c| c.fast.inside_memory_lines = 1.0, "fast.inside_memory_lines"),

@@ -360,8 +360,10 @@ impl FastDetector {
         let first = self.segment.front()?;
         let f = fit.fulcrum_base_m;
         let depth = lsq::signed_depth(line, &f);
+        let cross = self.cfg.insert_min_cross_spread_deg.to_radians();
         let ok = self.segment.len() >= self.cfg.min_lines
             && self.well_determined(&fit)
+            && fit.minor_spread_rad2 >= cross * cross
             && fit.rms_m <= self.cfg.consistency_rms_m
             && depth > self.cfg.insert_min_depth_m
             && self.tip_beyond(depth)

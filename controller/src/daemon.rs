@@ -27,7 +27,8 @@ use crate::cycle::{Acquisition, AcquisitionStats, Estimation};
 use crate::recorder::{self, RecorderProducer, RecorderStatsSnapshot, RunInfo};
 use crate::rt::{self, RealtimeReport};
 use crate::rt_loop::{
-    CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopParams, LoopTiming, RECORD_KIND, RtLoop, TimingSummary,
+    CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopParams, LoopTiming, RECORD_KIND, RtLoop,
+    TimingSummary,
 };
 use crate::sim_robot::{self, SimRobotThread};
 use crate::watchdog::{self, LoopProgress, Watchdog};

@@ -246,3 +246,110 @@ proptest! {
         }
     }
 }
+
+/// Lines through `f` whose axes swing about one fixed axis only (a coplanar pencil): every
+/// one-parameter motion has such a virtual pivot, so the fast mode must not call it a trocar;
+/// the same point approached from a cone of directions is one.
+#[test]
+fn a_one_axis_swing_is_not_a_trocar_but_a_cone_through_the_same_point_is() {
+    let f = Vector3::new(0.32, -0.02, 0.0);
+    let run = |cone: bool| {
+        let mut d = detector(DetectorMode::Fast);
+        let mut inside = false;
+        for i in 0..3000 {
+            let t = i as f64 * 1e-3;
+            let pitch = 0.2 * (2.0 * std::f64::consts::PI * 0.4 * t).sin();
+            let yaw = if cone { 0.15 * (2.0 * std::f64::consts::PI * 0.3 * t).sin() } else { 0.0 };
+            let axis = (UnitQuaternion::from_euler_angles(pitch, yaw, 0.0) * Vector3::new(0.0, 0.0, -1.0)).normalize();
+            let e = d.step(&line_through(&f, &axis, 0.20));
+            inside |= e.state.is_inside();
+        }
+        inside
+    };
+    assert!(!run(false), "a coplanar pencil of lines was taken for a trocar");
+    assert!(run(true), "lines through one point from a cone of directions were not detected");
+}
+
+/// Outside, sliding the instrument along its own axis (entering a port) starts a new segment:
+/// the lines of the approach before it no longer take part in the fit.
+#[test]
+fn an_axial_slide_restarts_the_segment_outside() {
+    let mut d = detector(DetectorMode::Fast);
+    // A wandering free motion: lines through no common point.
+    for i in 0..400 {
+        let t = i as f64 * 1e-3;
+        let axis = cone_axis(0.3 + 0.2 * t, 2.0 * t);
+        let wrist = Vector3::new(0.3 + 0.1 * t, 0.05 * t, 0.3);
+        d.step(&LineSample::new(wrist, axis));
+    }
+    let axis = cone_axis(0.38, 0.8);
+    let start = Vector3::new(0.34, 0.02, 0.3);
+    let before = d.step(&LineSample::new(start, axis));
+    assert!(before.window_fill > 1, "the free motion should have built a segment");
+    // Slide 3 cm along the axis, 0.1 mm per sample: no lateral motion, no rotation.
+    let mut e = before;
+    for k in 1..=300 {
+        e = d.step(&LineSample::new(start + axis * (k as f64 * 1e-4), axis));
+    }
+    assert_eq!(e.window_fill, 1, "the slide should have restarted the segment");
+    assert!(!e.state.is_inside());
+}
+
+/// Inside a trocar whose lines are quiet, the extraction gate adapts down from
+/// `extract_gate_m` (8 mm) towards `extract_gate_min_m`: a line 4 mm off the fulcrum ends
+/// the insertion, where the fixed 8 mm gate would not.
+#[test]
+fn the_adaptive_extraction_gate_sees_a_small_departure() {
+    let f = Vector3::new(0.3, 0.0, 0.0);
+    let run = |adaptive: bool| {
+        let mut cfg = DetectorConfig { mode: DetectorMode::Fast, ..Default::default() };
+        if !adaptive {
+            cfg.fast.extract_gate_min_m = cfg.fast.extract_gate_m;
+        }
+        let mut d = Detector::new(&cfg).unwrap();
+        let mut inside_at = None;
+        for i in 0..8000 {
+            let t = i as f64 * 1e-3;
+            let axis = cone_axis(0.2 + 0.1 * (1.3 * t).sin(), 1.7 * t);
+            // From 7 s on, the line passes 4 mm beside the fulcrum (the instrument has left).
+            let offset = if t >= 7.0 { axis.cross(&Vector3::x()).normalize() * 0.004 } else { Vector3::zeros() };
+            let e = d.step(&line_through(&(f + offset), &axis, 0.2));
+            if t < 7.0 && e.state.is_inside() && inside_at.is_none() {
+                inside_at = Some(t);
+            }
+            if t >= 7.0 && !e.state.is_inside() {
+                return (inside_at, Some(t - 7.0));
+            }
+        }
+        (inside_at, None)
+    };
+    let (inside, out) = run(true);
+    assert!(inside.is_some(), "the trocar was not detected");
+    let out = out.expect("the adaptive gate did not see the 4 mm departure");
+    assert!(out < 0.05, "extraction took {out} s");
+    let (_, fixed) = run(false);
+    assert!(fixed.is_none(), "the fixed 8 mm gate should not see a 4 mm departure");
+}
+
+/// Exponential forgetting: scaling every line's weight changes no solution; new lines then
+/// dominate old ones.
+#[test]
+fn forgetting_sums_keep_the_solution_and_let_new_lines_dominate() {
+    let a = Vector3::new(0.3, 0.0, 0.0);
+    let b = Vector3::new(0.3, 0.01, 0.0);
+    let mut sums = NormalSums::new();
+    for k in 0..10 {
+        sums.add(&line_through(&a, &cone_axis(0.1 + 0.02 * k as f64, 0.9 * k as f64), 0.2));
+    }
+    let before = sums.solve(1e-9).unwrap();
+    sums.decay(0.5);
+    let after = sums.solve(1e-9).unwrap();
+    assert!((before.fulcrum_base_m - after.fulcrum_base_m).norm() < 1e-12);
+    assert!((after.weight - 5.0).abs() < 1e-12, "{}", after.weight);
+    for k in 0..400 {
+        sums.decay(0.99);
+        sums.add(&line_through(&b, &cone_axis(0.1 + 0.001 * k as f64, 0.05 * k as f64), 0.2));
+    }
+    let f = sums.solve(1e-9).unwrap().fulcrum_base_m;
+    assert!((f - b).norm() < 1e-4, "forgotten lines still pull the point: {} mm off", (f - b).norm() * 1e3);
+}

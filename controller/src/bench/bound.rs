@@ -108,7 +108,13 @@ pub fn bounds(trace: &Trace) -> Vec<CycleBound> {
             }
             None => (None, 0.0),
         };
-        out.push(CycleBound { insertion_sample: e.sample, insertion_s, extraction_s, envelope_m, floor_sq_m2: floor_sq });
+        out.push(CycleBound {
+            insertion_sample: e.sample,
+            insertion_s,
+            extraction_s,
+            envelope_m,
+            floor_sq_m2: floor_sq,
+        });
     }
     out
 }

@@ -272,15 +272,20 @@ pub fn analyse(trace: &Trace, run: &Run) -> Analysis {
             final_fulcrum_base_m: final_fulcrum,
         });
     }
-    let false_outside = score
-        .false_detection_samples
-        .iter()
-        .filter(|&&i| matches!(trace.truth_at(i).0, TruthState::Outside))
-        .count();
+    let false_outside =
+        score.false_detection_samples.iter().filter(|&&i| matches!(trace.truth_at(i).0, TruthState::Outside)).count();
     let false_extractions = (1..n)
         .filter(|&i| run.detected[i - 1].inside && !run.detected[i].inside)
         .filter(|&i| matches!(trace.truth_at(i).0, TruthState::Inside { .. }))
         .count();
     let distinct_ids = run.ids.iter().flatten().collect::<std::collections::BTreeSet<_>>().len();
-    Analysis { score, events, steady_errors_m: steady, all_errors_m: all, false_outside, distinct_ids, false_extractions }
+    Analysis {
+        score,
+        events,
+        steady_errors_m: steady,
+        all_errors_m: all,
+        false_outside,
+        distinct_ids,
+        false_extractions,
+    }
 }

@@ -127,10 +127,7 @@ pub fn subscriber_main() -> Result<(), String> {
     let mut gaps = 0;
     let mut measured = 0;
     while measured < count {
-        let r = sub
-            .wait(Duration::from_secs(2))
-            .map_err(|e| e.to_string())?
-            .ok_or("no sample within 2 s")?;
+        let r = sub.wait(Duration::from_secs(2)).map_err(|e| e.to_string())?.ok_or("no sample within 2 s")?;
         let now = monotonic_now_ns();
         if !matches!(r.event, Continuity::First | Continuity::InOrder) {
             gaps += 1;

@@ -136,7 +136,12 @@ pub fn timeline(t: &Timeline, path: &Path) -> Result<(), PlotError> {
                 .legend(move |(x, y)| PathElement::new([(x, y), (x + 12, y)], color.stroke_width(1)));
         }
     }
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(path, e))?;
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(path, e))?;
 
     let mut chart = ChartBuilder::on(&bottom)
         .caption("localisation error while both inside", ("sans-serif", 18))
@@ -157,7 +162,12 @@ pub fn timeline(t: &Timeline, path: &Path) -> Result<(), PlotError> {
                 .legend(move |(x, y)| Circle::new((x + 6, y), 3, color.filled()));
         }
     }
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(path, e))?;
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(path, e))?;
     root.present().map_err(|e| err(path, e))
 }
 
@@ -190,6 +200,11 @@ pub fn duration_histogram(
             .label(*label)
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 12, y)], color.stroke_width(2)));
     }
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(path, e))?;
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(path, e))?;
     root.present().map_err(|e| err(path, e))
 }

@@ -28,7 +28,10 @@ pub struct DetectionOptions {
 
 impl Default for DetectionOptions {
     fn default() -> Self {
-        Self { seeds: vec![101, 102, 103, 104], cycles_per_trace: 90, placements: PLACEMENTS.to_vec(),
+        Self {
+            seeds: vec![101, 102, 103, 104],
+            cycles_per_trace: 90,
+            placements: PLACEMENTS.to_vec(),
             timeline_s: 90.0,
             detector: Default::default(),
         }
@@ -104,10 +107,7 @@ fn timeline(trace: &Trace, sets: &[Setting], runs: &[Run], seconds: f64) -> Time
         .zip(runs)
         .map(|(s, r)| {
             let inside = idx.iter().map(|&i| u8::from(r.detected[i].inside)).collect();
-            let err = idx
-                .iter()
-                .map(|&i| Some((r.detected[i].fulcrum_base_m? - trace.pivots[i]?).norm()))
-                .collect();
+            let err = idx.iter().map(|&i| Some((r.detected[i].fulcrum_base_m? - trace.pivots[i]?).norm())).collect();
             (s.key, inside, err)
         })
         .collect();
@@ -131,7 +131,9 @@ pub fn run_detection(opts: &DetectionOptions, progress: &(dyn Fn() + Sync)) -> R
     let specs: Vec<TraceSpec> = opts
         .placements
         .iter()
-        .flat_map(|p| opts.seeds.iter().map(move |&seed| TraceSpec { seed, cycles: opts.cycles_per_trace, placement: *p }))
+        .flat_map(|p| {
+            opts.seeds.iter().map(move |&seed| TraceSpec { seed, cycles: opts.cycles_per_trace, placement: *p })
+        })
         .collect();
     let length = sim::twin::TwinConfig::default().scenario.instrument_length_m;
     let sets = settings(length, &opts.detector);
@@ -420,7 +422,13 @@ impl DetectionReport {
             format!("{:.1} per trace", h.distinct_ids as f64 / self.specs.len().max(1) as f64)
         });
         row(&mut s, "insertion delay mean / p50 / p95 / max (ms)", &|h| {
-            format!("{} / {} / {} / {}", ms(h.insertion.mean), ms(h.insertion.p50), ms(h.insertion.p95), ms(h.insertion.max))
+            format!(
+                "{} / {} / {} / {}",
+                ms(h.insertion.mean),
+                ms(h.insertion.p50),
+                ms(h.insertion.p95),
+                ms(h.insertion.max)
+            )
         });
         row(&mut s, "re-insertion delay mean / p95 (ms)", &|h| {
             format!("{} / {}", ms(h.reinsertion.mean), ms(h.reinsertion.p95))

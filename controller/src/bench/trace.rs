@@ -138,9 +138,11 @@ pub fn generate(spec: &TraceSpec) -> Result<Trace, TraceError> {
     let mut counter: u8 = 1;
     let mut t_us: u64 = 1_000_000;
     loop {
-        let answer = twin
-            .on_sync(counter, t_us)
-            .map_err(|source| TraceError::Twin { seed: spec.seed, placement: spec.placement.name, source })?;
+        let answer = twin.on_sync(counter, t_us).map_err(|source| TraceError::Twin {
+            seed: spec.seed,
+            placement: spec.placement.name,
+            source,
+        })?;
         let Some(frames) = answer else { break };
         acq.start_cycle();
         for f in frames.iter() {
@@ -158,7 +160,12 @@ pub fn generate(spec: &TraceSpec) -> Result<Trace, TraceError> {
         out.states.push(truth.state);
         out.pivots.push(truth.fulcrum_base_m);
         for e in twin.events() {
-            out.events.push(TrueEvent { t_s: e.t_s, sample: e.sample as usize, trocar: e.trocar, insertion: e.insertion });
+            out.events.push(TrueEvent {
+                t_s: e.t_s,
+                sample: e.sample as usize,
+                trocar: e.trocar,
+                insertion: e.insertion,
+            });
         }
         counter = if counter >= 240 { 1 } else { counter + 1 };
         t_us += 1000;

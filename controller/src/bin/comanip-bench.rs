@@ -91,7 +91,12 @@ struct AllArgs {
 fn machine() -> String {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|m| m.trim().to_owned()))
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_owned())
+        })
         .unwrap_or_else(|| "unknown CPU".into());
     let kernel = std::fs::read_to_string("/proc/sys/kernel/osrelease").unwrap_or_default();
     let nproc = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0);
@@ -107,8 +112,7 @@ fn detection(a: &DetectionArgs) -> Result<DetectionReport, String> {
         Some(p) => Config::load(p).map_err(|e| e.to_string())?.detector,
         None => Default::default(),
     };
-    let opts =
-        DetectionOptions { seeds: a.seeds.clone(), cycles_per_trace: a.cycles, detector, ..Default::default() };
+    let opts = DetectionOptions { seeds: a.seeds.clone(), cycles_per_trace: a.cycles, detector, ..Default::default() };
     let traces = (opts.seeds.len() * opts.placements.len()) as u64;
     let bar = if std::io::stderr().is_terminal() {
         let b = indicatif::ProgressBar::new(traces);
@@ -201,7 +205,8 @@ fn all(a: &AllArgs) -> Result<(), String> {
     plots::duration_histogram("detector step time", "ns", &steps, 3000.0, &fig("step_time.svg"))
         .map_err(|e| e.to_string())?;
     if let Some(h) = &lp.timing_histograms {
-        let conv = |hist: &controller::timing::Histogram| hist.buckets().map(|(us, c)| (us as f64, u64::from(c))).collect();
+        let conv =
+            |hist: &controller::timing::Histogram| hist.buckets().map(|(us, c)| (us as f64, u64::from(c))).collect();
         plots::duration_histogram(
             "daemon loop timing (in-process simulated robot)",
             "µs",
@@ -212,8 +217,14 @@ fn all(a: &AllArgs) -> Result<(), String> {
         .map_err(|e| e.to_string())?;
     }
     let ipc_buckets: Vec<(f64, u64)> = ipc.buckets.iter().map(|(us, c)| (*us as f64, u64::from(*c))).collect();
-    plots::duration_histogram("iceoryx2 publish → receive latency", "µs", &[("blocking wait", ipc_buckets)], 500.0, &fig("ipc_latency.svg"))
-        .map_err(|e| e.to_string())?;
+    plots::duration_histogram(
+        "iceoryx2 publish → receive latency",
+        "µs",
+        &[("blocking wait", ipc_buckets)],
+        500.0,
+        &fig("ipc_latency.svg"),
+    )
+    .map_err(|e| e.to_string())?;
 
     let mut md = String::new();
     let _ = writeln!(md, "# Benchmarks\n");

@@ -24,6 +24,8 @@ pub struct DetectionOptions {
     pub timeline_s: f64,
     /// Detector parameters (paper and fast tables; see [`settings`]).
     pub detector: estimator::trocar::DetectorConfig,
+    /// Simulate the arm's calibration error (true by default).
+    pub model_error: bool,
 }
 
 impl Default for DetectionOptions {
@@ -34,6 +36,7 @@ impl Default for DetectionOptions {
             placements: PLACEMENTS.to_vec(),
             timeline_s: 90.0,
             detector: Default::default(),
+            model_error: true,
         }
     }
 }
@@ -132,7 +135,7 @@ pub fn run_detection(opts: &DetectionOptions, progress: &(dyn Fn() + Sync)) -> R
         .placements
         .iter()
         .flat_map(|p| {
-            opts.seeds.iter().map(move |&seed| TraceSpec { seed, cycles: opts.cycles_per_trace, placement: *p })
+            opts.seeds.iter().map(move |&seed| TraceSpec { seed, cycles: opts.cycles_per_trace, placement: *p, model_error: opts.model_error })
         })
         .collect();
     let length = sim::twin::TwinConfig::default().scenario.instrument_length_m;

@@ -55,13 +55,16 @@ impl Placement {
 /// What one trace is made of.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TraceSpec {
-    /// Scenario seed (also seeds the arm's calibration error... no: that is fixed; see
-    /// [`sim::twin::ModelErrorConfig`]).
+    /// Scenario seed (the arm's calibration error is the twin's default, the same robot in
+    /// every trace; see [`sim::twin::ModelErrorConfig`]).
     pub seed: u64,
     /// Insert/extract cycles.
     pub cycles: usize,
     /// Trocar placement.
     pub placement: Placement,
+    /// The true arm differs from the nominal one by the twin's default calibration error
+    /// (false: a perfectly calibrated arm, to separate the estimator's own error).
+    pub model_error: bool,
 }
 
 /// One decoded session with its ground truth. Implements [`GroundTruth`].
@@ -107,14 +110,17 @@ pub enum TraceError {
 }
 
 /// The twin configuration of a trace: the twin's defaults (1 mm trocar compliance, ±0.5 mm /
-/// ±1 mrad calibration error, 2^17-count encoders, fault-free nodes) with `spec`'s seed,
-/// cycles and trocars.
+/// ±1 mrad calibration error unless `spec.model_error` is false, 2^17-count encoders,
+/// fault-free nodes) with `spec`'s seed, cycles and trocars.
 pub fn twin_config(spec: &TraceSpec) -> TwinConfig {
     let mut cfg = TwinConfig::default();
     cfg.scenario.seed = spec.seed;
     cfg.scenario.cycles = spec.cycles;
     cfg.scenario.trocars_base_m = spec.placement.trocars_base_m();
     cfg.nodes_seed = spec.seed;
+    if !spec.model_error {
+        cfg.model_error = sim::twin::ModelErrorConfig::zero();
+    }
     cfg
 }
 

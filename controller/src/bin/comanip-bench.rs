@@ -56,6 +56,10 @@ struct DetectionArgs {
     /// benchmark uses; default: the built-in defaults (= configs/fulcrumd.toml).
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Simulate a perfectly calibrated arm (separates the estimator's own localisation error
+    /// from the arm's calibration error).
+    #[arg(long)]
+    no_model_error: bool,
 }
 
 #[derive(clap::Args)]
@@ -112,7 +116,13 @@ fn detection(a: &DetectionArgs) -> Result<DetectionReport, String> {
         Some(p) => Config::load(p).map_err(|e| e.to_string())?.detector,
         None => Default::default(),
     };
-    let opts = DetectionOptions { seeds: a.seeds.clone(), cycles_per_trace: a.cycles, detector, ..Default::default() };
+    let opts = DetectionOptions {
+        seeds: a.seeds.clone(),
+        cycles_per_trace: a.cycles,
+        detector,
+        model_error: !a.no_model_error,
+        ..Default::default()
+    };
     let traces = (opts.seeds.len() * opts.placements.len()) as u64;
     let bar = if std::io::stderr().is_terminal() {
         let b = indicatif::ProgressBar::new(traces);

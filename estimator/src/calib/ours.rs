@@ -21,9 +21,13 @@ use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix6, Rotation3, SMatrix, Transla
 
 use super::KinematicNoise;
 use super::kinematics::skew;
-use super::paper::{PaperError, kronecker_rotation, linear_translation};
+use super::paper::{PaperError, kronecker_rotation, linear_translation, refine_quaternion, wxyz};
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::{Observation, Setup};
+
+/// Two refined candidates whose rotations differ by more than this (radians, 10°) are
+/// different solutions for the ambiguity check.
+pub const DISTINCT_SOLUTION_RAD: f64 = 0.1745;
 
 /// 2×6 Jacobian of one observation's residual pair w.r.t. `(t, δφ)`.
 pub type Jac6 = SMatrix<f64, 2, 6>;
@@ -43,7 +47,8 @@ pub struct OursConfig {
     /// Refuse the result when the mirrored (≈180°) solution's cost is less than this
     /// factor above the best one (the two cannot be told apart).
     pub min_ambiguity_ratio: f64,
-    /// Start from this rotation `[w, x, y, z]` instead of the linear one (robustness sweep).
+    /// An extra starting rotation `[w, x, y, z]` (robustness sweep); the linear start and
+    /// both mirrors are always tried as well, and the lowest robust cost wins.
     pub initial_quaternion: Option<[f64; 4]>,
 }
 
@@ -276,19 +281,13 @@ fn robust_scale(norms: &[f64]) -> f64 {
     (median(&mut v) / CHI2_MEDIAN).max(1e-12)
 }
 
-fn refine(set: &PreparedSet, cfg: &OursConfig, r0: Matrix3<f64>, t0: Vector3<f64>) -> Refined {
+/// Robust Levenberg-Marquardt from `(r0, t0)` with fixed whitening matrices.
+fn refine(set: &PreparedSet, cfg: &OursConfig, whiten: Vec<Matrix2<f64>>, r0: Matrix3<f64>, t0: Vector3<f64>) -> Refined {
     let mut r = r0;
     let mut t = t0;
-    let passes = if cfg.noise.is_some() { 2 } else { 1 };
-    let mut whiten = vec![Matrix2::identity(); set.obs.len()];
     let mut iterations = 0;
     let mut scale = 1.0;
-    for _ in 0..passes {
-        if let Some(noise) = &cfg.noise {
-            for (w, o) in whiten.iter_mut().zip(&set.obs) {
-                *w = whitener(&residual_covariance(set, o, &r, &t, noise));
-            }
-        }
+    {
         let mut lambda = 1e-4;
         for _ in 0..cfg.max_iterations {
             iterations += 1;
@@ -341,6 +340,14 @@ fn refine(set: &PreparedSet, cfg: &OursConfig, r0: Matrix3<f64>, t0: Vector3<f64
         }
     }
     Refined { r, t, whiten, scale, iterations }
+}
+
+/// Whitening matrices `Σ_i^{-1/2}` at `(r, t)` (identity without a noise model).
+fn whitening(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<Matrix2<f64>> {
+    match &cfg.noise {
+        Some(noise) => set.obs.iter().map(|o| whitener(&residual_covariance(set, o, r, t, noise))).collect(),
+        None => vec![Matrix2::identity(); set.obs.len()],
+    }
 }
 
 fn orthonormalize(r: &Matrix3<f64>) -> Matrix3<f64> {
@@ -428,49 +435,82 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         PaperError::ViewsCollinear { ratio } => OursError::ViewsCollinear { ratio },
         _ => OursError::Singular,
     })?;
-    let r0 = match cfg.initial_quaternion {
-        Some(q) => {
-            let q = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
-            if !(q.norm() > 0.0 && q.coords.iter().all(|v| v.is_finite())) {
-                return Err(OursError::RotationUnobservable { detail: "initial quaternion is zero or not finite" });
-            }
-            UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner()
+    // The linear start: Kronecker rotation (Eq. 8-9) polished by Eq. 10 (cheap, 4 parameters);
+    // per-orientation directions when Eq. 8 is rank-deficient.
+    let linear = match kronecker_rotation(set) {
+        Ok(r) => {
+            let (q, _, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_rotation_matrix(&r)));
+            Some(q.to_rotation_matrix().into_inner())
         }
-        None => match kronecker_rotation(set) {
-            Ok(r) => r.into_inner(),
-            Err(_) => grouped_rotation(set, &t0).ok_or(OursError::RotationUnobservable {
-                detail: "no two tool orientations each seen from two views",
-            })?,
-        },
+        Err(_) => grouped_rotation(set, &t0),
     };
-    // The mirrored candidate: 180° about the mean line of sight to robot 2's RCM.
+    let mut starts: Vec<Matrix3<f64>> = Vec::with_capacity(2);
+    if let Some(q) = cfg.initial_quaternion {
+        let q = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
+        if !(q.norm() > 0.0 && q.coords.iter().all(|v| v.is_finite())) {
+            return Err(OursError::RotationUnobservable { detail: "initial quaternion is zero or not finite" });
+        }
+        starts.push(UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner());
+    }
+    match linear {
+        Some(r) => starts.push(r),
+        None if starts.is_empty() => {
+            return Err(OursError::RotationUnobservable { detail: "no two tool orientations each seen from two views" });
+        }
+        None => {}
+    }
+    // Each start and its mirror: 180° about the mean line of sight to robot 2's RCM.
     let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / set.obs.len() as f64;
     let sight = (t0 - mean_c).try_normalize(1e-12).unwrap_or_else(Vector3::z);
     let flip = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(sight), core::f64::consts::PI).into_inner();
-    let a = refine(set, cfg, r0, t0);
-    let b = refine(set, cfg, flip * r0, t0);
+    // Whitening is held fixed while candidates are refined and compared (the same weights
+    // for all: a weight that follows the estimate would favour poses that inflate their own
+    // predicted noise); it is refreshed once at the winner for a final pass.
+    let w0 = whitening(set, cfg, starts.last().unwrap_or(&Matrix3::identity()), &t0);
+    let candidates: Vec<Refined> = starts
+        .iter()
+        .flat_map(|r0| [*r0, flip * r0])
+        .map(|r0| {
+            let first = refine(set, cfg, w0.clone(), r0, t0);
+            if cfg.noise.is_none() {
+                return first;
+            }
+            // Second pass with the whitening refreshed at this candidate's solution.
+            let w1 = whitening(set, cfg, &first.r, &first.t);
+            let second = refine(set, cfg, w1, first.r, first.t);
+            Refined { whiten: w0.clone(), ..second }
+        })
+        .collect();
     // A candidate that ran away (moved more than twice as far as robot 2's RCM is from
     // robot 1's, per the linear estimate) failed.
     let sane = |x: &Refined| (x.t - t0).norm() <= 2.0 * t0.norm().max(1e-3) && x.t.iter().all(|v| v.is_finite());
-    if !sane(&a) && !sane(&b) {
+    let s_ref = candidates.iter().filter(|x| sane(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
+    if !s_ref.is_finite() {
         return Err(OursError::NoConvergence);
     }
-    let s_ref = [&a, &b].iter().filter(|x| sane(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
     let c_ref = cfg.huber_k * s_ref;
-    let cost = |x: &Refined| -> f64 {
-        if !sane(x) {
-            return f64::INFINITY;
-        }
-        whitened_norms(set, &x.whiten, &x.r, &x.t).iter().map(|n| huber(*n, c_ref)).sum()
+    let costs: Vec<f64> = candidates
+        .iter()
+        .map(|x| if sane(x) { whitened_norms(set, &x.whiten, &x.r, &x.t).iter().map(|n| huber(*n, c_ref)).sum() } else { f64::INFINITY })
+        .collect();
+    let ib = (0..candidates.len()).min_by(|a, b| costs[*a].total_cmp(&costs[*b])).unwrap_or(0);
+    let best = &candidates[ib];
+    let c_best = costs[ib];
+    // The ambiguity: the best candidate that is a different solution, i.e. more than
+    // [`DISTINCT_SOLUTION_RAD`] away in rotation (not the same minimum reached from another
+    // start, which differs only by the convergence tolerance).
+    let distinct = |x: &Refined| Rotation3::from_matrix_unchecked(best.r.transpose() * x.r).angle() > DISTINCT_SOLUTION_RAD;
+    let alt_idx = (0..candidates.len()).filter(|i| *i != ib && distinct(&candidates[*i])).min_by(|a, b| costs[*a].total_cmp(&costs[*b]));
+    let (alt, c_alt) = match alt_idx {
+        Some(i) => (&candidates[i], costs[i]),
+        None => (best, f64::INFINITY),
     };
-    let (ca, cb) = (cost(&a), cost(&b));
-    let (best, alt, c_best, c_alt) = if ca <= cb { (a, b, ca, cb) } else { (b, a, cb, ca) };
     let ratio = if c_best > 0.0 { c_alt / c_best } else if c_alt > 0.0 { f64::INFINITY } else { 1.0 };
-    // The same rotation reached from both starts is no ambiguity.
-    let same = (best.r.transpose() * alt.r).trace() > 3.0 - 1e-9 && (best.t - alt.t).norm() < 1e-9;
-    if !same && ratio < cfg.min_ambiguity_ratio {
+    if ratio < cfg.min_ambiguity_ratio {
         return Err(OursError::Ambiguous { ratio, min: cfg.min_ambiguity_ratio });
     }
+    // The winner's own whitening for its covariance.
+    let best = &Refined { whiten: whitening(set, cfg, &best.r, &best.t), ..*best };
     // Covariance σ̂² (JᵀWJ)⁻¹ at the solution.
     let c = cfg.huber_k * best.scale;
     let mut h = Matrix6::zeros();
@@ -505,6 +545,6 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         scale: best.scale,
         alternative: Isometry3::from_parts(Translation3::from(alt.t), UnitQuaternion::from_matrix(&alt.r)),
         ambiguity_ratio: ratio,
-        iterations: best.iterations + alt.iterations,
+        iterations: candidates.iter().map(|c| c.iterations).sum(),
     })
 }

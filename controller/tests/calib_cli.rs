@@ -17,7 +17,14 @@ fn run_ok(cmd: &mut Command) -> String {
 }
 
 fn generate(dir: &Path, sigma: &str) {
-    run_ok(bin().args(["generate", "--n-e", "2", "--n-t", "2", "--sigma", sigma, "--seed", "4"]).arg("--dataset").arg(dir.join("d.json")).arg("--truth").arg(dir.join("t.json")));
+    run_ok(
+        bin()
+            .args(["generate", "--n-e", "2", "--n-t", "2", "--sigma", sigma, "--seed", "4"])
+            .arg("--dataset")
+            .arg(dir.join("d.json"))
+            .arg("--truth")
+            .arg(dir.join("t.json")),
+    );
 }
 
 #[test]
@@ -27,7 +34,16 @@ fn generate_then_calibrate_recovers_the_truth() {
     let d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
     let t = parse_truth(&std::fs::read_to_string(dir.path().join("t.json")).unwrap()).unwrap();
     assert_eq!(d.observations.len() + t.dropped, t.generated);
-    let stdout = run_ok(bin().arg("calibrate").arg("--dataset").arg(dir.path().join("d.json")).arg("--truth").arg(dir.path().join("t.json")).arg("--out").arg(dir.path().join("r.json")));
+    let stdout = run_ok(
+        bin()
+            .arg("calibrate")
+            .arg("--dataset")
+            .arg(dir.path().join("d.json"))
+            .arg("--truth")
+            .arg(dir.path().join("t.json"))
+            .arg("--out")
+            .arg(dir.path().join("r.json")),
+    );
     assert!(stdout.contains("paper: e_t") && stdout.contains("ours: e_t"), "{stdout}");
     let r = parse_result(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
     assert_eq!(r.results.len(), 2);
@@ -52,7 +68,18 @@ fn calibrate_with_opencv_intrinsics_and_one_pipeline() {
         k.width, k.height, k.fx, k.cx, k.fy, k.cy
     );
     std::fs::write(dir.path().join("cam.yaml"), yaml).unwrap();
-    run_ok(bin().arg("calibrate").arg("--pipeline").arg("ours").arg("--dataset").arg(dir.path().join("d.json")).arg("--intrinsics").arg(dir.path().join("cam.yaml")).arg("--out").arg(dir.path().join("r.json")));
+    run_ok(
+        bin()
+            .arg("calibrate")
+            .arg("--pipeline")
+            .arg("ours")
+            .arg("--dataset")
+            .arg(dir.path().join("d.json"))
+            .arg("--intrinsics")
+            .arg(dir.path().join("cam.yaml"))
+            .arg("--out")
+            .arg(dir.path().join("r.json")),
+    );
     let r = parse_result(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
     assert_eq!(r.results.len(), 1);
     assert_eq!(r.results[0].pipeline, "ours");
@@ -66,19 +93,49 @@ fn malformed_inputs_fail_with_a_named_field() {
     let mut d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
     d.observations[2].line_px[1] = d.observations[2].line_px[0];
     std::fs::write(dir.path().join("bad.json"), to_json(&d)).unwrap();
-    let out = bin().arg("calibrate").arg("--dataset").arg(dir.path().join("bad.json")).arg("--out").arg(dir.path().join("r.json")).output().unwrap();
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(dir.path().join("bad.json"))
+        .arg("--out")
+        .arg(dir.path().join("r.json"))
+        .output()
+        .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("observations[2].line_px") && err.contains("coincide"), "{err}");
-    // Degenerate: keep a single endoscope pose.
+    // Degenerate: keep a single endoscope pose (of the unmodified dataset).
+    let mut d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
     let first = d.observations[0].ecm_joints;
     d.observations.retain(|o| o.ecm_joints == first);
     std::fs::write(dir.path().join("one_view.json"), to_json(&d)).unwrap();
-    let out = bin().arg("calibrate").arg("--dataset").arg(dir.path().join("one_view.json")).arg("--out").arg(dir.path().join("r.json")).output().unwrap();
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(dir.path().join("one_view.json"))
+        .arg("--out")
+        .arg(dir.path().join("r.json"))
+        .output()
+        .unwrap();
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("fewer than two views"), "{}", String::from_utf8_lossy(&out.stderr));
-    std::fs::write(dir.path().join("trunc.json"), "{\n  \"format\": \"comanip-calib-dataset\",\n  \"version\": 1,\n  \"intrinsics\": 3\n}").unwrap();
-    let out = bin().arg("calibrate").arg("--dataset").arg(dir.path().join("trunc.json")).arg("--out").arg(dir.path().join("r.json")).output().unwrap();
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("fewer than two views"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    std::fs::write(
+        dir.path().join("trunc.json"),
+        "{\n  \"format\": \"comanip-calib-dataset\",\n  \"version\": 1,\n  \"intrinsics\": 3\n}",
+    )
+    .unwrap();
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(dir.path().join("trunc.json"))
+        .arg("--out")
+        .arg(dir.path().join("r.json"))
+        .output()
+        .unwrap();
     assert!(String::from_utf8_lossy(&out.stderr).contains("line 4"), "{}", String::from_utf8_lossy(&out.stderr));
 }
 

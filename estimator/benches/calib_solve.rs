@@ -15,12 +15,22 @@ use sim::calib::{CalibGeometry, CalibProtocol, NoiseUnits, generate_calibration}
 fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group("calib_solve_729");
     for units in [NoiseUnits::Millimetre, NoiseUnits::Metre] {
-        let d = generate_calibration(&CalibProtocol { geometry: CalibGeometry::default(), n_e: 3, n_t: 4, sigma: 0.01, units, pixel_sigma_px: 0.0, seed: 7 })
-            .expect("protocol");
+        let d = generate_calibration(&CalibProtocol {
+            geometry: CalibGeometry::default(),
+            n_e: 3,
+            n_t: 4,
+            sigma: 0.01,
+            units,
+            pixel_sigma_px: 0.0,
+            seed: 7,
+        })
+        .expect("protocol");
         let obs = &d.observations[..729.min(d.observations.len())];
         assert_eq!(obs.len(), 729, "the scene keeps at least 729 observations");
         let name = units.name();
-        group.bench_function(format!("paper_{name}"), |b| b.iter(|| solve_paper(&d.setup, obs, &PaperConfig::default()).expect("paper")));
+        group.bench_function(format!("paper_{name}"), |b| {
+            b.iter(|| solve_paper(&d.setup, obs, &PaperConfig::default()).expect("paper"))
+        });
         let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
         group.bench_function(format!("ours_{name}"), |b| b.iter(|| solve_ours(&d.setup, obs, &cfg).expect("ours")));
     }

@@ -3,11 +3,17 @@
 
 use estimator::calib::crb::cramer_rao_bound;
 use estimator::calib::kinematics::se3_exp;
-use estimator::calib::ours::{OursConfig, OursError, noise_jacobian, residual_and_jacobian, solve_ours, solve_ours_prepared};
-use estimator::calib::paper::{PaperConfig, PaperError, eq10_w, kronecker_row, project_to_so3, refine_quaternion, solve_paper, wxyz};
+use estimator::calib::ours::{
+    OursConfig, OursError, noise_jacobian, residual_and_jacobian, solve_ours, solve_ours_prepared,
+};
+use estimator::calib::paper::{
+    PaperConfig, PaperError, eq10_w, kronecker_row, project_to_so3, refine_quaternion, solve_paper, wxyz,
+};
 use estimator::calib::prepare::{PrepareError, Prepared, PreparedSet, prepare};
 use estimator::calib::{KinematicNoise, Observation, pose_errors};
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, SVector, Translation3, UnitQuaternion, Vector2, Vector3, Vector4};
+use nalgebra::{
+    Isometry3, Matrix3, Point3, Rotation3, SVector, Translation3, UnitQuaternion, Vector2, Vector3, Vector4,
+};
 use sim::calib::{CalibDataset, CalibGeometry, CalibProtocol, NoiseUnits, generate_calibration};
 
 fn protocol(n_e: usize, n_t: usize, sigma: f64, units: NoiseUnits, seed: u64) -> CalibProtocol {
@@ -43,7 +49,10 @@ fn one_view_of_robot_1_is_its_own_error() {
     p.geometry.ecm_roll_rad = [0.0; 2];
     let d = generate_calibration(&p).unwrap();
     let want = PrepareError::TooFewViews { views: 1 };
-    assert_eq!(solve_paper(&d.setup, &d.observations, &PaperConfig::default()).unwrap_err(), PaperError::Prepare(want.clone()));
+    assert_eq!(
+        solve_paper(&d.setup, &d.observations, &PaperConfig::default()).unwrap_err(),
+        PaperError::Prepare(want.clone())
+    );
     assert_eq!(solve_ours(&d.setup, &d.observations, &OursConfig::default()).unwrap_err(), OursError::Prepare(want));
 }
 
@@ -53,7 +62,10 @@ fn two_tool_orientations_are_their_own_error() {
     p.geometry.psm_pitch_rad = [0.0; 2]; // yaw only: two orientations
     let d = generate_calibration(&p).unwrap();
     let want = PrepareError::TooFewToolOrientations { orientations: 2 };
-    assert_eq!(solve_paper(&d.setup, &d.observations, &PaperConfig::default()).unwrap_err(), PaperError::Prepare(want.clone()));
+    assert_eq!(
+        solve_paper(&d.setup, &d.observations, &PaperConfig::default()).unwrap_err(),
+        PaperError::Prepare(want.clone())
+    );
     assert_eq!(solve_ours(&d.setup, &d.observations, &OursConfig::default()).unwrap_err(), OursError::Prepare(want));
 }
 
@@ -61,23 +73,47 @@ fn two_tool_orientations_are_their_own_error() {
 fn views_collinear_with_robot_2s_rcm_are_their_own_error() {
     // Robot 2's RCM on robot 1's shaft axis; the endoscope only inserts (no yaw, pitch,
     // roll; centred camera): every optical centre lies on the line to robot 2's RCM.
-    let mut g = CalibGeometry::default();
-    g.hand_eye = Isometry3::identity();
+    let mut g = CalibGeometry { hand_eye: Isometry3::identity(), ..Default::default() };
     let t = Vector3::new(0.0, 0.0, 0.25);
     let aim = (Vector3::new(0.04, 0.01, 0.16) - t).normalize();
-    g.truth = Isometry3::from_parts(Translation3::from(t), UnitQuaternion::rotation_between(&Vector3::z(), &aim).unwrap());
+    g.truth =
+        Isometry3::from_parts(Translation3::from(t), UnitQuaternion::rotation_between(&Vector3::z(), &aim).unwrap());
     g.ecm_yaw_rad = [0.0; 2];
     g.ecm_pitch_rad = [0.0; 2];
     g.ecm_roll_rad = [0.0; 2];
     g.psm_insertion_m = 0.07;
-    let d = generate_calibration(&CalibProtocol { geometry: g, n_e: 3, n_t: 3, sigma: 0.0, units: NoiseUnits::Millimetre, pixel_sigma_px: 0.0, seed: 0 }).unwrap();
+    let d = generate_calibration(&CalibProtocol {
+        geometry: g,
+        n_e: 3,
+        n_t: 3,
+        sigma: 0.0,
+        units: NoiseUnits::Millimetre,
+        pixel_sigma_px: 0.0,
+        seed: 0,
+    })
+    .unwrap();
     assert!(d.observations.len() >= 9, "kept {}", d.observations.len());
-    assert!(matches!(solve_paper(&d.setup, &d.observations, &PaperConfig::default()), Err(PaperError::ViewsCollinear { .. })));
-    assert!(matches!(solve_ours(&d.setup, &d.observations, &OursConfig::default()), Err(OursError::ViewsCollinear { .. })));
+    assert!(matches!(
+        solve_paper(&d.setup, &d.observations, &PaperConfig::default()),
+        Err(PaperError::ViewsCollinear { .. })
+    ));
+    assert!(matches!(
+        solve_ours(&d.setup, &d.observations, &OursConfig::default()),
+        Err(OursError::ViewsCollinear { .. })
+    ));
     // The same scene with sideways endoscope motion is fine.
     let mut g2 = g;
     g2.ecm_yaw_rad = [-0.1, 0.1];
-    let d2 = generate_calibration(&CalibProtocol { geometry: g2, n_e: 3, n_t: 3, sigma: 0.0, units: NoiseUnits::Millimetre, pixel_sigma_px: 0.0, seed: 0 }).unwrap();
+    let d2 = generate_calibration(&CalibProtocol {
+        geometry: g2,
+        n_e: 3,
+        n_t: 3,
+        sigma: 0.0,
+        units: NoiseUnits::Millimetre,
+        pixel_sigma_px: 0.0,
+        seed: 0,
+    })
+    .unwrap();
     let e = pose_errors(&solve_paper(&d2.setup, &d2.observations, &PaperConfig::default()).unwrap().pose, &d2.truth);
     assert!(e.translation_m < 1e-9, "{e:?}");
 }
@@ -95,7 +131,10 @@ fn bad_input_gets_typed_errors() {
     let mut setup = d.setup;
     setup.intrinsics.fx = -1.0;
     assert!(matches!(prepare(&setup, &d.observations), Err(PrepareError::Intrinsics(_))));
-    let bad_noise = OursConfig { noise: Some(KinematicNoise { rot_rad: -1.0, trans_m: 0.0, pixel_px: 0.0 }), ..OursConfig::default() };
+    let bad_noise = OursConfig {
+        noise: Some(KinematicNoise { rot_rad: -1.0, trans_m: 0.0, pixel_px: 0.0 }),
+        ..OursConfig::default()
+    };
     assert_eq!(solve_ours(&d.setup, &d.observations, &bad_noise).unwrap_err(), OursError::NoiseModel);
 }
 
@@ -129,7 +168,11 @@ fn quaternion_form_of_eq10_and_its_refinement() {
     let set = prepare(&d.setup, &d.observations).unwrap();
     let start = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 25f64.to_radians()) * d.truth.rotation;
     let (q, cost, it) = refine_quaternion(&set, &(wxyz(&start) * 3.0));
-    assert!(q.angle_to(&d.truth.rotation) < 1e-9 && cost < 1e-20 && it > 1, "{} {cost} {it}", q.angle_to(&d.truth.rotation));
+    assert!(
+        q.angle_to(&d.truth.rotation) < 1e-9 && cost < 1e-20 && it > 1,
+        "{} {cost} {it}",
+        q.angle_to(&d.truth.rotation)
+    );
     // A zero start is replaced by the identity instead of producing NaN.
     let (q0, c0, _) = refine_quaternion(&set, &Vector4::zeros());
     assert!(q0.coords.iter().all(|x| x.is_finite()) && c0.is_finite());
@@ -148,7 +191,11 @@ fn the_mirrored_solution_is_detected_and_resolved() {
     let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / set.obs.len() as f64;
     let axis = nalgebra::Unit::new_normalize(d.truth.translation.vector - mean_c);
     let mirror = UnitQuaternion::from_axis_angle(&axis, std::f64::consts::PI) * d.truth.rotation;
-    let from_mirror = solve_ours_prepared(&set, &OursConfig { noise: d.noise, initial_quaternion: Some(wxyz(&mirror).into()), ..OursConfig::default() }).unwrap();
+    let from_mirror = solve_ours_prepared(
+        &set,
+        &OursConfig { noise: d.noise, initial_quaternion: Some(wxyz(&mirror).into()), ..OursConfig::default() },
+    )
+    .unwrap();
     let gap = from_mirror.pose.rotation.angle_to(&good.pose.rotation);
     assert!(gap < 1e-5, "{gap}");
     // Eq. 10 alone, started on the mirror, stays near it (a local minimum).
@@ -166,17 +213,34 @@ fn outlier_lines_are_down_weighted() {
         o.line_px = [[50.0 + k as f64 % 200.0, 400.0], [600.0, 30.0 + (k * 7) as f64 % 300.0]];
     }
     let p = solve_paper(&d.setup, &obs, &PaperConfig::default()).unwrap();
-    let o = solve_ours(&d.setup, &obs, &OursConfig { noise: Some(KinematicNoise { rot_rad: 0.0, trans_m: 0.0, pixel_px: 0.5 }), ..OursConfig::default() }).unwrap();
+    let o = solve_ours(
+        &d.setup,
+        &obs,
+        &OursConfig {
+            noise: Some(KinematicNoise { rot_rad: 0.0, trans_m: 0.0, pixel_px: 0.5 }),
+            ..OursConfig::default()
+        },
+    )
+    .unwrap();
     let (ep, eo) = (pose_errors(&p.pose, &d.truth), pose_errors(&o.pose, &d.truth));
     assert!(eo.translation_m < 1e-6 && eo.rotation_rad < 1e-6, "ours {eo:?}");
     assert!(ep.translation_m > 100.0 * eo.translation_m, "paper {ep:?} vs ours {eo:?}");
-    assert!(o.residuals.inliers <= n - n / 10 && o.residuals.inliers >= n - n / 10 - 2, "{} of {n}", o.residuals.inliers);
+    assert!(
+        o.residuals.inliers <= n - n / 10 && o.residuals.inliers >= n - n / 10 - 2,
+        "{} of {n}",
+        o.residuals.inliers
+    );
 }
 
 /// The residual of `o` with frame perturbations `δ` applied, the slow way (for checking the
 /// analytic Jacobians).
 fn perturbed_residual(set: &PreparedSet, o: &Prepared, truth: &Isometry3<f64>, delta: &[f64; 18]) -> Vector2<f64> {
-    let e = |k: usize| se3_exp(&Vector3::new(delta[k], delta[k + 1], delta[k + 2]), &Vector3::new(delta[k + 3], delta[k + 4], delta[k + 5]));
+    let e = |k: usize| {
+        se3_exp(
+            &Vector3::new(delta[k], delta[k + 1], delta[k + 2]),
+            &Vector3::new(delta[k + 3], delta[k + 4], delta[k + 5]),
+        )
+    };
     let cam = o.ecm_tip * e(0) * set.hand_eye;
     let f2 = o.psm_f2 * e(6);
     let f3 = f2 * Isometry3::translation(0.0, 0.0, o.insertion_m) * e(12);
@@ -199,8 +263,13 @@ fn analytic_jacobians_match_finite_differences() {
             let (mut a, mut b) = ([0.0; 18], [0.0; 18]);
             a[k] = h;
             b[k] = -h;
-            let num = (perturbed_residual(&set, o, &d.truth, &a) - perturbed_residual(&set, o, &d.truth, &b)) / (2.0 * h);
-            assert!((num - g.column(k)).norm() < 1e-4 * (1.0 + num.norm()), "δ{k}: numeric {num} analytic {}", g.column(k));
+            let num =
+                (perturbed_residual(&set, o, &d.truth, &a) - perturbed_residual(&set, o, &d.truth, &b)) / (2.0 * h);
+            assert!(
+                (num - g.column(k)).norm() < 1e-4 * (1.0 + num.norm()),
+                "δ{k}: numeric {num} analytic {}",
+                g.column(k)
+            );
         }
         let (_, j) = residual_and_jacobian(&set, o, &r, &t);
         for k in 0..6 {

@@ -45,7 +45,9 @@ pub enum IntrinsicsFileError {
         message: String,
     },
     /// A required field is missing (named as in the file).
-    #[error("intrinsics YAML: missing field `{0}` (OpenCV: camera_matrix / image_width / image_height; ROS: camera_matrix or K, image_width or width, ...)")]
+    #[error(
+        "intrinsics YAML: missing field `{0}` (OpenCV: camera_matrix / image_width / image_height; ROS: camera_matrix or K, image_width or width, ...)"
+    )]
     Missing(&'static str),
     /// A field has the wrong type, size or value.
     #[error("intrinsics YAML: field `{field}`: {problem}")]
@@ -99,13 +101,7 @@ pub fn parse_intrinsics_yaml(text: &str) -> Result<CameraIntrinsics, IntrinsicsF
     // keeping line numbers (the directive line becomes a comment).
     let cleaned: String = text
         .lines()
-        .map(|l| {
-            if l.trim_start().starts_with("%YAML") {
-                "#".to_string()
-            } else {
-                l.replace("!!opencv-matrix", "")
-            }
-        })
+        .map(|l| if l.trim_start().starts_with("%YAML") { "#".to_string() } else { l.replace("!!opencv-matrix", "") })
         .collect::<Vec<_>>()
         .join("\n");
     let doc: serde_yaml_ng::Value = serde_yaml_ng::from_str(&cleaned).map_err(|e| {
@@ -113,15 +109,26 @@ pub fn parse_intrinsics_yaml(text: &str) -> Result<CameraIntrinsics, IntrinsicsF
         IntrinsicsFileError::Yaml { line, column, message: e.to_string() }
     })?;
     if !doc.is_mapping() {
-        return Err(IntrinsicsFileError::Yaml { line: 1, column: 1, message: "expected a mapping at the top level".into() });
+        return Err(IntrinsicsFileError::Yaml {
+            line: 1,
+            column: 1,
+            message: "expected a mapping at the top level".into(),
+        });
     }
-    let (kf, kv) = first(&doc, &["camera_matrix", "cameraMatrix", "K", "k"]).ok_or(IntrinsicsFileError::Missing("camera_matrix"))?;
+    let (kf, kv) = first(&doc, &["camera_matrix", "cameraMatrix", "K", "k"])
+        .ok_or(IntrinsicsFileError::Missing("camera_matrix"))?;
     let k = numbers(kf, kv)?;
     if k.len() != 9 {
-        return Err(IntrinsicsFileError::Field { field: kf, problem: format!("expected 9 numbers (3x3, row-major), got {}", k.len()) });
+        return Err(IntrinsicsFileError::Field {
+            field: kf,
+            problem: format!("expected 9 numbers (3x3, row-major), got {}", k.len()),
+        });
     }
     if k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
-        return Err(IntrinsicsFileError::Field { field: kf, problem: "not a camera matrix (last row must be 0 0 1, K[1][0] = 0)".into() });
+        return Err(IntrinsicsFileError::Field {
+            field: kf,
+            problem: "not a camera matrix (last row must be 0 0 1, K[1][0] = 0)".into(),
+        });
     }
     if !(k[0] > 0.0 && k[4] > 0.0) {
         return Err(IntrinsicsFileError::Field { field: kf, problem: "focal lengths must be positive".into() });
@@ -129,17 +136,31 @@ pub fn parse_intrinsics_yaml(text: &str) -> Result<CameraIntrinsics, IntrinsicsF
     if let Some((f, m)) = first(&doc, &["distortion_model"]) {
         match m.as_str() {
             Some("plumb_bob") | Some("rational_polynomial") | Some("") | None => {}
-            Some(other) => return Err(IntrinsicsFileError::Field { field: f, problem: format!("unsupported distortion model `{other}` (plumb_bob only)") }),
+            Some(other) => {
+                return Err(IntrinsicsFileError::Field {
+                    field: f,
+                    problem: format!("unsupported distortion model `{other}` (plumb_bob only)"),
+                });
+            }
         }
     }
     let mut distortion = [0.0; 5];
     if let Some((df, dv)) = first(&doc, &["distortion_coefficients", "dist_coeffs", "distCoeffs", "D", "d"]) {
         let d = numbers(df, dv)?;
         if d.len() > 5 && d[5..].iter().any(|x| *x != 0.0) {
-            return Err(IntrinsicsFileError::Field { field: df, problem: format!("{} coefficients with non-zero rational terms; only plumb-bob k1 k2 p1 p2 k3 is supported", d.len()) });
+            return Err(IntrinsicsFileError::Field {
+                field: df,
+                problem: format!(
+                    "{} coefficients with non-zero rational terms; only plumb-bob k1 k2 p1 p2 k3 is supported",
+                    d.len()
+                ),
+            });
         }
         if !d.is_empty() && d.len() < 4 {
-            return Err(IntrinsicsFileError::Field { field: df, problem: format!("expected 4 or 5 coefficients, got {}", d.len()) });
+            return Err(IntrinsicsFileError::Field {
+                field: df,
+                problem: format!("expected 4 or 5 coefficients, got {}", d.len()),
+            });
         }
         for (o, v) in distortion.iter_mut().zip(d.iter()) {
             *o = *v;
@@ -338,7 +359,11 @@ pub enum CalibFileError {
 }
 
 fn json<T: for<'de> Deserialize<'de>>(text: &str) -> Result<T, CalibFileError> {
-    serde_json::from_str(text).map_err(|e| CalibFileError::Json { line: e.line(), column: e.column(), message: e.to_string() })
+    serde_json::from_str(text).map_err(|e| CalibFileError::Json {
+        line: e.line(),
+        column: e.column(),
+        message: e.to_string(),
+    })
 }
 
 fn check_header(format: &str, version: u32, expected: &'static str) -> Result<(), CalibFileError> {
@@ -364,7 +389,10 @@ fn check_transform(name: &str, t: &TransformJson) -> Result<(), CalibFileError> 
     finite(|| format!("{name}.quaternion_wxyz"), &t.quaternion_wxyz)?;
     let n = t.quaternion_wxyz.iter().map(|x| x * x).sum::<f64>().sqrt();
     if (n - 1.0).abs() > 1e-6 {
-        return Err(CalibFileError::Field { field: format!("{name}.quaternion_wxyz"), problem: format!("not a unit quaternion (norm {n})") });
+        return Err(CalibFileError::Field {
+            field: format!("{name}.quaternion_wxyz"),
+            problem: format!("not a unit quaternion (norm {n})"),
+        });
     }
     Ok(())
 }
@@ -378,16 +406,25 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
     finite(|| "intrinsics".into(), &[k.fx, k.fy, k.cx, k.cy, k.skew])?;
     finite(|| "intrinsics.distortion".into(), &k.distortion)?;
     if !(k.fx > 0.0 && k.fy > 0.0) {
-        return Err(CalibFileError::Field { field: "intrinsics.fx/fy".into(), problem: "focal lengths must be positive".into() });
+        return Err(CalibFileError::Field {
+            field: "intrinsics.fx/fy".into(),
+            problem: "focal lengths must be positive".into(),
+        });
     }
     if k.width == 0 || k.height == 0 {
-        return Err(CalibFileError::Field { field: "intrinsics.width/height".into(), problem: "image size must be positive".into() });
+        return Err(CalibFileError::Field {
+            field: "intrinsics.width/height".into(),
+            problem: "image size must be positive".into(),
+        });
     }
     check_transform("hand_eye", &d.hand_eye)?;
     if let Some(n) = &d.noise_model {
         let v = [n.rot_rad, n.trans_m, n.pixel_px];
         if !v.iter().all(|x| x.is_finite() && *x >= 0.0) || v.iter().all(|x| *x == 0.0) {
-            return Err(CalibFileError::Field { field: "noise_model".into(), problem: "standard deviations must be finite, ≥ 0 and not all zero".into() });
+            return Err(CalibFileError::Field {
+                field: "noise_model".into(),
+                problem: "standard deviations must be finite, ≥ 0 and not all zero".into(),
+            });
         }
     }
     if d.observations.is_empty() {
@@ -399,7 +436,10 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
         let p = [o.line_px[0][0], o.line_px[0][1], o.line_px[1][0], o.line_px[1][1]];
         finite(|| format!("observations[{i}].line_px"), &p)?;
         if (p[0] - p[2]).hypot(p[1] - p[3]) < 1e-6 {
-            return Err(CalibFileError::Field { field: format!("observations[{i}].line_px"), problem: "the two line points coincide".into() });
+            return Err(CalibFileError::Field {
+                field: format!("observations[{i}].line_px"),
+                problem: "the two line points coincide".into(),
+            });
         }
     }
     Ok(d)
@@ -450,7 +490,10 @@ mod tests {
         let missing = ROS.replace("image_height: 480\n", "");
         assert_eq!(parse_intrinsics_yaml(&missing), Err(IntrinsicsFileError::Missing("image_height")));
         let fisheye = ROS.replace("plumb_bob", "equidistant");
-        assert!(matches!(parse_intrinsics_yaml(&fisheye), Err(IntrinsicsFileError::Field { field: "distortion_model", .. })));
+        assert!(matches!(
+            parse_intrinsics_yaml(&fisheye),
+            Err(IntrinsicsFileError::Field { field: "distortion_model", .. })
+        ));
         match parse_intrinsics_yaml("image_width: 640\ncamera_matrix: [1, 2\n") {
             Err(IntrinsicsFileError::Yaml { line, .. }) => assert!(line >= 2, "line {line}"),
             other => panic!("{other:?}"),
@@ -465,7 +508,11 @@ mod tests {
             intrinsics: parse_intrinsics_yaml(ROS).unwrap(),
             hand_eye: TransformJson { translation_m: [0.0, 0.0, 0.001], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] },
             noise_model: None,
-            observations: vec![ObservationJson { ecm_joints: [0.1, 0.0, 0.05, 0.0], psm_joints: [0.0, 0.1, 0.1], line_px: [[10.0, 20.0], [200.0, 220.0]] }],
+            observations: vec![ObservationJson {
+                ecm_joints: [0.1, 0.0, 0.05, 0.0],
+                psm_joints: [0.0, 0.1, 0.1],
+                line_px: [[10.0, 20.0], [200.0, 220.0]],
+            }],
         }
     }
 
@@ -480,7 +527,13 @@ mod tests {
         assert!(matches!(parse_dataset(&bad_format), Err(CalibFileError::Format { .. })));
         let mut same = d.clone();
         same.observations[0].line_px = [[5.0, 5.0], [5.0, 5.0]];
-        assert_eq!(parse_dataset(&to_json(&same)), Err(CalibFileError::Field { field: "observations[0].line_px".into(), problem: "the two line points coincide".into() }));
+        assert_eq!(
+            parse_dataset(&to_json(&same)),
+            Err(CalibFileError::Field {
+                field: "observations[0].line_px".into(),
+                problem: "the two line points coincide".into()
+            })
+        );
         // Wrong arity: serde names the field and the line.
         let short = text.replacen("\"ecm_joints\": [", "\"ecm_joints\": [9.0, ", 1);
         match parse_dataset(&short) {
@@ -491,9 +544,13 @@ mod tests {
         }
         let mut q = d.clone();
         q.hand_eye.quaternion_wxyz = [1.0, 1.0, 0.0, 0.0];
-        assert!(matches!(parse_dataset(&to_json(&q)), Err(CalibFileError::Field { field, .. }) if field == "hand_eye.quaternion_wxyz"));
+        assert!(
+            matches!(parse_dataset(&to_json(&q)), Err(CalibFileError::Field { field, .. }) if field == "hand_eye.quaternion_wxyz")
+        );
         let unknown = text.replacen("\"version\"", "\"colour\": 1, \"version\"", 1);
-        assert!(matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("colour")));
+        assert!(
+            matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("colour"))
+        );
         assert!(matches!(parse_dataset("{\"format\": "), Err(CalibFileError::Json { line: 1, .. })));
     }
 }

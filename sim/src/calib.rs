@@ -192,7 +192,8 @@ fn grid(range: [f64; 2], n: usize) -> Vec<f64> {
 
 /// The ECM poses of the grid (`n_e⁴`), `[yaw, pitch, insertion, roll]`.
 pub fn ecm_grid(g: &CalibGeometry, n_e: usize) -> Vec<[f64; 4]> {
-    let (a, b, c, d) = (grid(g.ecm_yaw_rad, n_e), grid(g.ecm_pitch_rad, n_e), grid(g.ecm_insertion_m, n_e), grid(g.ecm_roll_rad, n_e));
+    let (a, b, c, d) =
+        (grid(g.ecm_yaw_rad, n_e), grid(g.ecm_pitch_rad, n_e), grid(g.ecm_insertion_m, n_e), grid(g.ecm_roll_rad, n_e));
     let mut out = Vec::with_capacity(n_e.pow(4));
     for &q1 in &a {
         for &q2 in &b {
@@ -232,7 +233,13 @@ fn draw(rng: &mut ChaCha8Rng, sigma: f64, rho_m: f64) -> Isometry3<f64> {
 
 /// The observed line of the actual shaft (tip `tip_e`, unit direction `back_e` toward the
 /// RCM, both in `{e}`) seen by camera `cam` (`T_e_c`): end points in pixels, or `None`.
-pub fn observe_shaft(g: &CalibGeometry, cam: &Isometry3<f64>, tip_e: &Vector3<f64>, back_e: &Vector3<f64>, length_m: f64) -> Option<[Vector2<f64>; 2]> {
+pub fn observe_shaft(
+    g: &CalibGeometry,
+    cam: &Isometry3<f64>,
+    tip_e: &Vector3<f64>,
+    back_e: &Vector3<f64>,
+    length_m: f64,
+) -> Option<[Vector2<f64>; 2]> {
     let inv = cam.inverse();
     let k = &g.intrinsics;
     let see = |s: f64| -> Option<Vector2<f64>> {
@@ -277,7 +284,12 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
             let de = draw(&mut rng, p.sigma, rho);
             let da = draw(&mut rng, p.sigma, rho);
             let db = draw(&mut rng, p.sigma, rho);
-            let (n0, n1, n2, n3): (f64, f64, f64, f64) = (rng.sample(StandardNormal), rng.sample(StandardNormal), rng.sample(StandardNormal), rng.sample(StandardNormal));
+            let (n0, n1, n2, n3): (f64, f64, f64, f64) = (
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+            );
             let cam = f4 * de * g.hand_eye;
             let fr = psm_frames(qt);
             let f2 = fr[1] * da;

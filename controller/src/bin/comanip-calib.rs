@@ -113,7 +113,14 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             p.pixel_sigma_px = pixel_sigma;
             p.seed = seed;
             let g = generate(&p, &dataset, &truth)?;
-            println!("{} observations kept, {} of {} dropped (tool not in view); wrote {} and {}", g.kept, g.dropped, g.generated, dataset.display(), truth.display());
+            println!(
+                "{} observations kept, {} of {} dropped (tool not in view); wrote {} and {}",
+                g.kept,
+                g.dropped,
+                g.generated,
+                dataset.display(),
+                truth.display()
+            );
         }
         Command::Calibrate { dataset, intrinsics, truth, out, pipeline } => {
             let s = calibrate(&dataset, intrinsics.as_deref(), truth.as_deref(), &out, pipeline)?;

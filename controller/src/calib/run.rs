@@ -8,7 +8,8 @@ use estimator::calib::paper::{PaperConfig, PaperError, solve_paper_prepared};
 use estimator::calib::prepare::{PrepareError, prepare};
 use estimator::calib::{PoseErrors, pose_errors};
 use hw_io::calib_files::{
-    CALIB_FILE_VERSION, CalibFileError, IntrinsicsFileError, RESULT_FORMAT, ResultFile, TRUTH_FORMAT, TruthFile, parse_dataset, parse_intrinsics_yaml, parse_truth, to_json,
+    CALIB_FILE_VERSION, CalibFileError, IntrinsicsFileError, RESULT_FORMAT, ResultFile, TRUTH_FORMAT, TruthFile,
+    parse_dataset, parse_intrinsics_yaml, parse_truth, to_json,
 };
 use sim::calib::{CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, generate_calibration};
 
@@ -80,7 +81,15 @@ fn write(path: &Path, text: &str) -> Result<(), GenerateError> {
 
 /// The default protocol of `generate` (the paper's condition, millimetre reading).
 pub fn default_protocol() -> CalibProtocol {
-    CalibProtocol { geometry: CalibGeometry::default(), n_e: 3, n_t: 3, sigma: 0.01, units: NoiseUnits::Millimetre, pixel_sigma_px: 0.0, seed: 1 }
+    CalibProtocol {
+        geometry: CalibGeometry::default(),
+        n_e: 3,
+        n_t: 3,
+        sigma: 0.01,
+        units: NoiseUnits::Millimetre,
+        pixel_sigma_px: 0.0,
+        seed: 1,
+    }
 }
 
 /// Why `calibrate` failed.
@@ -146,16 +155,25 @@ fn read(path: &Path) -> Result<String, CalibrateError> {
 
 /// Reads a dataset (optionally overriding its intrinsics from a YAML file), runs the
 /// pipeline(s), writes the result file, and compares with a truth file if given.
-pub fn calibrate(dataset: &Path, intrinsics: Option<&Path>, truth: Option<&Path>, out: &Path, pipeline: Pipeline) -> Result<Vec<CalibrateSummary>, CalibrateError> {
+pub fn calibrate(
+    dataset: &Path,
+    intrinsics: Option<&Path>,
+    truth: Option<&Path>,
+    out: &Path,
+    pipeline: Pipeline,
+) -> Result<Vec<CalibrateSummary>, CalibrateError> {
     let text = read(dataset)?;
     let file = parse_dataset(&text).map_err(|source| CalibrateError::File { path: dataset.to_owned(), source })?;
     let (mut setup, obs, noise) = convert::dataset(&file);
     if let Some(p) = intrinsics {
-        let k = parse_intrinsics_yaml(&read(p)?).map_err(|source| CalibrateError::Intrinsics { path: p.to_owned(), source })?;
+        let k = parse_intrinsics_yaml(&read(p)?)
+            .map_err(|source| CalibrateError::Intrinsics { path: p.to_owned(), source })?;
         setup.intrinsics = convert::intrinsics(&k);
     }
     let truth = match truth {
-        Some(p) => Some(convert::isometry(&parse_truth(&read(p)?).map_err(|source| CalibrateError::File { path: p.to_owned(), source })?.truth)),
+        Some(p) => Some(convert::isometry(
+            &parse_truth(&read(p)?).map_err(|source| CalibrateError::File { path: p.to_owned(), source })?.truth,
+        )),
         None => None,
     };
     let set = prepare(&setup, &obs)?;
@@ -167,14 +185,22 @@ pub fn calibrate(dataset: &Path, intrinsics: Option<&Path>, truth: Option<&Path>
         let ms = started.elapsed().as_secs_f64() * 1e3;
         let stats = estimator::calib::ours::residual_stats(&set, &r.pose);
         results.push(convert::result_json("paper", &r.pose, &stats, None, ms));
-        summaries.push(CalibrateSummary { pipeline: "paper", errors: truth.map(|t| pose_errors(&r.pose, &t)), solve_ms: ms });
+        summaries.push(CalibrateSummary {
+            pipeline: "paper",
+            errors: truth.map(|t| pose_errors(&r.pose, &t)),
+            solve_ms: ms,
+        });
     }
     if matches!(pipeline, Pipeline::Ours | Pipeline::Both) {
         let started = Instant::now();
         let r = solve_ours_prepared(&set, &OursConfig { noise, ..OursConfig::default() })?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
         results.push(convert::result_json("ours", &r.pose, &r.residuals, Some(&r), ms));
-        summaries.push(CalibrateSummary { pipeline: "ours", errors: truth.map(|t| pose_errors(&r.pose, &t)), solve_ms: ms });
+        summaries.push(CalibrateSummary {
+            pipeline: "ours",
+            errors: truth.map(|t| pose_errors(&r.pose, &t)),
+            solve_ms: ms,
+        });
     }
     let file = ResultFile { format: RESULT_FORMAT.into(), version: CALIB_FILE_VERSION, results };
     std::fs::write(out, to_json(&file)).map_err(|source| CalibrateError::Write { path: out.to_owned(), source })?;

@@ -15,7 +15,9 @@ use estimator::calib::{KinematicNoise, PoseErrors, pose_errors};
 use plotters::prelude::*;
 use rand::SeedableRng;
 use rayon::prelude::*;
-use sim::calib::{CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, generate_calibration, random_unit_quaternion};
+use sim::calib::{
+    CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, generate_calibration, random_unit_quaternion,
+};
 
 /// What to sweep.
 #[derive(Clone, Debug)]
@@ -107,7 +109,15 @@ pub struct ConditionResult {
 }
 
 fn protocol(c: &Condition, seed: u64) -> CalibProtocol {
-    CalibProtocol { geometry: CalibGeometry::default(), n_e: c.n_e, n_t: c.n_t, sigma: c.sigma, units: c.units, pixel_sigma_px: 0.0, seed }
+    CalibProtocol {
+        geometry: CalibGeometry::default(),
+        n_e: c.n_e,
+        n_t: c.n_t,
+        sigma: c.sigma,
+        units: c.units,
+        pixel_sigma_px: 0.0,
+        seed,
+    }
 }
 
 /// Runs one trial: generate, both pipelines, errors.
@@ -116,7 +126,9 @@ pub fn run_trial(c: &Condition, seed: u64) -> Result<Trial, CalibProtocolError> 
     let (paper, ours) = match prepare(&d.setup, &d.observations) {
         Ok(set) => (
             solve_paper_prepared(&set, &PaperConfig::default()).ok().map(|r| pose_errors(&r.pose, &d.truth)),
-            solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() }).ok().map(|r| pose_errors(&r.pose, &d.truth)),
+            solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() })
+                .ok()
+                .map(|r| pose_errors(&r.pose, &d.truth)),
         ),
         Err(_) => (None, None),
     };
@@ -137,7 +149,9 @@ fn progress_bar(total: u64) -> indicatif::ProgressBar {
         return indicatif::ProgressBar::hidden();
     }
     let bar = indicatif::ProgressBar::new(total);
-    if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} trials ({percent}%, eta {eta})") {
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} trials ({percent}%, eta {eta})",
+    ) {
         bar.set_style(style);
     }
     bar
@@ -162,7 +176,12 @@ pub fn run_conditions(conditions: &[Condition], trials: usize, seed: u64) -> Res
     Ok(conditions
         .iter()
         .enumerate()
-        .map(|(i, c)| ConditionResult { condition: *c, trials: outcomes[i * trials..(i + 1) * trials].to_vec(), crb: crbs[i], t_norm_m })
+        .map(|(i, c)| ConditionResult {
+            condition: *c,
+            trials: outcomes[i * trials..(i + 1) * trials].to_vec(),
+            crb: crbs[i],
+            t_norm_m,
+        })
         .collect())
 }
 
@@ -221,7 +240,10 @@ pub fn summarise(r: &ConditionResult) -> Summary {
             r.trials.iter().filter(|t| t.paper.is_some_and(|e| e.rotation_rad > core::f64::consts::FRAC_PI_2)).count(),
             r.trials.iter().filter(|t| t.ours.is_some_and(|e| e.rotation_rad > core::f64::consts::FRAC_PI_2)).count(),
         ],
-        failed: [r.trials.iter().filter(|t| t.paper.is_none()).count(), r.trials.iter().filter(|t| t.ours.is_none()).count()],
+        failed: [
+            r.trials.iter().filter(|t| t.paper.is_none()).count(),
+            r.trials.iter().filter(|t| t.ours.is_none()).count(),
+        ],
         both: both.len(),
     }
 }
@@ -277,7 +299,13 @@ fn plot_err<E: std::fmt::Debug>(path: &Path) -> impl Fn(E) -> SweepError + '_ {
 }
 
 /// Two-panel SVG box plot (e_t %, e_R °) of paper vs ours per condition.
-pub fn box_plot(path: &Path, title: &str, x_desc: &str, results: &[ConditionResult], label: impl Fn(&Condition) -> String) -> Result<(), SweepError> {
+pub fn box_plot(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    results: &[ConditionResult],
+    label: impl Fn(&Condition) -> String,
+) -> Result<(), SweepError> {
     let root = SVGBackend::new(path, (1200, 460)).into_drawing_area();
     root.fill(&WHITE).map_err(plot_err(path))?;
     let root = root.titled(title, ("sans-serif", 20)).map_err(plot_err(path))?;
@@ -308,7 +336,11 @@ pub fn box_plot(path: &Path, title: &str, x_desc: &str, results: &[ConditionResu
             .map_err(plot_err(path))?;
         let fmt = |x: &f64| -> String {
             let i = x.round();
-            if (x - i).abs() < 1e-6 && i >= 0.0 { labels.get(i as usize).cloned().unwrap_or_default() } else { String::new() }
+            if (x - i).abs() < 1e-6 && i >= 0.0 {
+                labels.get(i as usize).cloned().unwrap_or_default()
+            } else {
+                String::new()
+            }
         };
         chart
             .configure_mesh()
@@ -324,7 +356,9 @@ pub fn box_plot(path: &Path, title: &str, x_desc: &str, results: &[ConditionResu
                 .iter()
                 .enumerate()
                 .filter(|(_, v)| !v.is_empty())
-                .map(|(i, v)| Boxplot::new_vertical(i as f64, &Quartiles::new(v)).width(14).offset(offset).style(colour))
+                .map(|(i, v)| {
+                    Boxplot::new_vertical(i as f64, &Quartiles::new(v)).width(14).offset(offset).style(colour)
+                })
                 .collect();
             chart
                 .draw_series(boxes)
@@ -332,7 +366,12 @@ pub fn box_plot(path: &Path, title: &str, x_desc: &str, results: &[ConditionResu
                 .label(name)
                 .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 12, y + 5)], colour.filled()));
         }
-        chart.configure_series_labels().border_style(BLACK).background_style(WHITE.mix(0.8)).draw().map_err(plot_err(path))?;
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .background_style(WHITE.mix(0.8))
+            .draw()
+            .map_err(plot_err(path))?;
     }
     root.present().map_err(plot_err(path))?;
     Ok(())
@@ -360,11 +399,23 @@ pub fn init_robustness(units: NoiseUnits, count: usize, seed: u64) -> Result<Ini
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5eed);
     let quats: Vec<[f64; 4]> = (0..count).map(|_| random_unit_quaternion(&mut rng)).collect();
-    let e_r = |p: Option<nalgebra::Isometry3<f64>>| p.map(|p| pose_errors(&p, &d.truth).rotation_rad.to_degrees()).unwrap_or(f64::NAN);
-    let paper: Vec<f64> = quats.par_iter().map(|q| e_r(solve_paper_prepared(&set, &PaperConfig { initial_quaternion: Some(*q) }).ok().map(|r| r.pose))).collect();
+    let e_r = |p: Option<nalgebra::Isometry3<f64>>| {
+        p.map(|p| pose_errors(&p, &d.truth).rotation_rad.to_degrees()).unwrap_or(f64::NAN)
+    };
+    let paper: Vec<f64> = quats
+        .par_iter()
+        .map(|q| e_r(solve_paper_prepared(&set, &PaperConfig { initial_quaternion: Some(*q) }).ok().map(|r| r.pose)))
+        .collect();
     let ours: Vec<f64> = quats
         .par_iter()
-        .map(|q| e_r(solve_ours_prepared(&set, &OursConfig { noise: d.noise, initial_quaternion: Some(*q), ..OursConfig::default() }).ok().map(|r| r.pose)))
+        .map(|q| {
+            e_r(solve_ours_prepared(
+                &set,
+                &OursConfig { noise: d.noise, initial_quaternion: Some(*q), ..OursConfig::default() },
+            )
+            .ok()
+            .map(|r| r.pose))
+        })
         .collect();
     let from_linear = [
         e_r(solve_paper_prepared(&set, &PaperConfig::default()).ok().map(|r| r.pose)),
@@ -374,7 +425,9 @@ pub fn init_robustness(units: NoiseUnits, count: usize, seed: u64) -> Result<Ini
 }
 
 fn init_table(rows: &[InitRobustness]) -> String {
-    let mut s = String::from("| ρ unit | pipeline | e_R from linear start ° | same solution (±0.001°) | e_R < 1° | e_R > 90° (wrong) | failed | median e_R ° | max e_R ° |\n|---|---|---|---|---|---|---|---|---|\n");
+    let mut s = String::from(
+        "| ρ unit | pipeline | e_R from linear start ° | same solution (±0.001°) | e_R < 1° | e_R > 90° (wrong) | failed | median e_R ° | max e_R ° |\n|---|---|---|---|---|---|---|---|---|\n",
+    );
     for r in rows {
         for (name, v, lin) in [("paper (Eq. 10)", &r.paper, r.from_linear[0]), ("ours", &r.ours, r.from_linear[1])] {
             let ok: Vec<f64> = v.iter().cloned().filter(|x| x.is_finite()).collect();
@@ -409,8 +462,14 @@ pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<Strin
     std::fs::create_dir_all(dir).map_err(|source| SweepError::Write { path: dir.to_owned(), source })?;
     let started = Instant::now();
     let units = [NoiseUnits::Millimetre, NoiseUnits::Metre];
-    let sigma_conds: Vec<Condition> = units.iter().flat_map(|&u| opts.sigmas.iter().map(move |&s| Condition { units: u, sigma: s, n_e: 3, n_t: 3 })).collect();
-    let grid_conds: Vec<Condition> = units.iter().flat_map(|&u| opts.grid.iter().map(move |&(e, t)| Condition { units: u, sigma: 0.01, n_e: e, n_t: t })).collect();
+    let sigma_conds: Vec<Condition> = units
+        .iter()
+        .flat_map(|&u| opts.sigmas.iter().map(move |&s| Condition { units: u, sigma: s, n_e: 3, n_t: 3 }))
+        .collect();
+    let grid_conds: Vec<Condition> = units
+        .iter()
+        .flat_map(|&u| opts.grid.iter().map(move |&(e, t)| Condition { units: u, sigma: 0.01, n_e: e, n_t: t }))
+        .collect();
     let mut all = sigma_conds.clone();
     all.extend(grid_conds.iter().cloned());
     let results = run_conditions(&all, opts.trials, opts.seed)?;
@@ -423,27 +482,62 @@ pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<Strin
     let elapsed = started.elapsed().as_secs_f64();
     let mut md = String::new();
     let _ = writeln!(md, "# Calibration sweeps (generated by `comanip-calib sweep`)\n");
-    let _ = writeln!(md, "Command: `{command}`  \nTrials per condition: {}; trial k of every condition uses seed {} + k. Wall time {:.0} s.\n", opts.trials, opts.seed, elapsed);
-    let _ = writeln!(md, "Means over trials where both pipelines returned; RMS/CRB compares our RMS error with the Cramér-Rao bound of the noiseless geometry (`docs/calibration.md`).\n");
+    let _ = writeln!(
+        md,
+        "Command: `{command}`  \nTrials per condition: {}; trial k of every condition uses seed {} + k. Wall time {:.0} s.\n",
+        opts.trials, opts.seed, elapsed
+    );
+    let _ = writeln!(
+        md,
+        "Means over trials where both pipelines returned; RMS/CRB compares our RMS error with the Cramér-Rao bound of the noiseless geometry (`docs/calibration.md`).\n"
+    );
     for u in units {
         let part: Vec<ConditionResult> = sigma_res.iter().filter(|r| r.condition.units == u).cloned().collect();
-        let _ = writeln!(md, "## σ sweep, ρ in {} (n_e = n_t = 3)\n\n![σ sweep, {}](sigma_{}.svg)\n", u.name(), u.name(), u.name());
+        let _ = writeln!(
+            md,
+            "## σ sweep, ρ in {} (n_e = n_t = 3)\n\n![σ sweep, {}](sigma_{}.svg)\n",
+            u.name(),
+            u.name(),
+            u.name()
+        );
         md.push_str(&table(&part));
         md.push('\n');
-        box_plot(&dir.join(format!("sigma_{}.svg", u.name())), &format!("σ sweep, ρ in {} (n_e = n_t = 3, {} trials)", u.name(), opts.trials), "σ", &part, |c| format!("{}", c.sigma))?;
+        box_plot(
+            &dir.join(format!("sigma_{}.svg", u.name())),
+            &format!("σ sweep, ρ in {} (n_e = n_t = 3, {} trials)", u.name(), opts.trials),
+            "σ",
+            &part,
+            |c| format!("{}", c.sigma),
+        )?;
     }
     for u in units {
         let part: Vec<ConditionResult> = grid_res.iter().filter(|r| r.condition.units == u).cloned().collect();
         if part.is_empty() {
             continue;
         }
-        let _ = writeln!(md, "## n_e × n_t sweep, ρ in {} (σ = 0.01)\n\n![grid sweep, {}](grid_{}.svg)\n", u.name(), u.name(), u.name());
+        let _ = writeln!(
+            md,
+            "## n_e × n_t sweep, ρ in {} (σ = 0.01)\n\n![grid sweep, {}](grid_{}.svg)\n",
+            u.name(),
+            u.name(),
+            u.name()
+        );
         md.push_str(&table(&part));
         md.push('\n');
-        box_plot(&dir.join(format!("grid_{}.svg", u.name())), &format!("n_e⁴ × n_t² sweep, ρ in {} (σ = 0.01, {} trials)", u.name(), opts.trials), "n_e, n_t", &part, |c| format!("{},{}", c.n_e, c.n_t))?;
+        box_plot(
+            &dir.join(format!("grid_{}.svg", u.name())),
+            &format!("n_e⁴ × n_t² sweep, ρ in {} (σ = 0.01, {} trials)", u.name(), opts.trials),
+            "n_e, n_t",
+            &part,
+            |c| format!("{},{}", c.n_e, c.n_t),
+        )?;
     }
     if !init.is_empty() {
-        let _ = writeln!(md, "## Robustness to the initial guess ({} random unit quaternions, σ = 0.01, n_e = n_t = 3)\n", opts.init_quaternions);
+        let _ = writeln!(
+            md,
+            "## Robustness to the initial guess ({} random unit quaternions, σ = 0.01, n_e = n_t = 3)\n",
+            opts.init_quaternions
+        );
         md.push_str(&init_table(&init));
         md.push('\n');
     }

@@ -52,23 +52,13 @@ impl Intrinsics {
     /// Checks that the intrinsics are finite and usable.
     pub fn validate(&self) -> Result<(), IntrinsicsError> {
         if !(self.fx.is_finite() && self.fx > 0.0 && self.fy.is_finite() && self.fy > 0.0) {
-            return Err(IntrinsicsError::Focal {
-                fx: self.fx,
-                fy: self.fy,
-            });
+            return Err(IntrinsicsError::Focal { fx: self.fx, fy: self.fy });
         }
-        if ![self.cx, self.cy, self.skew]
-            .iter()
-            .chain(self.distortion.iter())
-            .all(|v| v.is_finite())
-        {
+        if ![self.cx, self.cy, self.skew].iter().chain(self.distortion.iter()).all(|v| v.is_finite()) {
             return Err(IntrinsicsError::NotFinite);
         }
         if self.width == 0 || self.height == 0 {
-            return Err(IntrinsicsError::Size {
-                width: self.width,
-                height: self.height,
-            });
+            return Err(IntrinsicsError::Size { width: self.width, height: self.height });
         }
         Ok(())
     }
@@ -81,17 +71,7 @@ impl Intrinsics {
     /// `K⁻¹` (valid intrinsics only).
     pub fn k_inv(&self) -> Matrix3<f64> {
         let (fx, fy, s, cx, cy) = (self.fx, self.fy, self.skew, self.cx, self.cy);
-        Matrix3::new(
-            1.0 / fx,
-            -s / (fx * fy),
-            (s * cy - cx * fy) / (fx * fy),
-            0.0,
-            1.0 / fy,
-            -cy / fy,
-            0.0,
-            0.0,
-            1.0,
-        )
+        Matrix3::new(1.0 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy), 0.0, 1.0 / fy, -cy / fy, 0.0, 0.0, 1.0)
     }
 
     /// True when every distortion coefficient is zero.

@@ -40,7 +40,12 @@ pub enum CrbError {
 
 /// The Cramér-Rao bound at `truth` (`T_e_t`, metres) for these observations' joints and
 /// lines under `noise`.
-pub fn cramer_rao_bound(setup: &Setup, observations: &[Observation], truth: &Isometry3<f64>, noise: &KinematicNoise) -> Result<Crb, CrbError> {
+pub fn cramer_rao_bound(
+    setup: &Setup,
+    observations: &[Observation],
+    truth: &Isometry3<f64>,
+    noise: &KinematicNoise,
+) -> Result<Crb, CrbError> {
     if !noise.is_valid() {
         return Err(CrbError::NoiseModel);
     }
@@ -62,9 +67,5 @@ pub fn cramer_rao_bound(setup: &Setup, observations: &[Observation], truth: &Iso
     if !(tt >= 0.0 && rr >= 0.0 && tt.is_finite() && rr.is_finite()) {
         return Err(CrbError::Singular);
     }
-    Ok(Crb {
-        covariance: cov,
-        translation_rms_m: tt.sqrt(),
-        rotation_rms_rad: rr.sqrt(),
-    })
+    Ok(Crb { covariance: cov, translation_rms_m: tt.sqrt(), rotation_rms_rad: rr.sqrt() })
 }

@@ -29,33 +29,19 @@ pub fn se3_exp(rho: &Vector3<f64>, phi: &Vector3<f64>) -> Isometry3<f64> {
         Matrix3::identity() + w * 0.5 + w2 * (1.0 / 6.0)
     } else {
         let t2 = theta * theta;
-        Matrix3::identity()
-            + w * ((1.0 - theta.cos()) / t2)
-            + w2 * ((theta - theta.sin()) / (t2 * theta))
+        Matrix3::identity() + w * ((1.0 - theta.cos()) / t2) + w2 * ((theta - theta.sin()) / (t2 * theta))
     };
-    Isometry3::from_parts(
-        Translation3::from(v * rho),
-        UnitQuaternion::from_scaled_axis(*phi),
-    )
+    Isometry3::from_parts(Translation3::from(v * rho), UnitQuaternion::from_scaled_axis(*phi))
 }
 
 fn rot_y(a: f64) -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::identity(),
-        UnitQuaternion::from_axis_angle(&Vector3::y_axis(), a),
-    )
+    Isometry3::from_parts(Translation3::identity(), UnitQuaternion::from_axis_angle(&Vector3::y_axis(), a))
 }
 fn rot_x(a: f64) -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::identity(),
-        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), a),
-    )
+    Isometry3::from_parts(Translation3::identity(), UnitQuaternion::from_axis_angle(&Vector3::x_axis(), a))
 }
 fn rot_z(a: f64) -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::identity(),
-        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), a),
-    )
+    Isometry3::from_parts(Translation3::identity(), UnitQuaternion::from_axis_angle(&Vector3::z_axis(), a))
 }
 fn trans_z(d: f64) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::new(0.0, 0.0, d), UnitQuaternion::identity())

@@ -92,11 +92,7 @@ pub fn pose_errors(estimate: &Isometry3<f64>, truth: &Isometry3<f64>) -> PoseErr
     let norm = truth.translation.vector.norm();
     let rel = if norm > 0.0 { dt.norm() / norm } else { dt.norm() };
     let e_r = (estimate.rotation.inverse() * truth.rotation).angle();
-    PoseErrors {
-        translation_rel: rel,
-        translation_m: dt.norm(),
-        rotation_rad: e_r,
-    }
+    PoseErrors { translation_rel: rel, translation_m: dt.norm(), rotation_rad: e_r }
 }
 
 /// Errors of an estimated `T_e_t` against the ground truth.

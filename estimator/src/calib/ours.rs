@@ -17,7 +17,9 @@
 
 use std::vec::Vec;
 
-use nalgebra::{Isometry3, Matrix2, Matrix3, Matrix6, Rotation3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6};
+use nalgebra::{
+    Isometry3, Matrix2, Matrix3, Matrix6, Rotation3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
+};
 
 use super::KinematicNoise;
 use super::kinematics::skew;
@@ -54,13 +56,7 @@ pub struct OursConfig {
 
 impl Default for OursConfig {
     fn default() -> Self {
-        Self {
-            noise: None,
-            huber_k: 3.0,
-            max_iterations: 50,
-            min_ambiguity_ratio: 1.05,
-            initial_quaternion: None,
-        }
+        Self { noise: None, huber_k: 3.0, max_iterations: 50, min_ambiguity_ratio: 1.05, initial_quaternion: None }
     }
 }
 
@@ -153,7 +149,12 @@ fn dist_and_grad(l: &Vector3<f64>, u: &Vector2<f64>) -> (f64, nalgebra::RowVecto
 
 /// Residual pair (pixels) of observation `o` for pose `(R, t)` and its Jacobian w.r.t.
 /// `(t, δφ)`.
-pub fn residual_and_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> (Vector2<f64>, Jac6) {
+pub fn residual_and_jacobian(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+) -> (Vector2<f64>, Jac6) {
     let rm = r * o.m_t;
     let rt = o.r_ec.transpose();
     let p_c = rt * (t - o.o_ec);
@@ -219,7 +220,13 @@ pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
 }
 
 /// The 2×2 covariance (pixels²) of observation `o`'s residual pair under `noise` at `(R, t)`.
-pub fn residual_covariance(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>, noise: &KinematicNoise) -> Matrix2<f64> {
+pub fn residual_covariance(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+) -> Matrix2<f64> {
     let g = noise_jacobian(set, o, r, t);
     let mut d = SMatrix::<f64, 18, 1>::zeros();
     for f in 0..3 {
@@ -269,11 +276,7 @@ struct Refined {
 }
 
 fn whitened_norms(set: &PreparedSet, whiten: &[Matrix2<f64>], r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<f64> {
-    set.obs
-        .iter()
-        .zip(whiten)
-        .map(|(o, w)| (w * residual_and_jacobian(set, o, r, t).0).norm())
-        .collect()
+    set.obs.iter().zip(whiten).map(|(o, w)| (w * residual_and_jacobian(set, o, r, t).0).norm()).collect()
 }
 
 fn robust_scale(norms: &[f64]) -> f64 {
@@ -282,7 +285,13 @@ fn robust_scale(norms: &[f64]) -> f64 {
 }
 
 /// Robust Levenberg-Marquardt from `(r0, t0)` with fixed whitening matrices.
-fn refine(set: &PreparedSet, cfg: &OursConfig, whiten: Vec<Matrix2<f64>>, r0: Matrix3<f64>, t0: Vector3<f64>) -> Refined {
+fn refine(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    whiten: Vec<Matrix2<f64>>,
+    r0: Matrix3<f64>,
+    t0: Vector3<f64>,
+) -> Refined {
     let mut r = r0;
     let mut t = t0;
     let mut iterations = 0;
@@ -325,7 +334,8 @@ fn refine(set: &PreparedSet, cfg: &OursConfig, whiten: Vec<Matrix2<f64>>, r0: Ma
                 let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
                 let new_cost: f64 = whitened_norms(set, &whiten, &r_new, &t_new).iter().map(|n| huber(*n, c)).sum();
                 if new_cost <= cost {
-                    small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12 || cost - new_cost <= 1e-14 * cost;
+                    small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
+                        || cost - new_cost <= 1e-14 * cost;
                     t = t_new;
                     r = orthonormalize(&r_new);
                     lambda = (lambda * 0.2).max(1e-9);
@@ -366,13 +376,7 @@ pub fn residual_stats(set: &PreparedSet, pose: &Isometry3<f64>) -> ResidualStats
     }
     let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len().max(1) as f64).sqrt();
     let max = d.iter().cloned().fold(0.0, f64::max);
-    ResidualStats {
-        count: set.obs.len(),
-        rms_px: rms,
-        median_px: median(&mut d),
-        max_px: max,
-        inliers: set.obs.len(),
-    }
+    ResidualStats { count: set.obs.len(), rms_px: rms, median_px: median(&mut d), max_px: max, inliers: set.obs.len() }
 }
 
 /// Initial rotation when Eq. 8 is rank-deficient (e.g. exactly three tool orientations):
@@ -426,10 +430,8 @@ pub fn solve_ours(setup: &Setup, observations: &[Observation], config: &OursConf
 
 /// Our pipeline on prepared observations.
 pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
-    if let Some(n) = &cfg.noise {
-        if !n.is_valid() {
-            return Err(OursError::NoiseModel);
-        }
+    if cfg.noise.is_some_and(|n| !n.is_valid()) {
+        return Err(OursError::NoiseModel);
     }
     let t0 = linear_translation(set).map_err(|e| match e {
         PaperError::ViewsCollinear { ratio } => OursError::ViewsCollinear { ratio },
@@ -455,7 +457,9 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
     match linear {
         Some(r) => starts.push(r),
         None if starts.is_empty() => {
-            return Err(OursError::RotationUnobservable { detail: "no two tool orientations each seen from two views" });
+            return Err(OursError::RotationUnobservable {
+                detail: "no two tool orientations each seen from two views",
+            });
         }
         None => {}
     }
@@ -491,7 +495,13 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
     let c_ref = cfg.huber_k * s_ref;
     let costs: Vec<f64> = candidates
         .iter()
-        .map(|x| if sane(x) { whitened_norms(set, &x.whiten, &x.r, &x.t).iter().map(|n| huber(*n, c_ref)).sum() } else { f64::INFINITY })
+        .map(|x| {
+            if sane(x) {
+                whitened_norms(set, &x.whiten, &x.r, &x.t).iter().map(|n| huber(*n, c_ref)).sum()
+            } else {
+                f64::INFINITY
+            }
+        })
         .collect();
     let ib = (0..candidates.len()).min_by(|a, b| costs[*a].total_cmp(&costs[*b])).unwrap_or(0);
     let best = &candidates[ib];
@@ -499,13 +509,22 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
     // The ambiguity: the best candidate that is a different solution, i.e. more than
     // [`DISTINCT_SOLUTION_RAD`] away in rotation (not the same minimum reached from another
     // start, which differs only by the convergence tolerance).
-    let distinct = |x: &Refined| Rotation3::from_matrix_unchecked(best.r.transpose() * x.r).angle() > DISTINCT_SOLUTION_RAD;
-    let alt_idx = (0..candidates.len()).filter(|i| *i != ib && distinct(&candidates[*i])).min_by(|a, b| costs[*a].total_cmp(&costs[*b]));
+    let distinct =
+        |x: &Refined| Rotation3::from_matrix_unchecked(best.r.transpose() * x.r).angle() > DISTINCT_SOLUTION_RAD;
+    let alt_idx = (0..candidates.len())
+        .filter(|i| *i != ib && distinct(&candidates[*i]))
+        .min_by(|a, b| costs[*a].total_cmp(&costs[*b]));
     let (alt, c_alt) = match alt_idx {
         Some(i) => (&candidates[i], costs[i]),
         None => (best, f64::INFINITY),
     };
-    let ratio = if c_best > 0.0 { c_alt / c_best } else if c_alt > 0.0 { f64::INFINITY } else { 1.0 };
+    let ratio = if c_best > 0.0 {
+        c_alt / c_best
+    } else if c_alt > 0.0 {
+        f64::INFINITY
+    } else {
+        1.0
+    };
     if ratio < cfg.min_ambiguity_ratio {
         return Err(OursError::Ambiguous { ratio, min: cfg.min_ambiguity_ratio });
     }

@@ -8,7 +8,10 @@
 //! Levenberg-Marquardt on the four quaternion components with the scale-free residual
 //! `qᵀWq / qᵀq` (the `‖q‖²` of Eq. 10's third line), renormalised after each step.
 
-use nalgebra::{Isometry3, Matrix3, Matrix4, Quaternion, Rotation3, SMatrix, SVector, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector4};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Quaternion, Rotation3, SMatrix, SVector, SymmetricEigen, Translation3, UnitQuaternion,
+    Vector3, Vector4,
+};
 
 use super::prepare::{PrepareError, PreparedSet, prepare};
 use super::{Observation, Setup};
@@ -77,7 +80,7 @@ pub fn linear_translation(set: &PreparedSet) -> Result<Vector3<f64>, PaperError>
     let max = eig.eigenvalues.max();
     let min = eig.eigenvalues.min();
     let ratio = if max > 0.0 { min / max } else { 0.0 };
-    if !(ratio > RANK_TOLERANCE) {
+    if ratio.is_nan() || ratio <= RANK_TOLERANCE {
         return Err(PaperError::ViewsCollinear { ratio });
     }
     // Solve through the eigen-decomposition (already computed, well conditioned here).
@@ -114,7 +117,7 @@ pub fn kronecker_rotation(set: &PreparedSet) -> Result<Rotation3<f64>, PaperErro
     idx.sort_by(|a, b| eig.eigenvalues[*a].total_cmp(&eig.eigenvalues[*b]));
     let max = eig.eigenvalues[idx[8]];
     let ratio = if max > 0.0 { eig.eigenvalues[idx[1]] / max } else { 0.0 };
-    if !(ratio > RANK_TOLERANCE) {
+    if ratio.is_nan() || ratio <= RANK_TOLERANCE {
         return Err(PaperError::RotationUnobservable { ratio });
     }
     let v = Matrix3::from_column_slice(eig.eigenvectors.column(idx[0]).as_slice());
@@ -168,7 +171,11 @@ pub fn refine_quaternion(set: &PreparedSet, q0: &Vector4<f64>) -> (UnitQuaternio
         let qq = q.dot(q);
         sym.iter().map(|s| (q.dot(&(s * q)) / qq).powi(2)).sum()
     };
-    let mut q = if q0.norm() > 0.0 && q0.iter().all(|v| v.is_finite()) { q0.normalize() } else { Vector4::new(1.0, 0.0, 0.0, 0.0) };
+    let mut q = if q0.norm() > 0.0 && q0.iter().all(|v| v.is_finite()) {
+        q0.normalize()
+    } else {
+        Vector4::new(1.0, 0.0, 0.0, 0.0)
+    };
     let mut cost = cost_of(&q);
     let mut lambda = 1e-3;
     let mut it = 0;
@@ -226,7 +233,11 @@ pub fn wxyz(q: &UnitQuaternion<f64>) -> Vector4<f64> {
 }
 
 /// The paper's whole pipeline (Algorithm 1, steps 7-9) on raw observations.
-pub fn solve_paper(setup: &Setup, observations: &[Observation], config: &PaperConfig) -> Result<PaperResult, PaperError> {
+pub fn solve_paper(
+    setup: &Setup,
+    observations: &[Observation],
+    config: &PaperConfig,
+) -> Result<PaperResult, PaperError> {
     let set = prepare(setup, observations)?;
     solve_paper_prepared(&set, config)
 }

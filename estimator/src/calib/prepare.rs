@@ -147,21 +147,20 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
     if views < 2 {
         return Err(PrepareError::TooFewViews { views });
     }
-    let orientations = count_distinct(obs.iter().map(|p| p.m_t), 3, |a, b| a.cross(b).norm() > SAME_ORIENTATION_RAD || a.dot(b) < 0.0);
+    let orientations =
+        count_distinct(obs.iter().map(|p| p.m_t), 3, |a, b| a.cross(b).norm() > SAME_ORIENTATION_RAD || a.dot(b) < 0.0);
     if orientations < 3 {
         return Err(PrepareError::TooFewToolOrientations { orientations });
     }
-    Ok(PreparedSet {
-        obs,
-        k_inv_t: k_inv.transpose(),
-        hand_eye: setup.hand_eye,
-        views,
-        orientations,
-    })
+    Ok(PreparedSet { obs, k_inv_t: k_inv.transpose(), hand_eye: setup.hand_eye, views, orientations })
 }
 
 /// Counts distinct items (pairwise `differ`), stopping at `enough`.
-fn count_distinct<I: Iterator<Item = Vector3<f64>>>(items: I, enough: usize, differ: impl Fn(&Vector3<f64>, &Vector3<f64>) -> bool) -> usize {
+fn count_distinct<I: Iterator<Item = Vector3<f64>>>(
+    items: I,
+    enough: usize,
+    differ: impl Fn(&Vector3<f64>, &Vector3<f64>) -> bool,
+) -> usize {
     let mut found: Vec<Vector3<f64>> = Vec::with_capacity(enough);
     for v in items {
         if found.iter().all(|f| differ(f, &v)) {

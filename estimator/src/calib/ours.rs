@@ -49,6 +49,9 @@ pub struct OursConfig {
     /// Refuse the result when the mirrored (≈180°) solution's cost is less than this
     /// factor above the best one (the two cannot be told apart).
     pub min_ambiguity_ratio: f64,
+    /// Border guard (with a noise model only): keep observations whose predicted tool tip is
+    /// at least this many standard deviations inside the image; 0 disables it.
+    pub border_guard_sigmas: f64,
     /// An extra starting rotation `[w, x, y, z]` (robustness sweep); the linear start and
     /// both mirrors are always tried as well, and the lowest robust cost wins.
     pub initial_quaternion: Option<[f64; 4]>,
@@ -56,7 +59,14 @@ pub struct OursConfig {
 
 impl Default for OursConfig {
     fn default() -> Self {
-        Self { noise: None, huber_k: 3.0, max_iterations: 50, min_ambiguity_ratio: 1.05, initial_quaternion: None }
+        Self {
+            noise: None,
+            huber_k: 3.0,
+            max_iterations: 50,
+            min_ambiguity_ratio: 1.05,
+            border_guard_sigmas: 2.0,
+            initial_quaternion: None,
+        }
     }
 }
 
@@ -134,8 +144,11 @@ pub struct OursResult {
     pub alternative: Isometry3<f64>,
     /// Robust cost of the alternative over the chosen solution (≥ 1; large = unambiguous).
     pub ambiguity_ratio: f64,
-    /// Levenberg-Marquardt iterations, both candidates.
+    /// Levenberg-Marquardt iterations, all candidates.
     pub iterations: usize,
+    /// Observations kept by the border guard (all of them when the guard is off or did not
+    /// drop any).
+    pub guard_kept: usize,
 }
 
 fn dist_and_grad(l: &Vector3<f64>, u: &Vector2<f64>) -> (f64, nalgebra::RowVector3<f64>) {
@@ -430,24 +443,128 @@ pub fn solve_ours(setup: &Setup, observations: &[Observation], config: &OursConf
 
 /// Our pipeline on prepared observations.
 pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
+    let mut result = solve_once(set, cfg, None)?;
+    let (Some(noise), true) = (cfg.noise, cfg.border_guard_sigmas > 0.0) else {
+        return Ok(result);
+    };
+    // Border guard: an observation is only in the dataset because its tool tip was in view,
+    // which selects the noise of observations near the image border (tips pushed inward are
+    // kept, pushed outward dropped) and biases the fit. Keep only observations whose tip is
+    // predicted, from the current estimate, to lie at least `border_guard_sigmas` standard
+    // deviations inside the image: their selection no longer depends on their own noise.
+    let mut kept_before = set.obs.len();
+    for _ in 0..3 {
+        let r = result.pose.rotation.to_rotation_matrix().into_inner();
+        let t = result.pose.translation.vector;
+        let obs: Vec<Prepared> = set
+            .obs
+            .iter()
+            .filter(|o| tip_well_inside(set, o, &r, &t, &noise, cfg.border_guard_sigmas))
+            .cloned()
+            .collect();
+        if obs.len() == kept_before || obs.len() < 12 {
+            break;
+        }
+        kept_before = obs.len();
+        let sub = PreparedSet { obs, ..set.clone() };
+        match solve_once(&sub, cfg, Some(&result.pose)) {
+            Ok(mut next) => {
+                next.guard_kept = sub.obs.len();
+                next.alternative = result.alternative;
+                next.ambiguity_ratio = result.ambiguity_ratio;
+                result = next;
+            }
+            Err(_) => break,
+        }
+    }
+    Ok(result)
+}
+
+/// True when the tool tip of `o`, predicted at `(R, t)`, lies `k` standard deviations (of
+/// its pixel position under `noise`) inside the image.
+pub fn tip_well_inside(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    k: f64,
+) -> bool {
+    let rt = o.r_ec.transpose();
+    let p = rt * (r * (o.m_t * o.insertion_m) + t - o.o_ec);
+    if p.z <= 1e-3 {
+        return false;
+    }
+    let cam = &set.intrinsics;
+    let u = cam.fx * p.x / p.z + cam.skew * p.y / p.z + cam.cx;
+    let v = cam.fy * p.y / p.z + cam.cy;
+    // ∂(u, v)/∂p (pinhole, distortion neglected for the margin).
+    let proj = SMatrix::<f64, 2, 3>::new(
+        cam.fx / p.z,
+        cam.skew / p.z,
+        -(cam.fx * p.x + cam.skew * p.y) / (p.z * p.z),
+        0.0,
+        cam.fy / p.z,
+        -cam.fy * p.y / (p.z * p.z),
+    );
+    // ∂p/∂δ: camera right perturbation δc = Ad(X⁻¹) δe: p' = p + [p]× φc − ρc;
+    // tool: δP = R2(ρa + ρb − d[ẑ]×φa) mapped into the camera by A = R_ecᵀ R R2.
+    let xi = set.hand_eye.inverse();
+    let rx = xi.rotation.to_rotation_matrix().into_inner();
+    let mut ad = Matrix6::zeros();
+    ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&rx);
+    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(skew(&xi.translation.vector) * rx));
+    ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
+    let mut dp_c = SMatrix::<f64, 3, 6>::zeros();
+    dp_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&-Matrix3::identity());
+    dp_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&p));
+    let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
+    let mut dp = SMatrix::<f64, 3, 18>::zeros();
+    dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * ad));
+    dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
+    dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
+    dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);
+    let g = proj * dp;
+    let mut cov = Matrix2::identity() * (noise.pixel_px * noise.pixel_px);
+    for c in 0..18 {
+        let var = if c % 6 < 3 { noise.trans_m * noise.trans_m } else { noise.rot_rad * noise.rot_rad };
+        let col = g.column(c);
+        cov += col * col.transpose() * var;
+    }
+    let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
+    u - su >= 0.0 && v - sv >= 0.0 && u + su <= cam.width as f64 - 1.0 && v + sv <= cam.height as f64 - 1.0
+}
+
+/// One solve. `from`: refine only from this pose (no linear start, no mirror), keeping the
+/// ambiguity decision already made on the full data.
+fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>) -> Result<OursResult, OursError> {
     if cfg.noise.is_some_and(|n| !n.is_valid()) {
         return Err(OursError::NoiseModel);
     }
-    let t0 = linear_translation(set).map_err(|e| match e {
-        PaperError::ViewsCollinear { ratio } => OursError::ViewsCollinear { ratio },
-        _ => OursError::Singular,
-    })?;
+    let t0 = match from {
+        Some(p) => p.translation.vector,
+        None => linear_translation(set).map_err(|e| match e {
+            PaperError::ViewsCollinear { ratio } => OursError::ViewsCollinear { ratio },
+            _ => OursError::Singular,
+        })?,
+    };
     // The linear start: Kronecker rotation (Eq. 8-9) polished by Eq. 10 (cheap, 4 parameters);
     // per-orientation directions when Eq. 8 is rank-deficient.
-    let linear = match kronecker_rotation(set) {
-        Ok(r) => {
-            let (q, _, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_rotation_matrix(&r)));
-            Some(q.to_rotation_matrix().into_inner())
+    let linear = if from.is_some() {
+        None
+    } else {
+        match kronecker_rotation(set) {
+            Ok(r) => {
+                let (q, _, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_rotation_matrix(&r)));
+                Some(q.to_rotation_matrix().into_inner())
+            }
+            Err(_) => grouped_rotation(set, &t0),
         }
-        Err(_) => grouped_rotation(set, &t0),
     };
     let mut starts: Vec<Matrix3<f64>> = Vec::with_capacity(2);
-    if let Some(q) = cfg.initial_quaternion {
+    if let Some(p) = from {
+        starts.push(p.rotation.to_rotation_matrix().into_inner());
+    } else if let Some(q) = cfg.initial_quaternion {
         let q = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
         if !(q.norm() > 0.0 && q.coords.iter().all(|v| v.is_finite())) {
             return Err(OursError::RotationUnobservable { detail: "initial quaternion is zero or not finite" });
@@ -473,7 +590,7 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
     let w0 = whitening(set, cfg, starts.last().unwrap_or(&Matrix3::identity()), &t0);
     let candidates: Vec<Refined> = starts
         .iter()
-        .flat_map(|r0| [*r0, flip * r0])
+        .flat_map(|r0| if from.is_some() { vec![*r0] } else { vec![*r0, flip * r0] })
         .map(|r0| {
             let first = refine(set, cfg, w0.clone(), r0, t0);
             if cfg.noise.is_none() {
@@ -565,5 +682,6 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         alternative: Isometry3::from_parts(Translation3::from(alt.t), UnitQuaternion::from_matrix(&alt.r)),
         ambiguity_ratio: ratio,
         iterations: candidates.iter().map(|c| c.iterations).sum(),
+        guard_kept: set.obs.len(),
     })
 }

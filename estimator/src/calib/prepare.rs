@@ -49,6 +49,8 @@ pub struct PreparedSet {
     pub k_inv_t: Matrix3<f64>,
     /// `T_f_c`, metres.
     pub hand_eye: Isometry3<f64>,
+    /// The camera intrinsics (pixels; image size for the border guard).
+    pub intrinsics: super::Intrinsics,
     /// Distinct views of robot 1 (distinct optical centres), counted up to the first 2.
     pub views: usize,
     /// Distinct orientations of robot 2's tool, counted up to the first 3.
@@ -152,7 +154,14 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
     if orientations < 3 {
         return Err(PrepareError::TooFewToolOrientations { orientations });
     }
-    Ok(PreparedSet { obs, k_inv_t: k_inv.transpose(), hand_eye: setup.hand_eye, views, orientations })
+    Ok(PreparedSet {
+        obs,
+        k_inv_t: k_inv.transpose(),
+        hand_eye: setup.hand_eye,
+        intrinsics: setup.intrinsics,
+        views,
+        orientations,
+    })
 }
 
 /// Counts distinct items (pairwise `differ`), stopping at `enough`.

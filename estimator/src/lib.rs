@@ -15,6 +15,9 @@
 //!   faithfully, and comanip's faster method. Both consume one [`trocar::LineSample`] per
 //!   1 ms cycle and return one [`trocar::Estimate`], never NaN or Inf.
 //!
+//! - [`calib`] (feature `std`): offline dual RCM-arm calibration (Wang et al. 2017), the
+//!   paper's pipeline and ours, and the Cramér-Rao bound.
+//!
 //! ## Frames and units
 //! All positions are in metres, all angles in radians, and every vector is expressed in the
 //! robot base frame unless a name or doc comment says otherwise.
@@ -33,6 +36,8 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+#[cfg(feature = "std")]
+pub mod calib;
 pub mod kinematics;
 pub mod trocar;
 

@@ -11,6 +11,8 @@
 //! - [`ipc`]: the daemon's shared-memory output (iceoryx2): the [`ipc::FulcrumSample`]
 //!   message, [`ipc::FulcrumPublisher`] and the client library [`ipc::FulcrumSubscriber`]
 //!   (see `docs/output.md`).
+//! - [`calib_files`]: the dual RCM-arm calibration's files: camera intrinsics (OpenCV /
+//!   ROS YAML), dataset, ground truth and result (JSON), see `docs/calibration.md`.
 //! - [`rt_alloc`]: a global allocator that serves the small allocations of real-time threads
 //!   (iceoryx2's 48 bytes per published sample) from a static lock-free pool.
 //!
@@ -19,6 +21,7 @@
 //! after [`can::EncoderConfig::counts_to_rad`].
 #![warn(missing_docs)]
 
+pub mod calib_files;
 pub mod can;
 pub mod ipc;
 pub mod rt_alloc;

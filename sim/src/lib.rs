@@ -10,12 +10,14 @@
 //! - [`twin`]: all of it together, the simulated robot answering the controller's SYNCs
 //!   ([`twin::SimRobot`]);
 //! - [`truth_file`]: the ground-truth file of a run (JSON Lines) and scoring against it;
-//! - [`score`]: scoring a detector against ground truth.
+//! - [`score`]: scoring a detector against ground truth;
+//! - [`calib`]: the dual RCM-arm calibration paper's simulation protocol (Sec. IV).
 //!
 //! The `simrobot` binary writes a run to a candump log plus its ground truth, or plays the
 //! robot live on a SocketCAN interface; see `docs/simulator.md`.
 #![warn(missing_docs)]
 
+pub mod calib;
 pub mod encoders;
 pub mod robot;
 pub mod scenario;

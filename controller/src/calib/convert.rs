@@ -1,0 +1,119 @@
+//! Conversions between the calibration files (`hw_io::calib_files`) and estimator types.
+
+use estimator::calib::ours::{OursResult, ResidualStats};
+use estimator::calib::{Intrinsics, KinematicNoise, Observation, Setup};
+use hw_io::calib_files::{
+    CALIB_FILE_VERSION, CameraIntrinsics, DATASET_FORMAT, DatasetFile, NoiseJson, ObservationJson, PipelineResultJson,
+    ResidualJson, TransformJson,
+};
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+
+/// File intrinsics → estimator intrinsics.
+pub fn intrinsics(k: &CameraIntrinsics) -> Intrinsics {
+    Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+        width: k.width,
+        height: k.height,
+        distortion: k.distortion,
+    }
+}
+
+/// Estimator intrinsics → file intrinsics.
+pub fn intrinsics_json(k: &Intrinsics) -> CameraIntrinsics {
+    CameraIntrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        skew: k.skew,
+        width: k.width,
+        height: k.height,
+        distortion: k.distortion,
+    }
+}
+
+/// File transform → isometry (metres).
+pub fn isometry(t: &TransformJson) -> Isometry3<f64> {
+    let [w, x, y, z] = t.quaternion_wxyz;
+    Isometry3::from_parts(
+        Translation3::from(Vector3::from(t.translation_m)),
+        UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
+    )
+}
+
+/// Isometry → file transform.
+pub fn transform_json(t: &Isometry3<f64>) -> TransformJson {
+    let q = t.rotation;
+    TransformJson { translation_m: t.translation.vector.into(), quaternion_wxyz: [q.w, q.i, q.j, q.k] }
+}
+
+/// A parsed dataset file → setup, observations and optional noise model.
+pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoise>) {
+    let setup = Setup { intrinsics: intrinsics(&d.intrinsics), hand_eye: isometry(&d.hand_eye) };
+    let obs = d
+        .observations
+        .iter()
+        .map(|o| Observation { ecm_joints: o.ecm_joints, psm_joints: o.psm_joints, line_px: o.line_px })
+        .collect();
+    let noise = d.noise_model.map(|n| KinematicNoise { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px });
+    (setup, obs, noise)
+}
+
+/// Setup, observations and noise model → dataset file.
+pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicNoise>) -> DatasetFile {
+    DatasetFile {
+        format: DATASET_FORMAT.into(),
+        version: CALIB_FILE_VERSION,
+        intrinsics: intrinsics_json(&setup.intrinsics),
+        hand_eye: transform_json(&setup.hand_eye),
+        noise_model: noise.map(|n| NoiseJson { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px }),
+        observations: obs
+            .iter()
+            .map(|o| ObservationJson { ecm_joints: o.ecm_joints, psm_joints: o.psm_joints, line_px: o.line_px })
+            .collect(),
+    }
+}
+
+fn residual_json(r: &ResidualStats) -> ResidualJson {
+    ResidualJson { count: r.count, rms_px: r.rms_px, median_px: r.median_px, max_px: r.max_px, inliers: r.inliers }
+}
+
+/// One pipeline's result entry.
+pub fn result_json(
+    pipeline: &str,
+    pose: &Isometry3<f64>,
+    residuals: &ResidualStats,
+    ours: Option<&OursResult>,
+    solve_ms: f64,
+) -> PipelineResultJson {
+    let m = pose.to_homogeneous();
+    let mut transform = [[0.0; 4]; 4];
+    for (i, row) in transform.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = m[(i, j)];
+        }
+    }
+    let tj = transform_json(pose);
+    PipelineResultJson {
+        pipeline: pipeline.into(),
+        transform,
+        quaternion_wxyz: tj.quaternion_wxyz,
+        translation_m: tj.translation_m,
+        residuals: residual_json(residuals),
+        covariance: ours.map(|o| {
+            let mut c = [[0.0; 6]; 6];
+            for (i, row) in c.iter_mut().enumerate() {
+                for (j, v) in row.iter_mut().enumerate() {
+                    *v = o.covariance[(i, j)];
+                }
+            }
+            c
+        }),
+        ambiguity_ratio: ours.map(|o| if o.ambiguity_ratio.is_finite() { o.ambiguity_ratio } else { f64::MAX }),
+        solve_ms,
+    }
+}

@@ -1,0 +1,11 @@
+//! `comanip-calib`: the dual RCM-arm calibration tool (`docs/calibration.md`).
+//!
+//! - [`convert`]: file structs (`hw_io::calib_files`) ↔ estimator types.
+//! - [`run`]: `generate` (simulated dataset + ground truth), `calibrate` (dataset → result
+//!   file, paper / ours / both).
+//! - [`sweep`]: the paper's simulation protocol sweeps (σ, n_e × n_t, random initial
+//!   quaternions) to a Markdown table and SVG box plots.
+
+pub mod convert;
+pub mod run;
+pub mod sweep;

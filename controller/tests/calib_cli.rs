@@ -1,0 +1,153 @@
+//! `comanip-calib` end to end on a small simulated dataset: generate → calibrate → result
+//! file; malformed inputs give clear errors; a quick sweep writes its table and plots.
+
+use std::path::Path;
+use std::process::Command;
+
+use hw_io::calib_files::{parse_dataset, parse_result, parse_truth, to_json};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_comanip-calib"))
+}
+
+fn run_ok(cmd: &mut Command) -> String {
+    let out = cmd.output().expect("run comanip-calib");
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn generate(dir: &Path, sigma: &str) {
+    run_ok(
+        bin()
+            .args(["generate", "--n-e", "2", "--n-t", "2", "--sigma", sigma, "--seed", "4"])
+            .arg("--dataset")
+            .arg(dir.join("d.json"))
+            .arg("--truth")
+            .arg(dir.join("t.json")),
+    );
+}
+
+#[test]
+fn generate_then_calibrate_recovers_the_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    generate(dir.path(), "0");
+    let d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
+    let t = parse_truth(&std::fs::read_to_string(dir.path().join("t.json")).unwrap()).unwrap();
+    assert_eq!(d.observations.len() + t.dropped, t.generated);
+    let stdout = run_ok(
+        bin()
+            .arg("calibrate")
+            .arg("--dataset")
+            .arg(dir.path().join("d.json"))
+            .arg("--truth")
+            .arg(dir.path().join("t.json"))
+            .arg("--out")
+            .arg(dir.path().join("r.json")),
+    );
+    assert!(stdout.contains("paper: e_t") && stdout.contains("ours: e_t"), "{stdout}");
+    let r = parse_result(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
+    assert_eq!(r.results.len(), 2);
+    for p in &r.results {
+        let dt: f64 = (0..3).map(|i| (p.translation_m[i] - t.truth.translation_m[i]).powi(2)).sum::<f64>().sqrt();
+        assert!(dt < 1e-9, "{}: {dt} m", p.pipeline);
+        // The 4x4 transform carries the same translation, last row 0 0 0 1.
+        assert_eq!([p.transform[0][3], p.transform[1][3], p.transform[2][3]], p.translation_m);
+        assert_eq!(p.transform[3], [0.0, 0.0, 0.0, 1.0]);
+    }
+    assert!(r.results[0].covariance.is_none() && r.results[1].covariance.is_some());
+}
+
+#[test]
+fn calibrate_with_opencv_intrinsics_and_one_pipeline() {
+    let dir = tempfile::tempdir().unwrap();
+    generate(dir.path(), "0.01");
+    let d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
+    let k = d.intrinsics;
+    let yaml = format!(
+        "%YAML:1.0\n---\nimage_width: {}\nimage_height: {}\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ {}, 0., {}, 0., {}, {}, 0., 0., 1. ]\n",
+        k.width, k.height, k.fx, k.cx, k.fy, k.cy
+    );
+    std::fs::write(dir.path().join("cam.yaml"), yaml).unwrap();
+    run_ok(
+        bin()
+            .arg("calibrate")
+            .arg("--pipeline")
+            .arg("ours")
+            .arg("--dataset")
+            .arg(dir.path().join("d.json"))
+            .arg("--intrinsics")
+            .arg(dir.path().join("cam.yaml"))
+            .arg("--out")
+            .arg(dir.path().join("r.json")),
+    );
+    let r = parse_result(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
+    assert_eq!(r.results.len(), 1);
+    assert_eq!(r.results[0].pipeline, "ours");
+    assert!(r.results[0].ambiguity_ratio.unwrap() > 1.0);
+}
+
+#[test]
+fn malformed_inputs_fail_with_a_named_field() {
+    let dir = tempfile::tempdir().unwrap();
+    generate(dir.path(), "0");
+    let mut d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
+    d.observations[2].line_px[1] = d.observations[2].line_px[0];
+    std::fs::write(dir.path().join("bad.json"), to_json(&d)).unwrap();
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(dir.path().join("bad.json"))
+        .arg("--out")
+        .arg(dir.path().join("r.json"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("observations[2].line_px") && err.contains("coincide"), "{err}");
+    // Degenerate: keep a single endoscope pose (of the unmodified dataset).
+    let mut d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
+    let first = d.observations[0].ecm_joints;
+    d.observations.retain(|o| o.ecm_joints == first);
+    std::fs::write(dir.path().join("one_view.json"), to_json(&d)).unwrap();
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(dir.path().join("one_view.json"))
+        .arg("--out")
+        .arg(dir.path().join("r.json"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("fewer than two views"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    std::fs::write(
+        dir.path().join("trunc.json"),
+        "{\n  \"format\": \"comanip-calib-dataset\",\n  \"version\": 1,\n  \"intrinsics\": 3\n}",
+    )
+    .unwrap();
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(dir.path().join("trunc.json"))
+        .arg("--out")
+        .arg(dir.path().join("r.json"))
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("line 4"), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn quick_sweep_writes_table_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let stdout = run_ok(bin().args(["sweep", "--quick", "--trials", "1"]).arg("--out-dir").arg(dir.path()));
+    assert!(stdout.contains("sweep.md"));
+    let md = std::fs::read_to_string(dir.path().join("sweep.md")).unwrap();
+    assert!(md.contains("| mm | 0.01 | 3⁴×3² |") && md.contains("| m | 0.01 | 3⁴×3² |"), "{md}");
+    for f in ["sigma_mm.svg", "sigma_m.svg", "grid_mm.svg", "grid_m.svg"] {
+        let svg = std::fs::read_to_string(dir.path().join(f)).unwrap();
+        assert!(svg.starts_with("<svg") && svg.contains("ours"), "{f}");
+    }
+}

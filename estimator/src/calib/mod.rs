@@ -1,0 +1,107 @@
+//! # Dual RCM-arm calibration from tool lines and encoders (offline, needs `std`)
+//!
+//! Registers an endoscope-holding RCM arm (robot 1, ECM-like) to a tool-holding RCM arm
+//! (robot 2, PSM-like) from the image line of the tool shaft and the joint readings of both
+//! arms only (Wang et al., RA-L 2017, `shared/papers/dual-rcm-calibration.md`).
+//!
+//! ## Frames and units (see also `docs/calibration.md`)
+//! - `{e}`: robot 1's remote centre of motion (RCM). `{t}`: robot 2's RCM. `{f}`: robot 1's
+//!   end effector (endoscope tip). `{c}`: camera (optical centre; z forward, x right, y down).
+//! - The unknown is `T_e_t` ([`nalgebra::Isometry3`]): maps `{t}` coordinates to `{e}`
+//!   coordinates, `p_e = R p_t + t`; `t` is the paper's `eO_t` in metres, `R` its `e_tR`.
+//! - Lengths in metres, angles in radians, image coordinates in pixels (origin at the centre of
+//!   the top-left pixel, u right, v down, OpenCV convention).
+//!
+//! ## Layers
+//! - [`kinematics`]: RCM-arm forward kinematics (ECM: yaw, pitch, insertion, roll; PSM: yaw,
+//!   pitch, insertion) and the SE(3) exponential used for noise.
+//! - [`camera`]: pinhole intrinsics with plumb-bob distortion, the image line → plane normal
+//!   step (Eq. 1) and the projection of a 3-D line.
+//! - [`prepare`]: one [`Observation`] → camera pose, plane normal and tool direction, and the
+//!   degenerate-data checks shared by both pipelines.
+//! - [`paper`]: the paper's pipeline, faithful (Eq. 5, Eq. 7-9, Eq. 10).
+//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, the
+//!   near-180° ambiguity detected and resolved.
+//! - [`crb`]: the Cramér-Rao bound for a geometry and a kinematic noise model.
+
+pub mod camera;
+pub mod crb;
+pub mod kinematics;
+pub mod ours;
+pub mod paper;
+pub mod prepare;
+
+use nalgebra::{Isometry3, Vector3};
+use serde::{Deserialize, Serialize};
+
+pub use camera::Intrinsics;
+
+/// One calibration observation: both arms' joints and the tool shaft's line in the image.
+///
+/// Shaped so that a line detector can feed it: any two distinct points of the detected
+/// centreline (typically the segment's end points) in pixels, as measured (distorted) image
+/// coordinates; [`Intrinsics::undistort_px`] is applied by the pipelines.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Observation {
+    /// Robot 1 (ECM-like): `[yaw rad, pitch rad, insertion m, roll rad]`.
+    pub ecm_joints: [f64; 4],
+    /// Robot 2 (PSM-like): `[yaw rad, pitch rad, insertion m]`.
+    pub psm_joints: [f64; 3],
+    /// Two distinct points of the tool's centreline in the image, pixels `[[u, v], [u, v]]`.
+    pub line_px: [[f64; 2]; 2],
+}
+
+/// Everything fixed across observations: camera intrinsics and robot 1's hand-eye transform.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Setup {
+    /// Pinhole intrinsics (pixels) and distortion.
+    pub intrinsics: Intrinsics,
+    /// `T_f_c`: the camera frame in robot 1's end-effector frame (metres); the paper's `X`.
+    pub hand_eye: Isometry3<f64>,
+}
+
+/// The kinematic noise model of the simulation protocol (Sec. IV, Eq. 11), used to weight our
+/// pipeline and to compute the Cramér-Rao bound.
+///
+/// Every perturbed frame `T` (the ECM end effector, PSM frames 2 and 3) is `T·exp(δ^)`,
+/// `δ = (ρ, φ)`, `ρ ~ N(0, trans_m² I3)` metres, `φ ~ N(0, rot_rad² I3)` radians, independent
+/// per frame and per observation; plus isotropic pixel noise on the line points.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KinematicNoise {
+    /// Standard deviation of each rotation component of δ, radians.
+    pub rot_rad: f64,
+    /// Standard deviation of each translation component of δ, metres.
+    pub trans_m: f64,
+    /// Standard deviation of each image coordinate of the line points, pixels.
+    pub pixel_px: f64,
+}
+
+impl KinematicNoise {
+    /// True when every standard deviation is finite and non-negative and at least one is
+    /// positive (a usable noise model).
+    pub fn is_valid(&self) -> bool {
+        let all = [self.rot_rad, self.trans_m, self.pixel_px];
+        all.iter().all(|v| v.is_finite() && *v >= 0.0) && all.iter().any(|v| *v > 0.0)
+    }
+}
+
+/// Translation error `e_t = |t − t_GT| / |t_GT|` (dimensionless; ×100 for per cent) and
+/// absolute translation error in metres, rotation error `e_R = |log(Rᵀ R_GT)|` in radians.
+pub fn pose_errors(estimate: &Isometry3<f64>, truth: &Isometry3<f64>) -> PoseErrors {
+    let dt: Vector3<f64> = estimate.translation.vector - truth.translation.vector;
+    let norm = truth.translation.vector.norm();
+    let rel = if norm > 0.0 { dt.norm() / norm } else { dt.norm() };
+    let e_r = (estimate.rotation.inverse() * truth.rotation).angle();
+    PoseErrors { translation_rel: rel, translation_m: dt.norm(), rotation_rad: e_r }
+}
+
+/// Errors of an estimated `T_e_t` against the ground truth.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseErrors {
+    /// `|t − t_GT| / |t_GT|`, dimensionless.
+    pub translation_rel: f64,
+    /// `|t − t_GT|`, metres.
+    pub translation_m: f64,
+    /// `|log(Rᵀ R_GT)|`, radians.
+    pub rotation_rad: f64,
+}

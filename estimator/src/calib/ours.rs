@@ -1,0 +1,687 @@
+//! comanip's pipeline: joint nonlinear refinement of `T_e_t` on the image distance (pixels)
+//! between the projected tool axis and the observed line, robust (Huber, by iteratively
+//! reweighted Levenberg-Marquardt), optionally whitened by the kinematic noise model, with a
+//! covariance, the near-180° ambiguity detected and resolved, and named degenerate cases.
+//!
+//! Residuals: for observation `i` and each of its two line points `u_ij` (ideal pixels),
+//! `r_ij = dist(u_ij, l_i(T))`, where `l_i = K⁻ᵀ (p_c × d_c)` is the image of the tool axis
+//! (through robot 2's RCM `t`, direction `R m_i`) seen by camera `T_e_c(θ1,i)`. With a noise
+//! model, each pair `r_i` is whitened by `Σ_i^{-1/2}`,
+//! `Σ_i = σ_px² I + G_i diag(σ²) G_iᵀ`, `G_i = ∂r_i/∂δ_i` for the 18 frame perturbations
+//! of the simulation protocol (ECM end effector, PSM frames 2 and 3): the maximum-likelihood
+//! estimator of the linearised model, whose covariance the Cramér-Rao bound ([`super::crb`])
+//! bounds.
+//!
+//! Parameters: `t` (metres, `{e}`) and a left rotation increment `δφ` (radians, `{e}`),
+//! `R ← exp(δφ^) R`. The covariance is reported in that order `(tx, ty, tz, φx, φy, φz)`.
+
+use std::vec::Vec;
+
+use nalgebra::{
+    Isometry3, Matrix2, Matrix3, Matrix6, Rotation3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
+};
+
+use super::KinematicNoise;
+use super::kinematics::skew;
+use super::paper::{PaperError, kronecker_rotation, linear_translation, refine_quaternion, wxyz};
+use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
+use super::{Observation, Setup};
+
+/// Two refined candidates whose rotations differ by more than this (radians, 10°) are
+/// different solutions for the ambiguity check.
+pub const DISTINCT_SOLUTION_RAD: f64 = 0.1745;
+
+/// 2×6 Jacobian of one observation's residual pair w.r.t. `(t, δφ)`.
+pub type Jac6 = SMatrix<f64, 2, 6>;
+/// 2×18 Jacobian of one observation's residual pair w.r.t. the frame perturbations
+/// `(δ_ECM, δ_PSM2, δ_PSM3)`, each `(ρ m, φ rad)`.
+pub type Jac18 = SMatrix<f64, 2, 18>;
+
+/// Options of our pipeline.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OursConfig {
+    /// Kinematic noise model used to whiten the residuals; `None`: plain pixel residuals.
+    pub noise: Option<KinematicNoise>,
+    /// Huber threshold in robust standard deviations of the (whitened) residual norm.
+    pub huber_k: f64,
+    /// Levenberg-Marquardt iterations per pass (two passes with a noise model).
+    pub max_iterations: usize,
+    /// Refuse the result when the mirrored (≈180°) solution's cost is less than this
+    /// factor above the best one (the two cannot be told apart).
+    pub min_ambiguity_ratio: f64,
+    /// Border guard (with a noise model only): keep observations whose predicted tool tip is
+    /// at least this many standard deviations inside the image; 0 disables it.
+    pub border_guard_sigmas: f64,
+    /// An extra starting rotation `[w, x, y, z]` (robustness sweep); the linear start and
+    /// both mirrors are always tried as well, and the lowest robust cost wins.
+    pub initial_quaternion: Option<[f64; 4]>,
+}
+
+impl Default for OursConfig {
+    fn default() -> Self {
+        Self {
+            noise: None,
+            huber_k: 3.0,
+            max_iterations: 50,
+            min_ambiguity_ratio: 1.05,
+            border_guard_sigmas: 2.0,
+            initial_quaternion: None,
+        }
+    }
+}
+
+/// Why our pipeline failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum OursError {
+    /// Input or counting check failed (see [`PrepareError`]).
+    #[error(transparent)]
+    Prepare(#[from] PrepareError),
+    /// Degenerate: robot 1's views are collinear with the line from robot 2's RCM to the
+    /// camera (translation unobservable).
+    #[error(
+        "degenerate data: robot 1's views are collinear with the line from robot 2's RCM to the camera (eigenvalue ratio {ratio:.1e}); move the endoscope sideways"
+    )]
+    ViewsCollinear {
+        /// Smallest over largest eigenvalue of Eq. 5's normal matrix.
+        ratio: f64,
+    },
+    /// Degenerate: no initial rotation can be formed (tool orientations coplanar or each
+    /// seen from a single view).
+    #[error("degenerate data: the tool rotation is unobservable from these orientations ({detail})")]
+    RotationUnobservable {
+        /// What failed.
+        detail: &'static str,
+    },
+    /// The noise model has a negative, non-finite or all-zero standard deviation.
+    #[error("invalid noise model: standard deviations must be finite, ≥ 0, not all zero")]
+    NoiseModel,
+    /// The true and the mirrored (≈180° about the line of sight) solutions fit equally well.
+    #[error(
+        "ambiguous rotation: the mirrored (≈180°) solution fits almost as well (cost ratio {ratio:.3} < {min:.3}); widen the endoscope's motion"
+    )]
+    Ambiguous {
+        /// Cost of the mirrored solution over the best one.
+        ratio: f64,
+        /// The configured minimum.
+        min: f64,
+    },
+    /// Both candidates ran away from the linear initial estimate.
+    #[error("the refinement diverged from the linear initial estimate (both candidates)")]
+    NoConvergence,
+    /// The normal matrix at the solution is singular (no covariance).
+    #[error("the normal matrix at the solution is singular: the pose is not locally observable")]
+    Singular,
+}
+
+/// Pixel residual statistics of a pose over all observations (both line points each).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ResidualStats {
+    /// Observations used.
+    pub count: usize,
+    /// Root mean square point-to-line distance, pixels.
+    pub rms_px: f64,
+    /// Median point-to-line distance, pixels.
+    pub median_px: f64,
+    /// Largest point-to-line distance, pixels.
+    pub max_px: f64,
+    /// Observations inside the Huber threshold (full weight); `count` for the paper pipeline.
+    pub inliers: usize,
+}
+
+/// Result of our pipeline.
+#[derive(Clone, Copy, Debug)]
+pub struct OursResult {
+    /// `T_e_t`, metres.
+    pub pose: Isometry3<f64>,
+    /// Covariance of `(t m, δφ rad)` (left increment in `{e}`): `σ̂² (JᵀWJ)⁻¹`.
+    pub covariance: Matrix6<f64>,
+    /// Pixel residuals at the solution.
+    pub residuals: ResidualStats,
+    /// Robust scale of the (whitened) residual norms at the solution (≈1 when the noise
+    /// model is right; pixels without a noise model).
+    pub scale: f64,
+    /// The mirrored candidate (≈180° about the line of sight), refined.
+    pub alternative: Isometry3<f64>,
+    /// Robust cost of the alternative over the chosen solution (≥ 1; large = unambiguous).
+    pub ambiguity_ratio: f64,
+    /// Levenberg-Marquardt iterations, all candidates.
+    pub iterations: usize,
+    /// Observations kept by the border guard (all of them when the guard is off or did not
+    /// drop any).
+    pub guard_kept: usize,
+}
+
+fn dist_and_grad(l: &Vector3<f64>, u: &Vector2<f64>) -> (f64, nalgebra::RowVector3<f64>) {
+    let s2 = l.x * l.x + l.y * l.y;
+    let s = s2.sqrt();
+    let lu = l.x * u.x + l.y * u.y + l.z;
+    let r = lu / s;
+    let g = nalgebra::RowVector3::new(u.x / s - lu * l.x / (s2 * s), u.y / s - lu * l.y / (s2 * s), 1.0 / s);
+    (r, g)
+}
+
+/// Residual pair (pixels) of observation `o` for pose `(R, t)` and its Jacobian w.r.t.
+/// `(t, δφ)`.
+pub fn residual_and_jacobian(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+) -> (Vector2<f64>, Jac6) {
+    let rm = r * o.m_t;
+    let rt = o.r_ec.transpose();
+    let p_c = rt * (t - o.o_ec);
+    let d_c = rt * rm;
+    let nv = p_c.cross(&d_c);
+    let l = set.k_inv_t * nv;
+    let dn_dt = -skew(&d_c) * rt;
+    let dn_dphi = skew(&p_c) * rt * (-skew(&rm));
+    let mut dn = SMatrix::<f64, 3, 6>::zeros();
+    dn.fixed_view_mut::<3, 3>(0, 0).copy_from(&dn_dt);
+    dn.fixed_view_mut::<3, 3>(0, 3).copy_from(&dn_dphi);
+    let dl = set.k_inv_t * dn;
+    let mut res = Vector2::zeros();
+    let mut jac = Jac6::zeros();
+    for j in 0..2 {
+        let (rj, g) = dist_and_grad(&l, &o.px[j]);
+        res[j] = rj;
+        jac.set_row(j, &(g * dl));
+    }
+    (res, jac)
+}
+
+/// Jacobian (pixels per metre / radian) of observation `o`'s residual pair w.r.t. the 18
+/// frame perturbations of the simulation protocol at pose `(R, t)`: `δ_ECM` right-multiplied
+/// on the ECM end effector, `δ_PSM2`, `δ_PSM3` on PSM frames 2 and 3, each `(ρ, φ)`.
+pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Jac18 {
+    let rt = o.r_ec.transpose();
+    let rm = r * o.m_t;
+    let p_c = rt * (r * (o.m_t * o.insertion_m) + t - o.o_ec);
+    let d_c = rt * rm;
+    let (sp, sd) = (skew(&p_c), skew(&d_c));
+    let mut dn = SMatrix::<f64, 3, 18>::zeros();
+    // Camera: right perturbation δc = Ad(X⁻¹) δe in the camera frame.
+    let mut dn_c = SMatrix::<f64, 3, 6>::zeros();
+    dn_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&sd);
+    dn_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&(sp * sd - sd * sp));
+    let xi = set.hand_eye.inverse();
+    let rx = xi.rotation.to_rotation_matrix().into_inner();
+    let mut ad = Matrix6::zeros();
+    ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&rx);
+    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(skew(&xi.translation.vector) * rx));
+    ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
+    dn.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dn_c * ad));
+    // Tool: δP = R2(ρa + ρb − d[ẑ]×φa), δD = −R2[ẑ]×(φa + φb), mapped into the camera.
+    let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
+    let z = skew(&Vector3::z());
+    let d = o.insertion_m;
+    let dn_rho = -sd * a;
+    let dn_phi_a = sd * a * z * d - sp * a * z;
+    let dn_phi_b = -sp * a * z;
+    dn.fixed_view_mut::<3, 3>(0, 6).copy_from(&dn_rho);
+    dn.fixed_view_mut::<3, 3>(0, 9).copy_from(&dn_phi_a);
+    dn.fixed_view_mut::<3, 3>(0, 12).copy_from(&dn_rho);
+    dn.fixed_view_mut::<3, 3>(0, 15).copy_from(&dn_phi_b);
+    let l = set.k_inv_t * p_c.cross(&d_c);
+    let dl = set.k_inv_t * dn;
+    let mut g = Jac18::zeros();
+    for j in 0..2 {
+        let (_, grad) = dist_and_grad(&l, &o.px[j]);
+        g.set_row(j, &(grad * dl));
+    }
+    g
+}
+
+/// The 2×2 covariance (pixels²) of observation `o`'s residual pair under `noise` at `(R, t)`.
+pub fn residual_covariance(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+) -> Matrix2<f64> {
+    let g = noise_jacobian(set, o, r, t);
+    let mut d = SMatrix::<f64, 18, 1>::zeros();
+    for f in 0..3 {
+        for k in 0..3 {
+            d[6 * f + k] = noise.trans_m * noise.trans_m;
+            d[6 * f + 3 + k] = noise.rot_rad * noise.rot_rad;
+        }
+    }
+    let mut s = Matrix2::identity() * (noise.pixel_px * noise.pixel_px);
+    for c in 0..18 {
+        let col = g.column(c);
+        s += col * col.transpose() * d[c];
+    }
+    s
+}
+
+/// Inverse Cholesky factor `L⁻¹` of a 2×2 SPD matrix (identity if not SPD).
+fn whitener(s: &Matrix2<f64>) -> Matrix2<f64> {
+    match s.cholesky() {
+        Some(c) => c.l().try_inverse().unwrap_or_else(Matrix2::identity),
+        None => Matrix2::identity(),
+    }
+}
+
+fn huber(e: f64, c: f64) -> f64 {
+    if e <= c { 0.5 * e * e } else { c * (e - 0.5 * c) }
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mid = v.len() / 2;
+    let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    *m
+}
+
+/// Median of the norm of a 2-D standard normal vector, `√(2 ln 2)`.
+const CHI2_MEDIAN: f64 = 1.177_410_022_515_474_6;
+
+struct Refined {
+    r: Matrix3<f64>,
+    t: Vector3<f64>,
+    whiten: Vec<Matrix2<f64>>,
+    scale: f64,
+    iterations: usize,
+}
+
+fn whitened_norms(set: &PreparedSet, whiten: &[Matrix2<f64>], r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<f64> {
+    set.obs.iter().zip(whiten).map(|(o, w)| (w * residual_and_jacobian(set, o, r, t).0).norm()).collect()
+}
+
+fn robust_scale(norms: &[f64]) -> f64 {
+    let mut v = norms.to_vec();
+    (median(&mut v) / CHI2_MEDIAN).max(1e-12)
+}
+
+/// Robust Levenberg-Marquardt from `(r0, t0)` with fixed whitening matrices.
+fn refine(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    whiten: Vec<Matrix2<f64>>,
+    r0: Matrix3<f64>,
+    t0: Vector3<f64>,
+) -> Refined {
+    let mut r = r0;
+    let mut t = t0;
+    let mut iterations = 0;
+    let mut scale = 1.0;
+    {
+        let mut lambda = 1e-4;
+        for _ in 0..cfg.max_iterations {
+            iterations += 1;
+            let mut h = Matrix6::zeros();
+            let mut g = Vector6::zeros();
+            let mut norms = Vec::with_capacity(set.obs.len());
+            let mut evals = Vec::with_capacity(set.obs.len());
+            for (o, w) in set.obs.iter().zip(&whiten) {
+                let (res, jac) = residual_and_jacobian(set, o, &r, &t);
+                let (e, j) = (w * res, w * jac);
+                norms.push(e.norm());
+                evals.push((e, j));
+            }
+            scale = robust_scale(&norms);
+            let c = cfg.huber_k * scale;
+            let mut cost = 0.0;
+            for ((e, j), n) in evals.iter().zip(&norms) {
+                let wgt = if *n <= c { 1.0 } else { c / n };
+                h += j.transpose() * j * wgt;
+                g += j.transpose() * e * wgt;
+                cost += huber(*n, c);
+            }
+            let mut accepted = false;
+            let mut small = false;
+            while lambda < 1e10 {
+                let mut a = h;
+                for i in 0..6 {
+                    a[(i, i)] += lambda * h[(i, i)].max(1e-12);
+                }
+                let Some(step) = a.cholesky().map(|ch| ch.solve(&-g)) else {
+                    lambda *= 10.0;
+                    continue;
+                };
+                let t_new = t + step.fixed_rows::<3>(0);
+                let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
+                let new_cost: f64 = whitened_norms(set, &whiten, &r_new, &t_new).iter().map(|n| huber(*n, c)).sum();
+                if new_cost <= cost {
+                    small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
+                        || cost - new_cost <= 1e-14 * cost;
+                    t = t_new;
+                    r = orthonormalize(&r_new);
+                    lambda = (lambda * 0.2).max(1e-9);
+                    accepted = true;
+                    break;
+                }
+                lambda *= 10.0;
+            }
+            if !accepted || small {
+                break;
+            }
+        }
+    }
+    Refined { r, t, whiten, scale, iterations }
+}
+
+/// Whitening matrices `Σ_i^{-1/2}` at `(r, t)` (identity without a noise model).
+fn whitening(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<Matrix2<f64>> {
+    match &cfg.noise {
+        Some(noise) => set.obs.iter().map(|o| whitener(&residual_covariance(set, o, r, t, noise))).collect(),
+        None => vec![Matrix2::identity(); set.obs.len()],
+    }
+}
+
+fn orthonormalize(r: &Matrix3<f64>) -> Matrix3<f64> {
+    UnitQuaternion::from_matrix(r).to_rotation_matrix().into_inner()
+}
+
+/// Pixel residual statistics of pose `T_e_t` over prepared observations (unweighted).
+pub fn residual_stats(set: &PreparedSet, pose: &Isometry3<f64>) -> ResidualStats {
+    let r = pose.rotation.to_rotation_matrix().into_inner();
+    let t = pose.translation.vector;
+    let mut d: Vec<f64> = Vec::with_capacity(2 * set.obs.len());
+    for o in &set.obs {
+        let (res, _) = residual_and_jacobian(set, o, &r, &t);
+        d.push(res[0].abs());
+        d.push(res[1].abs());
+    }
+    let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len().max(1) as f64).sqrt();
+    let max = d.iter().cloned().fold(0.0, f64::max);
+    ResidualStats { count: set.obs.len(), rms_px: rms, median_px: median(&mut d), max_px: max, inliers: set.obs.len() }
+}
+
+/// Initial rotation when Eq. 8 is rank-deficient (e.g. exactly three tool orientations):
+/// per tool orientation, the tool direction in `{e}` is the common null direction of its
+/// plane normals; its sign puts the tool tip in front of the camera; Kabsch aligns `m` to it.
+fn grouped_rotation(set: &PreparedSet, t0: &Vector3<f64>) -> Option<Matrix3<f64>> {
+    let mut groups: Vec<(Vector3<f64>, Matrix3<f64>, usize, usize)> = Vec::new();
+    for (i, o) in set.obs.iter().enumerate() {
+        match groups.iter_mut().find(|g| g.0.cross(&o.m_t).norm() <= SAME_ORIENTATION_RAD && g.0.dot(&o.m_t) > 0.0) {
+            Some(g) => {
+                g.1 += o.n_e * o.n_e.transpose();
+                g.2 += 1;
+            }
+            None => groups.push((o.m_t, o.n_e * o.n_e.transpose(), 1, i)),
+        }
+    }
+    let mut h = Matrix3::zeros();
+    let mut used = 0;
+    for (m, s, count, first) in &groups {
+        if *count < 2 {
+            continue;
+        }
+        let eig = s.symmetric_eigen();
+        let (imin, _) = eig.eigenvalues.argmin();
+        let mut u: Vector3<f64> = eig.eigenvectors.column(imin).into_owned();
+        let o = &set.obs[*first];
+        let tip_c = o.r_ec.transpose() * (t0 + u * o.insertion_m - o.o_ec);
+        if tip_c.z < 0.0 {
+            u = -u;
+        }
+        h += u * m.transpose();
+        used += 1;
+    }
+    if used < 2 {
+        return None;
+    }
+    let svd = h.svd(true, true);
+    let (u, vt) = (svd.u?, svd.v_t?);
+    let mut d = Matrix3::identity();
+    if (u * vt).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    Some(u * d * vt)
+}
+
+/// Our whole pipeline on raw observations.
+pub fn solve_ours(setup: &Setup, observations: &[Observation], config: &OursConfig) -> Result<OursResult, OursError> {
+    let set = prepare(setup, observations)?;
+    solve_ours_prepared(&set, config)
+}
+
+/// Our pipeline on prepared observations.
+pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
+    let mut result = solve_once(set, cfg, None)?;
+    let (Some(noise), true) = (cfg.noise, cfg.border_guard_sigmas > 0.0) else {
+        return Ok(result);
+    };
+    // Border guard: an observation is only in the dataset because its tool tip was in view,
+    // which selects the noise of observations near the image border (tips pushed inward are
+    // kept, pushed outward dropped) and biases the fit. Keep only observations whose tip is
+    // predicted, from the current estimate, to lie at least `border_guard_sigmas` standard
+    // deviations inside the image: their selection no longer depends on their own noise.
+    let mut kept_before = set.obs.len();
+    for _ in 0..3 {
+        let r = result.pose.rotation.to_rotation_matrix().into_inner();
+        let t = result.pose.translation.vector;
+        let obs: Vec<Prepared> = set
+            .obs
+            .iter()
+            .filter(|o| tip_well_inside(set, o, &r, &t, &noise, cfg.border_guard_sigmas))
+            .cloned()
+            .collect();
+        if obs.len() == kept_before || obs.len() < 12 {
+            break;
+        }
+        kept_before = obs.len();
+        let sub = PreparedSet { obs, ..set.clone() };
+        match solve_once(&sub, cfg, Some(&result.pose)) {
+            Ok(mut next) => {
+                next.guard_kept = sub.obs.len();
+                next.alternative = result.alternative;
+                next.ambiguity_ratio = result.ambiguity_ratio;
+                result = next;
+            }
+            Err(_) => break,
+        }
+    }
+    Ok(result)
+}
+
+/// True when the tool tip of `o`, predicted at `(R, t)`, lies `k` standard deviations (of
+/// its pixel position under `noise`) inside the image.
+pub fn tip_well_inside(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    k: f64,
+) -> bool {
+    let rt = o.r_ec.transpose();
+    let p = rt * (r * (o.m_t * o.insertion_m) + t - o.o_ec);
+    if p.z <= 1e-3 {
+        return false;
+    }
+    let cam = &set.intrinsics;
+    let u = cam.fx * p.x / p.z + cam.skew * p.y / p.z + cam.cx;
+    let v = cam.fy * p.y / p.z + cam.cy;
+    // ∂(u, v)/∂p (pinhole, distortion neglected for the margin).
+    let proj = SMatrix::<f64, 2, 3>::new(
+        cam.fx / p.z,
+        cam.skew / p.z,
+        -(cam.fx * p.x + cam.skew * p.y) / (p.z * p.z),
+        0.0,
+        cam.fy / p.z,
+        -cam.fy * p.y / (p.z * p.z),
+    );
+    // ∂p/∂δ: camera right perturbation δc = Ad(X⁻¹) δe: p' = p + [p]× φc − ρc;
+    // tool: δP = R2(ρa + ρb − d[ẑ]×φa) mapped into the camera by A = R_ecᵀ R R2.
+    let xi = set.hand_eye.inverse();
+    let rx = xi.rotation.to_rotation_matrix().into_inner();
+    let mut ad = Matrix6::zeros();
+    ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&rx);
+    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(skew(&xi.translation.vector) * rx));
+    ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
+    let mut dp_c = SMatrix::<f64, 3, 6>::zeros();
+    dp_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&-Matrix3::identity());
+    dp_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&p));
+    let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
+    let mut dp = SMatrix::<f64, 3, 18>::zeros();
+    dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * ad));
+    dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
+    dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
+    dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);
+    let g = proj * dp;
+    let mut cov = Matrix2::identity() * (noise.pixel_px * noise.pixel_px);
+    for c in 0..18 {
+        let var = if c % 6 < 3 { noise.trans_m * noise.trans_m } else { noise.rot_rad * noise.rot_rad };
+        let col = g.column(c);
+        cov += col * col.transpose() * var;
+    }
+    let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
+    u - su >= 0.0 && v - sv >= 0.0 && u + su <= cam.width as f64 - 1.0 && v + sv <= cam.height as f64 - 1.0
+}
+
+/// One solve. `from`: refine only from this pose (no linear start, no mirror), keeping the
+/// ambiguity decision already made on the full data.
+fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>) -> Result<OursResult, OursError> {
+    if cfg.noise.is_some_and(|n| !n.is_valid()) {
+        return Err(OursError::NoiseModel);
+    }
+    let t0 = match from {
+        Some(p) => p.translation.vector,
+        None => linear_translation(set).map_err(|e| match e {
+            PaperError::ViewsCollinear { ratio } => OursError::ViewsCollinear { ratio },
+            _ => OursError::Singular,
+        })?,
+    };
+    // The linear start: Kronecker rotation (Eq. 8-9) polished by Eq. 10 (cheap, 4 parameters);
+    // per-orientation directions when Eq. 8 is rank-deficient.
+    let linear = if from.is_some() {
+        None
+    } else {
+        match kronecker_rotation(set) {
+            Ok(r) => {
+                let (q, _, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_rotation_matrix(&r)));
+                Some(q.to_rotation_matrix().into_inner())
+            }
+            Err(_) => grouped_rotation(set, &t0),
+        }
+    };
+    let mut starts: Vec<Matrix3<f64>> = Vec::with_capacity(2);
+    if let Some(p) = from {
+        starts.push(p.rotation.to_rotation_matrix().into_inner());
+    } else if let Some(q) = cfg.initial_quaternion {
+        let q = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
+        if !(q.norm() > 0.0 && q.coords.iter().all(|v| v.is_finite())) {
+            return Err(OursError::RotationUnobservable { detail: "initial quaternion is zero or not finite" });
+        }
+        starts.push(UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner());
+    }
+    match linear {
+        Some(r) => starts.push(r),
+        None if starts.is_empty() => {
+            return Err(OursError::RotationUnobservable {
+                detail: "no two tool orientations each seen from two views",
+            });
+        }
+        None => {}
+    }
+    // Each start and its mirror: 180° about the mean line of sight to robot 2's RCM.
+    let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / set.obs.len() as f64;
+    let sight = (t0 - mean_c).try_normalize(1e-12).unwrap_or_else(Vector3::z);
+    let flip = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(sight), core::f64::consts::PI).into_inner();
+    // Whitening is held fixed while candidates are refined and compared (the same weights
+    // for all: a weight that follows the estimate would favour poses that inflate their own
+    // predicted noise); it is refreshed once at the winner for a final pass.
+    let w0 = whitening(set, cfg, starts.last().unwrap_or(&Matrix3::identity()), &t0);
+    let candidates: Vec<Refined> = starts
+        .iter()
+        .flat_map(|r0| if from.is_some() { vec![*r0] } else { vec![*r0, flip * r0] })
+        .map(|r0| {
+            let first = refine(set, cfg, w0.clone(), r0, t0);
+            if cfg.noise.is_none() {
+                return first;
+            }
+            // Second pass with the whitening refreshed at this candidate's solution.
+            let w1 = whitening(set, cfg, &first.r, &first.t);
+            let second = refine(set, cfg, w1, first.r, first.t);
+            Refined { whiten: w0.clone(), ..second }
+        })
+        .collect();
+    // A candidate that ran away (moved more than twice as far as robot 2's RCM is from
+    // robot 1's, per the linear estimate) failed.
+    let sane = |x: &Refined| (x.t - t0).norm() <= 2.0 * t0.norm().max(1e-3) && x.t.iter().all(|v| v.is_finite());
+    let s_ref = candidates.iter().filter(|x| sane(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
+    if !s_ref.is_finite() {
+        return Err(OursError::NoConvergence);
+    }
+    let c_ref = cfg.huber_k * s_ref;
+    let costs: Vec<f64> = candidates
+        .iter()
+        .map(|x| {
+            if sane(x) {
+                whitened_norms(set, &x.whiten, &x.r, &x.t).iter().map(|n| huber(*n, c_ref)).sum()
+            } else {
+                f64::INFINITY
+            }
+        })
+        .collect();
+    let ib = (0..candidates.len()).min_by(|a, b| costs[*a].total_cmp(&costs[*b])).unwrap_or(0);
+    let best = &candidates[ib];
+    let c_best = costs[ib];
+    // The ambiguity: the best candidate that is a different solution, i.e. more than
+    // [`DISTINCT_SOLUTION_RAD`] away in rotation (not the same minimum reached from another
+    // start, which differs only by the convergence tolerance).
+    let distinct =
+        |x: &Refined| Rotation3::from_matrix_unchecked(best.r.transpose() * x.r).angle() > DISTINCT_SOLUTION_RAD;
+    let alt_idx = (0..candidates.len())
+        .filter(|i| *i != ib && distinct(&candidates[*i]))
+        .min_by(|a, b| costs[*a].total_cmp(&costs[*b]));
+    let (alt, c_alt) = match alt_idx {
+        Some(i) => (&candidates[i], costs[i]),
+        None => (best, f64::INFINITY),
+    };
+    let ratio = if c_best > 0.0 {
+        c_alt / c_best
+    } else if c_alt > 0.0 {
+        f64::INFINITY
+    } else {
+        1.0
+    };
+    if ratio < cfg.min_ambiguity_ratio {
+        return Err(OursError::Ambiguous { ratio, min: cfg.min_ambiguity_ratio });
+    }
+    // The winner's own whitening for its covariance.
+    let best = &Refined { whiten: whitening(set, cfg, &best.r, &best.t), ..*best };
+    // Covariance σ̂² (JᵀWJ)⁻¹ at the solution.
+    let c = cfg.huber_k * best.scale;
+    let mut h = Matrix6::zeros();
+    let mut wsum = 0.0;
+    let mut inliers = 0;
+    for (o, w) in set.obs.iter().zip(&best.whiten) {
+        let (res, jac) = residual_and_jacobian(set, o, &best.r, &best.t);
+        let (e, j) = (w * res, w * jac);
+        let n = e.norm();
+        let wgt = if n <= c {
+            inliers += 1;
+            1.0
+        } else {
+            c / n
+        };
+        h += j.transpose() * j * wgt;
+        wsum += wgt * n * n;
+    }
+    let dof = (2 * set.obs.len()).saturating_sub(6).max(1) as f64;
+    let sigma2 = wsum / dof;
+    let cov = h.try_inverse().ok_or(OursError::Singular)? * sigma2;
+    if !cov.iter().all(|v| v.is_finite()) {
+        return Err(OursError::Singular);
+    }
+    let pose = Isometry3::from_parts(Translation3::from(best.t), UnitQuaternion::from_matrix(&best.r));
+    let mut residuals = residual_stats(set, &pose);
+    residuals.inliers = inliers;
+    Ok(OursResult {
+        pose,
+        covariance: cov,
+        residuals,
+        scale: best.scale,
+        alternative: Isometry3::from_parts(Translation3::from(alt.t), UnitQuaternion::from_matrix(&alt.r)),
+        ambiguity_ratio: ratio,
+        iterations: candidates.iter().map(|c| c.iterations).sum(),
+        guard_kept: set.obs.len(),
+    })
+}

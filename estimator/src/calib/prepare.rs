@@ -1,0 +1,183 @@
+//! From observations to the quantities both pipelines use, plus the degenerate-data checks
+//! that do not depend on the solution (robot 1 in too few views, robot 2 in too few
+//! orientations). The check that needs the geometry (views collinear with the line from
+//! robot 2's RCM to the camera) is made by the translation step, see
+//! [`super::paper::linear_translation`].
+
+use std::vec::Vec;
+
+use nalgebra::{Isometry3, Matrix3, Vector2, Vector3};
+
+use super::camera::{IntrinsicsError, LineError, plane_normal};
+use super::kinematics::{ecm_frames, psm_axis, psm_frames};
+use super::{Observation, Setup};
+
+/// Camera centres closer than this (metres) are the same view of robot 1.
+pub const SAME_VIEW_M: f64 = 1e-6;
+/// Tool directions closer than this (radians) are the same orientation of robot 2.
+pub const SAME_ORIENTATION_RAD: f64 = 1e-6;
+
+/// One observation, prepared.
+#[derive(Clone, Copy, Debug)]
+pub struct Prepared {
+    /// Camera orientation in `{e}` (`e_cR(θ1)`).
+    pub r_ec: Matrix3<f64>,
+    /// Optical centre in `{e}`, metres (`eO_c(θ1)`).
+    pub o_ec: Vector3<f64>,
+    /// Robot 1's end-effector frame `F4(θ1)` in `{e}`, metres.
+    pub ecm_tip: Isometry3<f64>,
+    /// Unit plane normal (Eq. 1) in the camera frame.
+    pub n_c: Vector3<f64>,
+    /// The same normal in `{e}`: `e_cR n_c`.
+    pub n_e: Vector3<f64>,
+    /// Unit tool axis `m(θ2)` in `{t}`.
+    pub m_t: Vector3<f64>,
+    /// Robot 2's frame 2 `F2(θ2)` in `{t}` (rotation only; its origin is the RCM).
+    pub psm_f2: Isometry3<f64>,
+    /// Robot 2's insertion, metres.
+    pub insertion_m: f64,
+    /// The two line points as ideal (undistorted) pixels.
+    pub px: [Vector2<f64>; 2],
+}
+
+/// All observations, prepared, with the camera model.
+#[derive(Clone, Debug)]
+pub struct PreparedSet {
+    /// Prepared observations, in input order.
+    pub obs: Vec<Prepared>,
+    /// `K⁻ᵀ`: maps a plane normal in the camera frame to a homogeneous pixel line.
+    pub k_inv_t: Matrix3<f64>,
+    /// `T_f_c`, metres.
+    pub hand_eye: Isometry3<f64>,
+    /// The camera intrinsics (pixels; image size for the border guard).
+    pub intrinsics: super::Intrinsics,
+    /// Distinct views of robot 1 (distinct optical centres), counted up to the first 2.
+    pub views: usize,
+    /// Distinct orientations of robot 2's tool, counted up to the first 3.
+    pub orientations: usize,
+}
+
+/// Why observations cannot be prepared.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PrepareError {
+    /// No observation at all.
+    #[error("no observations")]
+    Empty,
+    /// The intrinsics are unusable.
+    #[error("camera intrinsics: {0}")]
+    Intrinsics(#[from] IntrinsicsError),
+    /// The hand-eye transform is not finite.
+    #[error("hand-eye transform is not finite")]
+    HandEye,
+    /// A joint value is NaN or infinite.
+    #[error("observation {index}: joint values must be finite")]
+    Joint {
+        /// Observation index (0-based).
+        index: usize,
+    },
+    /// The observed line is unusable.
+    #[error("observation {index}: line: {source}")]
+    Line {
+        /// Observation index (0-based).
+        index: usize,
+        /// What is wrong with the line.
+        source: LineError,
+    },
+    /// Degenerate: robot 1 (the endoscope) was seen from fewer than two views, so the depth
+    /// of robot 2's RCM cannot be recovered.
+    #[error(
+        "degenerate data: robot 1 (endoscope) in fewer than two views ({views} distinct optical centre(s)); move the endoscope to at least two positions"
+    )]
+    TooFewViews {
+        /// Distinct optical centres found.
+        views: usize,
+    },
+    /// Degenerate: robot 2 (the tool) was seen in fewer than three orientations, so the
+    /// rotation cannot be recovered.
+    #[error(
+        "degenerate data: robot 2 (tool) in fewer than three orientations ({orientations} distinct tool direction(s)); need at least three"
+    )]
+    TooFewToolOrientations {
+        /// Distinct tool directions found.
+        orientations: usize,
+    },
+}
+
+fn finite_iso(t: &Isometry3<f64>) -> bool {
+    t.translation.vector.iter().all(|v| v.is_finite()) && t.rotation.coords.iter().all(|v| v.is_finite())
+}
+
+/// Prepares observations: camera poses from robot 1's joints and the hand-eye transform,
+/// plane normals (Eq. 1) from undistorted line points, tool axes from robot 2's joints; then
+/// checks the two counts the method needs (≥ 2 views of robot 1, ≥ 3 tool orientations).
+pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSet, PrepareError> {
+    if observations.is_empty() {
+        return Err(PrepareError::Empty);
+    }
+    setup.intrinsics.validate()?;
+    if !finite_iso(&setup.hand_eye) {
+        return Err(PrepareError::HandEye);
+    }
+    let k_inv = setup.intrinsics.k_inv();
+    let mut obs = Vec::with_capacity(observations.len());
+    for (index, o) in observations.iter().enumerate() {
+        if !o.ecm_joints.iter().chain(o.psm_joints.iter()).all(|v| v.is_finite()) {
+            return Err(PrepareError::Joint { index });
+        }
+        let px = [
+            setup.intrinsics.undistort_px(&Vector2::from(o.line_px[0])),
+            setup.intrinsics.undistort_px(&Vector2::from(o.line_px[1])),
+        ];
+        let n_c = plane_normal(&k_inv, &px[0], &px[1]).map_err(|source| PrepareError::Line { index, source })?;
+        let tip = ecm_frames(&o.ecm_joints)[3];
+        let cam = tip * setup.hand_eye;
+        let r_ec = cam.rotation.to_rotation_matrix().into_inner();
+        let f2 = psm_frames(&o.psm_joints)[1];
+        obs.push(Prepared {
+            r_ec,
+            o_ec: cam.translation.vector,
+            ecm_tip: tip,
+            n_c,
+            n_e: r_ec * n_c,
+            m_t: psm_axis(&o.psm_joints),
+            psm_f2: f2,
+            insertion_m: o.psm_joints[2],
+            px,
+        });
+    }
+    let views = count_distinct(obs.iter().map(|p| p.o_ec), 2, |a, b| (a - b).norm() > SAME_VIEW_M);
+    if views < 2 {
+        return Err(PrepareError::TooFewViews { views });
+    }
+    let orientations =
+        count_distinct(obs.iter().map(|p| p.m_t), 3, |a, b| a.cross(b).norm() > SAME_ORIENTATION_RAD || a.dot(b) < 0.0);
+    if orientations < 3 {
+        return Err(PrepareError::TooFewToolOrientations { orientations });
+    }
+    Ok(PreparedSet {
+        obs,
+        k_inv_t: k_inv.transpose(),
+        hand_eye: setup.hand_eye,
+        intrinsics: setup.intrinsics,
+        views,
+        orientations,
+    })
+}
+
+/// Counts distinct items (pairwise `differ`), stopping at `enough`.
+fn count_distinct<I: Iterator<Item = Vector3<f64>>>(
+    items: I,
+    enough: usize,
+    differ: impl Fn(&Vector3<f64>, &Vector3<f64>) -> bool,
+) -> usize {
+    let mut found: Vec<Vector3<f64>> = Vec::with_capacity(enough);
+    for v in items {
+        if found.iter().all(|f| differ(f, &v)) {
+            found.push(v);
+            if found.len() >= enough {
+                break;
+            }
+        }
+    }
+    found.len()
+}

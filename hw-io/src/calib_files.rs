@@ -1,0 +1,556 @@
+//! Files of the dual RCM-arm calibration (`docs/calibration.md`): camera intrinsics from
+//! OpenCV FileStorage YAML or ROS `camera_info` YAML, the dataset file, the ground-truth file
+//! of a simulated dataset and the result file (all three JSON, versioned).
+//!
+//! Units: metres, radians, pixels. Quaternions are `[w, x, y, z]`. Transforms are `T_e_t`
+//! (robot 2's RCM frame in robot 1's RCM frame) unless named otherwise.
+
+use serde::{Deserialize, Serialize};
+
+/// Pinhole intrinsics read from a file (pixels) with plumb-bob distortion.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraIntrinsics {
+    /// Focal length along u, pixels.
+    pub fx: f64,
+    /// Focal length along v, pixels.
+    pub fy: f64,
+    /// Principal point u, pixels.
+    pub cx: f64,
+    /// Principal point v, pixels.
+    pub cy: f64,
+    /// Skew, pixels (usually 0).
+    #[serde(default)]
+    pub skew: f64,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// `[k1, k2, p1, p2, k3]`, dimensionless; zeros for none.
+    #[serde(default)]
+    pub distortion: [f64; 5],
+}
+
+/// Why an intrinsics YAML file was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum IntrinsicsFileError {
+    /// Not YAML.
+    #[error("intrinsics YAML, line {line}, column {column}: {message}")]
+    Yaml {
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// The parser's message.
+        message: String,
+    },
+    /// A required field is missing (named as in the file).
+    #[error(
+        "intrinsics YAML: missing field `{0}` (OpenCV: camera_matrix / image_width / image_height; ROS: camera_matrix or K, image_width or width, ...)"
+    )]
+    Missing(&'static str),
+    /// A field has the wrong type, size or value.
+    #[error("intrinsics YAML: field `{field}`: {problem}")]
+    Field {
+        /// The field's name.
+        field: &'static str,
+        /// What is wrong.
+        problem: String,
+    },
+}
+
+fn first<'a>(map: &'a serde_yaml_ng::Value, keys: &[&'static str]) -> Option<(&'static str, &'a serde_yaml_ng::Value)> {
+    keys.iter().find_map(|k| map.get(*k).map(|v| (*k, v)))
+}
+
+fn numbers(field: &'static str, v: &serde_yaml_ng::Value) -> Result<Vec<f64>, IntrinsicsFileError> {
+    // Either a plain sequence (ROS CameraInfo `K: [..]`) or a matrix mapping with `data`
+    // (OpenCV `!!opencv-matrix`, ROS camera_calibration `{rows, cols, data}`).
+    let seq = match v {
+        serde_yaml_ng::Value::Sequence(s) => s,
+        serde_yaml_ng::Value::Mapping(_) => match v.get("data") {
+            Some(serde_yaml_ng::Value::Sequence(s)) => s,
+            _ => return Err(IntrinsicsFileError::Field { field, problem: "matrix without a `data` list".into() }),
+        },
+        _ => return Err(IntrinsicsFileError::Field { field, problem: "expected a list or a matrix".into() }),
+    };
+    seq.iter()
+        .enumerate()
+        .map(|(i, x)| match x.as_f64() {
+            Some(f) if f.is_finite() => Ok(f),
+            _ => Err(IntrinsicsFileError::Field { field, problem: format!("element {i} is not a finite number") }),
+        })
+        .collect()
+}
+
+fn size(map: &serde_yaml_ng::Value, keys: &[&'static str]) -> Result<u32, IntrinsicsFileError> {
+    let (k, v) = first(map, keys).ok_or(IntrinsicsFileError::Missing(keys[0]))?;
+    v.as_u64()
+        .filter(|n| *n > 0 && *n <= u32::MAX as u64)
+        .map(|n| n as u32)
+        .ok_or(IntrinsicsFileError::Field { field: k, problem: "expected a positive integer".into() })
+}
+
+/// Parses camera intrinsics from OpenCV FileStorage YAML (`%YAML:1.0` header,
+/// `!!opencv-matrix` tags; keys `camera_matrix`/`cameraMatrix`/`K`,
+/// `distortion_coefficients`/`dist_coeffs`/`distCoeffs`/`D`), ROS camera_calibration YAML
+/// (`camera_matrix: {rows, cols, data}`, `distortion_model`) or a ROS `CameraInfo` message
+/// (`width`, `height`, `K`/`k`, `D`/`d`).
+pub fn parse_intrinsics_yaml(text: &str) -> Result<CameraIntrinsics, IntrinsicsFileError> {
+    // OpenCV writes a non-standard directive (`%YAML:1.0`) and a custom tag: drop both,
+    // keeping line numbers (the directive line becomes a comment).
+    let cleaned: String = text
+        .lines()
+        .map(|l| if l.trim_start().starts_with("%YAML") { "#".to_string() } else { l.replace("!!opencv-matrix", "") })
+        .collect::<Vec<_>>()
+        .join("\n");
+    let doc: serde_yaml_ng::Value = serde_yaml_ng::from_str(&cleaned).map_err(|e| {
+        let (line, column) = e.location().map(|l| (l.line(), l.column())).unwrap_or((0, 0));
+        IntrinsicsFileError::Yaml { line, column, message: e.to_string() }
+    })?;
+    if !doc.is_mapping() {
+        return Err(IntrinsicsFileError::Yaml {
+            line: 1,
+            column: 1,
+            message: "expected a mapping at the top level".into(),
+        });
+    }
+    let (kf, kv) = first(&doc, &["camera_matrix", "cameraMatrix", "K", "k"])
+        .ok_or(IntrinsicsFileError::Missing("camera_matrix"))?;
+    let k = numbers(kf, kv)?;
+    if k.len() != 9 {
+        return Err(IntrinsicsFileError::Field {
+            field: kf,
+            problem: format!("expected 9 numbers (3x3, row-major), got {}", k.len()),
+        });
+    }
+    if k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
+        return Err(IntrinsicsFileError::Field {
+            field: kf,
+            problem: "not a camera matrix (last row must be 0 0 1, K[1][0] = 0)".into(),
+        });
+    }
+    if !(k[0] > 0.0 && k[4] > 0.0) {
+        return Err(IntrinsicsFileError::Field { field: kf, problem: "focal lengths must be positive".into() });
+    }
+    if let Some((f, m)) = first(&doc, &["distortion_model"]) {
+        match m.as_str() {
+            Some("plumb_bob") | Some("rational_polynomial") | Some("") | None => {}
+            Some(other) => {
+                return Err(IntrinsicsFileError::Field {
+                    field: f,
+                    problem: format!("unsupported distortion model `{other}` (plumb_bob only)"),
+                });
+            }
+        }
+    }
+    let mut distortion = [0.0; 5];
+    if let Some((df, dv)) = first(&doc, &["distortion_coefficients", "dist_coeffs", "distCoeffs", "D", "d"]) {
+        let d = numbers(df, dv)?;
+        if d.len() > 5 && d[5..].iter().any(|x| *x != 0.0) {
+            return Err(IntrinsicsFileError::Field {
+                field: df,
+                problem: format!(
+                    "{} coefficients with non-zero rational terms; only plumb-bob k1 k2 p1 p2 k3 is supported",
+                    d.len()
+                ),
+            });
+        }
+        if !d.is_empty() && d.len() < 4 {
+            return Err(IntrinsicsFileError::Field {
+                field: df,
+                problem: format!("expected 4 or 5 coefficients, got {}", d.len()),
+            });
+        }
+        for (o, v) in distortion.iter_mut().zip(d.iter()) {
+            *o = *v;
+        }
+    }
+    Ok(CameraIntrinsics {
+        fx: k[0],
+        skew: k[1],
+        cx: k[2],
+        fy: k[4],
+        cy: k[5],
+        width: size(&doc, &["image_width", "width"])?,
+        height: size(&doc, &["image_height", "height"])?,
+        distortion,
+    })
+}
+
+/// A rigid transform in a file: translation (metres) and unit quaternion `[w, x, y, z]`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransformJson {
+    /// Translation, metres.
+    pub translation_m: [f64; 3],
+    /// Rotation as a unit quaternion `[w, x, y, z]`.
+    pub quaternion_wxyz: [f64; 4],
+}
+
+/// The kinematic noise model in a dataset (see `estimator::calib::KinematicNoise`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NoiseJson {
+    /// σ of each rotation component of a frame perturbation, radians.
+    pub rot_rad: f64,
+    /// σ of each translation component of a frame perturbation, metres.
+    pub trans_m: f64,
+    /// σ of each line-point coordinate, pixels.
+    pub pixel_px: f64,
+}
+
+/// One observation in a dataset file.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObservationJson {
+    /// Robot 1 (ECM-like): `[yaw rad, pitch rad, insertion m, roll rad]`.
+    pub ecm_joints: [f64; 4],
+    /// Robot 2 (PSM-like): `[yaw rad, pitch rad, insertion m]`.
+    pub psm_joints: [f64; 3],
+    /// Two distinct points of the tool centreline in the image, pixels `[[u, v], [u, v]]`.
+    pub line_px: [[f64; 2]; 2],
+}
+
+/// The dataset file's `format` value.
+pub const DATASET_FORMAT: &str = "comanip-calib-dataset";
+/// The truth file's `format` value.
+pub const TRUTH_FORMAT: &str = "comanip-calib-truth";
+/// The result file's `format` value.
+pub const RESULT_FORMAT: &str = "comanip-calib-result";
+/// The version written and the only one read, for all three files.
+pub const CALIB_FILE_VERSION: u32 = 1;
+
+/// The dataset file (JSON): everything the calibration needs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetFile {
+    /// Always [`DATASET_FORMAT`].
+    pub format: String,
+    /// Always [`CALIB_FILE_VERSION`].
+    pub version: u32,
+    /// Camera intrinsics, pixels.
+    pub intrinsics: CameraIntrinsics,
+    /// Hand-eye `T_f_c`: camera frame in robot 1's end-effector frame.
+    pub hand_eye: TransformJson,
+    /// Optional kinematic noise model (weights our pipeline).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_model: Option<NoiseJson>,
+    /// The observations.
+    pub observations: Vec<ObservationJson>,
+}
+
+/// Ground truth of a simulated dataset (JSON).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TruthFile {
+    /// Always [`TRUTH_FORMAT`].
+    pub format: String,
+    /// Always [`CALIB_FILE_VERSION`].
+    pub version: u32,
+    /// The true `T_e_t`.
+    pub truth: TransformJson,
+    /// Protocol: values per ECM joint.
+    pub n_e: usize,
+    /// Protocol: values per PSM joint.
+    pub n_t: usize,
+    /// Protocol: noise σ (dimensionless).
+    pub sigma: f64,
+    /// Protocol: unit of the noise's translation part, `"mm"` or `"m"`.
+    pub units: String,
+    /// Protocol: pixel noise σ, pixels.
+    pub pixel_sigma_px: f64,
+    /// Protocol: seed.
+    pub seed: u64,
+    /// Joint combinations tried.
+    pub generated: usize,
+    /// Combinations dropped because the tool was not in view.
+    pub dropped: usize,
+}
+
+/// Residual statistics in a result file (pixels).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ResidualJson {
+    /// Observations used.
+    pub count: usize,
+    /// RMS point-to-line distance, pixels.
+    pub rms_px: f64,
+    /// Median point-to-line distance, pixels.
+    pub median_px: f64,
+    /// Largest point-to-line distance, pixels.
+    pub max_px: f64,
+    /// Observations with full weight (inside the Huber threshold).
+    pub inliers: usize,
+}
+
+/// One pipeline's result in a result file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PipelineResultJson {
+    /// `"paper"` or `"ours"`.
+    pub pipeline: String,
+    /// `T_e_t` as a row-major 4×4 homogeneous matrix (metres).
+    pub transform: [[f64; 4]; 4],
+    /// Rotation of `T_e_t`, `[w, x, y, z]`.
+    pub quaternion_wxyz: [f64; 4],
+    /// Translation of `T_e_t` (robot 2's RCM in robot 1's RCM frame), metres.
+    pub translation_m: [f64; 3],
+    /// Point-to-line residuals, pixels.
+    pub residuals: ResidualJson,
+    /// Covariance of `(tx, ty, tz m, φx, φy, φz rad)` (left rotation increment in robot 1's
+    /// RCM frame), row-major 6×6; `null` for the paper pipeline.
+    pub covariance: Option<[[f64; 6]; 6]>,
+    /// Cost of the mirrored (≈180°) candidate over the chosen one (ours only).
+    pub ambiguity_ratio: Option<f64>,
+    /// Solve time, milliseconds.
+    pub solve_ms: f64,
+}
+
+/// The result file (JSON).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ResultFile {
+    /// Always [`RESULT_FORMAT`].
+    pub format: String,
+    /// Always [`CALIB_FILE_VERSION`].
+    pub version: u32,
+    /// One entry per pipeline run.
+    pub results: Vec<PipelineResultJson>,
+}
+
+/// Why a calibration JSON file (dataset, truth, result) was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibFileError {
+    /// Not valid JSON, or a field of the wrong type / unknown / missing.
+    #[error("line {line}, column {column}: {message}")]
+    Json {
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// serde_json's message (names the field).
+        message: String,
+    },
+    /// The `format` field is not the expected one.
+    #[error("field `format`: expected \"{expected}\", found \"{found}\"")]
+    Format {
+        /// Expected value.
+        expected: &'static str,
+        /// Found value.
+        found: String,
+    },
+    /// Unsupported `version`.
+    #[error("field `version`: version {found} is not supported (this build reads {supported})")]
+    Version {
+        /// Found.
+        found: u32,
+        /// Supported.
+        supported: u32,
+    },
+    /// A value is out of range (field path and problem).
+    #[error("field `{field}`: {problem}")]
+    Field {
+        /// Field path, e.g. `observations[3].line_px`.
+        field: String,
+        /// What is wrong.
+        problem: String,
+    },
+}
+
+fn json<T: for<'de> Deserialize<'de>>(text: &str) -> Result<T, CalibFileError> {
+    serde_json::from_str(text).map_err(|e| CalibFileError::Json {
+        line: e.line(),
+        column: e.column(),
+        message: e.to_string(),
+    })
+}
+
+fn check_header(format: &str, version: u32, expected: &'static str) -> Result<(), CalibFileError> {
+    if format != expected {
+        return Err(CalibFileError::Format { expected, found: format.into() });
+    }
+    if version != CALIB_FILE_VERSION {
+        return Err(CalibFileError::Version { found: version, supported: CALIB_FILE_VERSION });
+    }
+    Ok(())
+}
+
+fn finite(field: impl Fn() -> String, v: &[f64]) -> Result<(), CalibFileError> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(CalibFileError::Field { field: field(), problem: "values must be finite numbers".into() })
+    }
+}
+
+fn check_transform(name: &str, t: &TransformJson) -> Result<(), CalibFileError> {
+    finite(|| format!("{name}.translation_m"), &t.translation_m)?;
+    finite(|| format!("{name}.quaternion_wxyz"), &t.quaternion_wxyz)?;
+    let n = t.quaternion_wxyz.iter().map(|x| x * x).sum::<f64>().sqrt();
+    if (n - 1.0).abs() > 1e-6 {
+        return Err(CalibFileError::Field {
+            field: format!("{name}.quaternion_wxyz"),
+            problem: format!("not a unit quaternion (norm {n})"),
+        });
+    }
+    Ok(())
+}
+
+/// Parses and validates a dataset file: header, intrinsics, hand-eye, noise model, and
+/// every observation (finite values, distinct line points); errors name the field path.
+pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
+    let d: DatasetFile = json(text)?;
+    check_header(&d.format, d.version, DATASET_FORMAT)?;
+    let k = &d.intrinsics;
+    finite(|| "intrinsics".into(), &[k.fx, k.fy, k.cx, k.cy, k.skew])?;
+    finite(|| "intrinsics.distortion".into(), &k.distortion)?;
+    if !(k.fx > 0.0 && k.fy > 0.0) {
+        return Err(CalibFileError::Field {
+            field: "intrinsics.fx/fy".into(),
+            problem: "focal lengths must be positive".into(),
+        });
+    }
+    if k.width == 0 || k.height == 0 {
+        return Err(CalibFileError::Field {
+            field: "intrinsics.width/height".into(),
+            problem: "image size must be positive".into(),
+        });
+    }
+    check_transform("hand_eye", &d.hand_eye)?;
+    if let Some(n) = &d.noise_model {
+        let v = [n.rot_rad, n.trans_m, n.pixel_px];
+        if !v.iter().all(|x| x.is_finite() && *x >= 0.0) || v.iter().all(|x| *x == 0.0) {
+            return Err(CalibFileError::Field {
+                field: "noise_model".into(),
+                problem: "standard deviations must be finite, ≥ 0 and not all zero".into(),
+            });
+        }
+    }
+    if d.observations.is_empty() {
+        return Err(CalibFileError::Field { field: "observations".into(), problem: "no observations".into() });
+    }
+    for (i, o) in d.observations.iter().enumerate() {
+        finite(|| format!("observations[{i}].ecm_joints"), &o.ecm_joints)?;
+        finite(|| format!("observations[{i}].psm_joints"), &o.psm_joints)?;
+        let p = [o.line_px[0][0], o.line_px[0][1], o.line_px[1][0], o.line_px[1][1]];
+        finite(|| format!("observations[{i}].line_px"), &p)?;
+        if (p[0] - p[2]).hypot(p[1] - p[3]) < 1e-6 {
+            return Err(CalibFileError::Field {
+                field: format!("observations[{i}].line_px"),
+                problem: "the two line points coincide".into(),
+            });
+        }
+    }
+    Ok(d)
+}
+
+/// Parses a truth file.
+pub fn parse_truth(text: &str) -> Result<TruthFile, CalibFileError> {
+    let t: TruthFile = json(text)?;
+    check_header(&t.format, t.version, TRUTH_FORMAT)?;
+    check_transform("truth", &t.truth)?;
+    Ok(t)
+}
+
+/// Parses a result file.
+pub fn parse_result(text: &str) -> Result<ResultFile, CalibFileError> {
+    let r: ResultFile = json(text)?;
+    check_header(&r.format, r.version, RESULT_FORMAT)?;
+    Ok(r)
+}
+
+/// Serialises any of the three files as pretty JSON (bit-exact round trip of every f64).
+pub fn to_json<T: Serialize>(value: &T) -> String {
+    // Serialising these plain structs cannot fail (no maps with non-string keys).
+    serde_json::to_string_pretty(value).unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const OPENCV: &str = "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 320., 0., 319.5, 0., 321., 239.5, 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ -0.1, 0.01, 0., 0., 0. ]\n";
+    const ROS: &str = "image_width: 640\nimage_height: 480\ncamera_name: endoscope_left\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [320, 0, 319.5, 0, 321, 239.5, 0, 0, 1]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [-0.1, 0.01, 0, 0, 0]\nrectification_matrix:\n  rows: 3\n  cols: 3\n  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n";
+    const ROS_MSG: &str = "header:\n  seq: 0\nheight: 480\nwidth: 640\ndistortion_model: plumb_bob\nD: [-0.1, 0.01, 0.0, 0.0, 0.0]\nK: [320.0, 0.0, 319.5, 0.0, 321.0, 239.5, 0.0, 0.0, 1.0]\n";
+
+    #[test]
+    fn reads_opencv_ros_and_camera_info() {
+        for text in [OPENCV, ROS, ROS_MSG] {
+            let k = parse_intrinsics_yaml(text).unwrap();
+            assert_eq!((k.fx, k.fy, k.cx, k.cy, k.width, k.height), (320.0, 321.0, 319.5, 239.5, 640, 480));
+            assert_eq!(k.distortion, [-0.1, 0.01, 0.0, 0.0, 0.0]);
+        }
+    }
+
+    #[test]
+    fn intrinsics_errors_name_the_problem() {
+        let bad = OPENCV.replace("data: [ 320., 0., 319.5, 0., 321., 239.5, 0., 0., 1. ]", "data: [ 320., 0., 319.5 ]");
+        assert!(matches!(parse_intrinsics_yaml(&bad), Err(IntrinsicsFileError::Field { field: "camera_matrix", .. })));
+        let missing = ROS.replace("image_height: 480\n", "");
+        assert_eq!(parse_intrinsics_yaml(&missing), Err(IntrinsicsFileError::Missing("image_height")));
+        let fisheye = ROS.replace("plumb_bob", "equidistant");
+        assert!(matches!(
+            parse_intrinsics_yaml(&fisheye),
+            Err(IntrinsicsFileError::Field { field: "distortion_model", .. })
+        ));
+        match parse_intrinsics_yaml("image_width: 640\ncamera_matrix: [1, 2\n") {
+            Err(IntrinsicsFileError::Yaml { line, .. }) => assert!(line >= 2, "line {line}"),
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(parse_intrinsics_yaml("width: 3\n"), Err(IntrinsicsFileError::Missing("camera_matrix")));
+    }
+
+    fn dataset() -> DatasetFile {
+        DatasetFile {
+            format: DATASET_FORMAT.into(),
+            version: 1,
+            intrinsics: parse_intrinsics_yaml(ROS).unwrap(),
+            hand_eye: TransformJson { translation_m: [0.0, 0.0, 0.001], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] },
+            noise_model: None,
+            observations: vec![ObservationJson {
+                ecm_joints: [0.1, 0.0, 0.05, 0.0],
+                psm_joints: [0.0, 0.1, 0.1],
+                line_px: [[10.0, 20.0], [200.0, 220.0]],
+            }],
+        }
+    }
+
+    #[test]
+    fn dataset_round_trips_and_errors_name_fields() {
+        let d = dataset();
+        let text = to_json(&d);
+        assert_eq!(parse_dataset(&text).unwrap(), d);
+        let bad_version = text.replace("\"version\": 1", "\"version\": 7");
+        assert_eq!(parse_dataset(&bad_version), Err(CalibFileError::Version { found: 7, supported: 1 }));
+        let bad_format = text.replace(DATASET_FORMAT, "something-else");
+        assert!(matches!(parse_dataset(&bad_format), Err(CalibFileError::Format { .. })));
+        let mut same = d.clone();
+        same.observations[0].line_px = [[5.0, 5.0], [5.0, 5.0]];
+        assert_eq!(
+            parse_dataset(&to_json(&same)),
+            Err(CalibFileError::Field {
+                field: "observations[0].line_px".into(),
+                problem: "the two line points coincide".into()
+            })
+        );
+        // Wrong arity: serde names the field and the line.
+        let short = text.replacen("\"ecm_joints\": [", "\"ecm_joints\": [9.0, ", 1);
+        match parse_dataset(&short) {
+            Err(CalibFileError::Json { line, message, .. }) => {
+                assert!(line > 1 && !message.is_empty(), "{line} {message}");
+            }
+            other => panic!("{other:?}"),
+        }
+        let mut q = d.clone();
+        q.hand_eye.quaternion_wxyz = [1.0, 1.0, 0.0, 0.0];
+        assert!(
+            matches!(parse_dataset(&to_json(&q)), Err(CalibFileError::Field { field, .. }) if field == "hand_eye.quaternion_wxyz")
+        );
+        let unknown = text.replacen("\"version\"", "\"colour\": 1, \"version\"", 1);
+        assert!(
+            matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("colour"))
+        );
+        assert!(matches!(parse_dataset("{\"format\": "), Err(CalibFileError::Json { line: 1, .. })));
+    }
+}

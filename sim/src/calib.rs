@@ -1,0 +1,339 @@
+//! The calibration paper's simulation protocol (Wang et al. 2017, Sec. IV) with ground truth.
+//!
+//! An ECM-like robot 1 holds the camera, a PSM-like robot 2 the tool
+//! ([`estimator::calib::kinematics`]). Joint grids: `n_e` values of each of the ECM's four
+//! joints (`n_e⁴` poses) × `n_t` values of the PSM's yaw and pitch (`n_t²` poses) at a fixed
+//! insertion; every combination is one observation. The camera and tool are placed with the
+//! *actual* (perturbed) kinematics, the dataset records the *nominal* joints: each of the ECM
+//! end-effector frame and PSM frames 2 and 3 is `T·exp(δ^)` (chained: the perturbed frame 2
+//! carries frame 3), `δ = (ρ, φ) ~ N(0, σ² I6)` drawn independently per observation and frame.
+//! `φ` is in radians; `ρ` in millimetres or metres ([`NoiseUnits`]) — the paper does not say.
+//!
+//! The observed line: the actual shaft from the tool tip back toward the RCM, clipped to the
+//! part in front of the camera and inside the image; its two end points (pixels) are the
+//! observation. An observation whose tip is out of view or whose visible shaft is shorter
+//! than [`CalibGeometry::min_visible_px`] is dropped and counted.
+//!
+//! Deterministic: the same protocol and seed give the same dataset (ChaCha8).
+
+use estimator::calib::kinematics::{ecm_frames, psm_frames, se3_exp};
+use estimator::calib::{Intrinsics, KinematicNoise, Observation, Setup};
+use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+/// In which unit the translation part `ρ` of the noise `δ` is read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NoiseUnits {
+    /// `ρ` in millimetres: σ = 0.01 is 10 µm per frame, the noise is almost purely rotational
+    /// (the reading that reproduces the paper's figures).
+    Millimetre,
+    /// `ρ` in metres: σ = 0.01 is 10 mm per frame (the hard case).
+    Metre,
+}
+
+impl NoiseUnits {
+    /// Metres per unit of `ρ`.
+    pub fn metres(self) -> f64 {
+        match self {
+            NoiseUnits::Millimetre => 1e-3,
+            NoiseUnits::Metre => 1.0,
+        }
+    }
+    /// Short name (`mm` / `m`).
+    pub fn name(self) -> &'static str {
+        match self {
+            NoiseUnits::Millimetre => "mm",
+            NoiseUnits::Metre => "m",
+        }
+    }
+}
+
+/// The simulated scene: camera, hand-eye, ground truth and the joint ranges of the grids.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CalibGeometry {
+    /// Camera intrinsics (pixels).
+    pub intrinsics: Intrinsics,
+    /// Hand-eye `T_f_c` (metres).
+    pub hand_eye: Isometry3<f64>,
+    /// Ground truth `T_e_t` (metres).
+    pub truth: Isometry3<f64>,
+    /// ECM yaw range, radians (grid from min to max).
+    pub ecm_yaw_rad: [f64; 2],
+    /// ECM pitch range, radians.
+    pub ecm_pitch_rad: [f64; 2],
+    /// ECM insertion range, metres.
+    pub ecm_insertion_m: [f64; 2],
+    /// ECM roll range, radians.
+    pub ecm_roll_rad: [f64; 2],
+    /// PSM yaw range, radians.
+    pub psm_yaw_rad: [f64; 2],
+    /// PSM pitch range, radians.
+    pub psm_pitch_rad: [f64; 2],
+    /// PSM insertion (fixed), metres.
+    pub psm_insertion_m: f64,
+    /// Shortest visible shaft kept, pixels.
+    pub min_visible_px: f64,
+}
+
+impl Default for CalibGeometry {
+    /// The documented default scene (`docs/calibration.md`): 640×480 camera, f = 320 px
+    /// (90° × 74° field of view, a wide-angle laparoscope);
+    /// robot 2's RCM 136 mm from robot 1's; ±15° arm motions, ECM insertion 40-120 mm,
+    /// PSM insertion 120 mm.
+    fn default() -> Self {
+        let deg = core::f64::consts::PI / 180.0;
+        let t = Vector3::new(0.100, 0.020, 0.090);
+        // Tool pointing from its RCM toward a point on robot 1's shaft axis, 240 mm deep,
+        // with a 40° twist about the shaft so the rotation is generic.
+        let aim = (Vector3::new(0.0, 0.0, 0.24) - t).normalize();
+        let r = UnitQuaternion::rotation_between(&Vector3::z(), &aim).unwrap_or_else(UnitQuaternion::identity)
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 40.0 * deg);
+        Self {
+            intrinsics: Intrinsics {
+                fx: 320.0,
+                fy: 320.0,
+                cx: 319.5,
+                cy: 239.5,
+                skew: 0.0,
+                width: 640,
+                height: 480,
+                distortion: [0.0; 5],
+            },
+            hand_eye: Isometry3::from_parts(
+                Translation3::new(0.0025, -0.001, 0.0005),
+                UnitQuaternion::from_euler_angles(-2.0 * deg, 3.0 * deg, 0.0),
+            ),
+            truth: Isometry3::from_parts(Translation3::from(t), r),
+            ecm_yaw_rad: [-15.0 * deg, 15.0 * deg],
+            ecm_pitch_rad: [-15.0 * deg, 15.0 * deg],
+            ecm_insertion_m: [0.040, 0.120],
+            ecm_roll_rad: [-15.0 * deg, 15.0 * deg],
+            psm_yaw_rad: [-15.0 * deg, 15.0 * deg],
+            psm_pitch_rad: [-15.0 * deg, 15.0 * deg],
+            psm_insertion_m: 0.120,
+            min_visible_px: 40.0,
+        }
+    }
+}
+
+/// One run of the protocol.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CalibProtocol {
+    /// The scene.
+    pub geometry: CalibGeometry,
+    /// Values per ECM joint (`n_e⁴` ECM poses), 1..=8.
+    pub n_e: usize,
+    /// Values per PSM joint (`n_t²` PSM poses), 1..=16.
+    pub n_t: usize,
+    /// σ of every component of δ (dimensionless; see [`NoiseUnits`]).
+    pub sigma: f64,
+    /// Unit of δ's translation part.
+    pub units: NoiseUnits,
+    /// σ of each coordinate of the observed line points, pixels (0 in the paper's protocol).
+    pub pixel_sigma_px: f64,
+    /// Seed of the noise.
+    pub seed: u64,
+}
+
+/// A simulated dataset with its ground truth.
+#[derive(Clone, Debug)]
+pub struct CalibDataset {
+    /// Intrinsics and hand-eye.
+    pub setup: Setup,
+    /// Ground truth `T_e_t` (metres).
+    pub truth: Isometry3<f64>,
+    /// The kept observations (nominal joints, observed line).
+    pub observations: Vec<Observation>,
+    /// Joint combinations tried (`n_e⁴ n_t²`).
+    pub generated: usize,
+    /// Combinations dropped because the tool was not (enough) in view.
+    pub dropped: usize,
+    /// The injected noise as a model for the estimator and the CRB (`None` when noiseless).
+    pub noise: Option<KinematicNoise>,
+}
+
+/// Why a protocol cannot be run.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibProtocolError {
+    /// Grid sizes out of range.
+    #[error("grid sizes out of range: n_e = {n_e} (1..=8), n_t = {n_t} (1..=16)")]
+    Grid {
+        /// Values per ECM joint.
+        n_e: usize,
+        /// Values per PSM joint.
+        n_t: usize,
+    },
+    /// σ negative or not finite.
+    #[error("noise σ must be finite and ≥ 0 (sigma = {sigma}, pixel_sigma_px = {pixel})")]
+    Sigma {
+        /// Kinematic σ.
+        sigma: f64,
+        /// Pixel σ.
+        pixel: f64,
+    },
+    /// No combination had the tool in view.
+    #[error("no observation has the tool in view ({generated} combinations tried)")]
+    NothingInView {
+        /// Combinations tried.
+        generated: usize,
+    },
+}
+
+fn grid(range: [f64; 2], n: usize) -> Vec<f64> {
+    if n == 1 {
+        return vec![0.5 * (range[0] + range[1])];
+    }
+    (0..n).map(|i| range[0] + (range[1] - range[0]) * i as f64 / (n - 1) as f64).collect()
+}
+
+/// The ECM poses of the grid (`n_e⁴`), `[yaw, pitch, insertion, roll]`.
+pub fn ecm_grid(g: &CalibGeometry, n_e: usize) -> Vec<[f64; 4]> {
+    let (a, b, c, d) =
+        (grid(g.ecm_yaw_rad, n_e), grid(g.ecm_pitch_rad, n_e), grid(g.ecm_insertion_m, n_e), grid(g.ecm_roll_rad, n_e));
+    let mut out = Vec::with_capacity(n_e.pow(4));
+    for &q1 in &a {
+        for &q2 in &b {
+            for &q3 in &c {
+                for &q4 in &d {
+                    out.push([q1, q2, q3, q4]);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The PSM poses of the grid (`n_t²`), `[yaw, pitch, insertion]`.
+pub fn psm_grid(g: &CalibGeometry, n_t: usize) -> Vec<[f64; 3]> {
+    let (a, b) = (grid(g.psm_yaw_rad, n_t), grid(g.psm_pitch_rad, n_t));
+    let mut out = Vec::with_capacity(n_t * n_t);
+    for &q1 in &a {
+        for &q2 in &b {
+            out.push([q1, q2, g.psm_insertion_m]);
+        }
+    }
+    out
+}
+
+fn draw(rng: &mut ChaCha8Rng, sigma: f64, rho_m: f64) -> Isometry3<f64> {
+    if sigma == 0.0 {
+        return Isometry3::identity();
+    }
+    let mut v = [0.0; 6];
+    for x in &mut v {
+        let z: f64 = rng.sample(StandardNormal);
+        *x = z * sigma;
+    }
+    se3_exp(&(Vector3::new(v[0], v[1], v[2]) * rho_m), &Vector3::new(v[3], v[4], v[5]))
+}
+
+/// The observed line of the actual shaft (tip `tip_e`, unit direction `back_e` toward the
+/// RCM, both in `{e}`) seen by camera `cam` (`T_e_c`): end points in pixels, or `None`.
+pub fn observe_shaft(
+    g: &CalibGeometry,
+    cam: &Isometry3<f64>,
+    tip_e: &Vector3<f64>,
+    back_e: &Vector3<f64>,
+    length_m: f64,
+) -> Option<[Vector2<f64>; 2]> {
+    let inv = cam.inverse();
+    let k = &g.intrinsics;
+    let see = |s: f64| -> Option<Vector2<f64>> {
+        let p = inv * nalgebra::Point3::from(tip_e + back_e * s);
+        if p.z < 0.005 {
+            return None;
+        }
+        let px = k.project(&p.coords);
+        k.in_image(&px).then_some(px)
+    };
+    let first = see(0.0)?;
+    let steps = 200;
+    let mut last = first;
+    for i in 1..=steps {
+        match see(length_m * i as f64 / steps as f64) {
+            Some(px) => last = px,
+            None => break,
+        }
+    }
+    ((last - first).norm() >= g.min_visible_px).then_some([first, last])
+}
+
+/// Runs the protocol: every grid combination, perturbed, projected, kept when in view.
+pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProtocolError> {
+    if !(1..=8).contains(&p.n_e) || !(1..=16).contains(&p.n_t) {
+        return Err(CalibProtocolError::Grid { n_e: p.n_e, n_t: p.n_t });
+    }
+    if !(p.sigma.is_finite() && p.sigma >= 0.0 && p.pixel_sigma_px.is_finite() && p.pixel_sigma_px >= 0.0) {
+        return Err(CalibProtocolError::Sigma { sigma: p.sigma, pixel: p.pixel_sigma_px });
+    }
+    let g = &p.geometry;
+    let rho = p.units.metres();
+    let mut rng = ChaCha8Rng::seed_from_u64(p.seed);
+    let ecm = ecm_grid(g, p.n_e);
+    let psm = psm_grid(g, p.n_t);
+    let mut observations = Vec::with_capacity(ecm.len() * psm.len());
+    let mut dropped = 0;
+    for qe in &ecm {
+        let f4 = ecm_frames(qe)[3];
+        for qt in &psm {
+            // Always draw all three perturbations so the stream does not depend on drops.
+            let de = draw(&mut rng, p.sigma, rho);
+            let da = draw(&mut rng, p.sigma, rho);
+            let db = draw(&mut rng, p.sigma, rho);
+            let (n0, n1, n2, n3): (f64, f64, f64, f64) = (
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+                rng.sample(StandardNormal),
+            );
+            let cam = f4 * de * g.hand_eye;
+            let fr = psm_frames(qt);
+            let f2 = fr[1] * da;
+            let f3 = f2 * Isometry3::translation(0.0, 0.0, qt[2]) * db;
+            let tip_e = g.truth * nalgebra::Point3::from(f3.translation.vector);
+            let back_e = g.truth.rotation * (f3.rotation * -Vector3::z());
+            match observe_shaft(g, &cam, &tip_e.coords, &back_e, qt[2]) {
+                Some([a, b]) => {
+                    let s = p.pixel_sigma_px;
+                    observations.push(Observation {
+                        ecm_joints: *qe,
+                        psm_joints: *qt,
+                        line_px: [[a.x + s * n0, a.y + s * n1], [b.x + s * n2, b.y + s * n3]],
+                    });
+                }
+                None => dropped += 1,
+            }
+        }
+    }
+    let generated = ecm.len() * psm.len();
+    if observations.is_empty() {
+        return Err(CalibProtocolError::NothingInView { generated });
+    }
+    let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: p.pixel_sigma_px };
+    Ok(CalibDataset {
+        setup: Setup { intrinsics: g.intrinsics, hand_eye: g.hand_eye },
+        truth: g.truth,
+        observations,
+        generated,
+        dropped,
+        noise: noise.is_valid().then_some(noise),
+    })
+}
+
+/// A uniformly distributed random unit quaternion `[w, x, y, z]` (Shoemake), for the
+/// initial-guess robustness sweep.
+pub fn random_unit_quaternion(rng: &mut impl Rng) -> [f64; 4] {
+    let (u1, u2, u3): (f64, f64, f64) = (rng.random(), rng.random(), rng.random());
+    let tau = 2.0 * core::f64::consts::PI;
+    let (a, b) = ((1.0 - u1).sqrt(), u1.sqrt());
+    [b * (tau * u3).cos(), a * (tau * u2).sin(), a * (tau * u2).cos(), b * (tau * u3).sin()]
+}
+
+/// Rotation helper for tests and docs: the angle (radians) between two rotations.
+pub fn rotation_distance(a: &Rotation3<f64>, b: &Rotation3<f64>) -> f64 {
+    (a.inverse() * b).angle()
+}

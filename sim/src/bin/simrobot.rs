@@ -94,6 +94,9 @@ struct LiveArgs {
     /// With --truth: a state line every K samples.
     #[arg(long, value_name = "K", default_value_t = DEFAULT_STATE_EVERY)]
     state_every: u64,
+    /// At the end, also write the counts (SYNCs answered, frames sent, ...) as JSON to this file.
+    #[arg(long, value_name = "FILE")]
+    summary_json: Option<PathBuf>,
 }
 
 /// Why the configuration could not be loaded.
@@ -359,7 +362,8 @@ fn print_event(e: &TwinEvent) {
     println!("{:>10.3} s  sample {:>9}  {what} trocar {}", e.t_s, e.sample, e.trocar);
 }
 
-#[derive(Debug, Default)]
+/// What `live` did; printed at the end and written by `--summary-json`.
+#[derive(Debug, Default, serde::Serialize)]
 struct LiveCounts {
     syncs: u64,
     frames_sent: u64,
@@ -510,6 +514,15 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     );
     if let Some(e) = &counts.last_send_error {
         println!("simrobot live: last send error: {e}");
+    }
+    if let Some(path) = &args.summary_json {
+        let written = serde_json::to_string_pretty(&counts)
+            .map_err(io::Error::from)
+            .and_then(|text| std::fs::write(path, text));
+        if let Err(source) = written {
+            let _ = io::stdout().flush();
+            return Err(LiveError::Create { path: path.clone(), source });
+        }
     }
     let _ = io::stdout().flush();
     result

@@ -1,0 +1,888 @@
+//! Hardware-in-loop suite on SocketCAN vcan (docs/hil.md): the real `fulcrumd` binary on
+//! `vcan0`, the real `simrobot live` answering as the encoder nodes, a `fulcrumd monitor`
+//! subscriber process and `candump`, all inside one kernel that has vcan.
+//!
+//! Each `#[test]` runs twice:
+//! - on the host, it boots a guest through `tests/hil/run-in-vcan.sh` (a user-mode-linux
+//!   kernel with vcan0 when the host has no CAN, natively otherwise) and runs **this same
+//!   test binary** in it, filtered to the same test, with `HIL_SCENARIO_DIR` set;
+//! - in the guest, `HIL_SCENARIO_DIR` makes the test the scenario driver: it spawns the
+//!   processes, injects the faults and writes every artifact (summaries, the monitor's samples,
+//!   the flight recording, the candump log, the ground truth) to that directory, a read-write
+//!   mount of a host directory.
+//!
+//! Back on the host the test asserts on the artifacts. Timing inside the emulated kernel is
+//! coarse (late wake-ups by milliseconds, one CPU), so the assertions are on behaviour and
+//! counts; the one time bound is the issue's "the subscriber receives again within 1 s".
+//! A VM that cannot start (exit code 125) is a failure, never a skip.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use controller::config::Config;
+use controller::replay::{self, LogReplay};
+use controller::rt::monotonic_now_ns;
+use controller::rt_loop::CycleRecord;
+use hw_io::can::candump::CandumpReader;
+use hw_io::can::{CanBus, CanFrame, SocketCanBus};
+use hw_io::ipc::{STATE_INSIDE, STATE_INVALID, health};
+use serde_json::Value;
+use sim::score::Detected;
+use sim::truth_file::{At, TruthFile, score_detections};
+
+const FULCRUMD: &str = env!("CARGO_BIN_EXE_fulcrumd");
+/// Set (to the artifacts directory) only in the guest run of a test.
+const SCENARIO_DIR_ENV: &str = "HIL_SCENARIO_DIR";
+/// The simrobot binary, passed from the host run to the guest run.
+const SIMROBOT_ENV: &str = "HIL_SIMROBOT";
+/// The three encoder nodes answer each SYNC with one TPDO each (COB-IDs 0x181..0x183).
+const ALL_NODES: u8 = 0b111;
+/// Farther than this from the true pivot, a detection is at the wrong trocar (as the demo).
+const WRONG_TROCAR_M: f64 = 0.03;
+
+// ------------------------------------------------------------------------------------------
+// Scenarios
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Scenario {
+    /// Several insert/extract cycles, no fault.
+    Clean,
+    /// Node 2 sends no TPDO for 200 ms.
+    NodeSilent,
+    /// Wrong-DLC and unknown-ID frames at 2 kHz.
+    Malformed,
+    /// Five EMCYs of node 3 in a row, each cleared after 20 ms.
+    EmcyBurst,
+    /// The daemon is SIGKILLed and restarted while the monitor keeps running.
+    KillRestart,
+}
+
+/// Dropout window of node 2 in `NodeSilent`: microseconds since simrobot's first SYNC.
+const SILENT_WINDOW_US: [u64; 2] = [10_000_000, 10_200_000];
+/// EMCY burst of node 3: count, first at, spacing, duration (microseconds since the first SYNC).
+const EMCY_COUNT: u64 = 5;
+const EMCY_AT_US: u64 = 10_000_000;
+const EMCY_EVERY_US: u64 = 60_000;
+const EMCY_DURATION_US: u64 = 20_000;
+/// Malformed-frame flood: period, start and length after the daemon's spawn.
+const JUNK_PERIOD_NS: u64 = 500_000; // 2 kHz
+const JUNK_START_MS: u64 = 8_000;
+const JUNK_FRAMES: u64 = 8_000; // 4 s at 2 kHz
+/// Cycles of the fault scenarios' daemon run (15 s at 2 ms). The instrument enters its first
+/// trocar at sample 2556 and leaves it at sample 7794; the daemon detects it about 1.3 s (of
+/// samples) later; the faults come at about 10 s (sample 5000, fewer if periods were skipped),
+/// while the instrument is inside and detected, with time to re-detect after them.
+const FAULT_RUN_CYCLES: u64 = 7_500;
+/// Kill/restart: the first daemon runs this long, the restart comes this long after the kill,
+/// and the second daemon runs this many cycles.
+const FIRST_RUN_MS: u64 = 3_000;
+const DOWN_MS: u64 = 300;
+const SECOND_RUN_CYCLES: u64 = 3_000;
+
+impl Scenario {
+    /// The twin's configuration (configs/simrobot.toml keys).
+    fn simrobot_toml(self) -> String {
+        // 4 cycles of 4-5 s inside and 1.6-2.2 s outside: about 30 000 samples (SYNCs) for the
+        // clean run; the fault scenarios use the first 7 500.
+        let mut s = String::from("[scenario]\nseed = 1\ncycles = 4\ninside_s = [4.0, 5.0]\noutside_s = [1.6, 2.2]\n");
+        let node = |dropouts: &str, emcy: &str| {
+            format!("\n[[nodes]]\ndropout_windows_us = [{dropouts}]\nemcy = [{emcy}]\n")
+        };
+        match self {
+            Scenario::NodeSilent => {
+                let w = format!("[{}, {}]", SILENT_WINDOW_US[0], SILENT_WINDOW_US[1]);
+                s += &(node("", "") + &node(&w, "") + &node("", ""));
+            }
+            Scenario::EmcyBurst => {
+                let burst = (0..EMCY_COUNT)
+                    .map(|k| {
+                        format!(
+                            "{{ at_us = {}, duration_us = {EMCY_DURATION_US}, code = 0x7305, register = 1, vendor = [0, 0, 0, 0, 0] }}",
+                            EMCY_AT_US + k * EMCY_EVERY_US
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                s += &(node("", "") + &node("", "") + &node("", &burst));
+            }
+            _ => {}
+        }
+        s
+    }
+}
+
+/// Control period of the daemon in the guest, microseconds: 2 ms (500 Hz) instead of 1 ms.
+/// Under user-mode-linux every system call and wake-up goes through the host (ptrace), and the
+/// guest has one CPU for the daemon, simrobot, the monitor and candump: at 1 kHz the SYNC →
+/// answer round trip alone took 0.8 ms at the median, a quarter of the cycles were incomplete
+/// and more than half the periods were skipped (measured, docs/hil.md). At 2 ms the guest keeps
+/// up. The detector then counts the same samples as at 1 kHz: its durations are scaled by the
+/// same factor (see [`daemon_config`]), and one SYNC is one sample of the twin whatever the
+/// period, so the estimates per sample are those of the 1 kHz configuration.
+const HIL_PERIOD_US: u32 = 2_000;
+/// Frame deadline: 90 % of the period (wake-ups in the guest are late by milliseconds now and
+/// then; a late answer makes an incomplete cycle, counted and flagged).
+const HIL_FRAME_DEADLINE_US: u32 = HIL_PERIOD_US / 10 * 9;
+
+/// The daemon's configuration in the guest: the defaults, with [`HIL_PERIOD_US`], and the fast
+/// detector's durations (`*_persistence_s`) scaled by `HIL_PERIOD_US / 1000` so that they span
+/// the same number of samples as the defaults at 1 kHz.
+fn daemon_config() -> String {
+    let mut c = Config::default();
+    let k = f64::from(HIL_PERIOD_US) / f64::from(c.cycle.period_us);
+    c.cycle.period_us = HIL_PERIOD_US;
+    c.cycle.frame_deadline_us = HIL_FRAME_DEADLINE_US;
+    c.detector.sample_period_s *= k;
+    c.detector.fast.min_persistence_s *= k;
+    c.detector.fast.extract_persistence_s *= k;
+    c.detector.fast.memory_persistence_s *= k;
+    toml::to_string(&c).expect("the configuration serialises")
+}
+
+// ------------------------------------------------------------------------------------------
+// Host side: boot the guest, run this test in it, collect the artifacts
+
+/// One VM at a time: a second UML guest on the same two cores makes timing worse for both.
+static VM: Mutex<()> = Mutex::new(());
+
+/// What a scenario left in its directory.
+struct Artifacts {
+    dir: PathBuf,
+    driver: Value,
+}
+
+impl Artifacts {
+    fn json(&self, name: &str) -> Value {
+        let p = self.dir.join(name);
+        let text = std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+    }
+}
+
+/// The workspace's `tests/hil/run-in-vcan.sh`.
+fn harness() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/hil/run-in-vcan.sh")
+}
+
+/// `simrobot`, built by cargo for the same profile as this test (cargo gives a test only its
+/// own package's binaries): `$CARGO build --bin simrobot` once per test binary; cargo
+/// rebuilds it only when stale.
+fn simrobot() -> PathBuf {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| {
+        let exe = std::env::current_exe().expect("current_exe");
+        // target/<profile dir>/deps/<this test>
+        let profile_dir = exe.parent().and_then(Path::parent).expect("test binary in target/<profile>/deps");
+        let target_dir = profile_dir.parent().expect("target dir");
+        let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
+            Some("debug") => "test".to_string(), // what `cargo test` builds binaries with
+            Some("release") => "release".to_string(),
+            Some(other) => other.to_string(),
+            None => panic!("unexpected target layout: {}", exe.display()),
+        };
+        let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+        let out = Command::new(&cargo)
+            .args(["build", "--quiet", "-p", "sim", "--bin", "simrobot", "--profile", &profile])
+            .arg("--target-dir")
+            .arg(target_dir)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .output()
+            .expect("running cargo to build simrobot");
+        assert!(out.status.success(), "cargo build simrobot failed:\n{}", String::from_utf8_lossy(&out.stderr));
+        let bin = profile_dir.join("simrobot");
+        assert!(bin.is_file(), "{} was not built", bin.display());
+        bin
+    })
+    .clone()
+}
+
+/// Where the artifacts of `test` go: under cargo's target tmp dir (not under /tmp: the guest
+/// mounts a private overlay there, which would hide a read-write mount below it).
+fn artifacts_dir(test: &str) -> PathBuf {
+    let root = std::env::var_os("HIL_ARTIFACTS_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_TARGET_TMPDIR")).join("hil"));
+    let dir = root.join(test);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
+    dir.canonicalize().expect("canonical artifacts dir")
+}
+
+/// Runs `scenario` as test `test`. In the guest: drives it and returns None. On the host:
+/// boots the guest, runs this test in it, and returns the artifacts.
+fn hil(test: &str, scenario: Scenario) -> Option<Artifacts> {
+    if let Some(dir) = std::env::var_os(SCENARIO_DIR_ENV) {
+        drive(scenario, Path::new(&dir));
+        return None;
+    }
+    let _one_vm = VM.lock().unwrap_or_else(|p| p.into_inner());
+    let simrobot = simrobot();
+    let dir = artifacts_dir(test);
+    let started = Instant::now();
+    let out = Command::new(harness())
+        .args(["--timeout", "240", "--rw"])
+        .arg(&dir)
+        .arg("--")
+        .arg(std::env::current_exe().expect("current_exe"))
+        .args([test, "--exact", "--nocapture", "--test-threads", "1"])
+        .env(SCENARIO_DIR_ENV, &dir)
+        .env(SIMROBOT_ENV, &simrobot)
+        .env("RUST_BACKTRACE", "1")
+        .stdin(Stdio::null())
+        .output()
+        .expect("running tests/hil/run-in-vcan.sh");
+    let wall = started.elapsed().as_secs_f64();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    eprintln!("--- guest stdout\n{stdout}\n--- guest stderr\n{stderr}\n--- {test}: VM run {wall:.1} s");
+    match out.status.code() {
+        Some(0) => {}
+        Some(125) => panic!("the HIL harness failed (exit 125: the VM did not start or broke); see above"),
+        Some(124) => panic!("the scenario timed out in the guest (exit 124)"),
+        code => panic!("the scenario driver failed in the guest (exit {code:?}); see above"),
+    }
+    // The guest ran exactly this test (a wrong name would run none and exit 0).
+    assert!(stdout.contains("1 passed"), "the guest did not run {test}");
+    let driver_path = dir.join("driver.json");
+    let driver = serde_json::from_str(&std::fs::read_to_string(&driver_path).expect("driver.json"))
+        .expect("driver.json is JSON");
+    Some(Artifacts { dir, driver })
+}
+
+// ------------------------------------------------------------------------------------------
+// Guest side: the scenario driver
+
+fn spawn(cmd: &mut Command, dir: &Path, name: &str) -> Child {
+    let out = File::create(dir.join(format!("{name}.out"))).expect("stdout file");
+    let err = File::create(dir.join(format!("{name}.err"))).expect("stderr file");
+    cmd.stdin(Stdio::null()).stdout(out).stderr(err).spawn().unwrap_or_else(|e| panic!("spawning {name}: {e}"))
+}
+
+fn signal(child: &Child, sig: libc::c_int) {
+    // SAFETY: kill(2) on our own child's pid; no memory is involved.
+    unsafe { libc::kill(child.id() as libc::pid_t, sig) };
+}
+
+/// Waits for `child` to exit within `limit`; kills it (and fails) otherwise. Returns the exit
+/// code, or -signal.
+fn wait_exit(child: &mut Child, name: &str, limit: Duration) -> i32 {
+    let t0 = Instant::now();
+    loop {
+        if let Some(st) = child.try_wait().expect("try_wait") {
+            use std::os::unix::process::ExitStatusExt;
+            return st.code().unwrap_or_else(|| -st.signal().unwrap_or(0));
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{name} did not exit within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Waits until `file` contains `needle` (a process announced it is ready).
+fn wait_for_line(file: &Path, needle: &str, limit: Duration) {
+    let t0 = Instant::now();
+    while !std::fs::read_to_string(file).is_ok_and(|t| t.contains(needle)) {
+        assert!(t0.elapsed() < limit, "{} did not say {needle:?} within {limit:?}", file.display());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn daemon_cmd(dir: &Path, service: &str, tag: &str, cycles: Option<u64>) -> Command {
+    let mut c = Command::new(FULCRUMD);
+    c.args(["--iface", "vcan0", "--service", service])
+        .arg("--config")
+        .arg(dir.join("fulcrumd.toml"))
+        .arg("--record-dir")
+        .arg(dir.join(format!("rec-{tag}")))
+        .arg("--summary-json")
+        .arg(dir.join(format!("{tag}.json")));
+    if let Some(n) = cycles {
+        c.args(["--cycles", &n.to_string()]);
+    }
+    c
+}
+
+/// Sends the malformed frames: in turn a TPDO of node 1 with DLC 3 (wrong DLC), an unknown
+/// COB-ID 0x7FF, an extended identifier 0x181 (unknown ID to us) and a heartbeat of node 1 with
+/// an unknown NMT state. Paced at `JUNK_PERIOD_NS` on absolute deadlines; a late wake-up sends
+/// the frames it owes at once. Returns the frames sent by kind.
+fn send_junk(start_ns: u64) -> BTreeMap<&'static str, u64> {
+    let mut bus = SocketCanBus::open("vcan0").expect("junk sender: open vcan0");
+    let kinds: [(&str, CanFrame); 4] = [
+        ("wrong_dlc", CanFrame::new_standard(0x181, &[1, 2, 3]).expect("frame")),
+        ("unknown_id", CanFrame::new_standard(0x7FF, &[0xA5; 8]).expect("frame")),
+        ("extended_id", CanFrame::new_extended(0x181, &[0; 8]).expect("frame")),
+        ("bad_nmt_state", CanFrame::new_standard(0x701, &[0x42]).expect("frame")),
+    ];
+    let mut sent: BTreeMap<&str, u64> = kinds.iter().map(|(k, _)| (*k, 0)).collect();
+    let mut failed = 0u64;
+    for i in 0..JUNK_FRAMES {
+        controller::rt::sleep_until_ns(start_ns + i * JUNK_PERIOD_NS).expect("sleep");
+        let (kind, frame) = &kinds[(i % 4) as usize];
+        // A full transmit queue (ENOBUFS) is retried: the point is to deliver the flood.
+        let mut tries = 0;
+        loop {
+            match bus.send(frame) {
+                Ok(()) => {
+                    *sent.get_mut(kind).expect("kind") += 1;
+                    break;
+                }
+                Err(_) if tries < 100 => {
+                    tries += 1;
+                    std::thread::sleep(Duration::from_micros(200));
+                }
+                Err(_) => {
+                    failed += 1;
+                    break;
+                }
+            }
+        }
+    }
+    sent.insert("send_failed", failed);
+    sent
+}
+
+/// Drives `scenario` with its files in a private work directory (the guest's /tmp is a tmpfs:
+/// no host file-system traffic while the loop runs), then copies them to `out`.
+fn drive(scenario: Scenario, out: &Path) {
+    let work = std::env::temp_dir().join(format!("hil-work-{}", std::process::id()));
+    std::fs::create_dir_all(&work).expect("work dir");
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| drive_in(scenario, &work)));
+    copy_dir(&work, out);
+    let _ = std::fs::remove_dir_all(&work);
+    if let Err(panic) = result {
+        std::panic::resume_unwind(panic);
+    }
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("create dir");
+    for e in std::fs::read_dir(from).expect("read dir") {
+        let e = e.expect("dir entry");
+        let target = to.join(e.file_name());
+        if e.file_type().expect("file type").is_dir() {
+            copy_dir(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), &target).unwrap_or_else(|err| panic!("copy {}: {err}", e.path().display()));
+        }
+    }
+}
+
+fn drive_in(scenario: Scenario, dir: &Path) {
+    let simrobot = std::env::var_os(SIMROBOT_ENV).expect("HIL_SIMROBOT");
+    let service = format!("comanip-hil/{scenario:?}/{}", std::process::id());
+    std::fs::write(dir.join("simrobot.toml"), scenario.simrobot_toml()).expect("write simrobot.toml");
+    std::fs::write(dir.join("fulcrumd.toml"), daemon_config()).expect("write fulcrumd.toml");
+    let twin: sim::twin::TwinConfig = toml::from_str(&scenario.simrobot_toml()).expect("twin config");
+    let scenario_samples = sim::twin::SimRobot::new(&twin).expect("twin").scenario().truth.len() as u64;
+    let mut driver = serde_json::Map::new();
+    driver.insert("scenario".into(), format!("{scenario:?}").into());
+    driver.insert("scenario_samples".into(), scenario_samples.into());
+    driver.insert("hil_mode".into(), std::env::var("HIL_MODE").unwrap_or_default().into());
+
+    // The bus observer first, then the subscriber, then the robot; the daemon last.
+    let bus_log = File::create(dir.join("bus.log")).expect("bus.log");
+    let mut candump = Command::new("candump")
+        .args(["-L", "-r", "8388608", "vcan0"])
+        .stdin(Stdio::null())
+        .stdout(bus_log)
+        .stderr(File::create(dir.join("candump.err")).expect("candump.err"))
+        .spawn()
+        .expect("spawning candump");
+    let mut monitor = spawn(
+        Command::new(FULCRUMD)
+            .args(["monitor", "--service", &service])
+            .arg("--summary-json")
+            .arg(dir.join("monitor.json"))
+            .arg("--samples-out")
+            .arg(dir.join("monitor.jsonl")),
+        dir,
+        "monitor",
+    );
+    // The encoder nodes are hardware of their own on the robot: their answer does not wait for
+    // the controller's CPU. In the one-CPU guest, simrobot gets a real-time priority above the
+    // daemon's loop (SCHED_FIFO 80) so that it answers a SYNC at once, all three TPDOs in a row.
+    let mut robot = spawn(
+        Command::new("chrt")
+            .args(["-f", "90"])
+            .arg(&simrobot)
+            .args(["live", "--iface", "vcan0"])
+            .arg("--config")
+            .arg(dir.join("simrobot.toml"))
+            .arg("--truth")
+            .arg(dir.join("truth.jsonl"))
+            .arg("--summary-json")
+            .arg(dir.join("simrobot.json")),
+        dir,
+        "simrobot",
+    );
+    wait_for_line(&dir.join("simrobot.out"), "answering", Duration::from_secs(60));
+    wait_for_line(&dir.join("monitor.err"), "waiting for samples", Duration::from_secs(60));
+
+    match scenario {
+        Scenario::Clean | Scenario::NodeSilent | Scenario::EmcyBurst | Scenario::Malformed => {
+            // The clean run covers the whole scenario (one SYNC = one sample); the fault
+            // scenarios its first 9 s.
+            let cycles = if scenario == Scenario::Clean { scenario_samples } else { FAULT_RUN_CYCLES };
+            let mut daemon = spawn(&mut daemon_cmd(dir, &service, "daemon", Some(cycles)), dir, "daemon");
+            let junk = (scenario == Scenario::Malformed).then(|| {
+                let start = monotonic_now_ns() + JUNK_START_MS * 1_000_000;
+                std::thread::spawn(move || send_junk(start))
+            });
+            let code = wait_exit(&mut daemon, "fulcrumd", Duration::from_secs(cycles * u64::from(HIL_PERIOD_US) * 4 / 1_000_000 + 60));
+            driver.insert("daemon_exit".into(), code.into());
+            if let Some(j) = junk {
+                let sent = j.join().expect("junk sender panicked");
+                driver.insert("junk_sent".into(), serde_json::to_value(sent).expect("json"));
+            }
+        }
+        Scenario::KillRestart => {
+            let mut first = spawn(&mut daemon_cmd(dir, &service, "daemon-1", None), dir, "daemon-1");
+            std::thread::sleep(Duration::from_millis(FIRST_RUN_MS));
+            signal(&first, libc::SIGKILL);
+            driver.insert("kill_ns".into(), monotonic_now_ns().into());
+            let code = wait_exit(&mut first, "fulcrumd (killed)", Duration::from_secs(10));
+            driver.insert("daemon_1_exit".into(), code.into());
+            std::thread::sleep(Duration::from_millis(DOWN_MS));
+            driver.insert("restart_spawn_ns".into(), monotonic_now_ns().into());
+            let mut second =
+                spawn(&mut daemon_cmd(dir, &service, "daemon-2", Some(SECOND_RUN_CYCLES)), dir, "daemon-2");
+            let code = wait_exit(&mut second, "fulcrumd (restarted)", Duration::from_secs(60));
+            driver.insert("daemon_2_exit".into(), code.into());
+        }
+    }
+    // Let the last samples and frames reach their readers, then stop them (SIGINT: each
+    // writes its summary).
+    std::thread::sleep(Duration::from_millis(500));
+    for (child, name) in [(&mut monitor, "monitor"), (&mut robot, "simrobot"), (&mut candump, "candump")] {
+        signal(child, libc::SIGINT);
+        let code = wait_exit(child, name, Duration::from_secs(30));
+        driver.insert(format!("{name}_exit"), code.into());
+    }
+    std::fs::write(dir.join("driver.json"), serde_json::to_string_pretty(&driver).expect("json"))
+        .expect("write driver.json");
+}
+
+// ------------------------------------------------------------------------------------------
+// Host side: reading the artifacts
+
+/// One line of `fulcrumd monitor --samples-out`.
+#[derive(Debug, serde::Deserialize)]
+#[allow(dead_code)] // fields read through Debug in failure messages
+struct Sample {
+    rx_ns: u64,
+    event: String,
+    missed: u64,
+    run_id: u64,
+    sequence: u64,
+    timestamp_ns: u64,
+    state: u32,
+    health: u32,
+    trocar_id: u32,
+    fulcrum_base_m: [f64; 3],
+    joints_rad: [f64; 6],
+    window_fill: u16,
+}
+
+fn samples(a: &Artifacts) -> Vec<Sample> {
+    let f = File::open(a.dir.join("monitor.jsonl")).expect("monitor.jsonl");
+    BufReader::new(f)
+        .lines()
+        .map(|l| serde_json::from_str(&l.expect("read line")).expect("sample line"))
+        .collect()
+}
+
+/// The frames candump saw, by COB-ID (extended IDs with bit 31 set).
+struct BusLog {
+    by_id: BTreeMap<u32, u64>,
+    /// Frames other than SYNC (0x080) after the last SYNC.
+    after_last_sync: u64,
+}
+
+impl BusLog {
+    fn count(&self, id: u32) -> u64 {
+        self.by_id.get(&id).copied().unwrap_or(0)
+    }
+    fn syncs(&self) -> u64 {
+        self.count(0x080)
+    }
+    fn non_sync(&self) -> u64 {
+        self.by_id.values().sum::<u64>() - self.syncs()
+    }
+    fn tpdos(&self) -> u64 {
+        (0x181..=0x183).map(|id| self.count(id)).sum()
+    }
+}
+
+fn bus_log(a: &Artifacts) -> BusLog {
+    let f = File::open(a.dir.join("bus.log")).expect("bus.log");
+    let mut r = CandumpReader::new(BufReader::new(f));
+    let mut by_id = BTreeMap::new();
+    let mut after_last_sync = 0;
+    while let Some(rec) = r.next_record().expect("bus.log is a candump log") {
+        let fr = rec.timed.frame;
+        let id = fr.id().raw() | if fr.is_extended() { 1 << 31 } else { 0 };
+        *by_id.entry(id).or_insert(0) += 1;
+        if id == 0x080 {
+            after_last_sync = 0;
+        } else {
+            after_last_sync += 1;
+        }
+    }
+    BusLog { by_id, after_last_sync }
+}
+
+fn u(v: &Value) -> u64 {
+    v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
+}
+
+/// Stretches (first, last) of consecutive samples with `pred`, by index.
+fn stretches<T>(xs: &[T], pred: impl Fn(&T) -> bool) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    let mut start = None;
+    for (i, x) in xs.iter().enumerate() {
+        match (pred(x), start) {
+            (true, None) => start = Some(i),
+            (false, Some(s)) => {
+                out.push((s, i - 1));
+                start = None;
+            }
+            _ => {}
+        }
+    }
+    if let Some(s) = start {
+        out.push((s, xs.len() - 1));
+    }
+    out
+}
+
+/// Checks shared by every scenario on one daemon run: what the daemon published is what the
+/// monitor received (every cycle, in order), no valid estimate from stale or missing data,
+/// the recording replays bit for bit, and the candump log of the bus replays to the same
+/// estimates.
+struct RunCheck {
+    records: Vec<CycleRecord>,
+    config: Config,
+}
+
+fn check_run(a: &Artifacts, summary: &str, rec_dir: &str, run_samples: &[&Sample]) -> RunCheck {
+    let d = a.json(summary);
+    let cycles = u(&d["cycles"]);
+    assert!(cycles > 0);
+    assert_eq!(d["published"], cycles, "every cycle published: {d}");
+    assert_eq!(d["publish_errors"], 0);
+    assert_eq!(d["bus_dropped_rx_frames"], 0);
+    assert_eq!(d["recorder_queue_drops"], 0);
+    // The monitor received every published sample, in order.
+    assert_eq!(run_samples.len() as u64, cycles, "monitor received {} of {cycles}", run_samples.len());
+    for (i, s) in run_samples.iter().enumerate() {
+        assert_eq!(s.sequence, i as u64, "sample {i} of the run: {s:?}");
+        assert_eq!(s.run_id, u(&d["run_id"]));
+    }
+    // Never a valid estimate from invalid data, never a NaN.
+    for s in run_samples {
+        if s.health & health::INVALIDATING != 0 {
+            assert_eq!(s.state, STATE_INVALID, "flags {:#x} but published valid: {s:?}", s.health);
+        }
+        assert!(s.fulcrum_base_m.iter().chain(&s.joints_rad).all(|v| v.is_finite()), "{s:?}");
+    }
+    // The flight recording: what acquisition had each cycle, and what was published.
+    let rec_path = std::fs::read_dir(a.dir.join(rec_dir))
+        .expect("recording dir")
+        .map(|e| e.expect("dir entry").path())
+        .find(|p| p.extension().is_some_and(|e| e == "rec"))
+        .expect("a recording file");
+    let (config, run_id, records, _truncations) = replay::load_recording(&rec_path).expect("recording reads");
+    assert_eq!(run_id, u(&d["run_id"]));
+    assert_eq!(records.len() as u64, cycles, "one record per cycle");
+    for (r, s) in records.iter().zip(run_samples) {
+        assert_eq!(r.sequence, s.sequence);
+        assert_eq!((r.output.state, r.output.health, r.output.fulcrum_base_m), (s.state, s.health, s.fulcrum_base_m));
+        // A cycle missing a node's TPDO, or with a node fault, is never valid.
+        if r.input.received_mask != ALL_NODES || r.input.flags & health::INVALIDATING != 0 {
+            assert_eq!(r.output.state, STATE_INVALID, "cycle {} built on missing/stale data: {r:?}", r.sequence);
+        }
+    }
+    let rr = replay::replay_recording(&rec_path).expect("replay --recording");
+    assert!(rr.reproduced(), "the recording does not replay bit for bit: {rr:?}");
+    RunCheck { records, config }
+}
+
+/// The candump log replays to the estimates of the daemon's own recording, bit for bit.
+fn check_candump_replay(a: &Artifacts, run: &RunCheck) -> LogReplay {
+    let log = replay::replay_candump(&a.dir.join("bus.log"), &run.config).expect("replay --candump");
+    let c = replay::compare_with_recording(&log, &run.records, &run.config).expect("compare");
+    eprintln!("candump replay against the recording: {c:?}");
+    assert!(c.offset.is_some(), "the candump log does not line up with the recording: {c:?}");
+    assert_eq!(c.compared, run.records.len() as u64, "{c:?}");
+    assert_eq!(c.identical_inputs, c.compared, "{c:?}");
+    assert_eq!(c.identical_outputs, c.compared, "{c:?}");
+    // The same through the command a user runs.
+    let out = Command::new(FULCRUMD)
+        .args(["replay", "--candump"])
+        .arg(a.dir.join("bus.log"))
+        .arg("--recording")
+        .arg(a.dir.join("rec-daemon"))
+        .output()
+        .expect("fulcrumd replay");
+    assert!(out.status.success(), "fulcrumd replay --candump: {}", String::from_utf8_lossy(&out.stdout));
+    log
+}
+
+/// Frames: the robot's frames all reached candump and the daemon; every SYNC was answered.
+fn check_frames(a: &Artifacts, summary: &str, junk_frames: u64) -> BusLog {
+    let d = a.json(summary);
+    let r = a.json("simrobot.json");
+    let bus = bus_log(a);
+    let cycles = u(&d["cycles"]);
+    assert_eq!(r["send_errors"], 0, "{r}");
+    assert_eq!(r["sync_gaps"], 0, "simrobot missed SYNCs: {r}");
+    assert_eq!(u(&r["syncs"]), cycles, "every SYNC answered: {r}");
+    assert_eq!(bus.syncs(), cycles, "candump saw every SYNC");
+    assert_eq!(bus.non_sync(), u(&r["frames_sent"]) + junk_frames, "candump saw every frame sent");
+    let acq = &d["acquisition"];
+    // Every TPDO reached the daemon, in its cycle or late.
+    assert_eq!(u(&acq["tpdos"]) + u(&acq["late_tpdos"]), bus.tpdos(), "{acq}");
+    // Every frame reached the daemon, except status frames that followed the last cycle's TPDOs
+    // (the daemon stopped before reading them).
+    let seen = u(&acq["frames"]);
+    assert!(seen <= bus.non_sync() && seen + bus.after_last_sync >= bus.non_sync(), "{acq}, bus {}", bus.non_sync());
+    bus
+}
+
+fn monitor_summary_ok(a: &Artifacts, restarts: u64) {
+    let m = a.json("monitor.json");
+    assert_eq!(m["missed"], 0, "{m}");
+    assert_eq!(m["restarts"], restarts, "{m}");
+    assert_eq!(m["rejected"], 0, "{m}");
+    assert_eq!(m["valid_with_invalidating_flags"], 0, "{m}");
+    assert_eq!(m["non_finite"], 0, "{m}");
+}
+
+fn one_run(a: &Artifacts) -> (Vec<Sample>, RunCheck) {
+    assert_eq!(a.driver["daemon_exit"], 0, "the daemon exits cleanly: {}", a.driver);
+    for p in ["monitor", "simrobot", "candump"] {
+        assert_eq!(a.driver[format!("{p}_exit")], 0, "{p}: {}", a.driver);
+    }
+    monitor_summary_ok(a, 0);
+    let s = samples(a);
+    let run = check_run(a, "daemon.json", "rec-daemon", &s.iter().collect::<Vec<_>>());
+    (s, run)
+}
+
+/// The first valid sample after each stretch of `flag` carries DETECTOR_RESET (the detector
+/// never continues on the lines from before the fault), and every flagged sample is invalid.
+fn assert_reset_after(samples: &[Sample], flag: u32) -> Vec<(usize, usize)> {
+    let st = stretches(samples, |s| s.health & flag != 0);
+    for &(first, last) in &st {
+        assert!(samples[first..=last].iter().all(|s| s.state == STATE_INVALID));
+        if let Some(next) = samples[last + 1..].iter().find(|s| s.state != STATE_INVALID) {
+            assert_ne!(next.health & health::DETECTOR_RESET, 0, "no reset after the fault: {next:?}");
+        }
+    }
+    st
+}
+
+fn fulcrumd_stderr(a: &Artifacts, name: &str) -> String {
+    std::fs::read_to_string(a.dir.join(format!("{name}.err"))).unwrap_or_default()
+}
+
+// ------------------------------------------------------------------------------------------
+// The tests
+
+/// Several insert/extract cycles over vcan: every insertion detected, every cycle published
+/// and received, every frame accounted for, and the candump log replays identically.
+#[test]
+fn hil_clean_insert_extract_cycles() {
+    let Some(a) = hil("hil_clean_insert_extract_cycles", Scenario::Clean) else { return };
+    let (samples, run) = one_run(&a);
+    let bus = check_frames(&a, "daemon.json", 0);
+    let d = a.json("daemon.json");
+    assert_eq!(u(&d["cycles"]), u(&a.driver["scenario_samples"]), "the whole scenario ran");
+    let acq = &d["acquisition"];
+    for k in ["unknown_id_frames", "wrong_dlc_frames", "malformed_frames", "foreign_node_frames", "emcy_frames"] {
+        assert_eq!(acq[k], 0, "{k}: {acq}");
+    }
+    // No node fault at all; cycles can only be incomplete when an answer came after the
+    // (generous) deadline, and those are flagged and counted.
+    let node_flags = health::INVALIDATING & !(health::INCOMPLETE_CYCLE);
+    assert!(samples.iter().all(|s| s.health & node_flags == 0), "a node or bus fault in the clean run");
+    let incomplete = samples.iter().filter(|s| s.health & health::INCOMPLETE_CYCLE != 0).count() as u64;
+    assert_eq!(incomplete, u(&acq["incomplete_cycles"]));
+    eprintln!("clean run: {} cycles, {incomplete} incomplete (late answers), {} TPDOs", samples.len(), bus.tpdos());
+
+    // Detection through the whole chain, against simrobot's ground truth (sample n = the n-th
+    // SYNC answered = the daemon's sequence n, as every SYNC was answered).
+    let truth = TruthFile::open(&a.dir.join("truth.jsonl")).expect("truth.jsonl");
+    let detections = samples.iter().map(|s| {
+        let inside = s.state == STATE_INSIDE;
+        let f = s.fulcrum_base_m;
+        (At::Sample(s.sequence), Detected { inside, fulcrum_base_m: inside.then(|| nalgebra::Vector3::new(f[0], f[1], f[2])) })
+    });
+    let live = score_detections(&truth, detections, WRONG_TROCAR_M).expect("score");
+    let live = controller::scoring::ScoreReport::from_score(&live);
+    eprintln!("live over vcan: {}", live.describe());
+    assert!(live.insertions >= 4, "{live:?}");
+    assert_eq!(live.insertions_detected, live.insertions, "every insertion detected: {}", live.describe());
+    assert_eq!(live.extractions_detected, live.extractions, "every extraction detected: {}", live.describe());
+
+    // False detections: the chain (CAN, acquisition, timing, iceoryx2) adds none. The
+    // reference is the detector on the same scenario offline (`simrobot generate`, a bus with
+    // no timing at all). A false detection there is the detector's own (reported in
+    // docs/status.md), not a HIL failure; see docs/hil.md.
+    let offline = a.dir.join("offline");
+    let out = Command::new(simrobot())
+        .args(["generate", "--out"])
+        .arg(&offline)
+        .arg("--config")
+        .arg(a.dir.join("simrobot.toml"))
+        .output()
+        .expect("simrobot generate");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let off = replay::replay_candump(&offline.join("bus.log"), &run.config).expect("offline replay");
+    let off = controller::scoring::score_log(&off, &offline.join("truth.jsonl")).expect("offline score");
+    eprintln!("offline (same scenario, no bus): {}", off.describe());
+    assert_eq!(live.false_detections, off.false_detections, "false detections added by the chain");
+    assert_eq!(live.insertions, off.insertions);
+    check_candump_replay(&a, &run);
+}
+
+/// Node 2 stops answering for 200 ms, then answers again.
+#[test]
+fn hil_node_silent_200ms_then_back() {
+    let Some(a) = hil("hil_node_silent_200ms_then_back", Scenario::NodeSilent) else { return };
+    let (samples, run) = one_run(&a);
+    check_frames(&a, "daemon.json", 0);
+    // Node 2's TPDO is missing in one stretch of cycles (the window), and only there.
+    let missing = stretches(&run.records, |r| r.input.received_mask & 0b010 == 0);
+    assert_eq!(missing.len(), 1, "node 2 missing in {missing:?}");
+    let (first, last) = missing[0];
+    let len = last - first + 1;
+    // 200 ms of SYNCs, fewer when periods were skipped in the guest.
+    let window_cycles = ((SILENT_WINDOW_US[1] - SILENT_WINDOW_US[0]) / u64::from(HIL_PERIOD_US)) as usize;
+    assert!((window_cycles / 2..=window_cycles + 1).contains(&len), "node 2 missing for {len} cycles");
+    // Stale from the 3rd missing cycle on (health.stale_after_cycles = 3), to the end of the
+    // window; the first two are incomplete (frozen) cycles.
+    let stale = assert_reset_after(&samples, health::NODE_STALE[1]);
+    assert_eq!(stale, vec![(first + 2, last)], "NODE_STALE[1] exactly from the 3rd missing cycle");
+    assert!(samples[first..=last].iter().all(|s| s.health & health::INCOMPLETE_CYCLE != 0));
+    // Only node 2 was flagged, and nothing else went wrong.
+    let others = health::INVALIDATING & !(health::INCOMPLETE_CYCLE | health::NODE_STALE[1]);
+    assert!(samples.iter().all(|s| s.health & others == 0));
+    // Back: valid again, with the detector reset, and it stays valid.
+    let after = &samples[last + 1..];
+    assert!(after.first().is_some_and(|s| s.state != STATE_INVALID && s.health & health::DETECTOR_RESET != 0));
+    let bad = after.iter().filter(|s| s.state == STATE_INVALID).count();
+    let late = after.iter().filter(|s| s.health & health::INCOMPLETE_CYCLE != 0).count();
+    assert_eq!(bad, late, "after recovery, only late-answer cycles are invalid");
+    let warn = fulcrumd_stderr(&a, "daemon");
+    assert!(warn.contains("node2-stale"), "the daemon logged the stale node:\n{warn}");
+    check_candump_replay(&a, &run);
+}
+
+/// Frames with a wrong DLC and unknown identifiers at 2 kHz while the daemon runs.
+#[test]
+fn hil_malformed_frames_at_2khz() {
+    let Some(a) = hil("hil_malformed_frames_at_2khz", Scenario::Malformed) else { return };
+    let (samples, run) = one_run(&a);
+    let sent = &a.driver["junk_sent"];
+    assert_eq!(sent["send_failed"], 0, "{sent}");
+    let junk: u64 = ["wrong_dlc", "unknown_id", "extended_id", "bad_nmt_state"].iter().map(|k| u(&sent[*k])).sum();
+    assert_eq!(junk, JUNK_FRAMES);
+    let bus = check_frames(&a, "daemon.json", junk);
+    assert_eq!(bus.count(0x7FF), u(&sent["unknown_id"]));
+    assert_eq!(bus.count(0x181 | 1 << 31), u(&sent["extended_id"]));
+    // Counted by kind, each one.
+    let acq = &a.json("daemon.json")["acquisition"];
+    assert_eq!(acq["wrong_dlc_frames"], sent["wrong_dlc"], "{acq}");
+    assert_eq!(u(&acq["unknown_id_frames"]), u(&sent["unknown_id"]) + u(&sent["extended_id"]), "{acq}");
+    assert_eq!(acq["malformed_frames"], sent["bad_nmt_state"], "{acq}");
+    // ...and they change nothing: no node fault, no bad sample; only late answers invalidate.
+    let r = a.json("simrobot.json");
+    assert_eq!(u(&r["ignored"]), junk, "simrobot ignored the junk: {r}");
+    let faults = health::INVALIDATING & !health::INCOMPLETE_CYCLE;
+    assert!(samples.iter().all(|s| s.health & faults == 0), "the flood raised a fault flag");
+    let invalid = samples.iter().filter(|s| s.state == STATE_INVALID).count();
+    let late = samples.iter().filter(|s| s.health & health::INCOMPLETE_CYCLE != 0).count();
+    assert_eq!(invalid, late);
+    assert!(samples.iter().any(|s| s.state == STATE_INSIDE), "the instrument was detected in its trocar");
+    eprintln!("flood: {junk} frames, {late} incomplete cycles");
+    check_candump_replay(&a, &run);
+}
+
+/// Node 3 raises five EMCYs in a row, each cleared 20 ms later.
+#[test]
+fn hil_emcy_burst() {
+    let Some(a) = hil("hil_emcy_burst", Scenario::EmcyBurst) else { return };
+    let (samples, run) = one_run(&a);
+    let bus = check_frames(&a, "daemon.json", 0);
+    assert_eq!(bus.count(0x083), 2 * EMCY_COUNT, "raise and clear of each EMCY on the bus");
+    assert_eq!(u(&a.json("daemon.json")["acquisition"]["emcy_frames"]), 2 * EMCY_COUNT);
+    // One flagged stretch per EMCY, every flagged sample invalid, a reset after each.
+    let st = assert_reset_after(&samples, health::NODE_EMCY[2]);
+    assert_eq!(st.len() as u64, EMCY_COUNT, "NODE_EMCY[2] stretches {st:?}");
+    let others = health::INVALIDATING & !(health::INCOMPLETE_CYCLE | health::NODE_EMCY[2]);
+    assert!(samples.iter().all(|s| s.health & others == 0));
+    let last = st.last().map(|s| s.1).unwrap_or(0);
+    let after = &samples[last + 1..];
+    assert_eq!(
+        after.iter().filter(|s| s.state == STATE_INVALID).count(),
+        after.iter().filter(|s| s.health & health::INCOMPLETE_CYCLE != 0).count(),
+        "valid again after the burst"
+    );
+    assert!(fulcrumd_stderr(&a, "daemon").contains("node3-emcy"));
+    check_candump_replay(&a, &run);
+}
+
+/// The daemon is killed with SIGKILL and restarted while the monitor keeps running: the
+/// monitor sees the restart and receives again within 1 s of the new daemon's start.
+#[test]
+fn hil_daemon_sigkill_and_restart() {
+    let Some(a) = hil("hil_daemon_sigkill_and_restart", Scenario::KillRestart) else { return };
+    assert_eq!(a.driver["daemon_1_exit"], -libc::SIGKILL, "{}", a.driver);
+    assert_eq!(a.driver["daemon_2_exit"], 0, "the restarted daemon runs and exits cleanly: {}", a.driver);
+    for p in ["monitor", "simrobot", "candump"] {
+        assert_eq!(a.driver[format!("{p}_exit")], 0, "{p}: {}", a.driver);
+    }
+    monitor_summary_ok(&a, 1);
+    let samples = samples(&a);
+    let d2 = a.json("daemon-2.json");
+    let run2 = u(&d2["run_id"]);
+    let split = samples.iter().position(|s| s.run_id == run2).expect("samples of the restarted daemon");
+    let (first_run, second_run) = samples.split_at(split);
+    assert!(!first_run.is_empty(), "samples of the first daemon");
+    assert!(second_run.iter().all(|s| s.run_id == run2), "an old sample after the restart");
+    // The first run: in order from 0, nothing missed, up to the kill.
+    for (i, s) in first_run.iter().enumerate() {
+        assert_eq!(s.sequence, i as u64);
+        assert_eq!(s.event, if i == 0 { "first" } else { "in_order" });
+    }
+    // The monitor reported the restart...
+    assert_eq!(second_run[0].event, "restart", "{:?}", second_run[0]);
+    let mon_log = fulcrumd_stderr(&a, "monitor");
+    assert!(mon_log.contains(&format!("daemon (re)started: run {run2:016x}")), "{mon_log}");
+    // ...and received again within 1 s of the new daemon's spawn.
+    let spawn_ns = u(&a.driver["restart_spawn_ns"]);
+    let back_ms = (second_run[0].rx_ns.saturating_sub(spawn_ns)) as f64 * 1e-6;
+    eprintln!("restart: first sample of the new run {back_ms:.0} ms after its spawn");
+    assert!(second_run[0].rx_ns > spawn_ns && back_ms < 1000.0, "received again after {back_ms:.0} ms");
+    // The new run: every cycle, from 0, no stale estimate (fresh detector), recording replays.
+    check_run(&a, "daemon-2.json", "rec-daemon-2", &second_run.iter().collect::<Vec<_>>());
+    // The killed run's recording is readable up to the kill and reproduces bit for bit.
+    let rec1 = std::fs::read_dir(a.dir.join("rec-daemon-1"))
+        .expect("rec-daemon-1")
+        .map(|e| e.expect("entry").path())
+        .find(|p| p.extension().is_some_and(|e| e == "rec"))
+        .expect("first run's recording");
+    let rr = replay::replay_recording(&rec1).expect("replay of the killed run");
+    eprintln!("killed run's recording: {} records, truncations {:?}", rr.records, rr.truncations);
+    assert!(rr.records > 0 && rr.identical == rr.records && rr.gap_at.is_none(), "{rr:?}");
+}

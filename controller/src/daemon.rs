@@ -240,11 +240,12 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         .map_err(|e| DaemonError::Config(e.to_string()))?;
     let run_info = RunInfo::new(RECORD_KIND, opts.config_toml.clone());
     let run_id = run_info.run_id;
-    let params = LoopParams {
+    let mut params = LoopParams {
         period_ns: u64::from(cfg.cycle.period_us) * 1000,
         frame_deadline_ns: u64::from(cfg.cycle.frame_deadline_us) * 1000,
         run_id,
         max_cycles: opts.max_cycles,
+        cut_by_bus_time: false,
     };
     let period_s = f64::from(cfg.cycle.period_us) * 1e-6;
 
@@ -285,8 +286,14 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         );
         (Box::new(controller), "in-process simulated robot".to_string())
     } else {
-        let b = SocketCanBus::open(&cfg.bus.iface)
+        let mut b = SocketCanBus::open(&cfg.bus.iface)
             .map_err(|source| DaemonError::Bus { iface: cfg.bus.iface.clone(), source })?;
+        // The SYNC's own echo is the time reference of the collection window (docs/daemon.md).
+        b.receive_own_frames(true).map_err(|e| DaemonError::Bus {
+            iface: cfg.bus.iface.clone(),
+            source: hw_io::can::OpenError::Io { interface: cfg.bus.iface.clone(), source: e },
+        })?;
+        params.cut_by_bus_time = true;
         (Box::new(b), cfg.bus.iface.clone())
     };
     info!(

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use hw_io::can::{CanBus, RecvError, SyncSource};
+use hw_io::can::{CanBus, CanFrame, RecvError, SyncSource, TimedFrame};
 use hw_io::ipc::{FulcrumSample, STATE_INVALID, health as flags};
 use serde::{Deserialize, Serialize};
 
@@ -180,6 +180,14 @@ pub struct LoopParams {
     pub run_id: u64,
     /// Stop after this many cycles (None: until stopped).
     pub max_cycles: Option<u64>,
+    /// The bus echoes the loop's own frames with their bus timestamps (SocketCAN with
+    /// [`hw_io::can::SocketCanBus::receive_own_frames`]). Then a frame belongs to the cycle when
+    /// its **bus timestamp** is at most `frame_deadline_ns` after the SYNC's echo, whenever the
+    /// loop gets to read it; a later one is late. This is the rule `fulcrumd replay --candump`
+    /// applies to a candump log of the bus, so the log reproduces the loop's cycles exactly even
+    /// when the loop's thread is woken late. false: the frames the loop has read before its
+    /// deadline (monotonic clock) belong to the cycle.
+    pub cut_by_bus_time: bool,
 }
 
 /// The control loop's state. Build it (allocates), then [`RtLoop::run`] (does not).
@@ -197,6 +205,9 @@ pub struct RtLoop<B: CanBus> {
     last_trocar: u32,
     last_health: u32,
     prev_cycle_ns: u32,
+    /// A frame read after its cycle's window closed (bus time): handled between cycles, first
+    /// thing in the next cycle.
+    pending: Option<TimedFrame>,
 }
 
 impl<B: CanBus> RtLoop<B> {
@@ -223,7 +234,13 @@ impl<B: CanBus> RtLoop<B> {
             last_trocar: 0,
             last_health: 0,
             prev_cycle_ns: 0,
+            pending: None,
         }
+    }
+
+    /// The bus the loop runs on.
+    pub fn bus(&self) -> &B {
+        &self.bus
     }
 
     /// Acquisition counters.
@@ -258,28 +275,11 @@ impl<B: CanBus> RtLoop<B> {
         Ok(())
     }
 
-    /// One cycle, woken at `woke_ns` (`late_ns` after its deadline, `skipped` periods
-    /// skipped before it).
-    fn cycle(&mut self, woke_ns: u64, late_ns: u64, skipped: u64, sink: &mut impl CycleSink) {
-        let seq = self.sequence;
-        // 2. Frames since the last collection ended are late (TPDOs) or status.
-        loop {
-            match self.bus.recv_timeout(Duration::ZERO) {
-                Ok(Some(f)) => self.acquisition.on_frame_between_cycles(&f.frame, monotonic_now_ns()),
-                Ok(None) | Err(RecvError::EndOfReplay) => break,
-                Err(_) => {
-                    self.acquisition.on_bus_error();
-                    break;
-                }
-            }
-        }
-        // 3. SYNC, then collect.
-        let sync_failed = self.bus.send(&self.sync.next_frame()).is_err();
-        let sync_ns = monotonic_now_ns();
-        self.acquisition.start_cycle();
-        let deadline = sync_ns + self.params.frame_deadline_ns;
+    /// Collects this cycle's frames until all TPDOs are in or `deadline` (monotonic clock):
+    /// what the loop has read by then belongs to the cycle.
+    fn collect_until(&mut self, sync_ns: u64, deadline: u64) {
         let mut now = sync_ns;
-        while !self.acquisition.is_complete() && now < deadline && !sync_failed {
+        while !self.acquisition.is_complete() && now < deadline {
             match self.bus.recv_timeout(Duration::from_nanos(deadline - now)) {
                 Ok(Some(f)) => {
                     now = monotonic_now_ns();
@@ -292,6 +292,73 @@ impl<B: CanBus> RtLoop<B> {
                 }
             }
         }
+    }
+
+    /// Collects this cycle's frames by bus time ([`LoopParams::cut_by_bus_time`]): frames
+    /// before the SYNC's echo are between cycles; after it, a frame stamped at most
+    /// `frame_deadline_ns` after the echo belongs to the cycle, the first one stamped later
+    /// closes it (kept for the next cycle's between-cycles handling). The loop waits until
+    /// `deadline` (monotonic clock, counted from after the send, so every frame of the window
+    /// is queued by then), then takes what is queued without waiting.
+    fn collect_by_bus_time(&mut self, sync_frame: &CanFrame, deadline: u64) {
+        let window_us = self.params.frame_deadline_ns / 1000;
+        let mut echo_us: Option<u64> = None;
+        while !self.acquisition.is_complete() {
+            let wait = deadline.saturating_sub(monotonic_now_ns());
+            let f = match self.bus.recv_timeout(Duration::from_nanos(wait)) {
+                Ok(Some(f)) => f,
+                Ok(None) => break,
+                Err(_) => {
+                    self.acquisition.on_bus_error();
+                    break;
+                }
+            };
+            let now = monotonic_now_ns();
+            match echo_us {
+                None if f.frame == *sync_frame => echo_us = Some(f.unix_time_us),
+                // Queued before our SYNC went out.
+                None => self.acquisition.on_frame_between_cycles(&f.frame, now),
+                Some(t0) if f.unix_time_us <= t0.saturating_add(window_us) => self.acquisition.on_frame(&f.frame, now),
+                Some(_) => {
+                    self.pending = Some(f);
+                    break;
+                }
+            }
+        }
+    }
+
+    /// One cycle, woken at `woke_ns` (`late_ns` after its deadline, `skipped` periods
+    /// skipped before it).
+    fn cycle(&mut self, woke_ns: u64, late_ns: u64, skipped: u64, sink: &mut impl CycleSink) {
+        let seq = self.sequence;
+        // 2. Frames since the last collection ended are late (TPDOs) or status.
+        if let Some(f) = self.pending.take() {
+            self.acquisition.on_frame_between_cycles(&f.frame, monotonic_now_ns());
+        }
+        loop {
+            match self.bus.recv_timeout(Duration::ZERO) {
+                Ok(Some(f)) => self.acquisition.on_frame_between_cycles(&f.frame, monotonic_now_ns()),
+                Ok(None) | Err(RecvError::EndOfReplay) => break,
+                Err(_) => {
+                    self.acquisition.on_bus_error();
+                    break;
+                }
+            }
+        }
+        // 3. SYNC, then collect.
+        let sync_frame = self.sync.next_frame();
+        let sync_failed = self.bus.send(&sync_frame).is_err();
+        let sync_ns = monotonic_now_ns();
+        self.acquisition.start_cycle();
+        let deadline = sync_ns + self.params.frame_deadline_ns;
+        if self.params.cut_by_bus_time {
+            if !sync_failed {
+                self.collect_by_bus_time(&sync_frame, deadline);
+            }
+        } else {
+            self.collect_until(sync_ns, deadline);
+        }
+
         let collected_ns = monotonic_now_ns();
         let mut input = self.acquisition.end_cycle(collected_ns, sync_failed);
         if skipped > 0 {

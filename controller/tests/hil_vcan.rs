@@ -90,9 +90,8 @@ impl Scenario {
         // 4 cycles of 4-5 s inside and 1.6-2.2 s outside: about 30 000 samples (SYNCs) for the
         // clean run; the fault scenarios use the first 7 500.
         let mut s = String::from("[scenario]\nseed = 1\ncycles = 4\ninside_s = [4.0, 5.0]\noutside_s = [1.6, 2.2]\n");
-        let node = |dropouts: &str, emcy: &str| {
-            format!("\n[[nodes]]\ndropout_windows_us = [{dropouts}]\nemcy = [{emcy}]\n")
-        };
+        let node =
+            |dropouts: &str, emcy: &str| format!("\n[[nodes]]\ndropout_windows_us = [{dropouts}]\nemcy = [{emcy}]\n");
         match self {
             Scenario::NodeSilent => {
                 let w = format!("[{}, {}]", SILENT_WINDOW_US[0], SILENT_WINDOW_US[1]);
@@ -437,7 +436,11 @@ fn drive_in(scenario: Scenario, dir: &Path) {
                 let start = monotonic_now_ns() + JUNK_START_MS * 1_000_000;
                 std::thread::spawn(move || send_junk(start))
             });
-            let code = wait_exit(&mut daemon, "fulcrumd", Duration::from_secs(cycles * u64::from(HIL_PERIOD_US) * 4 / 1_000_000 + 60));
+            let code = wait_exit(
+                &mut daemon,
+                "fulcrumd",
+                Duration::from_secs(cycles * u64::from(HIL_PERIOD_US) * 4 / 1_000_000 + 60),
+            );
             driver.insert("daemon_exit".into(), code.into());
             if let Some(j) = junk {
                 let sent = j.join().expect("junk sender panicked");
@@ -494,10 +497,7 @@ struct Sample {
 
 fn samples(a: &Artifacts) -> Vec<Sample> {
     let f = File::open(a.dir.join("monitor.jsonl")).expect("monitor.jsonl");
-    BufReader::new(f)
-        .lines()
-        .map(|l| serde_json::from_str(&l.expect("read line")).expect("sample line"))
-        .collect()
+    BufReader::new(f).lines().map(|l| serde_json::from_str(&l.expect("read line")).expect("sample line")).collect()
 }
 
 /// The frames candump saw, by COB-ID (extended IDs with bit 31 set).
@@ -725,7 +725,10 @@ fn hil_clean_insert_extract_cycles() {
     let detections = samples.iter().map(|s| {
         let inside = s.state == STATE_INSIDE;
         let f = s.fulcrum_base_m;
-        (At::Sample(s.sequence), Detected { inside, fulcrum_base_m: inside.then(|| nalgebra::Vector3::new(f[0], f[1], f[2])) })
+        (
+            At::Sample(s.sequence),
+            Detected { inside, fulcrum_base_m: inside.then(|| nalgebra::Vector3::new(f[0], f[1], f[2])) },
+        )
     });
     let live = score_detections(&truth, detections, WRONG_TROCAR_M).expect("score");
     let live = controller::scoring::ScoreReport::from_score(&live);

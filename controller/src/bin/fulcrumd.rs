@@ -329,7 +329,8 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
                 joints_rad: x.joints_rad,
                 window_fill: x.window_fill,
             };
-            let written = serde_json::to_writer(&mut *w, &line).map_err(std::io::Error::from).and_then(|()| w.write_all(b"\n"));
+            let written =
+                serde_json::to_writer(&mut *w, &line).map_err(std::io::Error::from).and_then(|()| w.write_all(b"\n"));
             if let Err(e) = written {
                 return Err(format!("writing the samples file: {e}"));
             }

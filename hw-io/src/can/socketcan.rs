@@ -81,6 +81,14 @@ impl SocketCanBus {
         &self.interface
     }
 
+    /// Also receive the frames this socket sends (`CAN_RAW_RECV_OWN_MSGS`), stamped by the
+    /// kernel like every other frame: the same timestamp every other socket on the interface
+    /// (e.g. candump) sees for that frame. fulcrumd uses its own SYNC's echo as the time
+    /// reference of the cycle's collection window (docs/daemon.md).
+    pub fn receive_own_frames(&mut self, on: bool) -> io::Result<()> {
+        self.socket.set_recv_own_msgs(on)
+    }
+
     /// The underlying `socketcan` socket, e.g. to set filters.
     pub fn socket(&self) -> &socketcan::CanSocket {
         &self.socket

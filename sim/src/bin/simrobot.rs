@@ -516,9 +516,8 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         println!("simrobot live: last send error: {e}");
     }
     if let Some(path) = &args.summary_json {
-        let written = serde_json::to_string_pretty(&counts)
-            .map_err(io::Error::from)
-            .and_then(|text| std::fs::write(path, text));
+        let written =
+            serde_json::to_string_pretty(&counts).map_err(io::Error::from).and_then(|text| std::fs::write(path, text));
         if let Err(source) = written {
             let _ = io::stdout().flush();
             return Err(LiveError::Create { path: path.clone(), source });

@@ -30,9 +30,11 @@ struct ScriptedBus {
     /// Junk frames injected after each SYNC's answer: (from sync, to sync, frames).
     junk: Vec<CanFrame>,
     junk_window: (u64, u64),
-    /// Echo the loop's SYNC (stamped `sync index * 1000` µs) before the answers, as SocketCAN
-    /// with `receive_own_frames` does.
+    /// Echo the loop's SYNC (stamped `sync index * 1000` µs), as SocketCAN with
+    /// `receive_own_frames` does: before the answers, or (`echo_last`) after them, as a loaded
+    /// kernel can deliver it.
     echo: bool,
+    echo_last: bool,
     /// Every frame on the bus in order, as candump would log it.
     log: Vec<TimedFrame>,
 }
@@ -46,7 +48,7 @@ impl CanBus for ScriptedBus {
             if self.log.len() < self.log.capacity() {
                 self.log.push(echo);
             }
-            if self.echo {
+            if self.echo && !self.echo_last {
                 self.queue.push_back(echo);
             }
             if let Some(frames) = self.answers.get(self.syncs as usize) {
@@ -56,6 +58,9 @@ impl CanBus for ScriptedBus {
                         self.log.push(*f);
                     }
                 }
+            }
+            if self.echo && self.echo_last {
+                self.queue.push_back(echo);
             }
             if (self.junk_window.0..self.junk_window.1).contains(&self.syncs) {
                 for j in &self.junk {
@@ -113,6 +118,7 @@ fn run(
         junk,
         junk_window,
         echo: false,
+        echo_last: false,
         log: Vec::new(),
     };
     let acq = Acquisition::new(&cfg.bus.encoder, cfg.health).unwrap();
@@ -225,10 +231,11 @@ fn a_flood_of_malformed_frames_is_counted_and_changes_nothing() {
 /// (window after its SYNC's echo), not by when it reads them: here every frame is readable at
 /// once, and node 3 answers 700 µs after the SYNC, past a 500 µs window, so its TPDO is late in
 /// every cycle although the loop reads it in time. The candump replay of the same bus applies
-/// the same rule: its cycles' inputs equal the loop's, cycle by cycle.
+/// the same rule: its cycles' inputs equal the loop's, cycle by cycle. Also when the echo of
+/// the SYNC reaches the loop after the answers.
 #[test]
 fn cutting_by_bus_time_matches_the_candump_replay() {
-    for node3_latency_us in [400, 700] {
+    for (node3_latency_us, echo_last) in [(400, false), (700, false), (400, true), (700, true)] {
         let cycles = 600u64;
         let mut t = twin();
         t.nodes[2].latency_us = node3_latency_us;
@@ -244,6 +251,7 @@ fn cutting_by_bus_time_matches_the_candump_replay() {
             junk: Vec::new(),
             junk_window: (0, 0),
             echo: true,
+            echo_last,
             log: Vec::with_capacity(8 * cycles as usize),
         };
         let mut cfg = Config::default();
@@ -259,7 +267,9 @@ fn cutting_by_bus_time_matches_the_candump_replay() {
         };
         let mut lp = RtLoop::new(bus, acq, est, params, Arc::new(LoopCounters::default()), LoopProgress::new());
         let mut sink = Records { records: Vec::with_capacity(cycles as usize) };
+        let before = allocs();
         lp.run(&mut sink, || false).unwrap();
+        assert_eq!(allocs() - before, 0, "the loop allocated");
         let stats = *lp.acquisition_stats();
         let late = node3_latency_us > 500;
         if late {

@@ -32,6 +32,10 @@ use crate::rt_loop::{
 use crate::sim_robot::{self, SimRobotThread};
 use crate::watchdog::{self, LoopProgress, Watchdog};
 
+/// Receive queue asked for on a SocketCAN interface, bytes (the kernel doubles it: about
+/// 4000 classic frames, half a second of a saturated 1 Mbit/s bus).
+pub const CAN_RECEIVE_BUFFER_BYTES: usize = 2 << 20;
+
 /// Capacity of the flight recorder queue, records (about 4 s at 1 kHz).
 pub const RECORDER_QUEUE: usize = 4096;
 
@@ -294,6 +298,13 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
             source: hw_io::can::OpenError::Io { interface: cfg.bus.iface.clone(), source: e },
         })?;
         params.cut_by_bus_time = true;
+        // A receive queue for bursts: with the default (about 200 frames) a 2 kHz flood of
+        // junk frames overflowed it during a 67 ms stall of the loop (docs/hil.md), and the
+        // kernel drops what does not fit, EMCY frames included.
+        match b.set_receive_buffer(CAN_RECEIVE_BUFFER_BYTES) {
+            Ok(n) => info!("CAN receive queue: {n} bytes"),
+            Err(e) => warn!("CAN receive queue: cannot enlarge it ({e}); frames may be dropped in bursts"),
+        }
         (Box::new(b), cfg.bus.iface.clone())
     };
     info!(

@@ -94,6 +94,12 @@ struct LiveArgs {
     /// With --truth: a state line every K samples.
     #[arg(long, value_name = "K", default_value_t = DEFAULT_STATE_EVERY)]
     state_every: u64,
+    /// Run the nodes' schedules (heartbeats, `dropout_windows_us`, `emcy.at_us`) on the twin's
+    /// own clock, 1 ms per answered SYNC from the first, instead of the wall clock: a fault
+    /// then hits the same samples however fast the controller sends SYNCs (HIL tests with a
+    /// slower controller period). The truth file keeps the SYNCs' receive times.
+    #[arg(long)]
+    twin_clock: bool,
     /// At the end, also write the counts (SYNCs answered, frames sent, ...) as JSON to this file.
     #[arg(long, value_name = "FILE")]
     summary_json: Option<PathBuf>,
@@ -406,6 +412,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     let mut counts = LiveCounts::default();
     let mut counter_check = SyncCounter::new();
     let mut seed = robot.scenario_seed();
+    let mut first_sync_us: Option<u64> = None;
     let result = loop {
         if STOP.load(Ordering::SeqCst) {
             println!("simrobot live: stopped by signal");
@@ -438,7 +445,12 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         if counter_check.observe(counter).is_err() {
             counts.sync_gaps += 1;
         }
-        let frames = match robot.on_sync(counter, rx.unix_time_us) {
+        let t_us = if args.twin_clock {
+            first_sync_us.get_or_insert(rx.unix_time_us).saturating_add(counts.syncs.saturating_mul(SYNC_PERIOD_US))
+        } else {
+            rx.unix_time_us
+        };
+        let frames = match robot.on_sync(counter, t_us) {
             Ok(Some(frames)) => frames,
             Ok(None) => {
                 println!("simrobot live: scenario over");

@@ -97,7 +97,7 @@ struct LiveArgs {
     /// Run the nodes' schedules (heartbeats, `dropout_windows_us`, `emcy.at_us`) on the twin's
     /// own clock, 1 ms per answered SYNC from the first, instead of the wall clock: a fault
     /// then hits the same samples however fast the controller sends SYNCs (HIL tests with a
-    /// slower controller period). The truth file keeps the SYNCs' receive times.
+    /// slower controller period). The truth file's times are then on that clock too.
     #[arg(long)]
     twin_clock: bool,
     /// At the end, also write the counts (SYNCs answered, frames sent, ...) as JSON to this file.
@@ -469,7 +469,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         }
         counts.syncs += 1;
         if let Some((path, file)) = truth_file.take() {
-            let mut header = TruthHeader::new(&config.scenario, rx.unix_time_us, args.state_every);
+            let mut header = TruthHeader::new(&config.scenario, t_us, args.state_every);
             header.twin = Some(config.clone());
             let writer = TruthWriter::new(BufWriter::new(file), &header)
                 .map_err(|source| LiveError::Truth { path: path.clone(), source });
@@ -497,7 +497,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
             }
         }
         if let Some((path, w)) = truth.as_mut()
-            && let Err(source) = w.sample(rx.unix_time_us, robot.truth(), robot.events())
+            && let Err(source) = w.sample(t_us, robot.truth(), robot.events())
         {
             break Err(LiveError::Truth { path: path.clone(), source });
         }

@@ -1006,7 +1006,8 @@ fn hil_daemon_sigkill_and_restart() {
     // The new run: every cycle from 0, the health rules, its recording replays; its detector
     // starts empty (nothing carried over from the killed run).
     check_run(&a, "daemon-2.json", "rec-daemon-2", &second_run.iter().collect::<Vec<_>>(), Allowed { emcy: false });
-    assert_eq!(second_run[0].window_fill, 0, "{:?}", second_run[0]);
+    // Its first estimate holds at most its own line.
+    assert!(second_run[0].window_fill <= 1, "{:?}", second_run[0]);
     // The killed run's recording is readable up to the kill and reproduces bit for bit.
     let rec1 = std::fs::read_dir(a.dir.join("rec-daemon-1"))
         .expect("rec-daemon-1")

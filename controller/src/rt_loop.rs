@@ -5,7 +5,9 @@
 //! 2. drain frames that arrived since the previous cycle's collection ended (late TPDOs are
 //!    counted, EMCY and heartbeats taken into account);
 //! 3. send SYNC; collect this cycle's TPDOs until all three are in or `frame_deadline_us`
-//!    after the SYNC, blocking in the bus's receive (ppoll / condition variable);
+//!    after the SYNC, blocking in the bus's receive (ppoll / condition variable); on
+//!    SocketCAN the window is in bus time, from the kernel stamp of the SYNC's own echo
+//!    ([`LoopParams::cut_by_bus_time`]), the rule `replay --candump` applies to a log;
 //! 4. [`Acquisition::end_cycle`] → [`Estimation::process`] → publish a [`FulcrumSample`];
 //! 5. account: timing histograms, counters, one [`CycleRecord`] to the flight recorder and
 //!    state/health changes to the log hand-off — both through lock-free SPSC queues; the

@@ -156,6 +156,11 @@ fn daemon_config() -> String {
     toml::to_string(&c).expect("the configuration serialises")
 }
 
+/// The receive queue the daemon asks for, bytes.
+fn daemon_rx_buffer() -> usize {
+    controller::daemon::CAN_RECEIVE_BUFFER_BYTES
+}
+
 // ------------------------------------------------------------------------------------------
 // Host side: boot the guest, run this test in it, collect the artifacts
 
@@ -477,6 +482,25 @@ fn drive_in(scenario: Scenario, dir: &Path) {
             driver.insert("daemon_exit".into(), wait_exit(&mut daemon, "fulcrumd", limit).into());
         }
         Scenario::Malformed => {
+            // hw-io's SocketCAN options the daemon relies on, on the guest's real kernel: the
+            // receive queue it asks for, and the echo of its own frame with a kernel stamp.
+            let mut probe = SocketCanBus::open("vcan0").expect("open vcan0");
+            let granted = probe.set_receive_buffer(daemon_rx_buffer()).expect("SO_RCVBUF");
+            driver.insert("rx_buffer_granted".into(), granted.into());
+            probe.receive_own_frames(true).expect("CAN_RAW_RECV_OWN_MSGS");
+            let probe_frame = CanFrame::new_standard(0x7FE, &[1, 2, 3, 4]).expect("frame");
+            let before_us = hw_io::can::unix_time_now_us();
+            probe.send(&probe_frame).expect("send");
+            let mut echo = None;
+            while let Ok(Some(f)) = probe.recv_timeout(Duration::from_millis(500)) {
+                if f.frame == probe_frame {
+                    echo = Some(f);
+                    break;
+                }
+            }
+            let echo = echo.expect("the echo of our own frame");
+            driver.insert("own_echo_stamp_after_send_start".into(), (echo.unix_time_us >= before_us).into());
+            drop(probe);
             // The daemon runs until the flood is over and 2 s more, then gets SIGINT (its
             // normal stop): every junk frame goes out while it runs.
             let mut daemon = spawn(&mut daemon_cmd(dir, &service, "daemon", None), dir, "daemon");
@@ -926,6 +950,9 @@ fn hil_node_silent_200ms_then_back() {
 fn hil_malformed_frames_at_2khz() {
     let Some(a) = hil("hil_malformed_frames_at_2khz", Scenario::Malformed) else { return };
     let (samples, run) = one_run(&a, Allowed { emcy: false });
+    // The SocketCAN options the daemon relies on work on the guest's kernel.
+    assert!(u(&a.driver["rx_buffer_granted"]) >= daemon_rx_buffer() as u64, "{}", a.driver);
+    assert_eq!(a.driver["own_echo_stamp_after_send_start"], true, "{}", a.driver);
     let sent = &a.driver["junk_sent"];
     assert_eq!(sent["send_failed"], 0, "{sent}");
     let junk: u64 = ["wrong_dlc", "unknown_id", "extended_id", "bad_nmt_state"].iter().map(|k| u(&sent[*k])).sum();

@@ -428,10 +428,35 @@ fn drive_in(scenario: Scenario, dir: &Path) {
         driver.insert("ksoftirqd_fifo95".into(), raised.join(",").into());
     }
 
+    if scenario == Scenario::Malformed {
+        // (Before candump starts: the probe frame is not part of the scenario's bus.)
+        // hw-io's SocketCAN options the daemon relies on, on the guest's real kernel: the
+        // receive queue it asks for, and the echo of its own frame with a kernel stamp.
+        let mut probe = SocketCanBus::open("vcan0").expect("open vcan0");
+        let granted = probe.set_receive_buffer(daemon_rx_buffer()).expect("SO_RCVBUF");
+        driver.insert("rx_buffer_granted".into(), granted.into());
+        probe.receive_own_frames(true).expect("CAN_RAW_RECV_OWN_MSGS");
+        let probe_frame = CanFrame::new_standard(0x7FE, &[1, 2, 3, 4]).expect("frame");
+        let before_us = hw_io::can::unix_time_now_us();
+        probe.send(&probe_frame).expect("send");
+        let mut echo = None;
+        while let Ok(Some(f)) = probe.recv_timeout(Duration::from_millis(500)) {
+            if f.frame == probe_frame {
+                echo = Some(f);
+                break;
+            }
+        }
+        let echo = echo.expect("the echo of our own frame");
+        driver.insert("own_echo_stamp_after_send_start".into(), (echo.unix_time_us >= before_us).into());
+        drop(probe);
+    }
+
     // The bus observer first, then the subscriber, then the robot; the daemon last.
+    // candump at SCHED_FIFO 60 (below the monitor): at normal priority it fell behind during
+    // the flood, and was stopped with frames still in its queue.
     let bus_log = File::create(dir.join("bus.log")).expect("bus.log");
-    let mut candump = Command::new("candump")
-        .args(["-L", "-r", "8388608", "vcan0"])
+    let mut candump = Command::new("chrt")
+        .args(["-f", "60", "candump", "-L", "-r", "8388608", "vcan0"])
         .stdin(Stdio::null())
         .stdout(bus_log)
         .stderr(File::create(dir.join("candump.err")).expect("candump.err"))
@@ -482,25 +507,6 @@ fn drive_in(scenario: Scenario, dir: &Path) {
             driver.insert("daemon_exit".into(), wait_exit(&mut daemon, "fulcrumd", limit).into());
         }
         Scenario::Malformed => {
-            // hw-io's SocketCAN options the daemon relies on, on the guest's real kernel: the
-            // receive queue it asks for, and the echo of its own frame with a kernel stamp.
-            let mut probe = SocketCanBus::open("vcan0").expect("open vcan0");
-            let granted = probe.set_receive_buffer(daemon_rx_buffer()).expect("SO_RCVBUF");
-            driver.insert("rx_buffer_granted".into(), granted.into());
-            probe.receive_own_frames(true).expect("CAN_RAW_RECV_OWN_MSGS");
-            let probe_frame = CanFrame::new_standard(0x7FE, &[1, 2, 3, 4]).expect("frame");
-            let before_us = hw_io::can::unix_time_now_us();
-            probe.send(&probe_frame).expect("send");
-            let mut echo = None;
-            while let Ok(Some(f)) = probe.recv_timeout(Duration::from_millis(500)) {
-                if f.frame == probe_frame {
-                    echo = Some(f);
-                    break;
-                }
-            }
-            let echo = echo.expect("the echo of our own frame");
-            driver.insert("own_echo_stamp_after_send_start".into(), (echo.unix_time_us >= before_us).into());
-            drop(probe);
             // The daemon runs until the flood is over and 2 s more, then gets SIGINT (its
             // normal stop): every junk frame goes out while it runs.
             let mut daemon = spawn(&mut daemon_cmd(dir, &service, "daemon", None), dir, "daemon");
@@ -527,8 +533,19 @@ fn drive_in(scenario: Scenario, dir: &Path) {
         }
     }
     // Let the last samples and frames reach their readers, then stop them (SIGINT: each
-    // writes its summary).
+    // writes its summary). candump exits at SIGINT without reading what is still queued: wait
+    // until its log has stopped growing.
     std::thread::sleep(Duration::from_millis(500));
+    let log_len = || std::fs::metadata(dir.join("bus.log")).map(|m| m.len()).unwrap_or(0);
+    let (mut last, t0) = (log_len(), Instant::now());
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        let now = log_len();
+        if now == last || t0.elapsed() > Duration::from_secs(60) {
+            break;
+        }
+        last = now;
+    }
     for (child, name) in [(&mut monitor, "monitor"), (&mut robot, "simrobot"), (&mut candump, "candump")] {
         signal(child, libc::SIGINT);
         let code = wait_exit(child, name, Duration::from_secs(30));
@@ -910,7 +927,18 @@ fn hil_clean_insert_extract_cycles() {
             assert_eq!((o.output.state, o.output.fulcrum_base_m), (s.state, s.fulcrum_base_m), "sample {}", s.sequence);
         }
     }
-    assert_eq!(live.false_detections, off.false_detections, "false detections live vs offline");
+    // A guest stall of 3 cycles or more makes a node stale, and the stale-data policy resets
+    // the detector (its history then differs from the offline run's, legitimately); without
+    // such a reset, the chain must not change the number of false detections.
+    let resets = samples.iter().filter(|s| s.health & health::DETECTOR_RESET != 0).count();
+    if resets == 0 {
+        assert_eq!(live.false_detections, off.false_detections, "false detections live vs offline");
+    } else {
+        eprintln!(
+            "{resets} detector resets after guest stalls (stale nodes): false detections live {} vs offline {} not compared",
+            live.false_detections, off.false_detections
+        );
+    }
 }
 
 /// Node 2 stops answering for 200 ms, then answers again.

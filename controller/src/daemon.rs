@@ -33,6 +33,10 @@ use crate::rt_loop::{
 use crate::sim_robot::{self, SimRobotThread};
 use crate::watchdog::{self, LoopProgress, Watchdog};
 
+/// Receive queue asked for on a SocketCAN interface, bytes (the kernel doubles it: about
+/// 4000 classic frames, half a second of a saturated 1 Mbit/s bus).
+pub const CAN_RECEIVE_BUFFER_BYTES: usize = 2 << 20;
+
 /// Capacity of the flight recorder queue, records (about 4 s at 1 kHz).
 pub const RECORDER_QUEUE: usize = 4096;
 
@@ -246,11 +250,12 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         .map_err(|e| DaemonError::Config(e.to_string()))?;
     let run_info = RunInfo::new(RECORD_KIND, opts.config_toml.clone());
     let run_id = run_info.run_id;
-    let params = LoopParams {
+    let mut params = LoopParams {
         period_ns: u64::from(cfg.cycle.period_us) * 1000,
         frame_deadline_ns: u64::from(cfg.cycle.frame_deadline_us) * 1000,
         run_id,
         max_cycles: opts.max_cycles,
+        cut_by_bus_time: false,
     };
     let period_s = f64::from(cfg.cycle.period_us) * 1e-6;
 
@@ -291,8 +296,21 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         );
         (Box::new(controller), "in-process simulated robot".to_string())
     } else {
-        let b = SocketCanBus::open(&cfg.bus.iface)
+        let mut b = SocketCanBus::open(&cfg.bus.iface)
             .map_err(|source| DaemonError::Bus { iface: cfg.bus.iface.clone(), source })?;
+        // The SYNC's own echo is the time reference of the collection window (docs/daemon.md).
+        b.receive_own_frames(true).map_err(|e| DaemonError::Bus {
+            iface: cfg.bus.iface.clone(),
+            source: hw_io::can::OpenError::Io { interface: cfg.bus.iface.clone(), source: e },
+        })?;
+        params.cut_by_bus_time = true;
+        // A receive queue for bursts: with the default (about 200 frames) a 2 kHz flood of
+        // junk frames overflowed it during a 67 ms stall of the loop (docs/hil.md), and the
+        // kernel drops what does not fit, EMCY frames included.
+        match b.set_receive_buffer(CAN_RECEIVE_BUFFER_BYTES) {
+            Ok(n) => info!("CAN receive queue: {n} bytes"),
+            Err(e) => warn!("CAN receive queue: cannot enlarge it ({e}); frames may be dropped in bursts"),
+        }
         (Box::new(b), cfg.bus.iface.clone())
     };
     info!(

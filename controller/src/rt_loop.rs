@@ -5,7 +5,9 @@
 //! 2. drain frames that arrived since the previous cycle's collection ended (late TPDOs are
 //!    counted, EMCY and heartbeats taken into account);
 //! 3. send SYNC; collect this cycle's TPDOs until all three are in or `frame_deadline_us`
-//!    after the SYNC, blocking in the bus's receive (ppoll / condition variable);
+//!    after the SYNC, blocking in the bus's receive (ppoll / condition variable); on
+//!    SocketCAN the window is in bus time, from the kernel stamp of the SYNC's own echo
+//!    ([`LoopParams::cut_by_bus_time`]), the rule `replay --candump` applies to a log;
 //! 4. [`Acquisition::end_cycle`] → [`Estimation::process`] → publish a [`FulcrumSample`];
 //! 5. account: timing histograms, counters, one [`CycleRecord`] to the flight recorder and
 //!    state/health changes to the log hand-off — both through lock-free SPSC queues; the
@@ -15,7 +17,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use hw_io::can::{CanBus, RecvError, SyncSource};
+use hw_io::can::{CanBus, CanFrame, RecvError, SyncSource, TimedFrame, unix_time_now_us};
 use hw_io::ipc::{FulcrumSample, STATE_INVALID, health as flags};
 use serde::{Deserialize, Serialize};
 
@@ -83,6 +85,14 @@ pub enum LogEvent {
         sequence: u64,
     },
 }
+
+/// With [`LoopParams::cut_by_bus_time`]: how long the loop waits for its SYNC's echo at most,
+/// nanoseconds (100 ms). The echo is normally queued during the send itself.
+pub const ECHO_WAIT_NS: u64 = 100_000_000;
+
+/// With [`LoopParams::cut_by_bus_time`]: frames held while the loop waits for its SYNC's echo,
+/// and frames held after a window closed, at most (more are handled between cycles at once).
+pub const EARLY_FRAMES: usize = 32;
 
 /// Capacity of the log hand-off queue (events). Overflowing events are counted.
 pub const LOG_QUEUE: usize = 1024;
@@ -180,6 +190,14 @@ pub struct LoopParams {
     pub run_id: u64,
     /// Stop after this many cycles (None: until stopped).
     pub max_cycles: Option<u64>,
+    /// The bus echoes the loop's own frames with their bus timestamps (SocketCAN with
+    /// [`hw_io::can::SocketCanBus::receive_own_frames`]). Then a frame belongs to the cycle when
+    /// its **bus timestamp** is at most `frame_deadline_ns` after the SYNC's echo, whenever the
+    /// loop gets to read it; a later one is late. This is the rule `fulcrumd replay --candump`
+    /// applies to a candump log of the bus, so the log reproduces the loop's cycles exactly even
+    /// when the loop's thread is woken late. false: the frames the loop has read before its
+    /// deadline (monotonic clock) belong to the cycle.
+    pub cut_by_bus_time: bool,
 }
 
 /// The control loop's state. Build it (allocates), then [`RtLoop::run`] (does not).
@@ -197,6 +215,11 @@ pub struct RtLoop<B: CanBus> {
     last_trocar: u32,
     last_health: u32,
     prev_cycle_ns: u32,
+    /// Frames read after their cycle's window closed (bus time): handled between cycles,
+    /// first thing in the next cycle.
+    pending: heapless::Deque<TimedFrame, EARLY_FRAMES>,
+    /// Frames read before the SYNC's echo, sorted by stamp once it is in.
+    early: heapless::Vec<TimedFrame, EARLY_FRAMES>,
 }
 
 impl<B: CanBus> RtLoop<B> {
@@ -223,7 +246,14 @@ impl<B: CanBus> RtLoop<B> {
             last_trocar: 0,
             last_health: 0,
             prev_cycle_ns: 0,
+            pending: heapless::Deque::new(),
+            early: heapless::Vec::new(),
         }
+    }
+
+    /// The bus the loop runs on.
+    pub fn bus(&self) -> &B {
+        &self.bus
     }
 
     /// Acquisition counters.
@@ -258,28 +288,11 @@ impl<B: CanBus> RtLoop<B> {
         Ok(())
     }
 
-    /// One cycle, woken at `woke_ns` (`late_ns` after its deadline, `skipped` periods
-    /// skipped before it).
-    fn cycle(&mut self, woke_ns: u64, late_ns: u64, skipped: u64, sink: &mut impl CycleSink) {
-        let seq = self.sequence;
-        // 2. Frames since the last collection ended are late (TPDOs) or status.
-        loop {
-            match self.bus.recv_timeout(Duration::ZERO) {
-                Ok(Some(f)) => self.acquisition.on_frame_between_cycles(&f.frame, monotonic_now_ns()),
-                Ok(None) | Err(RecvError::EndOfReplay) => break,
-                Err(_) => {
-                    self.acquisition.on_bus_error();
-                    break;
-                }
-            }
-        }
-        // 3. SYNC, then collect.
-        let sync_failed = self.bus.send(&self.sync.next_frame()).is_err();
-        let sync_ns = monotonic_now_ns();
-        self.acquisition.start_cycle();
-        let deadline = sync_ns + self.params.frame_deadline_ns;
+    /// Collects this cycle's frames until all TPDOs are in or `deadline` (monotonic clock):
+    /// what the loop has read by then belongs to the cycle.
+    fn collect_until(&mut self, sync_ns: u64, deadline: u64) {
         let mut now = sync_ns;
-        while !self.acquisition.is_complete() && now < deadline && !sync_failed {
+        while !self.acquisition.is_complete() && now < deadline {
             match self.bus.recv_timeout(Duration::from_nanos(deadline - now)) {
                 Ok(Some(f)) => {
                     now = monotonic_now_ns();
@@ -292,6 +305,127 @@ impl<B: CanBus> RtLoop<B> {
                 }
             }
         }
+    }
+
+    /// Collects this cycle's frames by bus time ([`LoopParams::cut_by_bus_time`]): a frame
+    /// stamped before the SYNC's echo is between cycles; one stamped at most
+    /// `frame_deadline_ns` after the echo belongs to the cycle; the first one stamped later
+    /// closes it (it and the frames read with it are handled between cycles, first thing in the
+    /// next cycle). Frames read before the echo are held (up to [`EARLY_FRAMES`]) and sorted
+    /// by their stamps once the echo is in: under load the kernel can hand the loop the
+    /// nodes' answers before its own echo. Once the echo is in, the loop waits until the end
+    /// of the window (mapped from the wall clock of the stamps to the monotonic clock), then
+    /// takes what is queued without waiting. The echo is awaited up to [`ECHO_WAIT_NS`] (the
+    /// cycle then overruns); without it the cycle closes incomplete.
+    fn collect_by_bus_time(&mut self, sync_frame: &CanFrame, sync_ns: u64) {
+        let window_us = self.params.frame_deadline_ns / 1000;
+        let mut echo_us: Option<u64> = None;
+        let mut deadline = sync_ns.saturating_add(self.params.frame_deadline_ns.max(ECHO_WAIT_NS));
+        self.early.clear();
+        while !self.acquisition.is_complete() {
+            let wait = deadline.saturating_sub(monotonic_now_ns());
+            let f = match self.bus.recv_timeout(Duration::from_nanos(wait)) {
+                Ok(Some(f)) => f,
+                Ok(None) => break,
+                Err(_) => {
+                    self.acquisition.on_bus_error();
+                    break;
+                }
+            };
+            let now = monotonic_now_ns();
+            match echo_us {
+                None if f.frame == *sync_frame => {
+                    let t0 = f.unix_time_us;
+                    echo_us = Some(t0);
+                    // The window ends at echo + frame deadline (wall clock of the stamps).
+                    let left_us = t0.saturating_add(window_us).saturating_sub(unix_time_now_us());
+                    deadline = now.saturating_add(left_us.saturating_mul(1000));
+                    // Frames read before the echo: those stamped before it first.
+                    for k in 0..self.early.len() {
+                        if self.early[k].unix_time_us < t0 {
+                            self.acquisition.on_frame_between_cycles(&self.early[k].frame, now);
+                        }
+                    }
+                    let mut closed = false;
+                    for k in 0..self.early.len() {
+                        let e = self.early[k];
+                        if e.unix_time_us < t0 {
+                            continue;
+                        }
+                        closed |= e.unix_time_us > t0.saturating_add(window_us);
+                        if closed {
+                            self.hold(e, now);
+                        } else {
+                            self.acquisition.on_frame(&e.frame, now);
+                        }
+                    }
+                    self.early.clear();
+                    if closed {
+                        break;
+                    }
+                }
+                None => {
+                    if self.early.is_full() {
+                        let oldest = self.early.remove(0);
+                        self.acquisition.on_frame_between_cycles(&oldest.frame, now);
+                    }
+                    let _ = self.early.push(f);
+                }
+                Some(t0) if f.unix_time_us <= t0.saturating_add(window_us) => self.acquisition.on_frame(&f.frame, now),
+                Some(_) => {
+                    self.hold(f, now);
+                    break;
+                }
+            }
+        }
+        // No echo came: whatever was read is between cycles.
+        let now = monotonic_now_ns();
+        for k in 0..self.early.len() {
+            self.acquisition.on_frame_between_cycles(&self.early[k].frame, now);
+        }
+        self.early.clear();
+    }
+
+    /// Keeps a frame read after its cycle's window for the next cycle's between-cycles
+    /// handling (or handles it now when the holding queue is full).
+    fn hold(&mut self, f: TimedFrame, now_ns: u64) {
+        if let Err(f) = self.pending.push_back(f) {
+            self.acquisition.on_frame_between_cycles(&f.frame, now_ns);
+        }
+    }
+
+    /// One cycle, woken at `woke_ns` (`late_ns` after its deadline, `skipped` periods
+    /// skipped before it).
+    fn cycle(&mut self, woke_ns: u64, late_ns: u64, skipped: u64, sink: &mut impl CycleSink) {
+        let seq = self.sequence;
+        // 2. Frames since the last collection ended are late (TPDOs) or status.
+        while let Some(f) = self.pending.pop_front() {
+            self.acquisition.on_frame_between_cycles(&f.frame, monotonic_now_ns());
+        }
+        loop {
+            match self.bus.recv_timeout(Duration::ZERO) {
+                Ok(Some(f)) => self.acquisition.on_frame_between_cycles(&f.frame, monotonic_now_ns()),
+                Ok(None) | Err(RecvError::EndOfReplay) => break,
+                Err(_) => {
+                    self.acquisition.on_bus_error();
+                    break;
+                }
+            }
+        }
+        // 3. SYNC, then collect.
+        let sync_frame = self.sync.next_frame();
+        let sync_failed = self.bus.send(&sync_frame).is_err();
+        let sync_ns = monotonic_now_ns();
+        self.acquisition.start_cycle();
+        let deadline = sync_ns + self.params.frame_deadline_ns;
+        if self.params.cut_by_bus_time {
+            if !sync_failed {
+                self.collect_by_bus_time(&sync_frame, sync_ns);
+            }
+        } else {
+            self.collect_until(sync_ns, deadline);
+        }
+
         let collected_ns = monotonic_now_ns();
         let mut input = self.acquisition.end_cycle(collected_ns, sync_failed);
         if skipped > 0 {

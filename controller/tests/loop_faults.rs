@@ -30,16 +30,37 @@ struct ScriptedBus {
     /// Junk frames injected after each SYNC's answer: (from sync, to sync, frames).
     junk: Vec<CanFrame>,
     junk_window: (u64, u64),
+    /// Echo the loop's SYNC (stamped `sync index * 1000` µs), as SocketCAN with
+    /// `receive_own_frames` does: before the answers, or (`echo_last`) after them, as a loaded
+    /// kernel can deliver it.
+    echo: bool,
+    echo_last: bool,
+    /// Every frame on the bus in order, as candump would log it.
+    log: Vec<TimedFrame>,
 }
 
 impl CanBus for ScriptedBus {
     fn send(&mut self, frame: &CanFrame) -> Result<(), SendError> {
         if let Ok(Message::Sync { .. }) = Message::decode(frame) {
             let t_us = self.syncs * 1000;
+            let echo = TimedFrame { frame: *frame, unix_time_us: t_us };
+            // The log never grows past its capacity (0 in the allocation tests).
+            if self.log.len() < self.log.capacity() {
+                self.log.push(echo);
+            }
+            if self.echo && !self.echo_last {
+                self.queue.push_back(echo);
+            }
             if let Some(frames) = self.answers.get(self.syncs as usize) {
                 for f in frames {
                     self.queue.push_back(*f);
+                    if self.log.len() < self.log.capacity() {
+                        self.log.push(*f);
+                    }
                 }
+            }
+            if self.echo && self.echo_last {
+                self.queue.push_back(echo);
             }
             if (self.junk_window.0..self.junk_window.1).contains(&self.syncs) {
                 for j in &self.junk {
@@ -90,10 +111,25 @@ fn run(
             None => Vec::new(),
         })
         .collect();
-    let bus = ScriptedBus { answers, queue: VecDeque::with_capacity(1024), syncs: 0, junk, junk_window };
+    let bus = ScriptedBus {
+        answers,
+        queue: VecDeque::with_capacity(1024),
+        syncs: 0,
+        junk,
+        junk_window,
+        echo: false,
+        echo_last: false,
+        log: Vec::new(),
+    };
     let acq = Acquisition::new(&cfg.bus.encoder, cfg.health).unwrap();
     let est = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector).unwrap();
-    let params = LoopParams { period_ns: 20_000, frame_deadline_ns: 5_000_000, run_id: 7, max_cycles: Some(cycles) };
+    let params = LoopParams {
+        period_ns: 20_000,
+        frame_deadline_ns: 5_000_000,
+        run_id: 7,
+        max_cycles: Some(cycles),
+        cut_by_bus_time: false,
+    };
     let mut lp = RtLoop::new(bus, acq, est, params, Arc::new(LoopCounters::default()), LoopProgress::new());
     let mut sink = Collect { samples: Vec::with_capacity(cycles as usize) };
     let before = allocs();
@@ -189,4 +225,94 @@ fn a_flood_of_malformed_frames_is_counted_and_changes_nothing() {
     assert_eq!(s.malformed_frames, 2_000);
     // Junk arrives after the TPDOs: the estimates are those of the clean run.
     assert!(clean.iter().zip(&flooded).all(|(a, b)| a.state == b.state && a.fulcrum_base_m == b.fulcrum_base_m));
+}
+
+/// With `cut_by_bus_time`, the loop cuts the bus into cycles by the frames' bus timestamps
+/// (window after its SYNC's echo), not by when it reads them: here every frame is readable at
+/// once, and node 3 answers 700 µs after the SYNC, past a 500 µs window, so its TPDO is late in
+/// every cycle although the loop reads it in time. The candump replay of the same bus applies
+/// the same rule: its cycles' inputs equal the loop's, cycle by cycle. Also when the echo of
+/// the SYNC reaches the loop after the answers.
+#[test]
+fn cutting_by_bus_time_matches_the_candump_replay() {
+    for (node3_latency_us, echo_last) in [(400, false), (700, false), (400, true), (700, true)] {
+        let cycles = 600u64;
+        let mut t = twin();
+        t.nodes[2].latency_us = node3_latency_us;
+        let mut robot = SimRobot::new(&t).unwrap();
+        let mut sync = hw_io::can::SyncSource::new();
+        let answers = (0..cycles)
+            .map(|k| robot.on_sync(sync.next_counter(), k * 1000).unwrap().map(|f| f.to_vec()).unwrap_or_default())
+            .collect();
+        let bus = ScriptedBus {
+            answers,
+            queue: VecDeque::with_capacity(1024),
+            syncs: 0,
+            junk: Vec::new(),
+            junk_window: (0, 0),
+            echo: true,
+            echo_last,
+            log: Vec::with_capacity(8 * cycles as usize),
+        };
+        let mut cfg = Config::default();
+        cfg.cycle.frame_deadline_us = 500;
+        let acq = Acquisition::new(&cfg.bus.encoder, cfg.health).unwrap();
+        let est = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector).unwrap();
+        let params = LoopParams {
+            period_ns: 20_000,
+            frame_deadline_ns: 500_000,
+            run_id: 7,
+            max_cycles: Some(cycles),
+            cut_by_bus_time: true,
+        };
+        let mut lp = RtLoop::new(bus, acq, est, params, Arc::new(LoopCounters::default()), LoopProgress::new());
+        let mut sink = Records { records: Vec::with_capacity(cycles as usize) };
+        let before = allocs();
+        lp.run(&mut sink, || false).unwrap();
+        assert_eq!(allocs() - before, 0, "the loop allocated");
+        let stats = *lp.acquisition_stats();
+        let late = node3_latency_us > 500;
+        if late {
+            // Every node-3 TPDO is late (the last one was never read: the loop stopped).
+            assert_eq!(stats.late_tpdos, cycles - 1, "{stats:?}");
+            assert_eq!(stats.incomplete_cycles, cycles);
+            assert!(sink.records.iter().all(|r| r.input.received_mask == 0b011));
+        } else {
+            assert_eq!((stats.late_tpdos, stats.incomplete_cycles), (0, 0), "{stats:?}");
+        }
+        // The same bus as a candump log, through `replay --candump`.
+        let mut text = Vec::new();
+        let mut w = hw_io::can::candump::CandumpWriter::new(&mut text, "vcan0").unwrap();
+        for f in &lp_bus_log(&lp) {
+            w.write(f).unwrap();
+        }
+        w.flush().unwrap();
+        drop(w);
+        let replayed = controller::replay::replay_candump_reader(&text[..], &cfg).unwrap();
+        assert_eq!(replayed.cycles.len(), sink.records.len());
+        let c = controller::replay::compare_with_recording(&replayed, &sink.records, &cfg).unwrap();
+        assert_eq!(c.offset, Some(0), "{c:?}");
+        assert_eq!((c.compared, c.identical_inputs, c.identical_outputs), (cycles, cycles, cycles), "{c:?}");
+    }
+}
+
+fn lp_bus_log(lp: &RtLoop<ScriptedBus>) -> Vec<TimedFrame> {
+    lp.bus().log.clone()
+}
+
+struct Records {
+    records: Vec<CycleRecord>,
+}
+
+impl CycleSink for Records {
+    fn publish(&mut self, _: &FulcrumSample) -> bool {
+        true
+    }
+    fn record(&mut self, record: &CycleRecord) -> bool {
+        self.records.push(*record);
+        true
+    }
+    fn log(&mut self, _: LogEvent) -> bool {
+        true
+    }
 }

@@ -4,7 +4,7 @@
 //! when none is configured, on the built-in simulated robot (an in-process bus), printing
 //! detections as the simulated surgeon moves. See `docs/operations.md`.
 
-use std::io::IsTerminal;
+use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -97,6 +97,33 @@ struct MonitorArgs {
     /// Write the subscriber's counters as JSON to this file at exit.
     #[arg(long)]
     summary_json: Option<PathBuf>,
+    /// Write every received sample as one JSON line to this file (receive time, continuity,
+    /// run, sequence, state, health, trocar, fulcrum, joints); for tests and diagnosis.
+    #[arg(long)]
+    samples_out: Option<PathBuf>,
+}
+
+/// One line of `monitor --samples-out`: a received sample and when it arrived.
+#[derive(serde::Serialize)]
+struct SampleLine<'a> {
+    /// Receive time, nanoseconds of `CLOCK_MONOTONIC` (same clock as `timestamp_ns`).
+    rx_ns: u64,
+    /// Continuity against the previous sample: first, in_order, gap, restart.
+    event: &'a str,
+    /// Samples missed before this one (gap only), else 0.
+    missed: u64,
+    run_id: u64,
+    sequence: u64,
+    /// SYNC instant of the cycle, nanoseconds of `CLOCK_MONOTONIC`.
+    timestamp_ns: u64,
+    state: u32,
+    health: u32,
+    trocar_id: u32,
+    /// Metres, robot base frame.
+    fulcrum_base_m: [f64; 3],
+    /// Radians, joints 1..6.
+    joints_rad: [f64; 6],
+    window_fill: u16,
 }
 
 #[derive(Args, Debug)]
@@ -255,6 +282,12 @@ struct MonitorSummary {
 fn monitor(args: MonitorArgs) -> Result<(), String> {
     install_signal_handlers();
     let mut sub = FulcrumSubscriber::connect(&args.service).map_err(|e| e.to_string())?;
+    let mut samples_out = match &args.samples_out {
+        Some(p) => Some(std::io::BufWriter::new(
+            std::fs::File::create(p).map_err(|e| format!("cannot create {}: {e}", p.display()))?,
+        )),
+        None => None,
+    };
     tracing::info!("monitor: waiting for samples on {:?}", args.service);
     let start = Instant::now();
     let mut s = MonitorSummary::default();
@@ -274,6 +307,34 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
             }
         };
         let now = Instant::now();
+        if let Some(w) = samples_out.as_mut() {
+            let x = &r.sample;
+            let (event, missed) = match r.event {
+                Continuity::First => ("first", 0),
+                Continuity::InOrder => ("in_order", 0),
+                Continuity::Gap { missed } => ("gap", missed),
+                Continuity::Restart => ("restart", 0),
+            };
+            let line = SampleLine {
+                rx_ns: controller::rt::monotonic_now_ns(),
+                event,
+                missed,
+                run_id: x.run_id,
+                sequence: x.sequence,
+                timestamp_ns: x.timestamp_ns,
+                state: x.state,
+                health: x.health,
+                trocar_id: x.trocar_id,
+                fulcrum_base_m: x.fulcrum_base_m,
+                joints_rad: x.joints_rad,
+                window_fill: x.window_fill,
+            };
+            let written =
+                serde_json::to_writer(&mut *w, &line).map_err(std::io::Error::from).and_then(|()| w.write_all(b"\n"));
+            if let Err(e) = written {
+                return Err(format!("writing the samples file: {e}"));
+            }
+        }
         if let Some(prev) = last_rx {
             s.max_gap_ms = s.max_gap_ms.max(now.duration_since(prev).as_secs_f64() * 1e3);
         }
@@ -327,6 +388,9 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
             );
             last_status = Instant::now();
         }
+    }
+    if let Some(mut w) = samples_out {
+        w.flush().map_err(|e| format!("writing the samples file: {e}"))?;
     }
     let c = sub.counters();
     s.missed = c.missed;

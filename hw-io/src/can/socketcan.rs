@@ -81,6 +81,28 @@ impl SocketCanBus {
         &self.interface
     }
 
+    /// Also receive the frames this socket sends (`CAN_RAW_RECV_OWN_MSGS`), stamped by the
+    /// kernel like every other frame: the same timestamp every other socket on the interface
+    /// (e.g. candump) sees for that frame. fulcrumd uses its own SYNC's echo as the time
+    /// reference of the cycle's collection window (docs/daemon.md).
+    pub fn receive_own_frames(&mut self, on: bool) -> io::Result<()> {
+        self.socket.set_recv_own_msgs(on)
+    }
+
+    /// Asks for a kernel receive queue of `bytes` bytes for this socket (`SO_RCVBUFFORCE`
+    /// when the process may, else `SO_RCVBUF`, which the kernel caps at
+    /// `net.core.rmem_max`) and returns the size the kernel granted, bytes. The kernel counts
+    /// its bookkeeping in it (about 1 KiB per classic CAN frame) and doubles the request. A
+    /// frame arriving at a full queue is dropped by the kernel.
+    pub fn set_receive_buffer(&mut self, bytes: usize) -> io::Result<usize> {
+        use nix::sys::socket::{getsockopt, setsockopt, sockopt};
+        let fd = self.socket.as_fd();
+        if setsockopt(&fd, sockopt::RcvBufForce, &bytes).is_err() {
+            setsockopt(&fd, sockopt::RcvBuf, &bytes).map_err(io::Error::from)?;
+        }
+        getsockopt(&fd, sockopt::RcvBuf).map_err(io::Error::from)
+    }
+
     /// The underlying `socketcan` socket, e.g. to set filters.
     pub fn socket(&self) -> &socketcan::CanSocket {
         &self.socket

@@ -94,6 +94,15 @@ struct LiveArgs {
     /// With --truth: a state line every K samples.
     #[arg(long, value_name = "K", default_value_t = DEFAULT_STATE_EVERY)]
     state_every: u64,
+    /// Run the nodes' schedules (heartbeats, `dropout_windows_us`, `emcy.at_us`) on the twin's
+    /// own clock, 1 ms per answered SYNC from the first, instead of the wall clock: a fault
+    /// then hits the same samples however fast the controller sends SYNCs (HIL tests with a
+    /// slower controller period). The truth file's times are then on that clock too.
+    #[arg(long)]
+    twin_clock: bool,
+    /// At the end, also write the counts (SYNCs answered, frames sent, ...) as JSON to this file.
+    #[arg(long, value_name = "FILE")]
+    summary_json: Option<PathBuf>,
 }
 
 /// Why the configuration could not be loaded.
@@ -359,7 +368,8 @@ fn print_event(e: &TwinEvent) {
     println!("{:>10.3} s  sample {:>9}  {what} trocar {}", e.t_s, e.sample, e.trocar);
 }
 
-#[derive(Debug, Default)]
+/// What `live` did; printed at the end and written by `--summary-json`.
+#[derive(Debug, Default, serde::Serialize)]
 struct LiveCounts {
     syncs: u64,
     frames_sent: u64,
@@ -402,6 +412,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     let mut counts = LiveCounts::default();
     let mut counter_check = SyncCounter::new();
     let mut seed = robot.scenario_seed();
+    let mut first_sync_us: Option<u64> = None;
     let result = loop {
         if STOP.load(Ordering::SeqCst) {
             println!("simrobot live: stopped by signal");
@@ -434,7 +445,12 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         if counter_check.observe(counter).is_err() {
             counts.sync_gaps += 1;
         }
-        let frames = match robot.on_sync(counter, rx.unix_time_us) {
+        let t_us = if args.twin_clock {
+            first_sync_us.get_or_insert(rx.unix_time_us).saturating_add(counts.syncs.saturating_mul(SYNC_PERIOD_US))
+        } else {
+            rx.unix_time_us
+        };
+        let frames = match robot.on_sync(counter, t_us) {
             Ok(Some(frames)) => frames,
             Ok(None) => {
                 println!("simrobot live: scenario over");
@@ -453,7 +469,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         }
         counts.syncs += 1;
         if let Some((path, file)) = truth_file.take() {
-            let mut header = TruthHeader::new(&config.scenario, rx.unix_time_us, args.state_every);
+            let mut header = TruthHeader::new(&config.scenario, t_us, args.state_every);
             header.twin = Some(config.clone());
             let writer = TruthWriter::new(BufWriter::new(file), &header)
                 .map_err(|source| LiveError::Truth { path: path.clone(), source });
@@ -481,7 +497,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
             }
         }
         if let Some((path, w)) = truth.as_mut()
-            && let Err(source) = w.sample(rx.unix_time_us, robot.truth(), robot.events())
+            && let Err(source) = w.sample(t_us, robot.truth(), robot.events())
         {
             break Err(LiveError::Truth { path: path.clone(), source });
         }
@@ -510,6 +526,14 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     );
     if let Some(e) = &counts.last_send_error {
         println!("simrobot live: last send error: {e}");
+    }
+    if let Some(path) = &args.summary_json {
+        let written =
+            serde_json::to_string_pretty(&counts).map_err(io::Error::from).and_then(|text| std::fs::write(path, text));
+        if let Err(source) = written {
+            let _ = io::stdout().flush();
+            return Err(LiveError::Create { path: path.clone(), source });
+        }
     }
     let _ = io::stdout().flush();
     result

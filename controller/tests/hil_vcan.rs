@@ -1,0 +1,1075 @@
+//! Hardware-in-loop suite on SocketCAN vcan (docs/hil.md): the real `fulcrumd` binary on
+//! `vcan0`, the real `simrobot live` answering as the encoder nodes, a `fulcrumd monitor`
+//! subscriber process and `candump`, all inside one kernel that has vcan.
+//!
+//! Each `#[test]` runs twice:
+//! - on the host, it boots a guest through `tests/hil/run-in-vcan.sh` (a user-mode-linux
+//!   kernel with vcan0 when the host has no CAN, natively otherwise) and runs **this same
+//!   test binary** in it, filtered to the same test, with `HIL_SCENARIO_DIR` set;
+//! - in the guest, `HIL_SCENARIO_DIR` makes the test the scenario driver: it spawns the
+//!   processes, injects the faults and writes every artifact (summaries, the monitor's samples,
+//!   the flight recording, the candump log, the ground truth) to that directory, a read-write
+//!   mount of a host directory.
+//!
+//! Back on the host the test asserts on the artifacts. Timing inside the emulated kernel is
+//! coarse (late wake-ups by milliseconds, one CPU), so the assertions are on behaviour and
+//! counts; the one time bound is the issue's "the subscriber receives again within 1 s".
+//! A VM that cannot start (exit code 125) is a failure, never a skip.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use controller::config::Config;
+use controller::replay::{self, LogReplay};
+use controller::rt::monotonic_now_ns;
+use controller::rt_loop::CycleRecord;
+use hw_io::can::candump::CandumpReader;
+use hw_io::can::{CanBus, CanFrame, SocketCanBus};
+use hw_io::ipc::{STATE_INSIDE, STATE_INVALID, health};
+use serde_json::Value;
+use sim::score::Detected;
+use sim::truth_file::{At, TruthFile, score_detections};
+
+const FULCRUMD: &str = env!("CARGO_BIN_EXE_fulcrumd");
+/// Set (to the artifacts directory) only in the guest run of a test.
+const SCENARIO_DIR_ENV: &str = "HIL_SCENARIO_DIR";
+/// The simrobot binary, passed from the host run to the guest run.
+const SIMROBOT_ENV: &str = "HIL_SIMROBOT";
+/// The three encoder nodes answer each SYNC with one TPDO each (COB-IDs 0x181..0x183).
+const ALL_NODES: u8 = 0b111;
+/// Farther than this from the true pivot, a detection is at the wrong trocar (as the demo).
+const WRONG_TROCAR_M: f64 = 0.03;
+
+// ------------------------------------------------------------------------------------------
+// Scenarios
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Scenario {
+    /// Several insert/extract cycles, no fault.
+    Clean,
+    /// Node 2 sends no TPDO for 200 ms.
+    NodeSilent,
+    /// Wrong-DLC and unknown-ID frames at 2 kHz.
+    Malformed,
+    /// Five EMCYs of node 3 in a row (every 100 ms), each cleared after 40 ms.
+    EmcyBurst,
+    /// The daemon is SIGKILLed and restarted while the monitor keeps running.
+    KillRestart,
+}
+
+/// Dropout window of node 2 in `NodeSilent`, microseconds of twin time since simrobot's first
+/// SYNC (1 ms per SYNC: samples 5000 to 5199). The instrument enters its first trocar at sample
+/// 2556 and leaves it at sample 7794; the daemon detects it about 1.1 s of samples later.
+const SILENT_WINDOW_US: [u64; 2] = [5_000_000, 5_200_000];
+/// EMCY burst of node 3: count, first at, spacing, duration (twin time since the first SYNC).
+const EMCY_COUNT: u64 = 5;
+const EMCY_AT_US: u64 = 5_000_000;
+const EMCY_EVERY_US: u64 = 100_000;
+const EMCY_DURATION_US: u64 = 40_000;
+/// Malformed-frame flood: period, start and length after the daemon's spawn.
+const JUNK_PERIOD_NS: u64 = 500_000; // 2 kHz
+const JUNK_START_MS: u64 = 5_000;
+const JUNK_FRAMES: u64 = 8_000; // 4 s at 2 kHz
+/// Cycles of the fault scenarios' daemon run (15 s at 2 ms): the faults come at sample 5000,
+/// while the instrument is inside and detected, with time to re-detect it after them.
+const FAULT_RUN_CYCLES: u64 = 7_500;
+/// Kill/restart: the first daemon runs this long, the restart comes this long after the kill,
+/// and the second daemon runs this many cycles.
+const FIRST_RUN_MS: u64 = 3_000;
+const DOWN_MS: u64 = 300;
+const SECOND_RUN_CYCLES: u64 = 3_000;
+
+impl Scenario {
+    /// The twin's configuration (configs/simrobot.toml keys).
+    fn simrobot_toml(self) -> String {
+        // 4 cycles of 4-5 s inside and 1.6-2.2 s outside: about 30 000 samples (SYNCs) for the
+        // clean run; the fault scenarios use the first 7 500.
+        let mut s = String::from("[scenario]\nseed = 1\ncycles = 4\ninside_s = [4.0, 5.0]\noutside_s = [1.6, 2.2]\n");
+        // Heartbeats every 50 ms of twin time (simrobot --twin-clock: 1 ms per SYNC), i.e.
+        // every 100 ms of wall time at the 2 ms HIL period, as on the robot.
+        let node = |dropouts: &str, emcy: &str| {
+            format!("\n[[nodes]]\nheartbeat_period_us = 50000\ndropout_windows_us = [{dropouts}]\nemcy = [{emcy}]\n")
+        };
+        let mut nodes = [node("", ""), node("", ""), node("", "")];
+        match self {
+            Scenario::NodeSilent => {
+                nodes[1] = node(&format!("[{}, {}]", SILENT_WINDOW_US[0], SILENT_WINDOW_US[1]), "");
+            }
+            Scenario::EmcyBurst => {
+                let burst = (0..EMCY_COUNT)
+                    .map(|k| {
+                        format!(
+                            "{{ at_us = {}, duration_us = {EMCY_DURATION_US}, code = 0x7305, register = 1, vendor = [0, 0, 0, 0, 0] }}",
+                            EMCY_AT_US + k * EMCY_EVERY_US
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                nodes[2] = node("", &burst);
+            }
+            _ => {}
+        }
+        s += &nodes.concat();
+        s
+    }
+}
+
+/// Control period of the daemon in the guest, microseconds: 2 ms (500 Hz) instead of 1 ms.
+/// Under user-mode-linux every system call and wake-up goes through the host (ptrace), and the
+/// guest has one CPU for the daemon, simrobot, the monitor and candump: at 1 kHz the SYNC →
+/// answer round trip alone took 0.8 ms at the median, a quarter of the cycles were incomplete
+/// and more than half the periods were skipped (measured, docs/hil.md). At 2 ms the guest keeps
+/// up. The detector then counts the same samples as at 1 kHz: its durations are scaled by the
+/// same factor (see [`daemon_config`]), and one SYNC is one sample of the twin whatever the
+/// period, so the estimates per sample are those of the 1 kHz configuration.
+const HIL_PERIOD_US: u32 = 2_000;
+/// Frame deadline: 90 % of the period (wake-ups in the guest are late by milliseconds now and
+/// then; a late answer makes an incomplete cycle, counted and flagged).
+const HIL_FRAME_DEADLINE_US: u32 = HIL_PERIOD_US / 10 * 9;
+
+/// Heartbeat timeout of the daemon in the guest, milliseconds (default 350). simrobot runs the
+/// nodes on its twin clock (`--twin-clock`: faults hit fixed samples), so a heartbeat comes
+/// every 50 SYNCs, nominally 100 ms at the 2 ms period; when the guest falls behind (periods
+/// skipped), 50 SYNCs took up to 0.44 s of wall time here (host load about 4 on 2 cores). A
+/// guest falling behind is not a node failure; the heartbeat rule itself is covered by
+/// `controller/src/health.rs`'s tests.
+const HIL_HEARTBEAT_TIMEOUT_MS: u32 = 2_000;
+
+/// The daemon's configuration in the guest: the defaults, with [`HIL_PERIOD_US`], the fast
+/// detector's durations (`*_persistence_s`) scaled by `HIL_PERIOD_US / 1000` so that they span
+/// the same number of samples as the defaults at 1 kHz, and [`HIL_HEARTBEAT_TIMEOUT_MS`].
+fn daemon_config() -> String {
+    let mut c = Config::default();
+    let k = f64::from(HIL_PERIOD_US) / f64::from(c.cycle.period_us);
+    c.cycle.period_us = HIL_PERIOD_US;
+    c.cycle.frame_deadline_us = HIL_FRAME_DEADLINE_US;
+    c.detector.sample_period_s *= k;
+    c.detector.fast.min_persistence_s *= k;
+    c.detector.fast.extract_persistence_s *= k;
+    c.detector.fast.memory_persistence_s *= k;
+    c.health.heartbeat_timeout_ms = HIL_HEARTBEAT_TIMEOUT_MS;
+    toml::to_string(&c).expect("the configuration serialises")
+}
+
+/// The receive queue the daemon asks for, bytes.
+fn daemon_rx_buffer() -> usize {
+    controller::daemon::CAN_RECEIVE_BUFFER_BYTES
+}
+
+// ------------------------------------------------------------------------------------------
+// Host side: boot the guest, run this test in it, collect the artifacts
+
+/// One VM at a time: a second UML guest on the same two cores makes timing worse for both.
+static VM: Mutex<()> = Mutex::new(());
+
+/// What a scenario left in its directory.
+struct Artifacts {
+    dir: PathBuf,
+    driver: Value,
+}
+
+impl Artifacts {
+    fn json(&self, name: &str) -> Value {
+        let p = self.dir.join(name);
+        let text = std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+    }
+}
+
+/// The workspace's `tests/hil/run-in-vcan.sh`.
+fn harness() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/hil/run-in-vcan.sh")
+}
+
+/// `simrobot`, built by cargo for the same profile as this test (cargo gives a test only its
+/// own package's binaries): `$CARGO build --bin simrobot` once per test binary; cargo
+/// rebuilds it only when stale.
+fn simrobot() -> PathBuf {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| {
+        let exe = std::env::current_exe().expect("current_exe");
+        // target/<profile dir>/deps/<this test>
+        let profile_dir = exe.parent().and_then(Path::parent).expect("test binary in target/<profile>/deps");
+        let target_dir = profile_dir.parent().expect("target dir");
+        let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
+            Some("debug") => "test".to_string(), // what `cargo test` builds binaries with
+            Some("release") => "release".to_string(),
+            Some(other) => other.to_string(),
+            None => panic!("unexpected target layout: {}", exe.display()),
+        };
+        let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+        let out = Command::new(&cargo)
+            .args(["build", "--quiet", "-p", "sim", "--bin", "simrobot", "--profile", &profile])
+            .arg("--target-dir")
+            .arg(target_dir)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .output()
+            .expect("running cargo to build simrobot");
+        assert!(out.status.success(), "cargo build simrobot failed:\n{}", String::from_utf8_lossy(&out.stderr));
+        let bin = profile_dir.join("simrobot");
+        assert!(bin.is_file(), "{} was not built", bin.display());
+        bin
+    })
+    .clone()
+}
+
+/// Where the artifacts of `test` go: under cargo's target tmp dir (not under /tmp: the guest
+/// mounts a private overlay there, which would hide a read-write mount below it).
+fn artifacts_dir(test: &str) -> PathBuf {
+    let root = std::env::var_os("HIL_ARTIFACTS_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_TARGET_TMPDIR")).join("hil"));
+    let dir = root.join(test);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
+    dir.canonicalize().expect("canonical artifacts dir")
+}
+
+/// Runs `scenario` as test `test`. In the guest: drives it and returns None. On the host:
+/// boots the guest, runs this test in it, and returns the artifacts.
+fn hil(test: &str, scenario: Scenario) -> Option<Artifacts> {
+    if let Some(dir) = std::env::var_os(SCENARIO_DIR_ENV) {
+        drive(scenario, Path::new(&dir));
+        return None;
+    }
+    let _one_vm = VM.lock().unwrap_or_else(|p| p.into_inner());
+    let simrobot = simrobot();
+    let dir = artifacts_dir(test);
+    let started = Instant::now();
+    let out = Command::new(harness())
+        .args(["--timeout", "240", "--rw"])
+        .arg(&dir)
+        .arg("--")
+        .arg(std::env::current_exe().expect("current_exe"))
+        .args([test, "--exact", "--nocapture", "--test-threads", "1"])
+        .env(SCENARIO_DIR_ENV, &dir)
+        .env(SIMROBOT_ENV, &simrobot)
+        .env("RUST_BACKTRACE", "1")
+        .stdin(Stdio::null())
+        .output()
+        .expect("running tests/hil/run-in-vcan.sh");
+    let wall = started.elapsed().as_secs_f64();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    eprintln!("--- guest stdout\n{stdout}\n--- guest stderr\n{stderr}\n--- {test}: VM run {wall:.1} s");
+    match out.status.code() {
+        Some(0) => {}
+        Some(125) => panic!("the HIL harness failed (exit 125: the VM did not start or broke); see above"),
+        Some(124) => panic!("the scenario timed out in the guest (exit 124)"),
+        code => panic!("the scenario driver failed in the guest (exit {code:?}); see above"),
+    }
+    // The guest ran exactly this test (a wrong name would run none and exit 0).
+    assert!(stdout.contains("1 passed"), "the guest did not run {test}");
+    let driver_path = dir.join("driver.json");
+    let driver = serde_json::from_str(&std::fs::read_to_string(&driver_path).expect("driver.json"))
+        .expect("driver.json is JSON");
+    Some(Artifacts { dir, driver })
+}
+
+// ------------------------------------------------------------------------------------------
+// Guest side: the scenario driver
+
+fn spawn(cmd: &mut Command, dir: &Path, name: &str) -> Child {
+    let out = File::create(dir.join(format!("{name}.out"))).expect("stdout file");
+    let err = File::create(dir.join(format!("{name}.err"))).expect("stderr file");
+    cmd.stdin(Stdio::null()).stdout(out).stderr(err).spawn().unwrap_or_else(|e| panic!("spawning {name}: {e}"))
+}
+
+fn signal(child: &Child, sig: libc::c_int) {
+    // SAFETY: kill(2) on our own child's pid; no memory is involved.
+    unsafe { libc::kill(child.id() as libc::pid_t, sig) };
+}
+
+/// Waits for `child` to exit within `limit`; kills it (and fails) otherwise. Returns the exit
+/// code, or -signal.
+fn wait_exit(child: &mut Child, name: &str, limit: Duration) -> i32 {
+    let t0 = Instant::now();
+    loop {
+        if let Some(st) = child.try_wait().expect("try_wait") {
+            use std::os::unix::process::ExitStatusExt;
+            return st.code().unwrap_or_else(|| -st.signal().unwrap_or(0));
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{name} did not exit within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Waits until `file` contains `needle` (a process announced it is ready).
+fn wait_for_line(file: &Path, needle: &str, limit: Duration) {
+    let t0 = Instant::now();
+    while !std::fs::read_to_string(file).is_ok_and(|t| t.contains(needle)) {
+        assert!(t0.elapsed() < limit, "{} did not say {needle:?} within {limit:?}", file.display());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn daemon_cmd(dir: &Path, service: &str, tag: &str, cycles: Option<u64>) -> Command {
+    let mut c = Command::new(FULCRUMD);
+    c.args(["--iface", "vcan0", "--service", service])
+        .arg("--config")
+        .arg(dir.join("fulcrumd.toml"))
+        .arg("--record-dir")
+        .arg(dir.join(format!("rec-{tag}")))
+        .arg("--summary-json")
+        .arg(dir.join(format!("{tag}.json")));
+    if let Some(n) = cycles {
+        c.args(["--cycles", &n.to_string()]);
+    }
+    c
+}
+
+/// Sends the malformed frames: in turn a TPDO of node 1 with DLC 3 (wrong DLC), an unknown
+/// COB-ID 0x7FF, an extended identifier 0x181 (unknown ID to us) and a heartbeat of node 1 with
+/// an unknown NMT state. Paced at `JUNK_PERIOD_NS` on absolute deadlines. Returns the frames
+/// sent by kind and how long the flood took.
+fn send_junk(start_ns: u64) -> BTreeMap<&'static str, u64> {
+    let mut bus = SocketCanBus::open("vcan0").expect("junk sender: open vcan0");
+    let kinds: [(&str, CanFrame); 4] = [
+        ("wrong_dlc", CanFrame::new_standard(0x181, &[1, 2, 3]).expect("frame")),
+        ("unknown_id", CanFrame::new_standard(0x7FF, &[0xA5; 8]).expect("frame")),
+        ("extended_id", CanFrame::new_extended(0x181, &[0; 8]).expect("frame")),
+        ("bad_nmt_state", CanFrame::new_standard(0x701, &[0x42]).expect("frame")),
+    ];
+    let mut sent: BTreeMap<&str, u64> = kinds.iter().map(|(k, _)| (*k, 0)).collect();
+    let mut failed = 0u64;
+    for i in 0..JUNK_FRAMES {
+        // Absolute deadlines: after a stall of the guest the owed frames go out at once, so
+        // the flood keeps its 2 kHz on average (in bursts, the harder case for the receivers).
+        controller::rt::sleep_until_ns(start_ns + i * JUNK_PERIOD_NS).expect("sleep");
+        let (kind, frame) = &kinds[(i % 4) as usize];
+        // A full transmit queue (ENOBUFS) is retried: the point is to deliver the flood.
+        let mut tries = 0;
+        loop {
+            match bus.send(frame) {
+                Ok(()) => {
+                    *sent.get_mut(kind).expect("kind") += 1;
+                    break;
+                }
+                Err(_) if tries < 100 => {
+                    tries += 1;
+                    std::thread::sleep(Duration::from_micros(200));
+                }
+                Err(_) => {
+                    failed += 1;
+                    break;
+                }
+            }
+        }
+    }
+    sent.insert("send_failed", failed);
+    sent.insert("duration_ms", (monotonic_now_ns() - start_ns) / 1_000_000);
+    sent
+}
+
+/// Drives `scenario` with its files in a private work directory (the guest's /tmp is a tmpfs:
+/// no host file-system traffic while the loop runs), then copies them to `out`.
+fn drive(scenario: Scenario, out: &Path) {
+    let work = std::env::temp_dir().join(format!("hil-work-{}", std::process::id()));
+    std::fs::create_dir_all(&work).expect("work dir");
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| drive_in(scenario, &work)));
+    copy_dir(&work, out);
+    let _ = std::fs::remove_dir_all(&work);
+    if let Err(panic) = result {
+        std::panic::resume_unwind(panic);
+    }
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("create dir");
+    for e in std::fs::read_dir(from).expect("read dir") {
+        let e = e.expect("dir entry");
+        let target = to.join(e.file_name());
+        if e.file_type().expect("file type").is_dir() {
+            copy_dir(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), &target).unwrap_or_else(|err| panic!("copy {}: {err}", e.path().display()));
+        }
+    }
+}
+
+fn drive_in(scenario: Scenario, dir: &Path) {
+    let simrobot = std::env::var_os(SIMROBOT_ENV).expect("HIL_SIMROBOT");
+    let service = format!("comanip-hil/{scenario:?}/{}", std::process::id());
+    std::fs::write(dir.join("simrobot.toml"), scenario.simrobot_toml()).expect("write simrobot.toml");
+    std::fs::write(dir.join("fulcrumd.toml"), daemon_config()).expect("write fulcrumd.toml");
+    let twin: sim::twin::TwinConfig = toml::from_str(&scenario.simrobot_toml()).expect("twin config");
+    let scenario_samples = sim::twin::SimRobot::new(&twin).expect("twin").scenario().truth.len() as u64;
+    let mut driver = serde_json::Map::new();
+    driver.insert("scenario".into(), format!("{scenario:?}").into());
+    driver.insert("scenario_samples".into(), scenario_samples.into());
+    driver.insert("hil_mode".into(), std::env::var("HIL_MODE").unwrap_or_default().into());
+
+    // Softirqs (which deliver every CAN frame to the sockets, after the kernel has stamped it)
+    // run in ksoftirqd when deferred; at its normal priority it waits behind the daemon's
+    // SCHED_FIFO loop, which then closes its window before frames stamped inside it are
+    // delivered. As on a PREEMPT_RT robot PC, where the softirq threads are given a priority
+    // above the application's, ksoftirqd gets SCHED_FIFO 95. Only in the throw-away guest.
+    if std::env::var("HIL_MODE").as_deref() == Ok("uml") {
+        let mut raised = Vec::new();
+        for e in std::fs::read_dir("/proc").expect("/proc").flatten() {
+            let comm = std::fs::read_to_string(e.path().join("comm")).unwrap_or_default();
+            if comm.starts_with("ksoftirqd") {
+                let pid = e.file_name().to_string_lossy().into_owned();
+                let ok = Command::new("chrt").args(["-f", "-p", "95", &pid]).status().is_ok_and(|s| s.success());
+                assert!(ok, "chrt -f -p 95 {pid} (ksoftirqd) failed");
+                raised.push(pid);
+            }
+        }
+        assert!(!raised.is_empty(), "no ksoftirqd thread found in the guest");
+        driver.insert("ksoftirqd_fifo95".into(), raised.join(",").into());
+    }
+
+    if scenario == Scenario::Malformed {
+        // (Before candump starts: the probe frame is not part of the scenario's bus.)
+        // hw-io's SocketCAN options the daemon relies on, on the guest's real kernel: the
+        // receive queue it asks for, and the echo of its own frame with a kernel stamp.
+        let mut probe = SocketCanBus::open("vcan0").expect("open vcan0");
+        let granted = probe.set_receive_buffer(daemon_rx_buffer()).expect("SO_RCVBUF");
+        driver.insert("rx_buffer_granted".into(), granted.into());
+        probe.receive_own_frames(true).expect("CAN_RAW_RECV_OWN_MSGS");
+        let probe_frame = CanFrame::new_standard(0x7FE, &[1, 2, 3, 4]).expect("frame");
+        let before_us = hw_io::can::unix_time_now_us();
+        probe.send(&probe_frame).expect("send");
+        let mut echo = None;
+        while let Ok(Some(f)) = probe.recv_timeout(Duration::from_millis(500)) {
+            if f.frame == probe_frame {
+                echo = Some(f);
+                break;
+            }
+        }
+        let echo = echo.expect("the echo of our own frame");
+        driver.insert("own_echo_stamp_after_send_start".into(), (echo.unix_time_us >= before_us).into());
+        drop(probe);
+    }
+
+    // The bus observer first, then the subscriber, then the robot; the daemon last.
+    // candump at SCHED_FIFO 60 (below the monitor): at normal priority it fell behind during
+    // the flood, and was stopped with frames still in its queue.
+    let bus_log = File::create(dir.join("bus.log")).expect("bus.log");
+    let mut candump = Command::new("chrt")
+        .args(["-f", "60", "candump", "-L", "-r", "8388608", "vcan0"])
+        .stdin(Stdio::null())
+        .stdout(bus_log)
+        .stderr(File::create(dir.join("candump.err")).expect("candump.err"))
+        .spawn()
+        .expect("spawning candump");
+    // The subscriber stands for the guidance-force module, a real-time client on the robot PC:
+    // SCHED_FIFO 70, below the daemon's loop. At normal priority, in the one-CPU guest on a
+    // loaded host, it was starved for up to 0.2 s and its 64-sample buffer overflowed.
+    let mut monitor = spawn(
+        Command::new("chrt")
+            .args(["-f", "70"])
+            .arg(FULCRUMD)
+            .args(["monitor", "--service", &service])
+            .arg("--summary-json")
+            .arg(dir.join("monitor.json"))
+            .arg("--samples-out")
+            .arg(dir.join("monitor.jsonl")),
+        dir,
+        "monitor",
+    );
+    // The encoder nodes are hardware of their own on the robot: their answer does not wait for
+    // the controller's CPU. In the one-CPU guest, simrobot gets a real-time priority above the
+    // daemon's loop (SCHED_FIFO 80) so that it answers a SYNC at once, all three TPDOs in a row.
+    let mut robot = spawn(
+        Command::new("chrt")
+            .args(["-f", "90"])
+            .arg(&simrobot)
+            .args(["live", "--iface", "vcan0", "--twin-clock"])
+            .arg("--config")
+            .arg(dir.join("simrobot.toml"))
+            .arg("--truth")
+            .arg(dir.join("truth.jsonl"))
+            .arg("--summary-json")
+            .arg(dir.join("simrobot.json")),
+        dir,
+        "simrobot",
+    );
+    wait_for_line(&dir.join("simrobot.out"), "answering", Duration::from_secs(60));
+    wait_for_line(&dir.join("monitor.err"), "waiting for samples", Duration::from_secs(60));
+
+    match scenario {
+        Scenario::Clean | Scenario::NodeSilent | Scenario::EmcyBurst => {
+            // The clean run covers the whole scenario (one SYNC = one sample); the fault
+            // scenarios its first 7 500 samples.
+            let cycles = if scenario == Scenario::Clean { scenario_samples } else { FAULT_RUN_CYCLES };
+            let mut daemon = spawn(&mut daemon_cmd(dir, &service, "daemon", Some(cycles)), dir, "daemon");
+            let limit = Duration::from_secs(cycles * u64::from(HIL_PERIOD_US) * 4 / 1_000_000 + 60);
+            driver.insert("daemon_exit".into(), wait_exit(&mut daemon, "fulcrumd", limit).into());
+        }
+        Scenario::Malformed => {
+            // The daemon runs until the flood is over and 2 s more, then gets SIGINT (its
+            // normal stop): every junk frame goes out while it runs.
+            let mut daemon = spawn(&mut daemon_cmd(dir, &service, "daemon", None), dir, "daemon");
+            let start = monotonic_now_ns() + JUNK_START_MS * 1_000_000;
+            let sent = std::thread::spawn(move || send_junk(start)).join().expect("junk sender panicked");
+            driver.insert("junk_sent".into(), serde_json::to_value(sent).expect("json"));
+            std::thread::sleep(Duration::from_secs(2));
+            signal(&daemon, libc::SIGINT);
+            driver.insert("daemon_exit".into(), wait_exit(&mut daemon, "fulcrumd", Duration::from_secs(30)).into());
+        }
+        Scenario::KillRestart => {
+            let mut first = spawn(&mut daemon_cmd(dir, &service, "daemon-1", None), dir, "daemon-1");
+            std::thread::sleep(Duration::from_millis(FIRST_RUN_MS));
+            signal(&first, libc::SIGKILL);
+            driver.insert("kill_ns".into(), monotonic_now_ns().into());
+            let code = wait_exit(&mut first, "fulcrumd (killed)", Duration::from_secs(10));
+            driver.insert("daemon_1_exit".into(), code.into());
+            std::thread::sleep(Duration::from_millis(DOWN_MS));
+            driver.insert("restart_spawn_ns".into(), monotonic_now_ns().into());
+            let mut second =
+                spawn(&mut daemon_cmd(dir, &service, "daemon-2", Some(SECOND_RUN_CYCLES)), dir, "daemon-2");
+            let code = wait_exit(&mut second, "fulcrumd (restarted)", Duration::from_secs(60));
+            driver.insert("daemon_2_exit".into(), code.into());
+        }
+    }
+    // Let the last samples and frames reach their readers, then stop them (SIGINT: each
+    // writes its summary). candump exits at SIGINT without reading what is still queued: wait
+    // until its log has stopped growing.
+    std::thread::sleep(Duration::from_millis(500));
+    let log_len = || std::fs::metadata(dir.join("bus.log")).map(|m| m.len()).unwrap_or(0);
+    let (mut last, t0) = (log_len(), Instant::now());
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        let now = log_len();
+        if now == last || t0.elapsed() > Duration::from_secs(60) {
+            break;
+        }
+        last = now;
+    }
+    for (child, name) in [(&mut monitor, "monitor"), (&mut robot, "simrobot"), (&mut candump, "candump")] {
+        signal(child, libc::SIGINT);
+        let code = wait_exit(child, name, Duration::from_secs(30));
+        driver.insert(format!("{name}_exit"), code.into());
+    }
+    std::fs::write(dir.join("driver.json"), serde_json::to_string_pretty(&driver).expect("json"))
+        .expect("write driver.json");
+}
+
+// ------------------------------------------------------------------------------------------
+// Host side: reading the artifacts
+
+/// One line of `fulcrumd monitor --samples-out`.
+#[derive(Debug, serde::Deserialize)]
+#[allow(dead_code)] // fields read through Debug in failure messages
+struct Sample {
+    rx_ns: u64,
+    event: String,
+    missed: u64,
+    run_id: u64,
+    sequence: u64,
+    timestamp_ns: u64,
+    state: u32,
+    health: u32,
+    trocar_id: u32,
+    fulcrum_base_m: [f64; 3],
+    joints_rad: [f64; 6],
+    window_fill: u16,
+}
+
+fn samples(a: &Artifacts) -> Vec<Sample> {
+    let f = File::open(a.dir.join("monitor.jsonl")).expect("monitor.jsonl");
+    BufReader::new(f).lines().map(|l| serde_json::from_str(&l.expect("read line")).expect("sample line")).collect()
+}
+
+/// The frames candump saw, by COB-ID (extended IDs with bit 31 set).
+struct BusLog {
+    by_id: BTreeMap<u32, u64>,
+    /// Frames other than SYNC (0x080) after the last SYNC.
+    after_last_sync: u64,
+    /// TPDOs (0x181..=0x183 with 8 data bytes) after the last SYNC.
+    tpdos_after_last_sync: u64,
+    /// TPDOs in the whole log.
+    tpdos: u64,
+}
+
+impl BusLog {
+    fn count(&self, id: u32) -> u64 {
+        self.by_id.get(&id).copied().unwrap_or(0)
+    }
+    fn syncs(&self) -> u64 {
+        self.count(0x080)
+    }
+    fn non_sync(&self) -> u64 {
+        self.by_id.values().sum::<u64>() - self.syncs()
+    }
+    fn tpdos(&self) -> u64 {
+        self.tpdos
+    }
+}
+
+fn bus_log(a: &Artifacts) -> BusLog {
+    let f = File::open(a.dir.join("bus.log")).expect("bus.log");
+    let mut r = CandumpReader::new(BufReader::new(f));
+    let mut by_id = BTreeMap::new();
+    let (mut after_last_sync, mut tpdos_after_last_sync, mut tpdos) = (0, 0, 0);
+    while let Some(rec) = r.next_record().expect("bus.log is a candump log") {
+        let fr = rec.timed.frame;
+        let id = fr.id().raw() | if fr.is_extended() { 1 << 31 } else { 0 };
+        *by_id.entry(id).or_insert(0) += 1;
+        if id == 0x080 {
+            after_last_sync = 0;
+            tpdos_after_last_sync = 0;
+        } else {
+            after_last_sync += 1;
+            let tpdo = u64::from((0x181..=0x183).contains(&id) && fr.data().len() == 8);
+            tpdos_after_last_sync += tpdo;
+            tpdos += tpdo;
+        }
+    }
+    BusLog { by_id, after_last_sync, tpdos_after_last_sync, tpdos }
+}
+
+fn u(v: &Value) -> u64 {
+    v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
+}
+
+/// Stretches (first, last) of consecutive samples with `pred`, by index.
+fn stretches<T>(xs: &[T], pred: impl Fn(&T) -> bool) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    let mut start = None;
+    for (i, x) in xs.iter().enumerate() {
+        match (pred(x), start) {
+            (true, None) => start = Some(i),
+            (false, Some(s)) => {
+                out.push((s, i - 1));
+                start = None;
+            }
+            _ => {}
+        }
+    }
+    if let Some(s) = start {
+        out.push((s, xs.len() - 1));
+    }
+    out
+}
+
+/// What one daemon run left, read back.
+struct RunCheck {
+    records: Vec<CycleRecord>,
+    config: Config,
+    rec_dir: PathBuf,
+}
+
+/// Health flags a scenario may raise besides the ones every run may see.
+#[derive(Clone, Copy)]
+struct Allowed {
+    emcy: bool,
+}
+
+/// Checks shared by every daemon run: what the daemon published is what the monitor received
+/// (every cycle, in order), the recording replays bit for bit, and the health rules hold cycle
+/// by cycle on what acquisition had (timing-independent):
+/// - a cycle missing a TPDO is flagged `INCOMPLETE_CYCLE`, and only such a cycle;
+/// - `NODE_STALE[k]` exactly when node k's TPDO has been missing `stale_after_cycles` cycles
+///   in a row;
+/// - published valid exactly when no invalidating flag is set (never from stale data), no NaN;
+/// - after a detector reset (a node flag), the first valid cycle carries `DETECTOR_RESET`;
+/// - no heartbeat loss, bad sample, SYNC or bus error; no EMCY unless the scenario has some.
+fn check_run(a: &Artifacts, summary: &str, rec_dir: &str, run_samples: &[&Sample], allowed: Allowed) -> RunCheck {
+    let d = a.json(summary);
+    let cycles = u(&d["cycles"]);
+    assert!(cycles > 0);
+    assert_eq!(d["published"], cycles, "every cycle published: {d}");
+    assert_eq!(d["publish_errors"], 0);
+    assert_eq!(d["bus_dropped_rx_frames"], 0);
+    assert_eq!(d["recorder_queue_drops"], 0);
+    // The monitor received every published sample, in order.
+    assert_eq!(run_samples.len() as u64, cycles, "monitor received {} of {cycles}", run_samples.len());
+    for (i, s) in run_samples.iter().enumerate() {
+        assert_eq!(s.sequence, i as u64, "sample {i} of the run: {s:?}");
+        assert_eq!(s.run_id, u(&d["run_id"]));
+        assert!(s.fulcrum_base_m.iter().chain(&s.joints_rad).all(|v| v.is_finite()), "{s:?}");
+    }
+    // The flight recording: what acquisition had each cycle, and what was published.
+    let rec_dir = a.dir.join(rec_dir);
+    let rec_path = std::fs::read_dir(&rec_dir)
+        .expect("recording dir")
+        .map(|e| e.expect("dir entry").path())
+        .find(|p| p.extension().is_some_and(|e| e == "rec"))
+        .expect("a recording file");
+    let (config, run_id, records, _truncations) = replay::load_recording(&rec_path).expect("recording reads");
+    assert_eq!(run_id, u(&d["run_id"]));
+    assert_eq!(records.len() as u64, cycles, "one record per cycle");
+    let stale_after = config.health.stale_after_cycles;
+    let mut missing_run = [0u32; 3];
+    let mut reset_pending = false;
+    let never = health::BAD_SAMPLE
+        | health::SYNC_SEND_FAILED
+        | health::BUS_ERROR
+        | health::NODE_HEARTBEAT.iter().fold(0, |m, f| m | f)
+        | if allowed.emcy { 0 } else { health::NODE_EMCY.iter().fold(0, |m, f| m | f) };
+    let node_flags = health::INVALIDATING
+        & !(health::INCOMPLETE_CYCLE | health::SYNC_SEND_FAILED | health::BUS_ERROR | health::BAD_SAMPLE);
+    for (r, s) in records.iter().zip(run_samples) {
+        let seq = r.sequence;
+        assert_eq!(seq, s.sequence);
+        // Published = recorded.
+        assert_eq!((r.output.state, r.output.health, r.output.fulcrum_base_m), (s.state, s.health, s.fulcrum_base_m));
+        let h = r.output.health;
+        assert_eq!(h & never, 0, "cycle {seq}: unexpected flags {h:#x}");
+        assert_eq!(r.input.received_mask != ALL_NODES, h & health::INCOMPLETE_CYCLE != 0, "cycle {seq}: {r:?}");
+        for (k, run) in missing_run.iter_mut().enumerate() {
+            *run = if r.input.received_mask & (1 << k) == 0 { *run + 1 } else { 0 };
+            assert_eq!(*run >= stale_after, h & health::NODE_STALE[k] != 0, "cycle {seq}: NODE_STALE[{k}] rule: {r:?}");
+        }
+        // Never a valid estimate from stale, missing or faulty data.
+        assert_eq!(r.output.state == STATE_INVALID, h & health::INVALIDATING != 0, "cycle {seq}: {r:?}");
+        if h & node_flags != 0 {
+            reset_pending = true;
+        } else if r.output.state != STATE_INVALID && reset_pending {
+            assert_ne!(h & health::DETECTOR_RESET, 0, "cycle {seq}: first valid cycle after a node fault: {r:?}");
+            reset_pending = false;
+        }
+    }
+    let rr = replay::replay_recording(&rec_path).expect("replay --recording");
+    assert!(rr.reproduced(), "the recording does not replay bit for bit: {rr:?}");
+    RunCheck { records, config, rec_dir }
+}
+
+/// The candump log replays to the estimates of the daemon's own recording, bit for bit (the
+/// daemon cuts the bus into cycles by the frames' bus timestamps, the rule the replay applies
+/// to the log), through the library and through `fulcrumd replay --candump ... --recording`.
+fn check_candump_replay(a: &Artifacts, run: &RunCheck) -> LogReplay {
+    let log = replay::replay_candump(&a.dir.join("bus.log"), &run.config).expect("replay --candump");
+    let c = replay::compare_with_recording(&log, &run.records, &run.config).expect("compare");
+    eprintln!("candump replay against the recording: {c:?}");
+    if c.identical_inputs != run.records.len() as u64 {
+        // For diagnosis: the first cycles whose inputs differ, with the log line times.
+        let diff: Vec<_> = log
+            .cycles
+            .iter()
+            .zip(&run.records)
+            .filter(|(l, r)| !replay::same_bus_input(&l.input, &r.input))
+            .take(5)
+            .map(|(l, r)| {
+                format!(
+                    "cycle {} (SYNC at {} us): log {:?} vs daemon {:?} (woke {} ns late, cycle {} ns)",
+                    r.sequence, l.sync_unix_us, l.input, r.input, r.wake_late_ns, r.cycle_ns
+                )
+            })
+            .collect();
+        eprintln!("first differing cycles (log cycle k = daemon cycle k):\n{}", diff.join("\n"));
+    }
+    assert!(c.offset.is_some(), "the candump log does not line up with the recording: {c:?}");
+    assert_eq!(c.compared, run.records.len() as u64, "{c:?}");
+    assert_eq!(c.identical_inputs, c.compared, "{c:?}");
+    assert_eq!(c.identical_outputs, c.compared, "{c:?}");
+    let out = Command::new(FULCRUMD)
+        .args(["replay", "--candump"])
+        .arg(a.dir.join("bus.log"))
+        .arg("--recording")
+        .arg(&run.rec_dir)
+        .output()
+        .expect("fulcrumd replay");
+    assert!(out.status.success(), "fulcrumd replay --candump: {}", String::from_utf8_lossy(&out.stdout));
+    log
+}
+
+/// Frames: every frame the robot (and the junk sender) sent is in the candump log, every SYNC
+/// was answered, every TPDO reached the daemon (in its cycle or late).
+fn check_frames(a: &Artifacts, summary: &str, junk_frames: u64) -> BusLog {
+    let d = a.json(summary);
+    let r = a.json("simrobot.json");
+    let bus = bus_log(a);
+    let cycles = u(&d["cycles"]);
+    assert_eq!(r["send_errors"], 0, "{r}");
+    assert_eq!(r["sync_gaps"], 0, "simrobot missed SYNCs: {r}");
+    assert_eq!(u(&r["syncs"]), cycles, "every SYNC answered: {r}");
+    assert_eq!(bus.syncs(), cycles, "candump saw every SYNC");
+    assert_eq!(bus.non_sync(), u(&r["frames_sent"]) + junk_frames, "candump saw every frame sent");
+    let acq = &d["acquisition"];
+    // Every TPDO and every frame reached the daemon, except those after its last cycle's
+    // window (it stopped).
+    let tpdos = u(&acq["tpdos"]) + u(&acq["late_tpdos"]);
+    assert!(tpdos <= bus.tpdos() && tpdos + bus.tpdos_after_last_sync >= bus.tpdos(), "{acq}, bus {}", bus.tpdos());
+    let seen = u(&acq["frames"]);
+    assert!(seen <= bus.non_sync() && seen + bus.after_last_sync >= bus.non_sync(), "{acq}, bus {}", bus.non_sync());
+    bus
+}
+
+fn monitor_summary_ok(a: &Artifacts, restarts: u64) {
+    let m = a.json("monitor.json");
+    assert_eq!(m["missed"], 0, "{m}");
+    assert_eq!(m["restarts"], restarts, "{m}");
+    assert_eq!(m["rejected"], 0, "{m}");
+    assert_eq!(m["valid_with_invalidating_flags"], 0, "{m}");
+    assert_eq!(m["non_finite"], 0, "{m}");
+}
+
+fn one_run(a: &Artifacts, allowed: Allowed) -> (Vec<Sample>, RunCheck) {
+    assert_eq!(a.driver["daemon_exit"], 0, "the daemon exits cleanly: {}", a.driver);
+    for p in ["monitor", "simrobot", "candump"] {
+        assert_eq!(a.driver[format!("{p}_exit")], 0, "{p}: {}", a.driver);
+    }
+    monitor_summary_ok(a, 0);
+    let s = samples(a);
+    let run = check_run(a, "daemon.json", "rec-daemon", &s.iter().collect::<Vec<_>>(), allowed);
+    let d = a.json("daemon.json");
+    eprintln!(
+        "daemon: {} cycles, {} incomplete (late answers or faults), {} periods skipped, wake-up lateness p50/p99/max {}/{}/{} us",
+        d["cycles"],
+        d["acquisition"]["incomplete_cycles"],
+        d["overruns"],
+        d["timing"]["wake_late"]["p50_us"],
+        d["timing"]["wake_late"]["p99_us"],
+        d["timing"]["wake_late"]["max_us"]
+    );
+    (s, run)
+}
+
+fn fulcrumd_stderr(a: &Artifacts, name: &str) -> String {
+    std::fs::read_to_string(a.dir.join(format!("{name}.err"))).unwrap_or_default()
+}
+
+/// Per SYNC in the candump log: did node `cob_id - 0x180` send its TPDO before the next SYNC?
+fn tpdo_sent_per_sync(a: &Artifacts, cob_id: u32) -> Vec<bool> {
+    let f = File::open(a.dir.join("bus.log")).expect("bus.log");
+    let mut r = CandumpReader::new(BufReader::new(f));
+    let mut out: Vec<bool> = Vec::new();
+    while let Some(rec) = r.next_record().expect("candump log") {
+        let fr = rec.timed.frame;
+        match (fr.is_extended(), fr.id().raw()) {
+            (false, 0x080) => out.push(false),
+            (false, id) if id == cob_id && fr.data().len() == 8 => {
+                if let Some(last) = out.last_mut() {
+                    *last = true;
+                }
+            }
+            _ => {}
+        }
+    }
+    out
+}
+
+/// Scores (sample, state, fulcrum) against `truth`; invalid samples are skipped (the last
+/// valid estimate holds).
+fn score_valid(
+    truth: &TruthFile,
+    estimates: impl Iterator<Item = (u64, u32, [f64; 3])>,
+) -> controller::scoring::ScoreReport {
+    let detections = estimates.filter(|&(_, state, _)| state != STATE_INVALID).map(|(sample, state, f)| {
+        let inside = state == STATE_INSIDE;
+        let fulcrum = inside.then(|| nalgebra::Vector3::new(f[0], f[1], f[2]));
+        (At::Sample(sample), Detected { inside, fulcrum_base_m: fulcrum })
+    });
+    let score = score_detections(truth, detections, WRONG_TROCAR_M).expect("score");
+    controller::scoring::ScoreReport::from_score(&score)
+}
+
+// ------------------------------------------------------------------------------------------
+// The tests
+
+/// Several insert/extract cycles over vcan: every insertion detected, every cycle published
+/// and received, every frame accounted for, and the candump log replays identically.
+#[test]
+fn hil_clean_insert_extract_cycles() {
+    let Some(a) = hil("hil_clean_insert_extract_cycles", Scenario::Clean) else { return };
+    let (samples, run) = one_run(&a, Allowed { emcy: false });
+    let bus = check_frames(&a, "daemon.json", 0);
+    let d = a.json("daemon.json");
+    assert_eq!(u(&d["cycles"]), u(&a.driver["scenario_samples"]), "the whole scenario ran");
+    let acq = &d["acquisition"];
+    for k in ["unknown_id_frames", "wrong_dlc_frames", "malformed_frames", "foreign_node_frames", "emcy_frames"] {
+        assert_eq!(acq[k], 0, "{k}: {acq}");
+    }
+    // The robot answered every SYNC: a missing TPDO in the daemon is a late one, never a lost one.
+    for id in 0x181..=0x183 {
+        assert!(tpdo_sent_per_sync(&a, id).iter().all(|&sent| sent), "node {:#x} skipped a SYNC", id);
+    }
+    let incomplete = u(&acq["incomplete_cycles"]);
+    check_candump_replay(&a, &run);
+
+    // Detection through the whole chain, against simrobot's ground truth (sample n = the n-th
+    // SYNC answered = the daemon's sequence n, as every SYNC was answered). An invalid sample is
+    // no estimate: the last valid one holds (a client does not take a late answer for an
+    // extraction).
+    let truth = TruthFile::open(&a.dir.join("truth.jsonl")).expect("truth.jsonl");
+    let live = score_valid(&truth, samples.iter().map(|s| (s.sequence, s.state, s.fulcrum_base_m)));
+    eprintln!("live over vcan ({} TPDOs, {incomplete} late-answer cycles): {}", bus.tpdos(), live.describe());
+    assert!(live.insertions >= 4, "{live:?}");
+    assert_eq!(live.insertions_detected, live.insertions, "every insertion detected: {}", live.describe());
+    assert_eq!(live.extractions_detected, live.extractions, "every extraction detected: {}", live.describe());
+
+    // False detections: compared with the detector on the same scenario offline (`simrobot
+    // generate`: the same counts per sample, no bus timing at all). With every cycle complete
+    // the chain must reproduce it sample for sample; a late answer freezes the detector for
+    // that cycle, so then the counts are compared. A false detection offline is the
+    // detector's own (docs/hil.md, docs/status.md), not the chain's.
+    let offline = a.dir.join("offline");
+    let out = Command::new(simrobot())
+        .args(["generate", "--out"])
+        .arg(&offline)
+        .arg("--config")
+        .arg(a.dir.join("simrobot.toml"))
+        .output()
+        .expect("simrobot generate");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let off_log = replay::replay_candump(&offline.join("bus.log"), &run.config).expect("offline replay");
+    let off_truth = TruthFile::open(&offline.join("truth.jsonl")).expect("offline truth");
+    let off = score_valid(
+        &off_truth,
+        off_log.cycles.iter().enumerate().map(|(k, c)| (k as u64, c.output.state, c.output.fulcrum_base_m)),
+    );
+    eprintln!("offline (same scenario and configuration, no bus timing): {}", off.describe());
+    assert_eq!(off_log.cycles.len(), samples.len());
+    if incomplete == 0 {
+        for (o, s) in off_log.cycles.iter().zip(&samples) {
+            assert_eq!((o.output.state, o.output.fulcrum_base_m), (s.state, s.fulcrum_base_m), "sample {}", s.sequence);
+        }
+    }
+    // A guest stall of 3 cycles or more makes a node stale, and the stale-data policy resets
+    // the detector (its history then differs from the offline run's, legitimately); without
+    // such a reset, the chain must not change the number of false detections.
+    let resets = samples.iter().filter(|s| s.health & health::DETECTOR_RESET != 0).count();
+    if resets == 0 {
+        assert_eq!(live.false_detections, off.false_detections, "false detections live vs offline");
+    } else {
+        eprintln!(
+            "{resets} detector resets after guest stalls (stale nodes): false detections live {} vs offline {} not compared",
+            live.false_detections, off.false_detections
+        );
+    }
+}
+
+/// Node 2 stops answering for 200 ms, then answers again.
+#[test]
+fn hil_node_silent_200ms_then_back() {
+    let Some(a) = hil("hil_node_silent_200ms_then_back", Scenario::NodeSilent) else { return };
+    let (samples, run) = one_run(&a, Allowed { emcy: false });
+    check_frames(&a, "daemon.json", 0);
+    check_candump_replay(&a, &run);
+    // On the bus: node 2 skipped the SYNCs of one stretch (the 200 ms window), and only those.
+    let sent = tpdo_sent_per_sync(&a, 0x182);
+    let silent = stretches(&sent, |&s| !s);
+    assert_eq!(silent.len(), 1, "node 2 silent in {silent:?}");
+    let (first, last) = silent[0];
+    let len = last - first + 1;
+    // 200 ms of twin time = 200 SYNCs, from sample 5000.
+    assert_eq!((first, len), (5_000, 200), "node 2 silent for SYNCs {first}..={last}");
+    for id in [0x181, 0x183] {
+        assert!(tpdo_sent_per_sync(&a, id).iter().all(|&s| s), "only node 2 was silent");
+    }
+    // The daemon (log cycle k = its cycle k: candump ran first): stale from the 3rd silent
+    // cycle to the end of the window, every cycle of the window invalid, valid again after it
+    // with the detector reset (checked by the rules in check_run).
+    assert!(samples[first..=last].iter().all(|s| s.state == STATE_INVALID));
+    assert!(samples[first + 2..=last].iter().all(|s| s.health & health::NODE_STALE[1] != 0));
+    let back = samples[last + 1..].iter().find(|s| s.state != STATE_INVALID).expect("valid again");
+    assert_ne!(back.health & health::DETECTOR_RESET, 0, "{back:?}");
+    // The instrument was inside its trocar and detected before the fault, and again after it.
+    assert!(samples[..first].iter().any(|s| s.state == STATE_INSIDE), "detected before the fault");
+    assert!(samples[last..].iter().any(|s| s.state == STATE_INSIDE), "re-detected after the fault");
+    let log = fulcrumd_stderr(&a, "daemon");
+    assert!(log.contains("health node2-stale"), "the daemon logged the stale node:\n{log}");
+}
+
+/// Frames with a wrong DLC and unknown identifiers at 2 kHz while the daemon runs.
+#[test]
+fn hil_malformed_frames_at_2khz() {
+    let Some(a) = hil("hil_malformed_frames_at_2khz", Scenario::Malformed) else { return };
+    let (samples, run) = one_run(&a, Allowed { emcy: false });
+    // The SocketCAN options the daemon relies on work on the guest's kernel.
+    assert!(u(&a.driver["rx_buffer_granted"]) >= daemon_rx_buffer() as u64, "{}", a.driver);
+    assert_eq!(a.driver["own_echo_stamp_after_send_start"], true, "{}", a.driver);
+    let sent = &a.driver["junk_sent"];
+    assert_eq!(sent["send_failed"], 0, "{sent}");
+    let junk: u64 = ["wrong_dlc", "unknown_id", "extended_id", "bad_nmt_state"].iter().map(|k| u(&sent[*k])).sum();
+    assert_eq!(junk, JUNK_FRAMES);
+    let bus = check_frames(&a, "daemon.json", junk);
+    assert_eq!(bus.count(0x7FF), u(&sent["unknown_id"]));
+    assert_eq!(bus.count(0x181 | 1 << 31), u(&sent["extended_id"]));
+    // The daemon counted each one, by kind, and simrobot ignored them.
+    let acq = &a.json("daemon.json")["acquisition"];
+    assert_eq!(acq["wrong_dlc_frames"], sent["wrong_dlc"], "{acq}");
+    assert_eq!(u(&acq["unknown_id_frames"]), u(&sent["unknown_id"]) + u(&sent["extended_id"]), "{acq}");
+    assert_eq!(acq["malformed_frames"], sent["bad_nmt_state"], "{acq}");
+    assert_eq!(acq["emcy_frames"], 0);
+    let r = a.json("simrobot.json");
+    assert_eq!(u(&r["ignored"]), junk, "simrobot ignored the junk: {r}");
+    // The flood is no fault: the robot answered every SYNC (a missing TPDO in the daemon is a
+    // late one; the health rules were checked cycle by cycle in check_run), and the estimates
+    // are what the bus log replays to.
+    for id in 0x181..=0x183 {
+        assert!(tpdo_sent_per_sync(&a, id).iter().all(|&s| s), "node {id:#x} skipped a SYNC");
+    }
+    assert!(samples.iter().any(|s| s.state == STATE_INSIDE), "the instrument was detected in its trocar");
+    check_candump_replay(&a, &run);
+}
+
+/// Node 3 raises five EMCYs in a row, each cleared 40 ms later.
+#[test]
+fn hil_emcy_burst() {
+    let Some(a) = hil("hil_emcy_burst", Scenario::EmcyBurst) else { return };
+    let (samples, run) = one_run(&a, Allowed { emcy: true });
+    let bus = check_frames(&a, "daemon.json", 0);
+    check_candump_replay(&a, &run);
+    assert_eq!(bus.count(0x083), 2 * EMCY_COUNT, "raise and clear of each EMCY on the bus");
+    assert_eq!(u(&a.json("daemon.json")["acquisition"]["emcy_frames"]), 2 * EMCY_COUNT);
+    // One flagged stretch per EMCY (raise to clear), every flagged sample invalid, the detector
+    // reset after each (rules in check_run); only node 3.
+    let st = stretches(&samples, |s| s.health & health::NODE_EMCY[2] != 0);
+    assert_eq!(st.len() as u64, EMCY_COUNT, "NODE_EMCY[2] stretches {st:?}");
+    assert!(samples.iter().all(|s| s.health & (health::NODE_EMCY[0] | health::NODE_EMCY[1]) == 0));
+    assert!(st.iter().all(|&(f, l)| samples[f..=l].iter().all(|s| s.state == STATE_INVALID)));
+    let last = st.last().map_or(0, |s| s.1);
+    assert!(samples[last + 1..].iter().any(|s| s.state == STATE_INSIDE), "re-detected after the burst");
+    assert!(fulcrumd_stderr(&a, "daemon").contains("node3-emcy"));
+}
+
+/// The daemon is killed with SIGKILL and restarted while the monitor keeps running: the
+/// monitor sees the restart and receives again within 1 s of the new daemon's start.
+#[test]
+fn hil_daemon_sigkill_and_restart() {
+    let Some(a) = hil("hil_daemon_sigkill_and_restart", Scenario::KillRestart) else { return };
+    assert_eq!(a.driver["daemon_1_exit"], -libc::SIGKILL, "{}", a.driver);
+    assert_eq!(a.driver["daemon_2_exit"], 0, "the restarted daemon runs and exits cleanly: {}", a.driver);
+    for p in ["monitor", "simrobot", "candump"] {
+        assert_eq!(a.driver[format!("{p}_exit")], 0, "{p}: {}", a.driver);
+    }
+    monitor_summary_ok(&a, 1);
+    let samples = samples(&a);
+    let d2 = a.json("daemon-2.json");
+    let run2 = u(&d2["run_id"]);
+    let split = samples.iter().position(|s| s.run_id == run2).expect("samples of the restarted daemon");
+    let (first_run, second_run) = samples.split_at(split);
+    assert!(!first_run.is_empty(), "samples of the first daemon");
+    assert!(second_run.iter().all(|s| s.run_id == run2), "an old sample after the restart");
+    // The first run: in order from 0, nothing missed, up to the kill.
+    for (i, s) in first_run.iter().enumerate() {
+        assert_eq!(s.sequence, i as u64);
+        assert_eq!(s.event, if i == 0 { "first" } else { "in_order" });
+    }
+    // The monitor reported the restart...
+    assert_eq!(second_run[0].event, "restart", "{:?}", second_run[0]);
+    let mon_log = fulcrumd_stderr(&a, "monitor");
+    assert!(mon_log.contains(&format!("daemon (re)started: run {run2:016x}")), "{mon_log}");
+    // ...and received again within 1 s of the new daemon's spawn.
+    let spawn_ns = u(&a.driver["restart_spawn_ns"]);
+    let back_ms = second_run[0].rx_ns.saturating_sub(spawn_ns) as f64 * 1e-6;
+    eprintln!("restart: first sample of the new run {back_ms:.0} ms after its spawn");
+    assert!(second_run[0].rx_ns > spawn_ns && back_ms < 1000.0, "received again after {back_ms:.0} ms");
+    // The new run: every cycle from 0, the health rules, its recording replays; its detector
+    // starts empty (nothing carried over from the killed run).
+    check_run(&a, "daemon-2.json", "rec-daemon-2", &second_run.iter().collect::<Vec<_>>(), Allowed { emcy: false });
+    // Its first estimate holds at most its own line.
+    assert!(second_run[0].window_fill <= 1, "{:?}", second_run[0]);
+    // The killed run's recording is readable up to the kill and reproduces bit for bit.
+    let rec1 = std::fs::read_dir(a.dir.join("rec-daemon-1"))
+        .expect("rec-daemon-1")
+        .map(|e| e.expect("entry").path())
+        .find(|p| p.extension().is_some_and(|e| e == "rec"))
+        .expect("first run's recording");
+    let rr = replay::replay_recording(&rec1).expect("replay of the killed run");
+    eprintln!("killed run's recording: {} records, truncations {:?}", rr.records, rr.truncations);
+    assert!(rr.records > 0 && rr.identical == rr.records && rr.gap_at.is_none(), "{rr:?}");
+}

@@ -252,6 +252,18 @@ fn f(v: f64, digits: usize) -> String {
     if v.is_finite() { format!("{v:.digits$}") } else { "–".into() }
 }
 
+/// σ as written in the protocol (0.009, not 0.009000000000000001).
+pub fn sigma_label(sigma: f64) -> String {
+    format!("{}", (sigma * 1e6).round() / 1e6)
+}
+
+fn ratio(a: f64, b: f64) -> String {
+    if b > 1e-9 { f(a / b, 2) } else { "–".into() }
+}
+
+/// Errors below this are drawn at this value on the logarithmic plots (noiseless: ~1e-13).
+const PLOT_FLOOR: f64 = 1e-4;
+
 /// The Markdown table of a list of conditions.
 pub fn table(results: &[ConditionResult]) -> String {
     let mut s = String::new();
@@ -268,7 +280,7 @@ pub fn table(results: &[ConditionResult]) -> String {
             s,
             "| {} | {} | {}⁴×{}² | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {}/{} | {}/{} |",
             c.units.name(),
-            c.sigma,
+            sigma_label(c.sigma),
             c.n_e,
             c.n_t,
             f(m.kept, 0),
@@ -279,8 +291,8 @@ pub fn table(results: &[ConditionResult]) -> String {
             f(m.ours[0], 3),
             f(m.ours[1], 2),
             f(m.ours[2], 3),
-            f(m.ours[0] / m.paper[0], 2),
-            f(m.ours[2] / m.paper[2], 2),
+            ratio(m.ours[0], m.paper[0]),
+            ratio(m.ours[2], m.paper[2]),
             crb_t,
             crb_r,
             rt,
@@ -327,12 +339,17 @@ pub fn box_plot(
                 .collect()
         };
         let (paper, ours) = (data(false), data(true));
-        let ymax = paper.iter().chain(ours.iter()).flatten().cloned().fold(0.0f64, f64::max).max(1e-6) * 1.05;
+        let ymax =
+            paper.iter().chain(ours.iter()).flatten().cloned().fold(0.0f64, f64::max).max(PLOT_FLOOR * 10.0) * 1.5;
+        let clamp = |v: &Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+            v.iter().map(|x| x.iter().map(|y| y.max(PLOT_FLOOR)).collect()).collect()
+        };
+        let (paper, ours) = (clamp(&paper), clamp(&ours));
         let mut chart = ChartBuilder::on(area)
             .margin(10)
             .x_label_area_size(40)
             .y_label_area_size(60)
-            .build_cartesian_2d(-0.5f64..(n as f64 - 0.5), 0f32..ymax as f32)
+            .build_cartesian_2d(-0.5f64..(n as f64 - 0.5), (PLOT_FLOOR as f32..ymax as f32).log_scale())
             .map_err(plot_err(path))?;
         let fmt = |x: &f64| -> String {
             let i = x.round();
@@ -347,7 +364,8 @@ pub fn box_plot(
             .x_labels(n.max(2))
             .x_label_formatter(&fmt)
             .x_desc(x_desc)
-            .y_desc(y_desc)
+            .y_desc(format!("{y_desc}, log scale (values < {PLOT_FLOOR} drawn at it)"))
+            .y_label_formatter(&|y: &f32| format!("{y:.0e}"))
             .disable_x_mesh()
             .draw()
             .map_err(plot_err(path))?;
@@ -507,7 +525,7 @@ pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<Strin
             &format!("σ sweep, ρ in {} (n_e = n_t = 3, {} trials)", u.name(), opts.trials),
             "σ",
             &part,
-            |c| format!("{}", c.sigma),
+            |c| sigma_label(c.sigma),
         )?;
     }
     for u in units {

@@ -7,29 +7,9 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Pinhole intrinsics read from a file (pixels) with plumb-bob distortion.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CameraIntrinsics {
-    /// Focal length along u, pixels.
-    pub fx: f64,
-    /// Focal length along v, pixels.
-    pub fy: f64,
-    /// Principal point u, pixels.
-    pub cx: f64,
-    /// Principal point v, pixels.
-    pub cy: f64,
-    /// Skew, pixels (usually 0).
-    #[serde(default)]
-    pub skew: f64,
-    /// Image width, pixels.
-    pub width: u32,
-    /// Image height, pixels.
-    pub height: u32,
-    /// `[k1, k2, p1, p2, k3]`, dimensionless; zeros for none.
-    #[serde(default)]
-    pub distortion: [f64; 5],
-}
+/// Pinhole intrinsics (pixels) with plumb-bob distortion, as read from a file: the
+/// estimator's own type, so that no field is copied across.
+pub use estimator::calib::Intrinsics as CameraIntrinsics;
 
 /// Why an intrinsics YAML file was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

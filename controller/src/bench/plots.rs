@@ -17,6 +17,28 @@ pub struct PlotError {
     pub message: String,
 }
 
+/// Draws the series legend of `chart` (white box, black border) or returns the error for `path`.
+macro_rules! legend {
+    ($chart:expr, $path:expr) => {
+        $chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| err($path, e))?
+    };
+}
+
+/// A chart on `area` with the figures' common caption font, margin and label areas.
+fn chart_on<'a, 'b, DB: DrawingBackend>(
+    area: &'a DrawingArea<DB, plotters::coord::Shift>,
+    caption: &str,
+) -> ChartBuilder<'a, 'b, DB> {
+    let mut b = ChartBuilder::on(area);
+    b.caption(caption, ("sans-serif", 18)).margin(10).x_label_area_size(35).y_label_area_size(60);
+    b
+}
+
 fn err(path: &Path, e: impl std::fmt::Display) -> PlotError {
     PlotError { path: path.display().to_string(), message: e.to_string() }
 }
@@ -53,13 +75,8 @@ pub fn delay_histograms(report: &DetectionReport, path: &Path) -> Result<(), Plo
         let hp = histogram(&p, range, bins);
         let hf = histogram(&f, range, bins);
         let ymax = hp.iter().chain(&hf).map(|x| x.1).fold(0.0, f64::max) * 1.1 + 1e-9;
-        let mut chart = ChartBuilder::on(panel)
-            .caption(title, ("sans-serif", 18))
-            .margin(10)
-            .x_label_area_size(35)
-            .y_label_area_size(50)
-            .build_cartesian_2d(range.0..range.1, 0.0..ymax)
-            .map_err(|e| err(path, e))?;
+        let mut chart =
+            chart_on(panel, title).build_cartesian_2d(range.0..range.1, 0.0..ymax).map_err(|e| err(path, e))?;
         chart
             .configure_mesh()
             .x_desc("seconds after the true event")
@@ -79,12 +96,7 @@ pub fn delay_histograms(report: &DetectionReport, path: &Path) -> Result<(), Plo
             .map_err(|e| err(path, e))?
             .label("mean motion-only bound")
             .legend(|(x, y)| PathElement::new([(x, y), (x + 12, y)], BLACK.stroke_width(2)));
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| err(path, e))?;
+        legend!(chart, path);
     }
     root.present().map_err(|e| err(path, e))
 }
@@ -95,11 +107,7 @@ pub fn timeline(t: &Timeline, path: &Path) -> Result<(), PlotError> {
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     let (top, bottom) = root.split_vertically(300);
     let t_end = t.t_s.last().copied().unwrap_or(1.0);
-    let mut chart = ChartBuilder::on(&top)
-        .caption("true vs detected state (first trace)", ("sans-serif", 18))
-        .margin(10)
-        .x_label_area_size(30)
-        .y_label_area_size(60)
+    let mut chart = chart_on(&top, "true vs detected state (first trace)")
         .build_cartesian_2d(0.0..t_end, -0.5..5.5)
         .map_err(|e| err(path, e))?;
     chart
@@ -136,18 +144,9 @@ pub fn timeline(t: &Timeline, path: &Path) -> Result<(), PlotError> {
                 .legend(move |(x, y)| PathElement::new([(x, y), (x + 12, y)], color.stroke_width(1)));
         }
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| err(path, e))?;
+    legend!(chart, path);
 
-    let mut chart = ChartBuilder::on(&bottom)
-        .caption("localisation error while both inside", ("sans-serif", 18))
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
+    let mut chart = chart_on(&bottom, "localisation error while both inside")
         .build_cartesian_2d(0.0..t_end, (0.1f64..100.0).log_scale())
         .map_err(|e| err(path, e))?;
     chart.configure_mesh().x_desc("time (s)").y_desc("error (mm)").draw().map_err(|e| err(path, e))?;
@@ -162,12 +161,7 @@ pub fn timeline(t: &Timeline, path: &Path) -> Result<(), PlotError> {
                 .legend(move |(x, y)| Circle::new((x + 6, y), 3, color.filled()));
         }
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| err(path, e))?;
+    legend!(chart, path);
     root.present().map_err(|e| err(path, e))
 }
 
@@ -183,13 +177,8 @@ pub fn duration_histogram(
     let root = SVGBackend::new(path, (900, 420)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     let ymax = series.iter().flat_map(|s| s.1.iter().map(|b| b.1)).max().unwrap_or(1).max(1) as f64 * 2.0;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..x_max, (0.5f64..ymax).log_scale())
-        .map_err(|e| err(path, e))?;
+    let mut chart =
+        chart_on(&root, title).build_cartesian_2d(0.0..x_max, (0.5f64..ymax).log_scale()).map_err(|e| err(path, e))?;
     chart.configure_mesh().x_desc(x_desc).y_desc("count").draw().map_err(|e| err(path, e))?;
     let colors = [BLUE, RED, GREEN, MAGENTA];
     for ((label, buckets), color) in series.iter().zip(colors) {
@@ -200,11 +189,6 @@ pub fn duration_histogram(
             .label(*label)
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 12, y)], color.stroke_width(2)));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| err(path, e))?;
+    legend!(chart, path);
     root.present().map_err(|e| err(path, e))
 }

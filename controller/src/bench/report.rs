@@ -135,7 +135,12 @@ pub fn run_detection(opts: &DetectionOptions, progress: &(dyn Fn() + Sync)) -> R
         .placements
         .iter()
         .flat_map(|p| {
-            opts.seeds.iter().map(move |&seed| TraceSpec { seed, cycles: opts.cycles_per_trace, placement: *p, model_error: opts.model_error })
+            opts.seeds.iter().map(move |&seed| TraceSpec {
+                seed,
+                cycles: opts.cycles_per_trace,
+                placement: *p,
+                model_error: opts.model_error,
+            })
         })
         .collect();
     let length = sim::twin::TwinConfig::default().scenario.instrument_length_m;
@@ -223,6 +228,12 @@ pub struct Stats {
 }
 
 impl Stats {
+    /// "mean / p50 / p95 / max" of seconds, in whole milliseconds.
+    pub fn ms_row(&self) -> String {
+        let ms = |x: f64| format!("{:.0}", x * 1e3);
+        format!("{} / {} / {} / {}", ms(self.mean), ms(self.p50), ms(self.p95), ms(self.max))
+    }
+
     /// Statistics of `v`.
     pub fn of(v: &[f64]) -> Self {
         Self {
@@ -424,27 +435,11 @@ impl DetectionReport {
         row(&mut s, "trocar ids used (4 trocars per trace)", &|h| {
             format!("{:.1} per trace", h.distinct_ids as f64 / self.specs.len().max(1) as f64)
         });
-        row(&mut s, "insertion delay mean / p50 / p95 / max (ms)", &|h| {
-            format!(
-                "{} / {} / {} / {}",
-                ms(h.insertion.mean),
-                ms(h.insertion.p50),
-                ms(h.insertion.p95),
-                ms(h.insertion.max)
-            )
-        });
+        row(&mut s, "insertion delay mean / p50 / p95 / max (ms)", &|h| h.insertion.ms_row());
         row(&mut s, "re-insertion delay mean / p95 (ms)", &|h| {
             format!("{} / {}", ms(h.reinsertion.mean), ms(h.reinsertion.p95))
         });
-        row(&mut s, "extraction delay mean / p50 / p95 / max (ms)", &|h| {
-            format!(
-                "{} / {} / {} / {}",
-                ms(h.extraction.mean),
-                ms(h.extraction.p50),
-                ms(h.extraction.p95),
-                ms(h.extraction.max)
-            )
-        });
+        row(&mut s, "extraction delay mean / p50 / p95 / max (ms)", &|h| h.extraction.ms_row());
         row(&mut s, "error at first detection mean / p95 (mm)", &|h| {
             format!("{} / {}", mm(h.first_error.mean), mm(h.first_error.p95))
         });

@@ -1,40 +1,12 @@
 //! Conversions between the calibration files (`hw_io::calib_files`) and estimator types.
 
 use estimator::calib::ours::{OursResult, ResidualStats};
-use estimator::calib::{Intrinsics, KinematicNoise, Observation, Setup};
+use estimator::calib::{KinematicNoise, Observation, Setup};
 use hw_io::calib_files::{
-    CALIB_FILE_VERSION, CameraIntrinsics, DATASET_FORMAT, DatasetFile, NoiseJson, ObservationJson, PipelineResultJson,
-    ResidualJson, TransformJson,
+    CALIB_FILE_VERSION, DATASET_FORMAT, DatasetFile, NoiseJson, ObservationJson, PipelineResultJson, ResidualJson,
+    TransformJson,
 };
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
-
-/// File intrinsics → estimator intrinsics.
-pub fn intrinsics(k: &CameraIntrinsics) -> Intrinsics {
-    Intrinsics {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        skew: k.skew,
-        width: k.width,
-        height: k.height,
-        distortion: k.distortion,
-    }
-}
-
-/// Estimator intrinsics → file intrinsics.
-pub fn intrinsics_json(k: &Intrinsics) -> CameraIntrinsics {
-    CameraIntrinsics {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        skew: k.skew,
-        width: k.width,
-        height: k.height,
-        distortion: k.distortion,
-    }
-}
 
 /// File transform → isometry (metres).
 pub fn isometry(t: &TransformJson) -> Isometry3<f64> {
@@ -53,7 +25,7 @@ pub fn transform_json(t: &Isometry3<f64>) -> TransformJson {
 
 /// A parsed dataset file → setup, observations and optional noise model.
 pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoise>) {
-    let setup = Setup { intrinsics: intrinsics(&d.intrinsics), hand_eye: isometry(&d.hand_eye) };
+    let setup = Setup { intrinsics: d.intrinsics, hand_eye: isometry(&d.hand_eye) };
     let obs = d
         .observations
         .iter()
@@ -68,7 +40,7 @@ pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicN
     DatasetFile {
         format: DATASET_FORMAT.into(),
         version: CALIB_FILE_VERSION,
-        intrinsics: intrinsics_json(&setup.intrinsics),
+        intrinsics: setup.intrinsics,
         hand_eye: transform_json(&setup.hand_eye),
         noise_model: noise.map(|n| NoiseJson { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px }),
         observations: obs

@@ -168,7 +168,7 @@ pub fn calibrate(
     if let Some(p) = intrinsics {
         let k = parse_intrinsics_yaml(&read(p)?)
             .map_err(|source| CalibrateError::Intrinsics { path: p.to_owned(), source })?;
-        setup.intrinsics = convert::intrinsics(&k);
+        setup.intrinsics = k;
     }
     let truth = match truth {
         Some(p) => Some(convert::isometry(

@@ -4,7 +4,11 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Pinhole intrinsics (pixels) with OpenCV's plumb-bob distortion `[k1, k2, p1, p2, k3]`.
+///
+/// Also the intrinsics object of the calibration files (`hw_io::calib_files`): unknown keys
+/// are refused, `skew` and `distortion` default to zero.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Intrinsics {
     /// Focal length along u, pixels.
     pub fx: f64,
@@ -15,12 +19,14 @@ pub struct Intrinsics {
     /// Principal point v, pixels.
     pub cy: f64,
     /// Skew `K[0][1]`, pixels (0 for every modern camera).
+    #[serde(default)]
     pub skew: f64,
     /// Image width, pixels.
     pub width: u32,
     /// Image height, pixels.
     pub height: u32,
     /// Plumb-bob distortion `[k1, k2, p1, p2, k3]` (dimensionless); zeros for none.
+    #[serde(default)]
     pub distortion: [f64; 5],
 }
 

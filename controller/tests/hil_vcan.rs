@@ -995,8 +995,11 @@ fn hil_malformed_frames_at_2khz() {
     assert_eq!(u(&acq["unknown_id_frames"]), u(&sent["unknown_id"]) + u(&sent["extended_id"]), "{acq}");
     assert_eq!(acq["malformed_frames"], sent["bad_nmt_state"], "{acq}");
     assert_eq!(acq["emcy_frames"], 0);
+    // simrobot ignored the junk it read. Its socket, unlike the daemon's (whose counts above
+    // are exact), may still lose part of a burst while the single guest CPU runs the others:
+    // the kernel drops are not counted (SO_RXQ_OVFL, docs/hil.md), so no equality here.
     let r = a.json("simrobot.json");
-    assert_eq!(u(&r["ignored"]), junk, "simrobot ignored the junk: {r}");
+    assert!(u(&r["ignored"]) > 0 && u(&r["ignored"]) <= junk, "simrobot ignored the junk: {r}");
     // The flood is no fault: the robot answered every SYNC (a missing TPDO in the daemon is a
     // late one; the health rules were checked cycle by cycle in check_run), and the estimates
     // are what the bus log replays to.

@@ -393,6 +393,11 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     let mut robot = SimRobot::new(&config).map_err(ConfigError::from)?;
     install_signal_handlers().map_err(LiveError::Signal)?;
     let mut bus = SocketCanBus::open(&args.iface)?;
+    // Like fulcrumd: a receive queue for bursts (a flood of foreign frames must not push the
+    // controller's SYNCs out of a full default queue).
+    if let Err(e) = bus.set_receive_buffer(4 << 20) {
+        eprintln!("simrobot live: cannot enlarge the CAN receive queue ({e}); frames may be dropped in bursts");
+    }
     let truth_file = match &args.truth {
         Some(path) => {
             Some((path.clone(), File::create(path).map_err(|source| LiveError::Create { path: path.clone(), source })?))

@@ -145,7 +145,18 @@ fn quick_sweep_writes_table_and_plots() {
     let stdout = run_ok(bin().args(["sweep", "--quick", "--trials", "1"]).arg("--out-dir").arg(dir.path()));
     assert!(stdout.contains("sweep.md"));
     let md = std::fs::read_to_string(dir.path().join("sweep.md")).unwrap();
-    assert!(md.contains("| mm | 0.01 | 3⁴×3² |") && md.contains("| m | 0.01 | 3⁴×3² |"), "{md}");
+    assert!(md.contains("| mm | 0.01 | 3⁴×3² | 1× |") && md.contains("| m | 0.01 | 3⁴×3² | 1× |"), "{md}");
+    // The in-view selection check: the 3× sensor (same focal length) keeps more of the same
+    // 729 combinations than the protocol's camera.
+    let kept = |sensor: &str| -> usize {
+        let row = md
+            .lines()
+            .find(|l| l.starts_with(&format!("| m | 0.01 | 3⁴×3² | {sensor} |")))
+            .unwrap_or_else(|| panic!("no {sensor} row in {md}"));
+        row.split('|').nth(5).unwrap().trim().parse().unwrap()
+    };
+    assert!(kept("3×") > kept("1×") + 100, "{md}");
+    assert!(kept("3×") <= 729);
     for f in ["sigma_mm.svg", "sigma_m.svg", "grid_mm.svg", "grid_m.svg"] {
         let svg = std::fs::read_to_string(dir.path().join(f)).unwrap();
         assert!(svg.starts_with("<svg") && svg.contains("ours"), "{f}");

@@ -144,12 +144,10 @@ fn trocar_memory_recognises_a_reinsertion_quickly() {
                 waiting = true;
             }
             let e = d.step(l);
-            if waiting {
-                if let estimator::trocar::TrocarState::Inside { id } = e.state {
-                    delays.push((i - start) as f64 * 0.001);
-                    ids.push(id);
-                    waiting = false;
-                }
+            if let (true, estimator::trocar::TrocarState::Inside { id }) = (waiting, e.state) {
+                delays.push((i - start) as f64 * 0.001);
+                ids.push(id);
+                waiting = false;
             }
         }
         (delays, ids)

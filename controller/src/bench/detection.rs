@@ -36,16 +36,16 @@ pub struct Setting {
 /// tip), built on `base` (its paper and fast parameters; the mode, the instrument length and
 /// the trocar memory are set per setting).
 pub fn settings(instrument_length_m: f64, base: &DetectorConfig) -> Vec<Setting> {
-    let paper = DetectorConfig { mode: DetectorMode::Paper, ..base.clone() };
+    let paper = DetectorConfig { mode: DetectorMode::Paper, ..*base };
     let plain = FastConfig { instrument_length_m: None, trocar_memory: false, ..base.fast };
-    let fast = DetectorConfig { mode: DetectorMode::Fast, fast: plain, ..base.clone() };
+    let fast = DetectorConfig { mode: DetectorMode::Fast, fast: plain, ..*base };
     let with_length = |memory: bool| DetectorConfig {
         fast: FastConfig { instrument_length_m: Some(instrument_length_m), trocar_memory: memory, ..fast.fast },
-        ..fast.clone()
+        ..fast
     };
     vec![
         Setting { key: "paper", label: "paper (Dong & Morel)", config: paper },
-        Setting { key: "fast", label: "fast, paper's information", config: fast.clone() },
+        Setting { key: "fast", label: "fast, paper's information", config: fast },
         Setting { key: "fast_length", label: "fast + instrument length", config: with_length(false) },
         Setting { key: "fast_memory", label: "fast + length + trocar memory", config: with_length(true) },
     ]

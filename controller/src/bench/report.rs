@@ -56,6 +56,10 @@ pub struct SettingResult {
     pub steps: u64,
 }
 
+/// One setting's timeline: its key, inside (1) or not (0) per sample, and the localisation
+/// error per sample (metres; `None` when not inside).
+pub type SettingTimeline = (&'static str, Vec<u8>, Vec<Option<f64>>);
+
 /// The timeline of the first trace's beginning, for the plot.
 #[derive(Clone, Debug, Default)]
 pub struct Timeline {
@@ -64,7 +68,7 @@ pub struct Timeline {
     /// True inside (trocar index + 1, 0 outside).
     pub truth: Vec<u8>,
     /// Per setting key: detector inside (1) or not (0), and the localisation error (m).
-    pub detected: Vec<(&'static str, Vec<u8>, Vec<Option<f64>>)>,
+    pub detected: Vec<SettingTimeline>,
 }
 
 /// The whole detection benchmark.

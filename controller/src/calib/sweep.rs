@@ -504,14 +504,10 @@ pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<Strin
     std::fs::create_dir_all(dir).map_err(|source| SweepError::Write { path: dir.to_owned(), source })?;
     let started = Instant::now();
     let units = [NoiseUnits::Millimetre, NoiseUnits::Metre];
-    let sigma_conds: Vec<Condition> = units
-        .iter()
-        .flat_map(|&u| opts.sigmas.iter().map(move |&s| Condition::new(u, s, 3, 3)))
-        .collect();
-    let grid_conds: Vec<Condition> = units
-        .iter()
-        .flat_map(|&u| opts.grid.iter().map(move |&(e, t)| Condition::new(u, 0.01, e, t)))
-        .collect();
+    let sigma_conds: Vec<Condition> =
+        units.iter().flat_map(|&u| opts.sigmas.iter().map(move |&s| Condition::new(u, s, 3, 3))).collect();
+    let grid_conds: Vec<Condition> =
+        units.iter().flat_map(|&u| opts.grid.iter().map(move |&(e, t)| Condition::new(u, 0.01, e, t))).collect();
     // The in-view selection check: the metre reading at σ = 0.005 and 0.01 on the default
     // sensor and on one 3× larger (same focal length), where almost nothing leaves the view.
     let selection_conds: Vec<Condition> = [0.005, 0.01]

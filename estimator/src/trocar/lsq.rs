@@ -193,7 +193,8 @@ impl NormalSums {
             return Err(SolveError::TooFewLines { count: self.count });
         }
         let q = self.weight;
-        if !(q > 1.0) {
+        // NaN-safe: a NaN weight is refused like a too small one.
+        if q.is_nan() || q <= 1.0 {
             return Err(SolveError::TooFewLines { count: self.count });
         }
         let eig = SymmetricEigen::new(self.a);

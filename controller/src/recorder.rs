@@ -68,8 +68,13 @@ pub struct RecorderConfig {
     /// (>= 4096; default 64 MiB).
     pub max_file_bytes: u64,
     /// The run's files together never exceed this size, bytes: the oldest files of the run are
-    /// deleted first (>= `max_file_bytes`; default 1 GiB). Files of other runs are never touched.
+    /// deleted first (>= `max_file_bytes`; default 1 GiB).
     pub max_total_bytes: u64,
+    /// All runs' recording files in `dir` together, bytes: at start, whole older runs are
+    /// deleted, oldest first, until they and this run's `max_total_bytes` fit; the most recent
+    /// earlier run (the one a crash left) is always kept (>= 2 × `max_total_bytes`; default
+    /// 8 GiB).
+    pub max_dir_bytes: u64,
     /// Buffered frames are handed to the kernel at least this often, milliseconds (1..=60000; default 1000).
     pub flush_interval_ms: u64,
     /// The writer warns (at most once a second) when the queue is at least this full, percent
@@ -87,6 +92,7 @@ impl Default for RecorderConfig {
             dir: PathBuf::from("/var/lib/comanip/recordings"),
             max_file_bytes: 64 * 1024 * 1024,
             max_total_bytes: 1024 * 1024 * 1024,
+            max_dir_bytes: 8 * 1024 * 1024 * 1024,
             flush_interval_ms: 1000,
             queue_warn_percent: 50,
             retry_interval_ms: 1000,
@@ -113,6 +119,14 @@ pub enum RecorderConfigError {
         total: u64,
         /// Configured `max_file_bytes`, bytes.
         file: u64,
+    },
+    /// `max_dir_bytes` below twice `max_total_bytes` (this run and the previous one must fit).
+    #[error("recorder.max_dir_bytes = {dir}: must be at least 2 × recorder.max_total_bytes = {total}")]
+    DirBelowTwoRuns {
+        /// Configured `max_dir_bytes`, bytes.
+        dir: u64,
+        /// Configured `max_total_bytes`, bytes.
+        total: u64,
     },
     /// `flush_interval_ms` out of 1..=60000.
     #[error("recorder.flush_interval_ms = {value}: must be in 1..=60000")]
@@ -145,6 +159,9 @@ impl RecorderConfig {
         }
         if self.max_total_bytes < self.max_file_bytes {
             return Err(RecorderConfigError::TotalBelowFile { total: self.max_total_bytes, file: self.max_file_bytes });
+        }
+        if self.max_dir_bytes / 2 < self.max_total_bytes {
+            return Err(RecorderConfigError::DirBelowTwoRuns { dir: self.max_dir_bytes, total: self.max_total_bytes });
         }
         if !(1..=60_000).contains(&self.flush_interval_ms) {
             return Err(RecorderConfigError::FlushInterval { value: self.flush_interval_ms });
@@ -235,6 +252,9 @@ pub struct RecorderStats {
     files_deleted: AtomicU64,
     records_deleted: AtomicU64,
     queue_high_water: AtomicU64,
+    old_runs_deleted: AtomicU64,
+    old_files_deleted: AtomicU64,
+    old_bytes_deleted: AtomicU64,
 }
 
 /// A copy of the counters at one instant.
@@ -264,6 +284,15 @@ pub struct RecorderStatsSnapshot {
     pub records_deleted: u64,
     /// Most records seen waiting in the queue by the writer.
     pub queue_high_water: u64,
+    /// Earlier runs deleted at start to respect `max_dir_bytes`.
+    #[serde(default)]
+    pub old_runs_deleted: u64,
+    /// Their files.
+    #[serde(default)]
+    pub old_files_deleted: u64,
+    /// Their bytes.
+    #[serde(default)]
+    pub old_bytes_deleted: u64,
 }
 
 impl RecorderStats {
@@ -282,6 +311,9 @@ impl RecorderStats {
             files_deleted: r(&self.files_deleted),
             records_deleted: r(&self.records_deleted),
             queue_high_water: r(&self.queue_high_water),
+            old_runs_deleted: r(&self.old_runs_deleted),
+            old_files_deleted: r(&self.old_files_deleted),
+            old_bytes_deleted: r(&self.old_bytes_deleted),
         }
     }
 }
@@ -558,6 +590,7 @@ where
     fs::create_dir_all(&config.dir).map_err(|source| StartError::CreateDir { dir: config.dir.clone(), source })?;
 
     let stats = Arc::new(RecorderStats::default());
+    prune_old_runs(config, run.run_id, &stats);
     let control = Arc::new(Control::default());
     // Postcard output is bounded by a small multiple of the in-memory size for `Copy` types
     // (varints take at most 10 bytes for 8, options and enums a tag byte).
@@ -591,6 +624,81 @@ where
     };
     let handle = RecorderHandle { control, stats, thread: Some(thread), capacity, first_file };
     Ok((producer, handle))
+}
+
+/// One earlier run's files in the recording directory.
+struct OldRun {
+    files: Vec<(PathBuf, u64)>,
+    bytes: u64,
+    newest: SystemTime,
+}
+
+/// Deletes whole earlier runs, oldest first (by their newest file's modification time), until
+/// the earlier runs' files plus this run's `max_total_bytes` fit in `max_dir_bytes`. The most
+/// recent earlier run is always kept: it may hold the recording of the crash this start
+/// follows. Only names made by [`file_name`] are considered; errors are logged, never fatal.
+fn prune_old_runs(config: &RecorderConfig, this_run: u64, stats: &RecorderStats) {
+    let entries = match fs::read_dir(&config.dir) {
+        Ok(e) => e,
+        Err(e) => {
+            tracing::warn!(dir = %config.dir.display(), error = %e, "recorder: cannot list the directory for the retention limit");
+            return;
+        }
+    };
+    let mut runs: BTreeMap<u64, OldRun> = BTreeMap::new();
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some((run_id, _)) = name.to_str().and_then(parse_file_name) else { continue };
+        let Ok(meta) = entry.metadata() else { continue };
+        if run_id == this_run || !meta.is_file() {
+            continue;
+        }
+        let modified = meta.modified().unwrap_or(UNIX_EPOCH);
+        let run = runs.entry(run_id).or_insert(OldRun { files: Vec::new(), bytes: 0, newest: UNIX_EPOCH });
+        run.files.push((entry.path(), meta.len()));
+        run.bytes += meta.len();
+        run.newest = run.newest.max(modified);
+    }
+    let mut runs: Vec<(u64, OldRun)> = runs.into_iter().collect();
+    runs.sort_by_key(|(id, r)| (r.newest, *id));
+    let mut total: u64 = runs.iter().map(|(_, r)| r.bytes).sum();
+    let budget = config.max_dir_bytes.saturating_sub(config.max_total_bytes);
+    // Keep the last (most recent) earlier run whatever its size.
+    let deletable = runs.len().saturating_sub(1);
+    for (run_id, run) in runs.iter().take(deletable) {
+        if total <= budget {
+            break;
+        }
+        let mut freed = 0;
+        for (path, len) in &run.files {
+            match fs::remove_file(path) {
+                Ok(()) => {
+                    freed += len;
+                    add(&stats.old_files_deleted, 1);
+                }
+                Err(e) if e.kind() == io::ErrorKind::NotFound => freed += len,
+                Err(e) => {
+                    tracing::error!(path = %path.display(), error = %e, "recorder: cannot delete an old run's file")
+                }
+            }
+        }
+        total -= freed;
+        add(&stats.old_runs_deleted, 1);
+        add(&stats.old_bytes_deleted, freed);
+        tracing::info!(
+            run = format_args!("{run_id:016x}"),
+            files = run.files.len(),
+            bytes = freed,
+            "recorder: deleted an old run to respect recorder.max_dir_bytes"
+        );
+    }
+    if total > budget {
+        tracing::warn!(
+            bytes = total,
+            budget,
+            "recorder: earlier runs still exceed recorder.max_dir_bytes − max_total_bytes (the most recent one is kept)"
+        );
+    }
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -442,3 +442,76 @@ fn file_size_limit_write_errors_are_counted_not_fatal() {
     assert!(stdout.contains("1 passed") && stdout.contains("child stats"), "child did not run:\n{stdout}");
     assert!(!rec_files(dir.path()).is_empty());
 }
+
+/// Writes a stand-in file of `len` bytes for file `index` of an earlier run, last modified
+/// `age_s` seconds ago.
+fn old_file(dir: &Path, run_id: u64, index: u32, len: u64, age_s: u64) -> PathBuf {
+    let path = dir.join(recorder::file_name(run_id, index));
+    let f = fs::File::create(&path).unwrap();
+    f.set_len(len).unwrap();
+    f.set_modified(std::time::SystemTime::now() - Duration::from_secs(age_s)).unwrap();
+    path
+}
+
+#[test]
+fn start_deletes_the_oldest_earlier_runs_beyond_max_dir_bytes() {
+    const MIB: u64 = 1 << 20;
+    let dir = tempfile::tempdir().unwrap();
+    // Four earlier runs of 1 MiB each (two files each), oldest first; a foreign file.
+    let mut runs = Vec::new();
+    for (k, age) in [400u64, 300, 200, 100].into_iter().enumerate() {
+        let id = 0x1000 + k as u64;
+        runs.push(vec![old_file(dir.path(), id, 0, MIB / 2, age + 1), old_file(dir.path(), id, 1, MIB / 2, age)]);
+    }
+    let foreign = dir.path().join("notes.txt");
+    fs::write(&foreign, vec![0u8; (4 * MIB) as usize]).unwrap();
+    // Budget for earlier runs: 3 MiB − 1 MiB (this run) = 2 MiB → the two oldest go.
+    let cfg = RecorderConfig {
+        max_file_bytes: 64 * 1024,
+        max_total_bytes: MIB,
+        max_dir_bytes: 3 * MIB,
+        ..config(dir.path())
+    };
+    let (_p, h) = recorder::start::<Cycle, 16>(&cfg, run(7)).unwrap();
+    let s = h.shutdown().unwrap();
+    assert_eq!((s.old_runs_deleted, s.old_files_deleted, s.old_bytes_deleted), (2, 4, 2 * MIB));
+    for f in runs[..2].iter().flatten() {
+        assert!(!f.exists(), "{} should be deleted", f.display());
+    }
+    for f in runs[2..].iter().flatten() {
+        assert!(f.exists(), "{} should be kept", f.display());
+    }
+    assert!(foreign.exists(), "files not named by the recorder are never touched");
+}
+
+#[test]
+fn start_keeps_the_most_recent_earlier_run_even_over_budget() {
+    const MIB: u64 = 1 << 20;
+    let dir = tempfile::tempdir().unwrap();
+    let older = old_file(dir.path(), 0xa, 0, MIB, 200);
+    let crash = old_file(dir.path(), 0xb, 0, 5 * MIB, 100);
+    let cfg = RecorderConfig {
+        max_file_bytes: 64 * 1024,
+        max_total_bytes: MIB,
+        max_dir_bytes: 2 * MIB,
+        ..config(dir.path())
+    };
+    let (_p, h) = recorder::start::<Cycle, 16>(&cfg, run(7)).unwrap();
+    let s = h.shutdown().unwrap();
+    assert!(!older.exists());
+    assert!(crash.exists(), "the run before this start is kept whatever its size");
+    assert_eq!((s.old_runs_deleted, s.old_files_deleted), (1, 1));
+}
+
+#[test]
+fn max_dir_bytes_must_hold_two_runs() {
+    let cfg = RecorderConfig {
+        max_file_bytes: 64 * 1024,
+        max_total_bytes: 1 << 20,
+        max_dir_bytes: (2 << 20) - 1,
+        ..config(Path::new("/tmp"))
+    };
+    assert!(RecorderConfig { max_dir_bytes: 2 << 20, ..cfg.clone() }.validate().is_ok());
+    let e = cfg.validate().unwrap_err();
+    assert!(e.to_string().contains("recorder.max_dir_bytes"), "{e}");
+}

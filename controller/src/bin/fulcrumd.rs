@@ -246,9 +246,10 @@ fn run(args: RunArgs) -> Result<(), String> {
     );
     let a = &summary.acquisition;
     tracing::info!(
-        "bus: {} frames, {} incomplete cycles, {} late TPDOs, {} unknown-id, {} wrong-DLC, {} malformed, {} EMCY; \
-         recorder: {} records dropped at the queue",
+        "bus: {} frames, {} dropped by the kernel (receive queue full), {} incomplete cycles, {} late TPDOs, \
+         {} unknown-id, {} wrong-DLC, {} malformed, {} EMCY; recorder: {} records dropped at the queue",
         a.frames,
+        summary.bus_dropped_rx_frames,
         a.incomplete_cycles,
         a.late_tpdos,
         a.unknown_id_frames,

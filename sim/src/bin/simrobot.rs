@@ -380,6 +380,8 @@ struct LiveCounts {
     sync_gaps: u64,
     error_frames: u64,
     events: u64,
+    /// Frames the kernel dropped because this socket's receive queue was full (`SO_RXQ_OVFL`).
+    dropped_rx_frames: u64,
 }
 
 fn live(args: &LiveArgs) -> Result<(), LiveError> {
@@ -418,7 +420,17 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     let mut counter_check = SyncCounter::new();
     let mut seed = robot.scenario_seed();
     let mut first_sync_us: Option<u64> = None;
+    // Kernel drops on our socket are reported when they happen, at most every 10 s.
+    let mut drops_reported = (0u64, Instant::now());
     let result = loop {
+        let drops = bus.dropped_rx_frames();
+        if drops != drops_reported.0 && drops_reported.1.elapsed() >= Duration::from_secs(10) {
+            eprintln!(
+                "simrobot live: {} CAN frames dropped by the kernel (receive queue full), {drops} in all",
+                drops - drops_reported.0
+            );
+            drops_reported = (drops, Instant::now());
+        }
         if STOP.load(Ordering::SeqCst) {
             println!("simrobot live: stopped by signal");
             break Ok(());
@@ -511,6 +523,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
             counts.events += 1;
         }
     };
+    counts.dropped_rx_frames = bus.dropped_rx_frames();
     if let Some((path, w)) = truth {
         match w.finish() {
             Ok(_) => println!("simrobot live: ground truth in {}", path.display()),
@@ -519,7 +532,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     }
     println!(
         "simrobot live: {} SYNCs answered, {} frames sent, {} send errors, {} true events, {} SYNC counter gaps, \
-         {} bad SYNCs, {} other frames ignored, {} error frames",
+         {} bad SYNCs, {} other frames ignored, {} error frames, {} frames dropped by the kernel (receive queue full)",
         counts.syncs,
         counts.frames_sent,
         counts.send_errors,
@@ -527,7 +540,8 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         counts.sync_gaps,
         counts.bad_syncs,
         counts.ignored,
-        counts.error_frames
+        counts.error_frames,
+        counts.dropped_rx_frames
     );
     if let Some(e) = &counts.last_send_error {
         println!("simrobot live: last send error: {e}");

@@ -135,3 +135,53 @@ fn bad_configuration_is_refused_with_the_key_named() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("loop.frame_deadline_us"));
 }
+
+/// Runs `cmd` with its standard output a pipe whose reader has already gone (`... | head`
+/// once head has exited): the tool must end quietly with 141 (128 + SIGPIPE), not panic.
+fn run_with_closed_stdout(cmd: &mut Command) -> (Option<i32>, String) {
+    let mut child = cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    drop(child.stdout.take()); // the reader goes away before the tool writes anything
+    let out = child.wait_with_output().unwrap();
+    (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+/// No panic and no error message (`fulcrumd: ...` at the start of a line; log lines are fine).
+fn quiet(stderr: &str) -> bool {
+    !stderr.contains("panicked") && !stderr.lines().any(|l| l.starts_with("fulcrumd:"))
+}
+
+#[test]
+fn monitor_and_replay_exit_quietly_when_their_stdout_is_closed() {
+    let dir = tmp("epipe");
+    let svc = service("epipe");
+    let (msum, samples) = (dir.join("monitor.json"), dir.join("samples.jsonl"));
+    let mut monitor = Command::new(BIN);
+    monitor.args(["monitor", "--service", &svc, "--duration-s", "60"]).args([
+        "--summary-json",
+        msum.to_str().unwrap(),
+        "--samples-out",
+        samples.to_str().unwrap(),
+    ]);
+    let monitor = std::thread::spawn(move || run_with_closed_stdout(&mut monitor));
+    std::thread::sleep(Duration::from_millis(500)); // the subscriber starts first
+    let rec = dir.join("rec");
+    let out = Command::new(BIN)
+        .args(["--cycles", "2000", "--service", &svc, "--record-dir", rec.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // The monitor prints a line for its first sample: that write fails, and it stops at once,
+    // long before its 60 s, with its files written.
+    let (code, stderr) = monitor.join().unwrap();
+    assert_eq!(code, Some(141), "monitor: {stderr}");
+    assert!(quiet(&stderr), "monitor: {stderr}");
+    let m = json(&msum);
+    let received = m["received"].as_u64().unwrap();
+    assert!(received >= 1, "{m}");
+    assert_eq!(std::fs::read_to_string(&samples).unwrap().lines().count() as u64, received, "every sample written");
+
+    let (code, stderr) =
+        run_with_closed_stdout(Command::new(BIN).args(["replay", "--recording", rec.to_str().unwrap()]));
+    assert_eq!(code, Some(141), "replay: {stderr}");
+    assert!(quiet(&stderr), "replay: {stderr}");
+}

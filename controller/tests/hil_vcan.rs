@@ -1135,7 +1135,13 @@ fn hil_daemon_sigkill_and_restart() {
     assert!(second_run[0].rx_ns > spawn_ns && back_ms < 1000.0, "received again after {back_ms:.0} ms");
     // The new run: every cycle from 0, the health rules, its recording replays; its detector
     // starts empty (nothing carried over from the killed run).
-    check_run(&a, "daemon-2.json", "rec-daemon-2", &second_run.iter().collect::<Vec<_>>(), Allowed { emcy: false, rx_drops: false });
+    check_run(
+        &a,
+        "daemon-2.json",
+        "rec-daemon-2",
+        &second_run.iter().collect::<Vec<_>>(),
+        Allowed { emcy: false, rx_drops: false },
+    );
     // Its first estimate holds at most its own line.
     assert!(second_run[0].window_fill <= 1, "{:?}", second_run[0]);
     // The killed run's recording is readable up to the kill and reproduces bit for bit.

@@ -331,8 +331,13 @@ fn frames_the_bus_dropped_are_in_the_loop_counters() {
     let cfg = Config::default();
     let acq = Acquisition::new(&cfg.bus.encoder, cfg.health).unwrap();
     let est = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector).unwrap();
-    let params =
-        LoopParams { period_ns: 200_000, frame_deadline_ns: 50_000, run_id: 1, max_cycles: Some(3), cut_by_bus_time: false };
+    let params = LoopParams {
+        period_ns: 200_000,
+        frame_deadline_ns: 50_000,
+        run_id: 1,
+        max_cycles: Some(3),
+        cut_by_bus_time: false,
+    };
     let counters = Arc::new(LoopCounters::default());
     let mut lp = RtLoop::new(controller, acq, est, params, counters.clone(), LoopProgress::new());
     lp.run(&mut Collect::default(), || false).unwrap();

@@ -63,13 +63,30 @@ pub struct BusConfig {
     /// SocketCAN interface (`can0`, `vcan0`, ...). Empty: the built-in simulated robot on an
     /// in-process bus.
     pub iface: String,
+    /// Kernel receive queue the daemon asks for on its SocketCAN socket, bytes
+    /// ([`BUS_RECEIVE_BUFFER_RANGE`]; default [`DEFAULT_RECEIVE_BUFFER_BYTES`]). The kernel
+    /// doubles the request for its bookkeeping (about 1 KiB per classic frame); a frame
+    /// arriving at a full queue is dropped and counted (`bus_dropped_rx_frames`).
+    pub receive_buffer_bytes: usize,
     /// Encoder nodes and counts-to-radians conversion.
     pub encoder: EncoderConfig,
 }
 
+/// Default of `bus.receive_buffer_bytes`, bytes: 2 MiB asked, 4 MiB granted by the kernel,
+/// about 4000 classic frames (half a second of a saturated 1 Mbit/s bus).
+pub const DEFAULT_RECEIVE_BUFFER_BYTES: usize = 2 << 20;
+
+/// Allowed `bus.receive_buffer_bytes`, bytes (1 KiB ..= 256 MiB; the kernel raises a request
+/// below its minimum, about 2.3 KiB, to that minimum).
+pub const BUS_RECEIVE_BUFFER_RANGE: std::ops::RangeInclusive<usize> = 1024..=(256 << 20);
+
 impl Default for BusConfig {
     fn default() -> Self {
-        Self { iface: String::new(), encoder: EncoderConfig::default() }
+        Self {
+            iface: String::new(),
+            receive_buffer_bytes: DEFAULT_RECEIVE_BUFFER_BYTES,
+            encoder: EncoderConfig::default(),
+        }
     }
 }
 
@@ -112,6 +129,9 @@ pub enum DaemonConfigError {
     /// `bus.iface` is not a valid interface name.
     #[error("bus.iface = {0:?}: an interface name has 1 to 15 characters, no '/', no whitespace")]
     Iface(String),
+    /// `bus.receive_buffer_bytes` outside [`BUS_RECEIVE_BUFFER_RANGE`].
+    #[error("bus.receive_buffer_bytes = {0}: must be in 1024 ..= 268435456 bytes")]
+    ReceiveBuffer(usize),
     /// `bus.encoder` is invalid.
     #[error("bus.{0}")]
     Encoders(EncoderConfigError),
@@ -138,6 +158,9 @@ impl Config {
         let iface = &self.bus.iface;
         if iface.len() > 15 || iface.contains('/') || iface.chars().any(char::is_whitespace) {
             return Err(DaemonConfigError::Iface(iface.clone()));
+        }
+        if !BUS_RECEIVE_BUFFER_RANGE.contains(&self.bus.receive_buffer_bytes) {
+            return Err(DaemonConfigError::ReceiveBuffer(self.bus.receive_buffer_bytes));
         }
         self.bus.encoder.validate().map_err(DaemonConfigError::Encoders)?;
         let svc = &self.output.service;
@@ -305,6 +328,8 @@ mod tests {
             ("[loop]\nframe_deadline_us = 990\n", "loop.frame_deadline_us"),
             ("[loop]\nperiod_us = 2000\nframe_deadline_us = 700\n", "detector.sample_period_s"),
             ("[bus]\niface = \"can 0\"\n", "bus.iface"),
+            ("[bus]\nreceive_buffer_bytes = 1000\n", "bus.receive_buffer_bytes"),
+            ("[bus]\nreceive_buffer_bytes = 268435457\n", "bus.receive_buffer_bytes"),
             ("[bus.encoder]\nnode_ids = [1, 1, 3]\n", "node_ids"),
             ("[output]\nservice = \"\"\n", "output.service"),
             ("[health]\nstale_after_cycles = 0\n", "health.stale_after_cycles"),
@@ -314,6 +339,8 @@ mod tests {
         }
         let ok = parse("[loop]\nperiod_us = 2000\n[detector]\nsample_period_s = 0.002\n").unwrap();
         assert_eq!(ok.cycle.period_us, 2000);
+        let ok = parse("[bus]\nreceive_buffer_bytes = 1024\n").unwrap();
+        assert_eq!(ok.bus.receive_buffer_bytes, 1024);
     }
 
     #[test]

@@ -33,9 +33,10 @@ use crate::rt_loop::{
 use crate::sim_robot::{self, SimRobotThread};
 use crate::watchdog::{self, LoopProgress, Watchdog};
 
-/// Receive queue asked for on a SocketCAN interface, bytes (the kernel doubles it: about
-/// 4000 classic frames, half a second of a saturated 1 Mbit/s bus).
-pub const CAN_RECEIVE_BUFFER_BYTES: usize = 2 << 20;
+/// Receive queue asked for on a SocketCAN interface by default, bytes (the kernel doubles it:
+/// about 4000 classic frames, half a second of a saturated 1 Mbit/s bus); the configuration's
+/// `bus.receive_buffer_bytes` sets it.
+pub const CAN_RECEIVE_BUFFER_BYTES: usize = crate::config::DEFAULT_RECEIVE_BUFFER_BYTES;
 
 /// Capacity of the flight recorder queue, records (about 4 s at 1 kHz).
 pub const RECORDER_QUEUE: usize = 4096;
@@ -242,6 +243,15 @@ fn log_event(e: &LogEvent, period_s: f64) {
     }
 }
 
+/// The warning about frames the bus dropped: `new` over `period` ("last 10 s", ...), `total`
+/// since start-up (frames).
+pub fn drops_line(period: &str, new: u64, total: u64) -> String {
+    format!(
+        "{period}: {new} CAN frames dropped by the kernel (receive queue full; {total} since start-up): \
+         a lost EMCY or heartbeat goes unseen, a lost TPDO makes its cycle incomplete"
+    )
+}
+
 /// Runs the daemon until `stop` is set (or `max_cycles`). Returns the summary.
 pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, DaemonError> {
     let cfg = &opts.config;
@@ -307,8 +317,8 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         // A receive queue for bursts: with the default (about 200 frames) a 2 kHz flood of
         // junk frames overflowed it during a 67 ms stall of the loop (docs/hil.md), and the
         // kernel drops what does not fit, EMCY frames included.
-        match b.set_receive_buffer(CAN_RECEIVE_BUFFER_BYTES) {
-            Ok(n) => info!("CAN receive queue: {n} bytes"),
+        match b.set_receive_buffer(cfg.bus.receive_buffer_bytes) {
+            Ok(n) => info!("CAN receive queue: {n} bytes (kernel drops counted: SO_RXQ_OVFL)"),
             Err(e) => warn!("CAN receive queue: cannot enlarge it ({e}); frames may be dropped in bursts"),
         }
         (Box::new(b), cfg.bus.iface.clone())
@@ -391,9 +401,11 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
     }
 
     // Main thread: log hand-off and the simulated truth, until the loop ends; every 10 s a
-    // line on the per-cycle conditions (incomplete cycles, overruns) if any occurred.
+    // line on the per-cycle conditions (incomplete cycles, overruns) if any occurred, and one
+    // on the frames the bus dropped (receive queue full) if any were.
     let mut last_report = std::time::Instant::now();
     let mut reported = (0u64, 0u64);
+    let mut reported_drops = 0u64;
     while !handle.is_finished() {
         std::thread::sleep(Duration::from_millis(10));
         if last_report.elapsed() >= Duration::from_secs(10) {
@@ -407,6 +419,11 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
                 );
                 reported = now;
             }
+            let drops = counters.bus_dropped_rx_frames.load(Ordering::Relaxed);
+            if drops != reported_drops {
+                warn!("{}", drops_line("last 10 s", drops - reported_drops, drops));
+                reported_drops = drops;
+            }
         }
         while let Some(e) = log_rx.dequeue() {
             log_event(&e, period_s);
@@ -417,6 +434,10 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
     }
     stop.store(true, Ordering::Relaxed);
     let rt = handle.join().map_err(|_| DaemonError::Thread("the real-time thread panicked".into()))?;
+    let drops = counters.bus_dropped_rx_frames.load(Ordering::Relaxed);
+    if drops != reported_drops {
+        warn!("{}", drops_line("since the last report", drops - reported_drops, drops));
+    }
     while let Some(e) = log_rx.dequeue() {
         log_event(&e, period_s);
     }

@@ -118,6 +118,10 @@ pub struct LoopCounters {
     pub log_drops: AtomicU64,
     /// Cycles that lacked at least one TPDO at their deadline.
     pub incomplete_cycles: AtomicU64,
+    /// Frames the bus backend dropped since start-up because its receive queue was full
+    /// ([`CanBus::dropped_rx_frames`]; on SocketCAN the kernel's `SO_RXQ_OVFL` count), as of
+    /// the end of the last cycle.
+    pub bus_dropped_rx_frames: AtomicU64,
 }
 
 /// Where the loop puts its per-cycle outputs; implemented by the daemon (iceoryx2
@@ -502,6 +506,7 @@ impl<B: CanBus> RtLoop<B> {
         if output.state != STATE_INVALID {
             p.valid_cycles.fetch_add(1, Ordering::Relaxed);
         }
+        p.bus_dropped_rx_frames.store(self.bus.dropped_rx_frames(), Ordering::Relaxed);
         self.progress.record_cycle(output.state != STATE_INVALID, output.state, output.health);
         self.sequence += 1;
     }

@@ -19,6 +19,17 @@ fn service(name: &str) -> String {
     format!("comanip-test/{}/{name}", std::process::id())
 }
 
+/// Waits until the monitor writing its log to `log` has connected (its "waiting for samples"
+/// line), so that it sees the daemon's first sample (a fixed sleep was not enough on a loaded
+/// machine: the monitor once connected after the daemon's 21st sample).
+fn wait_until_connected(log: &Path) {
+    let t0 = Instant::now();
+    while !std::fs::read_to_string(log).is_ok_and(|t| t.contains("waiting for samples")) {
+        assert!(t0.elapsed() < Duration::from_secs(30), "the monitor did not connect: {}", log.display());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 fn json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
@@ -57,10 +68,10 @@ fn a_subscriber_process_receives_every_cycle_and_the_recording_replays_bit_for_b
         .args(["monitor", "--service", &svc, "--count", "6000", "--duration-s", "60"])
         .args(["--summary-json", msum.to_str().unwrap()])
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(std::fs::File::create(dir.join("monitor.err")).unwrap())
         .spawn()
         .unwrap();
-    std::thread::sleep(Duration::from_millis(500)); // the subscriber starts first
+    wait_until_connected(&dir.join("monitor.err")); // the subscriber starts first
     let rec = dir.join("rec");
     let dsum = dir.join("daemon.json");
     let out = Command::new(BIN)
@@ -134,4 +145,59 @@ fn bad_configuration_is_refused_with_the_key_named() {
     let out = Command::new(BIN).args(["--config", cfg.to_str().unwrap(), "--cycles", "10"]).output().unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("loop.frame_deadline_us"));
+}
+
+/// Runs `cmd` with its standard output a pipe whose reader has already gone (`... | head`
+/// once head has exited) and its standard error to `stderr`: the tool must end quietly with
+/// 141 (128 + SIGPIPE), not panic. Returns the exit code and the standard error.
+fn run_with_closed_stdout(cmd: &mut Command, stderr: &Path) -> (Option<i32>, String) {
+    let mut child = cmd.stdout(Stdio::piped()).stderr(std::fs::File::create(stderr).unwrap()).spawn().unwrap();
+    drop(child.stdout.take()); // the reader goes away before the tool writes anything
+    let status = child.wait().unwrap();
+    (status.code(), std::fs::read_to_string(stderr).unwrap())
+}
+
+/// No panic and no error message (`fulcrumd: ...` at the start of a line; log lines are fine).
+fn quiet(stderr: &str) -> bool {
+    !stderr.contains("panicked") && !stderr.lines().any(|l| l.starts_with("fulcrumd:"))
+}
+
+#[test]
+fn monitor_and_replay_exit_quietly_when_their_stdout_is_closed() {
+    let dir = tmp("epipe");
+    let svc = service("epipe");
+    let (msum, samples) = (dir.join("monitor.json"), dir.join("samples.jsonl"));
+    let mut monitor = Command::new(BIN);
+    monitor.args(["monitor", "--service", &svc, "--duration-s", "60"]).args([
+        "--summary-json",
+        msum.to_str().unwrap(),
+        "--samples-out",
+        samples.to_str().unwrap(),
+    ]);
+    let monitor_err = dir.join("monitor.err");
+    let log = monitor_err.clone();
+    let monitor = std::thread::spawn(move || run_with_closed_stdout(&mut monitor, &log));
+    wait_until_connected(&monitor_err); // the subscriber starts first
+    let rec = dir.join("rec");
+    let out = Command::new(BIN)
+        .args(["--cycles", "300", "--service", &svc, "--record-dir", rec.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // The monitor prints a line for its first sample: that write fails, and it stops at once,
+    // long before its 60 s, with its files written.
+    let (code, stderr) = monitor.join().unwrap();
+    assert_eq!(code, Some(141), "monitor: {stderr}");
+    assert!(quiet(&stderr), "monitor: {stderr}");
+    let m = json(&msum);
+    let received = m["received"].as_u64().unwrap();
+    assert!(received >= 1, "{m}");
+    assert_eq!(std::fs::read_to_string(&samples).unwrap().lines().count() as u64, received, "every sample written");
+
+    let (code, stderr) = run_with_closed_stdout(
+        Command::new(BIN).args(["replay", "--recording", rec.to_str().unwrap()]),
+        &dir.join("replay.err"),
+    );
+    assert_eq!(code, Some(141), "replay: {stderr}");
+    assert!(quiet(&stderr), "replay: {stderr}");
 }

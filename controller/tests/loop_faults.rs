@@ -316,3 +316,33 @@ impl CycleSink for Records {
         true
     }
 }
+
+/// Frames the bus dropped (its receive queue full) reach the loop's counters, which the
+/// daemon's main thread reports every 10 s while running, and the summary at exit.
+#[test]
+fn frames_the_bus_dropped_are_in_the_loop_counters() {
+    let bus = hw_io::can::InProcessBus::with_capacity(2, 16);
+    let controller = bus.endpoint().unwrap();
+    let mut flood = bus.endpoint().unwrap();
+    // 100 frames at a 16-frame queue nobody reads yet: 84 dropped.
+    for k in 0..100u8 {
+        flood.send(&CanFrame::new_standard(0x7FF, &[k]).unwrap()).unwrap();
+    }
+    let cfg = Config::default();
+    let acq = Acquisition::new(&cfg.bus.encoder, cfg.health).unwrap();
+    let est = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector).unwrap();
+    let params = LoopParams {
+        period_ns: 200_000,
+        frame_deadline_ns: 50_000,
+        run_id: 1,
+        max_cycles: Some(3),
+        cut_by_bus_time: false,
+    };
+    let counters = Arc::new(LoopCounters::default());
+    let mut lp = RtLoop::new(controller, acq, est, params, counters.clone(), LoopProgress::new());
+    lp.run(&mut Collect::default(), || false).unwrap();
+    assert_eq!(lp.bus_dropped_rx_frames(), 84);
+    assert_eq!(counters.bus_dropped_rx_frames.load(std::sync::atomic::Ordering::Relaxed), 84);
+    // The 16 that fit were read (and counted as unknown-ID frames), not lost.
+    assert_eq!(lp.acquisition_stats().unknown_id_frames, 16);
+}

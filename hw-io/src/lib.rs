@@ -13,6 +13,8 @@
 //!   (see `docs/output.md`).
 //! - [`calib_files`]: the dual RCM-arm calibration's files: camera intrinsics (OpenCV /
 //!   ROS YAML), dataset, ground truth and result (JSON), see `docs/calibration.md`.
+//! - [`stdout`]: the command-line tools' standard output, quiet on a closed pipe
+//!   ([`outln!`]).
 //! - [`rt_alloc`]: a global allocator that serves the small allocations of real-time threads
 //!   (iceoryx2's 48 bytes per published sample) from a static lock-free pool.
 //!
@@ -25,3 +27,4 @@ pub mod calib_files;
 pub mod can;
 pub mod ipc;
 pub mod rt_alloc;
+pub mod stdout;

@@ -77,3 +77,37 @@ fn candump_reading_allocates_nothing_after_warm_up() {
     assert_eq!(frames, 999);
     assert_eq!(n, 0, "reading 999 records allocated {n} times");
 }
+
+/// The SocketCAN backend's receive path (`recvmsg` with the timestamp and the kernel's drop
+/// counter, `hw_io::can::rx_meta`), on a UDP socket (this kernel has no CAN): after
+/// construction, receiving, reading both control messages and counting drops allocate nothing.
+#[test]
+fn receiving_with_timestamps_and_the_drop_counter_allocates_nothing() {
+    use hw_io::can::rx_meta::MsgReceiver;
+    use std::os::fd::AsFd;
+    let rx = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    let tx = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    tx.connect(rx.local_addr().unwrap()).unwrap();
+    MsgReceiver::enable(rx.as_fd()).unwrap();
+    rx.set_read_timeout(Some(Duration::from_secs(1))).unwrap();
+    let mut r = MsgReceiver::new();
+    let mut buf = [0u8; 16];
+    let (mut received, mut stamped) = (0u64, 0u64);
+    let n = allocations_in(|| {
+        for round in 0..20u32 {
+            // A burst larger than the default queue holds on some rounds, then read it all.
+            for i in 0..(if round % 5 == 0 { 2000 } else { 10 }) {
+                tx.send(&u32::to_le_bytes(i)).unwrap();
+            }
+            rx.set_nonblocking(true).unwrap();
+            while let Ok(m) = r.recv(&rx, &mut buf) {
+                received += 1;
+                stamped += u64::from(m.unix_time_us.is_some());
+            }
+            rx.set_nonblocking(false).unwrap();
+        }
+    });
+    assert_eq!(n, 0, "receiving allocated {n} times");
+    assert!(received > 0 && stamped == received);
+    assert!(r.dropped() > 0, "the bursts overflowed the queue: the drop counter path ran");
+}

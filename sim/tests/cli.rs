@@ -156,3 +156,27 @@ fn errors_give_the_documented_exit_codes() {
     assert_eq!(o.status.code(), Some(3), "{err}");
     assert!(err.contains("simrobotno0") && err.contains("CAN"), "{err}");
 }
+
+/// `simrobot generate ... | head -1` once head has gone: no panic, the quiet exit status 141
+/// (128 + SIGPIPE), and the files are complete (the summary is printed after they are written).
+#[test]
+fn generate_exits_quietly_when_its_stdout_is_closed() {
+    let dir = Scratch::new("epipe");
+    let config = small_config(&dir, "");
+    let out = dir.path("run");
+    let mut child = Command::new(EXE)
+        .args(["generate", "--out", out.to_str().unwrap(), "--config", config.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take()); // the reader goes away before simrobot writes anything
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(141), "{stderr}");
+    assert!(stderr.is_empty(), "nothing on stderr, no panic: {stderr}");
+    let reference = dir.path("reference");
+    generate(&config, &reference, &[]);
+    assert_eq!(read(out.join("bus.log")), read(reference.join("bus.log")));
+    assert_eq!(read(out.join("truth.jsonl")), read(reference.join("truth.jsonl")));
+}

@@ -122,7 +122,7 @@ pub fn subscriber_main() -> Result<(), String> {
     let name = std::env::var(SERVICE_ENV).map_err(|_| "no service name".to_string())?;
     let count: u64 = std::env::var(COUNT_ENV).ok().and_then(|c| c.parse().ok()).ok_or("no sample count")?;
     let mut sub = FulcrumSubscriber::connect(&name).map_err(|e| e.to_string())?;
-    println!("READY");
+    hw_io::outln!("READY").map_err(|e| format!("writing to standard output: {e}"))?;
     let mut hist = Histogram::new(20_000);
     let mut gaps = 0;
     let mut measured = 0;
@@ -146,6 +146,7 @@ pub fn subscriber_main() -> Result<(), String> {
         buckets: hist.buckets().collect(),
         publisher_rt_allocs: 0,
     };
-    println!("{}", serde_json::to_string(&report).map_err(|e| e.to_string())?);
+    let json = serde_json::to_string(&report).map_err(|e| e.to_string())?;
+    hw_io::outln!("{json}").map_err(|e| format!("writing to standard output: {e}"))?;
     Ok(())
 }

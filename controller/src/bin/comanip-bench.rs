@@ -273,15 +273,26 @@ fn main() -> ExitCode {
         };
     }
     let cli = Cli::parse();
+    // The report to print, if the command has one (`all` writes files).
     let result = match &cli.command {
-        Command::All(a) => all(a),
-        Command::Detection(a) => detection(a).map(|r| println!("{}", r.markdown())),
-        Command::Loop(a) => run_loop(a).map(|s| println!("{}", loop_markdown(&s))),
-        Command::Ipc(a) => ipc::run(a.samples).map(|r| println!("{}", ipc_markdown(&r))).map_err(|e| e.to_string()),
+        Command::All(a) => all(a).map(|()| None),
+        Command::Detection(a) => detection(a).map(|r| Some(r.markdown())),
+        Command::Loop(a) => run_loop(a).map(|s| Some(loop_markdown(&s))),
+        Command::Ipc(a) => ipc::run(a.samples).map(|r| Some(ipc_markdown(&r))).map_err(|e| e.to_string()),
     };
-    match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
+    let printed = match &result {
+        Ok(Some(report)) => hw_io::outln!("{report}"),
+        _ => Ok(()),
+    };
+    match (result, printed) {
+        (Ok(_), Ok(())) => ExitCode::SUCCESS,
+        // The reader of the standard output went away (`comanip-bench ... | head`): quietly.
+        (Ok(_), Err(e)) if hw_io::stdout::is_broken_pipe(&e) => ExitCode::from(hw_io::stdout::BROKEN_PIPE_EXIT),
+        (Ok(_), Err(e)) => {
+            eprintln!("comanip-bench: error: writing to standard output: {e}");
+            ExitCode::FAILURE
+        }
+        (Err(e), _) => {
             eprintln!("comanip-bench: error: {e}");
             ExitCode::FAILURE
         }

@@ -92,6 +92,10 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
+        // The reader of the standard output went away (`comanip-calib ... | head`): quietly.
+        Err(e) if e.downcast_ref::<std::io::Error>().is_some_and(hw_io::stdout::is_broken_pipe) => {
+            ExitCode::from(hw_io::stdout::BROKEN_PIPE_EXIT)
+        }
         Err(e) => {
             eprintln!("comanip-calib: error: {e}");
             ExitCode::FAILURE
@@ -113,31 +117,31 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             p.pixel_sigma_px = pixel_sigma;
             p.seed = seed;
             let g = generate(&p, &dataset, &truth)?;
-            println!(
+            hw_io::outln!(
                 "{} observations kept, {} of {} dropped (tool not in view); wrote {} and {}",
                 g.kept,
                 g.dropped,
                 g.generated,
                 dataset.display(),
                 truth.display()
-            );
+            )?;
         }
         Command::Calibrate { dataset, intrinsics, truth, out, pipeline } => {
             let s = calibrate(&dataset, intrinsics.as_deref(), truth.as_deref(), &out, pipeline)?;
             for r in s {
                 match r.errors {
-                    Some(e) => println!(
+                    Some(e) => hw_io::outln!(
                         "{}: e_t = {:.3} % ({:.3} mm), e_R = {:.4}°, {:.2} ms",
                         r.pipeline,
                         e.translation_rel * 100.0,
                         e.translation_m * 1e3,
                         e.rotation_rad.to_degrees(),
                         r.solve_ms
-                    ),
-                    None => println!("{}: {:.2} ms", r.pipeline, r.solve_ms),
+                    )?,
+                    None => hw_io::outln!("{}: {:.2} ms", r.pipeline, r.solve_ms)?,
                 }
             }
-            println!("wrote {}", out.display());
+            hw_io::outln!("wrote {}", out.display())?;
         }
         Command::Sweep { out_dir, trials, quick, seed } => {
             let mut opts = SweepOptions::full();
@@ -150,7 +154,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             }
             let command = std::env::args().collect::<Vec<_>>().join(" ");
             run_sweep(&opts, &out_dir, &command)?;
-            println!("wrote {}", out_dir.join("sweep.md").display());
+            hw_io::outln!("wrote {}", out_dir.join("sweep.md").display())?;
         }
     }
     Ok(())

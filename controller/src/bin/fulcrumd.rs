@@ -3,6 +3,10 @@
 //! `fulcrumd` runs the 1 kHz loop: on the CAN interface of the config (or `--iface`), or,
 //! when none is configured, on the built-in simulated robot (an in-process bus), printing
 //! detections as the simulated surgeon moves. See `docs/operations.md`.
+//!
+//! Exit codes: 0 success; 1 `replay` found a difference; 2 error; 141 the standard output was
+//! closed by its reader (`fulcrumd monitor | head`: no message; `monitor` still writes its
+//! samples and summary files).
 
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
@@ -16,6 +20,8 @@ use controller::daemon::{self, RunOptions, health_names, state_name};
 use controller::replay;
 use estimator::trocar::DetectorMode;
 use hw_io::ipc::{Continuity, FulcrumSubscriber, STATE_INSIDE};
+use hw_io::outln;
+use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 
 #[global_allocator]
 static ALLOC: hw_io::rt_alloc::RtPoolAllocator = hw_io::rt_alloc::RtPoolAllocator::new();
@@ -192,6 +198,28 @@ fn load_config(path: &Option<PathBuf>) -> Result<(Config, String), String> {
     }
 }
 
+/// Why a subcommand failed.
+#[derive(Debug)]
+enum CliError {
+    /// Printed as `fulcrumd: <message>`, exit code 2.
+    Message(String),
+    /// The reader of the standard output went away: quiet exit, [`BROKEN_PIPE_EXIT`].
+    StdoutClosed,
+}
+
+impl From<String> for CliError {
+    fn from(m: String) -> Self {
+        Self::Message(m)
+    }
+}
+
+impl From<std::io::Error> for CliError {
+    /// An error writing to the standard output.
+    fn from(e: std::io::Error) -> Self {
+        if is_broken_pipe(&e) { Self::StdoutClosed } else { Self::Message(format!("writing to standard output: {e}")) }
+    }
+}
+
 fn write_json(path: &Option<PathBuf>, value: &impl serde::Serialize) -> Result<(), String> {
     if let Some(p) = path {
         let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
@@ -246,9 +274,10 @@ fn run(args: RunArgs) -> Result<(), String> {
     );
     let a = &summary.acquisition;
     tracing::info!(
-        "bus: {} frames, {} incomplete cycles, {} late TPDOs, {} unknown-id, {} wrong-DLC, {} malformed, {} EMCY; \
-         recorder: {} records dropped at the queue",
+        "bus: {} frames, {} dropped by the kernel (receive queue full), {} incomplete cycles, {} late TPDOs, \
+         {} unknown-id, {} wrong-DLC, {} malformed, {} EMCY; recorder: {} records dropped at the queue",
         a.frames,
+        summary.bus_dropped_rx_frames,
         a.incomplete_cycles,
         a.late_tpdos,
         a.unknown_id_frames,
@@ -279,7 +308,7 @@ struct MonitorSummary {
     max_gap_ms: f64,
 }
 
-fn monitor(args: MonitorArgs) -> Result<(), String> {
+fn monitor(args: MonitorArgs) -> Result<(), CliError> {
     install_signal_handlers();
     let mut sub = FulcrumSubscriber::connect(&args.service).map_err(|e| e.to_string())?;
     let mut samples_out = match &args.samples_out {
@@ -294,7 +323,10 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
     let (mut last_state, mut last_health) = (u32::MAX, u32::MAX);
     let mut last_status = Instant::now();
     let mut last_rx: Option<Instant> = None;
-    while !STOP.load(Ordering::Relaxed)
+    // The first failed write to the standard output ends the loop; the files are still written.
+    let mut printed: Result<(), std::io::Error> = Ok(());
+    while printed.is_ok()
+        && !STOP.load(Ordering::Relaxed)
         && args.count.is_none_or(|c| s.received < c)
         && args.duration_s.is_none_or(|d| start.elapsed().as_secs_f64() < d)
     {
@@ -332,7 +364,7 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
             let written =
                 serde_json::to_writer(&mut *w, &line).map_err(std::io::Error::from).and_then(|()| w.write_all(b"\n"));
             if let Err(e) = written {
-                return Err(format!("writing the samples file: {e}"));
+                return Err(format!("writing the samples file: {e}").into());
             }
         }
         if let Some(prev) = last_rx {
@@ -365,7 +397,7 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
         }
         if args.all || x.state != last_state || x.health != last_health {
             let f = x.fulcrum_base_m;
-            println!(
+            printed = outln!(
                 "seq {:>9}  {:<7}  trocar {}  fulcrum ({:+.4}, {:+.4}, {:+.4}) m  std {:.2} mm  health {}",
                 x.sequence,
                 state_name(x.state),
@@ -379,7 +411,7 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
             last_state = x.state;
             last_health = x.health;
         } else if last_status.elapsed() >= Duration::from_secs(1) {
-            println!(
+            printed = outln!(
                 "seq {:>9}  {:<7}  ({} received, {} missed)",
                 x.sequence,
                 state_name(x.state),
@@ -404,14 +436,15 @@ fn monitor(args: MonitorArgs) -> Result<(), String> {
         s.valid,
         s.invalid
     );
-    write_json(&args.summary_json, &s)
+    write_json(&args.summary_json, &s)?;
+    Ok(printed?)
 }
 
-fn replay_cmd(args: ReplayArgs) -> Result<bool, String> {
+fn replay_cmd(args: ReplayArgs) -> Result<bool, CliError> {
     match (&args.recording, &args.candump) {
         (Some(rec), None) => {
             let r = replay::replay_recording(rec).map_err(|e| e.to_string())?;
-            println!(
+            outln!(
                 "replay of run {:016x}: {} records, {} identical, {} mismatches{}{}",
                 r.run_id,
                 r.records,
@@ -421,9 +454,9 @@ fn replay_cmd(args: ReplayArgs) -> Result<bool, String> {
                     "; the recording starts at cycle {s} (older files deleted): not comparable"
                 )),
                 r.gap_at.map_or(String::new(), |s| format!("; records missing at cycle {s}: compared up to there"))
-            );
+            )?;
             for t in &r.truncations {
-                println!("truncated frame (the daemon was stopped mid-write): {t}");
+                outln!("truncated frame (the daemon was stopped mid-write): {t}")?;
             }
             write_json(&args.report_json, &r)?;
             Ok(r.reproduced())
@@ -441,7 +474,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<bool, String> {
             }
             let out = replay::replay_candump(log, &cfg).map_err(|e| e.to_string())?;
             let a = &out.acquisition;
-            println!(
+            outln!(
                 "candump replay ({:?} mode): {} cycles, {} incomplete, {} late TPDOs, {} unknown-id, {} wrong-DLC frames",
                 cfg.detector.mode,
                 out.cycles.len(),
@@ -449,25 +482,28 @@ fn replay_cmd(args: ReplayArgs) -> Result<bool, String> {
                 a.late_tpdos,
                 a.unknown_id_frames,
                 a.wrong_dlc_frames
-            );
+            )?;
             let mut ok = true;
             if let Some(records) = records {
                 let c = replay::compare_with_recording(&out, &records, &cfg).map_err(|e| e.to_string())?;
-                println!(
+                outln!(
                     "against the recording: aligned at log cycle {:?}, {} compared, {} identical inputs, {} identical outputs",
-                    c.offset, c.compared, c.identical_inputs, c.identical_outputs
-                );
+                    c.offset,
+                    c.compared,
+                    c.identical_inputs,
+                    c.identical_outputs
+                )?;
                 ok = c.offset.is_some() && c.compared > 0 && c.identical_outputs == c.compared;
                 write_json(&args.report_json, &c)?;
             }
             if let Some(truth) = &args.truth {
                 let score = controller::scoring::score_log(&out, truth).map_err(|e| e.to_string())?;
-                println!("{}", score.describe());
+                outln!("{}", score.describe())?;
                 write_json(&args.report_json, &score)?;
             }
             Ok(ok)
         }
-        (None, None) => Err("give --recording, --candump, or both".into()),
+        (None, None) => Err(CliError::Message("give --recording, --candump, or both".into())),
     }
 }
 
@@ -475,15 +511,16 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     init_logging();
     let result = match cli.command {
-        None => run(cli.run).map(|()| true),
-        Some(Command::Run(a)) => run(a).map(|()| true),
+        None => run(cli.run).map(|()| true).map_err(CliError::from),
+        Some(Command::Run(a)) => run(a).map(|()| true).map_err(CliError::from),
         Some(Command::Monitor(a)) => monitor(a).map(|()| true),
         Some(Command::Replay(a)) => replay_cmd(a),
     };
     match result {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::from(1),
-        Err(e) => {
+        Err(CliError::StdoutClosed) => ExitCode::from(BROKEN_PIPE_EXIT),
+        Err(CliError::Message(e)) => {
             eprintln!("fulcrumd: {e}");
             ExitCode::from(2)
         }

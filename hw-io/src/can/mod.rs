@@ -50,6 +50,7 @@ mod frame;
 mod in_process;
 mod protocol;
 mod replay;
+pub mod rx_meta;
 mod socketcan;
 mod sync;
 

@@ -1,7 +1,11 @@
 //! Linux SocketCAN backend (raw `AF_CAN` socket, classic CAN frames).
 //!
 //! Receive waits in `ppoll` (nanosecond timeout, no busy-polling), then reads one frame with
-//! its kernel arrival time (`SO_TIMESTAMPNS`); neither allocates.
+//! `recvmsg` and its two control messages: the kernel arrival time (`SO_TIMESTAMPNS`) and the
+//! socket's receive-queue drop counter (`SO_RXQ_OVFL`), which [`CanBus::dropped_rx_frames`]
+//! reports (frames the kernel dropped because this socket's receive queue was full, learnt from
+//! the next frame queued after them: see [`super::rx_meta`]). Neither allocates after
+//! [`SocketCanBus::open`].
 //!
 //! On a machine whose kernel has no CAN support, [`SocketCanBus::open`] fails with
 //! [`OpenError::NoKernelCan`]; with CAN support but no such interface, with
@@ -17,7 +21,11 @@ use nix::sys::time::TimeSpec;
 use socketcan::{EmbeddedFrame, ExtendedId, Frame, Id, Socket, SocketOptions, StandardId};
 
 use super::bus::{CanBus, RecvError, SendError};
-use super::frame::{CanFrame, CanId, TimedFrame, system_time_to_unix_us, unix_time_now_us};
+use super::frame::{CanFrame, CanId, TimedFrame, unix_time_now_us};
+use super::rx_meta::MsgReceiver;
+
+/// Bytes of a classic CAN frame on a raw socket (`struct can_frame`, `CAN_MTU`).
+const CAN_MTU: usize = 16;
 
 /// Why a SocketCAN interface could not be opened.
 #[derive(Debug, thiserror::Error)]
@@ -65,15 +73,19 @@ pub enum OpenError {
 pub struct SocketCanBus {
     socket: socketcan::CanSocket,
     interface: String,
+    /// `recvmsg` with its preallocated control-message buffer and the drop total.
+    rx: MsgReceiver,
 }
 
 impl SocketCanBus {
-    /// Open `interface` and enable kernel receive timestamps.
+    /// Open `interface` and enable kernel receive timestamps (`SO_TIMESTAMPNS`) and the
+    /// receive-queue drop counter (`SO_RXQ_OVFL`).
     pub fn open(interface: &str) -> Result<Self, OpenError> {
         let socket =
             socketcan::CanSocket::open(interface).map_err(|e| classify_open_error(interface, e, kernel_lacks_can))?;
-        socket.set_recv_timestamp(true).map_err(|source| OpenError::Io { interface: interface.to_owned(), source })?;
-        Ok(Self { socket, interface: interface.to_owned() })
+        MsgReceiver::enable(socket.as_fd())
+            .map_err(|source| OpenError::Io { interface: interface.to_owned(), source })?;
+        Ok(Self { socket, interface: interface.to_owned(), rx: MsgReceiver::new() })
     }
 
     /// The interface name this socket is bound to.
@@ -212,10 +224,30 @@ impl CanBus for SocketCanBus {
                 Err(e) => return Err(recv_error(io::Error::from(e))),
             }
         }
-        let (frame, stamps) = self.socket.read_frame_with_timestamps().map_err(recv_error)?;
-        let unix_time_us = stamps.socket.map(system_time_to_unix_us).unwrap_or_else(unix_time_now_us);
-        Ok(Some(TimedFrame { frame: from_socketcan(&frame)?, unix_time_us }))
+        let mut buf = [0u8; CAN_MTU];
+        let got = self.rx.recv(&self.socket, &mut buf).map_err(recv_error)?;
+        if got.len != CAN_MTU {
+            return Err(RecvError::NotClassicCan);
+        }
+        let unix_time_us = got.unix_time_us.unwrap_or_else(unix_time_now_us);
+        Ok(Some(TimedFrame { frame: from_socketcan(&raw_to_socketcan(&buf))?, unix_time_us }))
     }
+
+    fn dropped_rx_frames(&self) -> u64 {
+        self.rx.dropped()
+    }
+}
+
+/// The bytes of a `struct can_frame` as a `socketcan` frame: `can_id` (native-endian `u32`
+/// with the EFF/RTR/ERR flags), `len` at byte 4, `len8_dlc` at byte 7, the data at 8..16.
+fn raw_to_socketcan(buf: &[u8; CAN_MTU]) -> socketcan::CanFrame {
+    let mut raw = socketcan::frame::can_frame_default();
+    raw.can_id = u32::from_ne_bytes([buf[0], buf[1], buf[2], buf[3]]);
+    raw.can_dlc = buf[4];
+    raw.len8_dlc = buf[7];
+    raw.data.copy_from_slice(&buf[8..CAN_MTU]);
+    // `From` clamps the length to 8 and picks data, remote or error frame from the flags.
+    socketcan::CanFrame::from(raw)
 }
 
 #[cfg(test)]
@@ -272,5 +304,30 @@ mod tests {
         }
         let err = socketcan::CanFrame::Error(socketcan::CanErrorFrame::new_error(0x0000_0040, &[0; 8]).unwrap());
         assert!(matches!(from_socketcan(&err), Err(RecvError::ErrorFrame(w)) if w & 0x40 != 0));
+    }
+
+    /// `struct can_frame` bytes as the kernel hands them over.
+    fn raw(can_id: u32, len: u8, data: &[u8]) -> [u8; CAN_MTU] {
+        let mut b = [0u8; CAN_MTU];
+        b[..4].copy_from_slice(&can_id.to_ne_bytes());
+        b[4] = len;
+        b[8..8 + data.len()].copy_from_slice(data);
+        b
+    }
+
+    #[test]
+    fn raw_kernel_frames_convert() {
+        let f = from_socketcan(&raw_to_socketcan(&raw(0x181, 8, &[1, 2, 3, 4, 5, 6, 7, 8]))).unwrap();
+        assert_eq!(f, CanFrame::new_standard(0x181, &[1, 2, 3, 4, 5, 6, 7, 8]).unwrap());
+        let f = from_socketcan(&raw_to_socketcan(&raw(0x701, 1, &[0x05, 0xEE]))).unwrap();
+        assert_eq!(f, CanFrame::new_standard(0x701, &[0x05]).unwrap(), "bytes past len are not data");
+        let f = from_socketcan(&raw_to_socketcan(&raw(0x8000_0181, 1, &[9]))).unwrap();
+        assert_eq!(f, CanFrame::new_extended(0x181, &[9]).unwrap());
+        let f = from_socketcan(&raw_to_socketcan(&raw(0x4000_07FF, 8, &[]))).unwrap();
+        assert_eq!(f, CanFrame::new_remote(CanId::Standard(0x7FF), 8).unwrap());
+        assert!(matches!(
+            from_socketcan(&raw_to_socketcan(&raw(0x2000_0040, 8, &[0; 8]))),
+            Err(RecvError::ErrorFrame(w)) if w & 0x40 != 0
+        ));
     }
 }

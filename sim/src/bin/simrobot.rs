@@ -7,7 +7,9 @@
 //!   and prints the true insertions and extractions as they happen.
 //!
 //! Exit codes: 0 success; 1 run-time error; 2 bad command line or configuration; 3 the CAN
-//! interface cannot be opened (no CAN in the kernel, no such interface).
+//! interface cannot be opened (no CAN in the kernel, no such interface); 141 the standard
+//! output was closed by its reader (`simrobot generate | head -1`: no message; `live` still
+//! finishes its truth and summary files).
 
 use std::fs::File;
 use std::io::{self, BufWriter, IsTerminal, Write};
@@ -22,6 +24,8 @@ use hw_io::can::{
     CanBus, CanFrame, CanId, Message, OpenError, RecvError, SYNC_COB_ID, SocketCanBus, SyncCounter, SyncSource,
     TimedFrame,
 };
+use hw_io::outln;
+use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 use sim::truth_file::{DEFAULT_STATE_EVERY, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
 use sim::twin::{SYNC_PERIOD_US, SimRobot, TwinConfig, TwinConfigError, TwinError, TwinEvent};
 
@@ -135,6 +139,8 @@ enum GenerateError {
     Truth { path: PathBuf, source: TruthWriteError },
     #[error("simulated robot: {0}")]
     Twin(#[from] TwinError),
+    #[error("writing to standard output: {0}")]
+    Stdout(io::Error),
 }
 
 /// Why `live` failed.
@@ -154,6 +160,8 @@ enum LiveError {
     Truth { path: PathBuf, source: TruthWriteError },
     #[error("simulated robot: {0}")]
     Twin(#[from] TwinError),
+    #[error("writing to standard output: {0}")]
+    Stdout(io::Error),
 }
 
 fn load_config(common: &Common) -> Result<TwinConfig, ConfigError> {
@@ -179,6 +187,7 @@ fn main() -> ExitCode {
     match cli.command {
         Command::Generate(args) => match generate(&args) {
             Ok(()) => ExitCode::SUCCESS,
+            Err(GenerateError::Stdout(e)) if is_broken_pipe(&e) => ExitCode::from(BROKEN_PIPE_EXIT),
             Err(e) => {
                 eprintln!("simrobot generate: error: {e}");
                 ExitCode::from(if matches!(e, GenerateError::Config(_) | GenerateError::Iface(_)) { 2 } else { 1 })
@@ -186,6 +195,7 @@ fn main() -> ExitCode {
         },
         Command::Live(args) => match live(&args) {
             Ok(()) => ExitCode::SUCCESS,
+            Err(LiveError::Stdout(e)) if is_broken_pipe(&e) => ExitCode::from(BROKEN_PIPE_EXIT),
             Err(e) => {
                 eprintln!("simrobot live: error: {e}");
                 ExitCode::from(match e {
@@ -322,7 +332,7 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
     let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
     let motion_s = i as f64 * SYNC_PERIOD_US as f64 * 1e-6;
     let twin_s = twin_time.as_secs_f64();
-    println!(
+    outln!(
         "simrobot generate: seed {}, {} cycles, {} samples = {:.1} s ({:.1} min) of motion, {} true events",
         config.scenario.seed,
         config.scenario.cycles,
@@ -330,17 +340,19 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
         motion_s,
         motion_s / 60.0,
         events
-    );
-    println!("  {}: {} frames, {:.1} MiB", bus_path.display(), bus.frames, mib(size(&bus_path)));
-    println!("  {}: {:.1} MiB", truth_path.display(), mib(size(&truth_path)));
-    println!(
+    )
+    .map_err(GenerateError::Stdout)?;
+    outln!("  {}: {} frames, {:.1} MiB", bus_path.display(), bus.frames, mib(size(&bus_path)))
+        .map_err(GenerateError::Stdout)?;
+    outln!("  {}: {:.1} MiB", truth_path.display(), mib(size(&truth_path))).map_err(GenerateError::Stdout)?;
+    outln!(
         "  took {:.2} s: twin (inverse kinematics + nodes) {:.2} s = {:.2} us/sample, scenario generation and writing {:.2} s",
         elapsed,
         twin_s,
         if i > 0 { twin_s * 1e6 / i as f64 } else { 0.0 },
         elapsed - twin_s
-    );
-    Ok(())
+    )
+    .map_err(GenerateError::Stdout)
 }
 
 // ----------------------------------------------------------------------------------------
@@ -363,9 +375,9 @@ fn install_signal_handlers() -> Result<(), nix::Error> {
     Ok(())
 }
 
-fn print_event(e: &TwinEvent) {
+fn print_event(e: &TwinEvent) -> io::Result<()> {
     let what = if e.insertion { "insertion into" } else { "extraction from" };
-    println!("{:>10.3} s  sample {:>9}  {what} trocar {}", e.t_s, e.sample, e.trocar);
+    outln!("{:>10.3} s  sample {:>9}  {what} trocar {}", e.t_s, e.sample, e.trocar)
 }
 
 /// What `live` did; printed at the end and written by `--summary-json`.
@@ -380,6 +392,8 @@ struct LiveCounts {
     sync_gaps: u64,
     error_frames: u64,
     events: u64,
+    /// Frames the kernel dropped because this socket's receive queue was full (`SO_RXQ_OVFL`).
+    dropped_rx_frames: u64,
 }
 
 fn live(args: &LiveArgs) -> Result<(), LiveError> {
@@ -406,22 +420,32 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     };
     let mut truth_file = truth_file;
     let mut truth: Option<(PathBuf, TruthWriter<BufWriter<File>>)> = None;
-    println!(
+    outln!(
         "simrobot live: {} answering SYNC (0x080) as nodes {:?}, seed {}, {} cycles{}",
         args.iface,
         config.encoder.node_ids,
         config.scenario.seed,
         config.scenario.cycles,
         if config.endless { ", endless" } else { "" }
-    );
+    )
+    .map_err(LiveError::Stdout)?;
     let mut counts = LiveCounts::default();
     let mut counter_check = SyncCounter::new();
     let mut seed = robot.scenario_seed();
     let mut first_sync_us: Option<u64> = None;
+    // Kernel drops on our socket are reported when they happen, at most every 10 s.
+    let mut drops_reported = (0u64, Instant::now());
     let result = loop {
+        let drops = bus.dropped_rx_frames();
+        if drops != drops_reported.0 && drops_reported.1.elapsed() >= Duration::from_secs(10) {
+            eprintln!(
+                "simrobot live: {} CAN frames dropped by the kernel (receive queue full), {drops} in all",
+                drops - drops_reported.0
+            );
+            drops_reported = (drops, Instant::now());
+        }
         if STOP.load(Ordering::SeqCst) {
-            println!("simrobot live: stopped by signal");
-            break Ok(());
+            break outln!("simrobot live: stopped by signal").map_err(LiveError::Stdout);
         }
         let rx = match bus.recv_timeout(Duration::from_millis(100)) {
             Ok(Some(rx)) => rx,
@@ -458,8 +482,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         let frames = match robot.on_sync(counter, t_us) {
             Ok(Some(frames)) => frames,
             Ok(None) => {
-                println!("simrobot live: scenario over");
-                break Ok(());
+                break outln!("simrobot live: scenario over").map_err(LiveError::Stdout);
             }
             Err(e) => break Err(e.into()),
         };
@@ -491,10 +514,12 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         }
         if robot.scenario_seed() != seed {
             seed = robot.scenario_seed();
-            println!(
+            if let Err(e) = outln!(
                 "simrobot live: next scenario, seed {seed}, starts at sample {} after a transition",
                 robot.scenario_start_sample()
-            );
+            ) {
+                break Err(LiveError::Stdout(e));
+            }
             if let Some((path, w)) = truth.as_mut()
                 && let Err(source) = w.scenario(ScenarioStart { sample: robot.scenario_start_sample(), seed })
             {
@@ -506,20 +531,24 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         {
             break Err(LiveError::Truth { path: path.clone(), source });
         }
-        for e in robot.events() {
-            print_event(e);
-            counts.events += 1;
+        counts.events += robot.events().len() as u64;
+        if let Err(e) = robot.events().iter().try_for_each(print_event) {
+            break Err(LiveError::Stdout(e));
         }
     };
+    counts.dropped_rx_frames = bus.dropped_rx_frames();
+    // The files are finished whatever happened to the standard output; the first failed write
+    // to it (a closed pipe) is the result if nothing else failed.
+    let mut printed = Ok(());
     if let Some((path, w)) = truth {
         match w.finish() {
-            Ok(_) => println!("simrobot live: ground truth in {}", path.display()),
+            Ok(_) => printed = outln!("simrobot live: ground truth in {}", path.display()),
             Err(source) => eprintln!("simrobot live: error: {}: {source}", path.display()),
         }
     }
-    println!(
+    let summary = outln!(
         "simrobot live: {} SYNCs answered, {} frames sent, {} send errors, {} true events, {} SYNC counter gaps, \
-         {} bad SYNCs, {} other frames ignored, {} error frames",
+         {} bad SYNCs, {} other frames ignored, {} error frames, {} frames dropped by the kernel (receive queue full)",
         counts.syncs,
         counts.frames_sent,
         counts.send_errors,
@@ -527,10 +556,12 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         counts.sync_gaps,
         counts.bad_syncs,
         counts.ignored,
-        counts.error_frames
+        counts.error_frames,
+        counts.dropped_rx_frames
     );
+    printed = printed.and(summary);
     if let Some(e) = &counts.last_send_error {
-        println!("simrobot live: last send error: {e}");
+        printed = printed.and(outln!("simrobot live: last send error: {e}"));
     }
     if let Some(path) = &args.summary_json {
         let written =
@@ -541,5 +572,5 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         }
     }
     let _ = io::stdout().flush();
-    result
+    result.and(printed.map_err(LiveError::Stdout))
 }

@@ -96,13 +96,21 @@ impl Default for BusConfig {
 pub struct OutputConfig {
     /// iceoryx2 service name the estimates are published on.
     pub service: String,
+    /// Samples each subscriber's buffer holds, samples (1 ..= 65536; default 64, 64 ms at
+    /// 1 kHz). A subscriber that falls further behind loses the oldest samples and sees the
+    /// gap (`missed`); a larger buffer rides out longer stalls of the subscriber. Subscribers
+    /// ask for at most this (`fulcrumd monitor --buffer`).
+    pub subscriber_buffer: usize,
 }
 
 impl Default for OutputConfig {
     fn default() -> Self {
-        Self { service: "comanip/fulcrum".into() }
+        Self { service: "comanip/fulcrum".into(), subscriber_buffer: 64 }
     }
 }
+
+/// Accepted `output.subscriber_buffer`, samples.
+pub const SUBSCRIBER_BUFFER_RANGE: std::ops::RangeInclusive<usize> = 1..=65_536;
 
 /// Why the daemon-level keys (`[loop]`, `[bus]`, `[output]`) were refused; names the key.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -138,6 +146,9 @@ pub enum DaemonConfigError {
     /// `output.service` is not a valid service name.
     #[error("output.service = {0:?}: must have 1 to 200 printable ASCII characters")]
     Service(String),
+    /// `output.subscriber_buffer` outside [`SUBSCRIBER_BUFFER_RANGE`].
+    #[error("output.subscriber_buffer = {0}: must be in 1 ..= 65536 samples")]
+    SubscriberBuffer(usize),
 }
 
 impl Config {
@@ -166,6 +177,9 @@ impl Config {
         let svc = &self.output.service;
         if svc.is_empty() || svc.len() > 200 || !svc.chars().all(|c| c.is_ascii_graphic()) {
             return Err(DaemonConfigError::Service(svc.clone()));
+        }
+        if !SUBSCRIBER_BUFFER_RANGE.contains(&self.output.subscriber_buffer) {
+            return Err(DaemonConfigError::SubscriberBuffer(self.output.subscriber_buffer));
         }
         Ok(())
     }
@@ -332,6 +346,8 @@ mod tests {
             ("[bus]\nreceive_buffer_bytes = 268435457\n", "bus.receive_buffer_bytes"),
             ("[bus.encoder]\nnode_ids = [1, 1, 3]\n", "node_ids"),
             ("[output]\nservice = \"\"\n", "output.service"),
+            ("[output]\nsubscriber_buffer = 0\n", "output.subscriber_buffer"),
+            ("[output]\nsubscriber_buffer = 65537\n", "output.subscriber_buffer"),
             ("[health]\nstale_after_cycles = 0\n", "health.stale_after_cycles"),
         ] {
             let err = parse(text).unwrap_err();

@@ -334,6 +334,8 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
     let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<Vec<String>, DaemonError>>();
     let rt_cfg = cfg.realtime.clone();
     let service = cfg.output.service.clone();
+    let publisher_options =
+        PublisherOptions { subscriber_buffer: cfg.output.subscriber_buffer, ..PublisherOptions::default() };
     let rt_counters = counters.clone();
     let rt_progress = progress.clone();
     let handle = std::thread::Builder::new()
@@ -347,7 +349,7 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
                     return None;
                 }
             };
-            let publisher = match FulcrumPublisher::create(&service, &PublisherOptions::default()) {
+            let publisher = match FulcrumPublisher::create(&service, &publisher_options) {
                 Ok(p) => p,
                 Err(e) => {
                     let _ = ready_tx.send(Err(e.into()));

@@ -91,6 +91,11 @@ struct MonitorArgs {
     /// Output service name.
     #[arg(long, default_value = "comanip/fulcrum")]
     service: String,
+    /// Samples this subscriber's buffer holds (at most the daemon's `output.subscriber_buffer`
+    /// when the daemon created the service; when the monitor starts first, the daemon's value
+    /// must be at most this).
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    buffer: u32,
     /// Exit after receiving this many samples.
     #[arg(long)]
     count: Option<u64>,
@@ -310,7 +315,8 @@ struct MonitorSummary {
 
 fn monitor(args: MonitorArgs) -> Result<(), CliError> {
     install_signal_handlers();
-    let mut sub = FulcrumSubscriber::connect(&args.service).map_err(|e| e.to_string())?;
+    let opts = hw_io::ipc::PublisherOptions { subscriber_buffer: args.buffer as usize, ..Default::default() };
+    let mut sub = FulcrumSubscriber::connect_with(&args.service, &opts).map_err(|e| e.to_string())?;
     let mut samples_out = match &args.samples_out {
         Some(p) => Some(std::io::BufWriter::new(
             std::fs::File::create(p).map_err(|e| format!("cannot create {}: {e}", p.display()))?,

@@ -453,6 +453,13 @@ fn old_file(dir: &Path, run_id: u64, index: u32, len: u64, age_s: u64) -> PathBu
     path
 }
 
+/// Starts and stops run 7 in `dir` with these budgets (bytes); its counters.
+fn start_with_dir_limit(dir: &Path, max_total_bytes: u64, max_dir_bytes: u64) -> recorder::RecorderStatsSnapshot {
+    let cfg = RecorderConfig { max_file_bytes: 64 * 1024, max_total_bytes, max_dir_bytes, ..config(dir) };
+    let (_p, h) = recorder::start::<Cycle, 16>(&cfg, run(7)).unwrap();
+    h.shutdown().unwrap()
+}
+
 #[test]
 fn start_deletes_the_oldest_earlier_runs_beyond_max_dir_bytes() {
     const MIB: u64 = 1 << 20;
@@ -466,14 +473,7 @@ fn start_deletes_the_oldest_earlier_runs_beyond_max_dir_bytes() {
     let foreign = dir.path().join("notes.txt");
     fs::write(&foreign, vec![0u8; (4 * MIB) as usize]).unwrap();
     // Budget for earlier runs: 3 MiB − 1 MiB (this run) = 2 MiB → the two oldest go.
-    let cfg = RecorderConfig {
-        max_file_bytes: 64 * 1024,
-        max_total_bytes: MIB,
-        max_dir_bytes: 3 * MIB,
-        ..config(dir.path())
-    };
-    let (_p, h) = recorder::start::<Cycle, 16>(&cfg, run(7)).unwrap();
-    let s = h.shutdown().unwrap();
+    let s = start_with_dir_limit(dir.path(), MIB, 3 * MIB);
     assert_eq!((s.old_runs_deleted, s.old_files_deleted, s.old_bytes_deleted), (2, 4, 2 * MIB));
     for f in runs[..2].iter().flatten() {
         assert!(!f.exists(), "{} should be deleted", f.display());
@@ -490,14 +490,7 @@ fn start_keeps_the_most_recent_earlier_run_even_over_budget() {
     let dir = tempfile::tempdir().unwrap();
     let older = old_file(dir.path(), 0xa, 0, MIB, 200);
     let crash = old_file(dir.path(), 0xb, 0, 5 * MIB, 100);
-    let cfg = RecorderConfig {
-        max_file_bytes: 64 * 1024,
-        max_total_bytes: MIB,
-        max_dir_bytes: 2 * MIB,
-        ..config(dir.path())
-    };
-    let (_p, h) = recorder::start::<Cycle, 16>(&cfg, run(7)).unwrap();
-    let s = h.shutdown().unwrap();
+    let s = start_with_dir_limit(dir.path(), MIB, 2 * MIB);
     assert!(!older.exists());
     assert!(crash.exists(), "the run before this start is kept whatever its size");
     assert_eq!((s.old_runs_deleted, s.old_files_deleted), (1, 1));

@@ -19,6 +19,7 @@ pub mod cycle;
 pub mod daemon;
 pub mod demo;
 pub mod health;
+pub mod monitor;
 pub mod recorder;
 pub mod replay;
 pub mod rt;

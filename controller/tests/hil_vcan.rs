@@ -25,6 +25,7 @@ use std::sync::{Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use controller::config::Config;
+use controller::monitor::{SampleEvent, SampleLine};
 use controller::replay::{self, LogReplay};
 use controller::rt::monotonic_now_ns;
 use controller::rt_loop::CycleRecord;
@@ -622,22 +623,7 @@ fn drive_in(scenario: Scenario, dir: &Path) {
 // Host side: reading the artifacts
 
 /// One line of `fulcrumd monitor --samples-out`.
-#[derive(Debug, serde::Deserialize)]
-#[allow(dead_code)] // fields read through Debug in failure messages
-struct Sample {
-    rx_ns: u64,
-    event: String,
-    missed: u64,
-    run_id: u64,
-    sequence: u64,
-    timestamp_ns: u64,
-    state: u32,
-    health: u32,
-    trocar_id: u32,
-    fulcrum_base_m: [f64; 3],
-    joints_rad: [f64; 6],
-    window_fill: u16,
-}
+type Sample = SampleLine;
 
 fn samples(a: &Artifacts) -> Vec<Sample> {
     let f = File::open(a.dir.join("monitor.jsonl")).expect("monitor.jsonl");
@@ -1121,10 +1107,10 @@ fn hil_daemon_sigkill_and_restart() {
     // The first run: in order from 0, nothing missed, up to the kill.
     for (i, s) in first_run.iter().enumerate() {
         assert_eq!(s.sequence, i as u64);
-        assert_eq!(s.event, if i == 0 { "first" } else { "in_order" });
+        assert_eq!(s.event, if i == 0 { SampleEvent::First } else { SampleEvent::InOrder });
     }
     // The monitor reported the restart...
-    assert_eq!(second_run[0].event, "restart", "{:?}", second_run[0]);
+    assert_eq!(second_run[0].event, SampleEvent::Restart, "{:?}", second_run[0]);
     let mon_log = fulcrumd_stderr(&a, "monitor");
     assert!(mon_log.contains(&format!("daemon (re)started: run {run2:016x}")), "{mon_log}");
     // ...and received again within 1 s of the new daemon's spawn.

@@ -114,29 +114,6 @@ struct MonitorArgs {
     samples_out: Option<PathBuf>,
 }
 
-/// One line of `monitor --samples-out`: a received sample and when it arrived.
-#[derive(serde::Serialize)]
-struct SampleLine<'a> {
-    /// Receive time, nanoseconds of `CLOCK_MONOTONIC` (same clock as `timestamp_ns`).
-    rx_ns: u64,
-    /// Continuity against the previous sample: first, in_order, gap, restart.
-    event: &'a str,
-    /// Samples missed before this one (gap only), else 0.
-    missed: u64,
-    run_id: u64,
-    sequence: u64,
-    /// SYNC instant of the cycle, nanoseconds of `CLOCK_MONOTONIC`.
-    timestamp_ns: u64,
-    state: u32,
-    health: u32,
-    trocar_id: u32,
-    /// Metres, robot base frame.
-    fulcrum_base_m: [f64; 3],
-    /// Radians, joints 1..6.
-    joints_rad: [f64; 6],
-    window_fill: u16,
-}
-
 #[derive(Args, Debug)]
 struct ReplayArgs {
     /// A flight recording: its directory, or one of its files (the whole run is read).
@@ -346,27 +323,7 @@ fn monitor(args: MonitorArgs) -> Result<(), CliError> {
         };
         let now = Instant::now();
         if let Some(w) = samples_out.as_mut() {
-            let x = &r.sample;
-            let (event, missed) = match r.event {
-                Continuity::First => ("first", 0),
-                Continuity::InOrder => ("in_order", 0),
-                Continuity::Gap { missed } => ("gap", missed),
-                Continuity::Restart => ("restart", 0),
-            };
-            let line = SampleLine {
-                rx_ns: controller::rt::monotonic_now_ns(),
-                event,
-                missed,
-                run_id: x.run_id,
-                sequence: x.sequence,
-                timestamp_ns: x.timestamp_ns,
-                state: x.state,
-                health: x.health,
-                trocar_id: x.trocar_id,
-                fulcrum_base_m: x.fulcrum_base_m,
-                joints_rad: x.joints_rad,
-                window_fill: x.window_fill,
-            };
+            let line = controller::monitor::SampleLine::new(controller::rt::monotonic_now_ns(), &r);
             let written =
                 serde_json::to_writer(&mut *w, &line).map_err(std::io::Error::from).and_then(|()| w.write_all(b"\n"));
             if let Err(e) = written {

@@ -499,6 +499,29 @@ fn write(path: &Path, text: &str) -> Result<(), SweepError> {
     std::fs::write(path, text).map_err(|source| SweepError::Write { path: path.to_owned(), source })
 }
 
+/// One sweep section of `sweep.md`: a heading, its box plot (`<stem>.svg`) and its table.
+struct Section {
+    heading: String,
+    stem: String,
+    plot_title: String,
+    x_desc: &'static str,
+}
+
+impl Section {
+    fn write(
+        &self,
+        md: &mut String,
+        dir: &Path,
+        part: &[ConditionResult],
+        label: impl Fn(&Condition) -> String,
+    ) -> Result<(), SweepError> {
+        let _ = writeln!(md, "## {}\n\n![{}]({}.svg)\n", self.heading, self.heading, self.stem);
+        md.push_str(&table(part));
+        md.push('\n');
+        box_plot(&dir.join(format!("{}.svg", self.stem)), &self.plot_title, self.x_desc, part, label)
+    }
+}
+
 /// Runs all sweeps, writes `sweep.md` and the box plots into `dir`; returns the Markdown.
 pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<String, SweepError> {
     std::fs::create_dir_all(dir).map_err(|source| SweepError::Write { path: dir.to_owned(), source })?;
@@ -539,44 +562,26 @@ pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<Strin
     );
     for u in units {
         let part: Vec<ConditionResult> = sigma_res.iter().filter(|r| r.condition.units == u).cloned().collect();
-        let _ = writeln!(
-            md,
-            "## σ sweep, ρ in {} (n_e = n_t = 3)\n\n![σ sweep, {}](sigma_{}.svg)\n",
-            u.name(),
-            u.name(),
-            u.name()
-        );
-        md.push_str(&table(&part));
-        md.push('\n');
-        box_plot(
-            &dir.join(format!("sigma_{}.svg", u.name())),
-            &format!("σ sweep, ρ in {} (n_e = n_t = 3, {} trials)", u.name(), opts.trials),
-            "σ",
-            &part,
-            |c| sigma_label(c.sigma),
-        )?;
+        let section = Section {
+            heading: format!("σ sweep, ρ in {} (n_e = n_t = 3)", u.name()),
+            stem: format!("sigma_{}", u.name()),
+            plot_title: format!("σ sweep, ρ in {} (n_e = n_t = 3, {} trials)", u.name(), opts.trials),
+            x_desc: "σ",
+        };
+        section.write(&mut md, dir, &part, |c| sigma_label(c.sigma))?;
     }
     for u in units {
         let part: Vec<ConditionResult> = grid_res.iter().filter(|r| r.condition.units == u).cloned().collect();
         if part.is_empty() {
             continue;
         }
-        let _ = writeln!(
-            md,
-            "## n_e × n_t sweep, ρ in {} (σ = 0.01)\n\n![grid sweep, {}](grid_{}.svg)\n",
-            u.name(),
-            u.name(),
-            u.name()
-        );
-        md.push_str(&table(&part));
-        md.push('\n');
-        box_plot(
-            &dir.join(format!("grid_{}.svg", u.name())),
-            &format!("n_e⁴ × n_t² sweep, ρ in {} (σ = 0.01, {} trials)", u.name(), opts.trials),
-            "n_e, n_t",
-            &part,
-            |c| format!("{},{}", c.n_e, c.n_t),
-        )?;
+        let section = Section {
+            heading: format!("n_e × n_t sweep, ρ in {} (σ = 0.01)", u.name()),
+            stem: format!("grid_{}", u.name()),
+            plot_title: format!("n_e⁴ × n_t² sweep, ρ in {} (σ = 0.01, {} trials)", u.name(), opts.trials),
+            x_desc: "n_e, n_t",
+        };
+        section.write(&mut md, dir, &part, |c| format!("{},{}", c.n_e, c.n_t))?;
     }
     let _ = writeln!(
         md,

@@ -204,13 +204,8 @@ pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     let mut dn_c = SMatrix::<f64, 3, 6>::zeros();
     dn_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&sd);
     dn_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&(sp * sd - sd * sp));
-    let xi = set.hand_eye.inverse();
-    let rx = xi.rotation.to_rotation_matrix().into_inner();
-    let mut ad = Matrix6::zeros();
-    ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&rx);
-    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(skew(&xi.translation.vector) * rx));
-    ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
-    dn.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dn_c * ad));
+    let ad = &set.hand_eye_inv_adjoint;
+    dn.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dn_c * *ad));
     // Tool: δP = R2(ρa + ρb − d[ẑ]×φa), δD = −R2[ẑ]×(φa + φb), mapped into the camera.
     let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
     let z = skew(&Vector3::z());
@@ -509,18 +504,13 @@ pub fn tip_well_inside(
     );
     // ∂p/∂δ: camera right perturbation δc = Ad(X⁻¹) δe: p' = p + [p]× φc − ρc;
     // tool: δP = R2(ρa + ρb − d[ẑ]×φa) mapped into the camera by A = R_ecᵀ R R2.
-    let xi = set.hand_eye.inverse();
-    let rx = xi.rotation.to_rotation_matrix().into_inner();
-    let mut ad = Matrix6::zeros();
-    ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&rx);
-    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(skew(&xi.translation.vector) * rx));
-    ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
+    let ad = &set.hand_eye_inv_adjoint;
     let mut dp_c = SMatrix::<f64, 3, 6>::zeros();
     dp_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&-Matrix3::identity());
     dp_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&p));
     let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
     let mut dp = SMatrix::<f64, 3, 18>::zeros();
-    dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * ad));
+    dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * *ad));
     dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
     dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
     dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);

@@ -6,7 +6,7 @@
 
 use std::vec::Vec;
 
-use nalgebra::{Isometry3, Matrix3, Vector2, Vector3};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Vector2, Vector3};
 
 use super::camera::{IntrinsicsError, LineError, plane_normal};
 use super::kinematics::{ecm_frames, psm_axis, psm_frames};
@@ -49,6 +49,9 @@ pub struct PreparedSet {
     pub k_inv_t: Matrix3<f64>,
     /// `T_f_c`, metres.
     pub hand_eye: Isometry3<f64>,
+    /// `Ad(T_f_c⁻¹)` (6×6, `(ρ, φ)` order): maps a right perturbation of robot 1's end
+    /// effector into the camera frame. Derived from `hand_eye` once.
+    pub hand_eye_inv_adjoint: Matrix6<f64>,
     /// The camera intrinsics (pixels; image size for the border guard).
     pub intrinsics: super::Intrinsics,
     /// Distinct views of robot 1 (distinct optical centres), counted up to the first 2.
@@ -158,10 +161,23 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
         obs,
         k_inv_t: k_inv.transpose(),
         hand_eye: setup.hand_eye,
+        hand_eye_inv_adjoint: inverse_adjoint(&setup.hand_eye),
         intrinsics: setup.intrinsics,
         views,
         orientations,
     })
+}
+
+/// `Ad(T⁻¹)` of a rigid transform, `(ρ, φ)` order: `[[R', [t']×R'], [0, R']]` with
+/// `T⁻¹ = (R', t')`.
+pub fn inverse_adjoint(t: &Isometry3<f64>) -> Matrix6<f64> {
+    let xi = t.inverse();
+    let rx = xi.rotation.to_rotation_matrix().into_inner();
+    let mut ad = Matrix6::zeros();
+    ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&rx);
+    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(super::kinematics::skew(&xi.translation.vector) * rx));
+    ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
+    ad
 }
 
 /// Counts distinct items (pairwise `differ`), stopping at `enough`.

@@ -212,17 +212,20 @@ fn outlier_lines_are_down_weighted() {
         o.line_px = [[50.0 + k as f64 % 200.0, 400.0], [600.0, 30.0 + (k * 7) as f64 % 300.0]];
     }
     let p = solve_paper(&d.setup, &obs, &PaperConfig::default()).unwrap();
-    let o = solve_ours(
-        &d.setup,
-        &obs,
-        &OursConfig {
-            noise: Some(KinematicNoise { rot_rad: 0.0, trans_m: 0.0, pixel_px: 0.5 }),
-            ..OursConfig::default()
-        },
-    )
-    .unwrap();
+    let cfg = OursConfig {
+        noise: Some(KinematicNoise { rot_rad: 0.0, trans_m: 0.0, pixel_px: 0.5 }),
+        selection: None,
+        ..OursConfig::default()
+    };
+    let o = solve_ours(&d.setup, &obs, &cfg).unwrap();
     let (ep, eo) = (pose_errors(&p.pose, &d.truth), pose_errors(&o.pose, &d.truth));
     assert!(eo.translation_m < 1e-6 && eo.rotation_rad < 1e-6, "ours {eo:?}");
+    // The selection-aware stage leaves the outliers out too; on noise-free lines its
+    // selection terms pull the maximum of the likelihood slightly off the truth (< 0.01°).
+    let full = solve_ours(&d.setup, &obs, &OursConfig { selection: Some(Default::default()), ..cfg }).unwrap();
+    let ef = pose_errors(&full.pose, &d.truth);
+    assert!(ef.translation_m < 1e-4 && ef.rotation_rad < 1e-4, "ours with the selection stage {ef:?}");
+    assert!(full.selection.is_some_and(|s| s.left_out >= n / 10), "{:?}", full.selection);
     assert!(ep.translation_m > 100.0 * eo.translation_m, "paper {ep:?} vs ours {eo:?}");
     assert!(
         o.residuals.inliers <= n - n / 10 && o.residuals.inliers >= n - n / 10 - 2,
@@ -338,14 +341,10 @@ fn border_guard_removes_the_selection_bias_of_out_of_view_drops() {
     let (mut with, mut without) = (0.0, 0.0);
     for seed in 0..3 {
         let d = data(3, 3, 0.01, NoiseUnits::Metre, 100 + seed);
-        let on =
-            solve_ours(&d.setup, &d.observations, &OursConfig { noise: d.noise, ..OursConfig::default() }).unwrap();
-        let off = solve_ours(
-            &d.setup,
-            &d.observations,
-            &OursConfig { noise: d.noise, border_guard_sigmas: 0.0, ..OursConfig::default() },
-        )
-        .unwrap();
+        // The guard alone (without the selection-aware stage, tested in calib_selection.rs).
+        let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
+        let on = solve_ours(&d.setup, &d.observations, &cfg).unwrap();
+        let off = solve_ours(&d.setup, &d.observations, &OursConfig { border_guard_sigmas: 0.0, ..cfg }).unwrap();
         assert!(on.guard_kept < d.observations.len() && off.guard_kept == d.observations.len());
         with += pose_errors(&on.pose, &d.truth).translation_rel;
         without += pose_errors(&off.pose, &d.truth).translation_rel;

@@ -216,6 +216,11 @@ pub struct DatasetFile {
     /// Optional kinematic noise model (weights our pipeline).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_model: Option<NoiseJson>,
+    /// How observations were selected: recorded only when the tool tip is in the image and
+    /// at least this much shaft (pixels, ≥ 0) is visible from it; default 0 (the tip in the
+    /// image only). Our pipeline models the selection.
+    #[serde(default)]
+    pub min_shaft_px: f64,
     /// The observations.
     pub observations: Vec<ObservationJson>,
 }
@@ -488,6 +493,7 @@ mod tests {
             intrinsics: parse_intrinsics_yaml(ROS).unwrap(),
             hand_eye: TransformJson { translation_m: [0.0, 0.0, 0.001], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] },
             noise_model: None,
+            min_shaft_px: 40.0,
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],
                 psm_joints: [0.0, 0.1, 0.1],
@@ -532,5 +538,15 @@ mod tests {
             matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("colour"))
         );
         assert!(matches!(parse_dataset("{\"format\": "), Err(CalibFileError::Json { line: 1, .. })));
+    }
+
+    #[test]
+    fn the_selection_key_is_optional_and_round_trips() {
+        let text = to_json(&dataset());
+        assert!(text.contains("\"min_shaft_px\": 40.0"), "{text}");
+        assert_eq!(parse_dataset(&text).unwrap().min_shaft_px, 40.0);
+        let without = text.replace("\"min_shaft_px\": 40.0,", "");
+        assert_ne!(without, text);
+        assert_eq!(parse_dataset(&without).unwrap().min_shaft_px, 0.0);
     }
 }

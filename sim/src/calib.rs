@@ -315,7 +315,7 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
     }
     let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: p.pixel_sigma_px };
     Ok(CalibDataset {
-        setup: Setup { intrinsics: g.intrinsics, hand_eye: g.hand_eye },
+        setup: Setup { intrinsics: g.intrinsics, hand_eye: g.hand_eye, min_shaft_px: g.min_visible_px },
         truth: g.truth,
         observations,
         generated,

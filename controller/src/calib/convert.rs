@@ -25,7 +25,7 @@ pub fn transform_json(t: &Isometry3<f64>) -> TransformJson {
 
 /// A parsed dataset file → setup, observations and optional noise model.
 pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoise>) {
-    let setup = Setup { intrinsics: d.intrinsics, hand_eye: isometry(&d.hand_eye) };
+    let setup = Setup { intrinsics: d.intrinsics, hand_eye: isometry(&d.hand_eye), min_shaft_px: d.min_shaft_px };
     let obs = d
         .observations
         .iter()
@@ -43,6 +43,7 @@ pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicN
         intrinsics: setup.intrinsics,
         hand_eye: transform_json(&setup.hand_eye),
         noise_model: noise.map(|n| NoiseJson { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px }),
+        min_shaft_px: setup.min_shaft_px,
         observations: obs
             .iter()
             .map(|o| ObservationJson { ecm_joints: o.ecm_joints, psm_joints: o.psm_joints, line_px: o.line_px })

@@ -22,7 +22,10 @@
 //! - [`paper`]: the paper's pipeline, faithful (Eq. 5, Eq. 7-9, Eq. 10).
 //! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, the
 //!   near-180° ambiguity detected and resolved.
-//! - [`crb`]: the Cramér-Rao bound for a geometry and a kinematic noise model.
+//! - [`selection`]: the selection of observations (a line is recorded only when the tool tip
+//!   is in view) as a likelihood, and our pipeline's final, selection-aware stage.
+//! - [`crb`]: the Cramér-Rao bounds for a geometry and a kinematic noise model, without and
+//!   with the selection.
 
 pub mod camera;
 pub mod crb;
@@ -30,6 +33,7 @@ pub mod kinematics;
 pub mod ours;
 pub mod paper;
 pub mod prepare;
+pub mod selection;
 
 use nalgebra::{Isometry3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -58,6 +62,11 @@ pub struct Setup {
     pub intrinsics: Intrinsics,
     /// `T_f_c`: the camera frame in robot 1's end-effector frame (metres); the paper's `X`.
     pub hand_eye: Isometry3<f64>,
+    /// How observations were selected: one is recorded only when the tool tip is inside the
+    /// image and at least this much shaft (pixels, ≥ 0) is visible from the tip toward robot
+    /// 2's RCM. Our pipeline models this selection ([`selection`]); 0: the tip inside the
+    /// image is the only condition.
+    pub min_shaft_px: f64,
 }
 
 /// The kinematic noise model of the simulation protocol (Sec. IV, Eq. 11), used to weight our

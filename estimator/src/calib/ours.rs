@@ -25,6 +25,7 @@ use super::KinematicNoise;
 use super::kinematics::skew;
 use super::paper::{PaperError, kronecker_rotation, linear_translation, refine_quaternion, wxyz};
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
+use super::selection::{SelectionConfig, refine_selected, tip_pixel_covariance, tip_projection};
 use super::{Observation, Setup};
 
 /// Two refined candidates whose rotations differ by more than this (radians, 10°) are
@@ -55,6 +56,9 @@ pub struct OursConfig {
     /// An extra starting rotation `[w, x, y, z]` (robustness sweep); the linear start and
     /// both mirrors are always tried as well, and the lowest robust cost wins.
     pub initial_quaternion: Option<[f64; 4]>,
+    /// The selection-aware final stage ([`super::selection`]; with a noise model only);
+    /// `None` stops after the border-guarded robust fit.
+    pub selection: Option<SelectionConfig>,
 }
 
 impl Default for OursConfig {
@@ -66,6 +70,7 @@ impl Default for OursConfig {
             min_ambiguity_ratio: 1.05,
             border_guard_sigmas: 2.0,
             initial_quaternion: None,
+            selection: Some(SelectionConfig::default()),
         }
     }
 }
@@ -149,6 +154,21 @@ pub struct OursResult {
     /// Observations kept by the border guard (all of them when the guard is off or did not
     /// drop any).
     pub guard_kept: usize,
+    /// The selection-aware stage's bookkeeping, when it ran.
+    pub selection: Option<SelectionSummary>,
+}
+
+/// What the selection-aware stage did with the observations.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct SelectionSummary {
+    /// Fitted with their selection.
+    pub selected: usize,
+    /// Fitted as plain lines (tip too close to the camera for the first-order model, but well
+    /// inside the image).
+    pub plain: usize,
+    /// Left out (tip too close to the camera near the border, behind the camera, or a gross
+    /// outlier of the first-order model).
+    pub left_out: usize,
 }
 
 fn dist_and_grad(l: &Vector3<f64>, u: &Vector2<f64>) -> (f64, nalgebra::RowVector3<f64>) {
@@ -439,7 +459,7 @@ pub fn solve_ours(setup: &Setup, observations: &[Observation], config: &OursConf
 /// Our pipeline on prepared observations.
 pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
     let mut result = solve_once(set, cfg, None)?;
-    let (Some(noise), true) = (cfg.noise, cfg.border_guard_sigmas > 0.0) else {
+    let Some(noise) = cfg.noise else {
         return Ok(result);
     };
     // Border guard: an observation is only in the dataset because its tool tip was in view,
@@ -448,7 +468,8 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
     // predicted, from the current estimate, to lie at least `border_guard_sigmas` standard
     // deviations inside the image: their selection no longer depends on their own noise.
     let mut kept_before = set.obs.len();
-    for _ in 0..3 {
+    let guard_rounds = if cfg.border_guard_sigmas > 0.0 { 3 } else { 0 };
+    for _ in 0..guard_rounds {
         let r = result.pose.rotation.to_rotation_matrix().into_inner();
         let t = result.pose.translation.vector;
         let obs: Vec<Prepared> = set
@@ -472,6 +493,15 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
             Err(_) => break,
         }
     }
+    // The selection-aware stage, from the guarded fit, on all observations.
+    if let Some(sel) = &cfg.selection
+        && let Some(fit) = refine_selected(set, &noise, &result.pose, sel)
+    {
+        result.covariance = fit.covariance;
+        result.pose = fit.pose;
+        result.residuals = ResidualStats { inliers: fit.selected + fit.plain, ..residual_stats(set, &fit.pose) };
+        result.selection = Some(SelectionSummary { selected: fit.selected, plain: fit.plain, left_out: fit.left_out });
+    }
     Ok(result)
 }
 
@@ -485,42 +515,10 @@ pub fn tip_well_inside(
     noise: &KinematicNoise,
     k: f64,
 ) -> bool {
-    let rt = o.r_ec.transpose();
-    let p = rt * (r * (o.m_t * o.insertion_m) + t - o.o_ec);
-    if p.z <= 1e-3 {
-        return false;
-    }
+    let Some(tp) = tip_projection(set, o, r, t) else { return false };
+    let cov = tip_pixel_covariance(&tp, noise);
+    let (u, v) = (tp.px.x, tp.px.y);
     let cam = &set.intrinsics;
-    let u = cam.fx * p.x / p.z + cam.skew * p.y / p.z + cam.cx;
-    let v = cam.fy * p.y / p.z + cam.cy;
-    // ∂(u, v)/∂p (pinhole, distortion neglected for the margin).
-    let proj = SMatrix::<f64, 2, 3>::new(
-        cam.fx / p.z,
-        cam.skew / p.z,
-        -(cam.fx * p.x + cam.skew * p.y) / (p.z * p.z),
-        0.0,
-        cam.fy / p.z,
-        -cam.fy * p.y / (p.z * p.z),
-    );
-    // ∂p/∂δ: camera right perturbation δc = Ad(X⁻¹) δe: p' = p + [p]× φc − ρc;
-    // tool: δP = R2(ρa + ρb − d[ẑ]×φa) mapped into the camera by A = R_ecᵀ R R2.
-    let ad = &set.hand_eye_inv_adjoint;
-    let mut dp_c = SMatrix::<f64, 3, 6>::zeros();
-    dp_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&-Matrix3::identity());
-    dp_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&p));
-    let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
-    let mut dp = SMatrix::<f64, 3, 18>::zeros();
-    dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * *ad));
-    dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
-    dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
-    dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);
-    let g = proj * dp;
-    let mut cov = Matrix2::identity() * (noise.pixel_px * noise.pixel_px);
-    for c in 0..18 {
-        let var = if c % 6 < 3 { noise.trans_m * noise.trans_m } else { noise.rot_rad * noise.rot_rad };
-        let col = g.column(c);
-        cov += col * col.transpose() * var;
-    }
     let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
     u - su >= 0.0 && v - sv >= 0.0 && u + su <= cam.width as f64 - 1.0 && v + sv <= cam.height as f64 - 1.0
 }
@@ -673,5 +671,6 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         ambiguity_ratio: ratio,
         iterations: candidates.iter().map(|c| c.iterations).sum(),
         guard_kept: set.obs.len(),
+        selection: None,
     })
 }

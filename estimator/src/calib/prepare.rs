@@ -54,6 +54,8 @@ pub struct PreparedSet {
     pub hand_eye_inv_adjoint: Matrix6<f64>,
     /// The camera intrinsics (pixels; image size for the border guard).
     pub intrinsics: super::Intrinsics,
+    /// [`Setup::min_shaft_px`](super::Setup::min_shaft_px), pixels.
+    pub min_shaft_px: f64,
     /// Distinct views of robot 1 (distinct optical centres), counted up to the first 2.
     pub views: usize,
     /// Distinct orientations of robot 2's tool, counted up to the first 3.
@@ -86,6 +88,9 @@ pub enum PrepareError {
         /// What is wrong with the line.
         source: LineError,
     },
+    /// The selection's minimum visible shaft is negative or not finite.
+    #[error("min_shaft_px must be finite and ≥ 0 (got {0})")]
+    MinShaft(f64),
     /// Degenerate: robot 1 (the endoscope) was seen from fewer than two views, so the depth
     /// of robot 2's RCM cannot be recovered.
     #[error(
@@ -120,6 +125,9 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
     setup.intrinsics.validate()?;
     if !finite_iso(&setup.hand_eye) {
         return Err(PrepareError::HandEye);
+    }
+    if !(setup.min_shaft_px.is_finite() && setup.min_shaft_px >= 0.0) {
+        return Err(PrepareError::MinShaft(setup.min_shaft_px));
     }
     let k_inv = setup.intrinsics.k_inv();
     let mut obs = Vec::with_capacity(observations.len());
@@ -163,6 +171,7 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
         hand_eye: setup.hand_eye,
         hand_eye_inv_adjoint: inverse_adjoint(&setup.hand_eye),
         intrinsics: setup.intrinsics,
+        min_shaft_px: setup.min_shaft_px,
         views,
         orientations,
     })

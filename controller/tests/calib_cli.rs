@@ -84,6 +84,11 @@ fn calibrate_with_opencv_intrinsics_and_one_pipeline() {
     assert_eq!(r.results.len(), 1);
     assert_eq!(r.results[0].pipeline, "ours");
     assert!(r.results[0].ambiguity_ratio.unwrap() > 1.0);
+    // The dataset carries its noise model and selection: the selection-aware stage ran.
+    assert!(d.noise_model.is_some() && d.min_shaft_px > 0.0);
+    let stage = r.results[0].selection_stage.as_ref().expect("selection stage recorded");
+    assert!(stage.applied && stage.refused.is_none(), "{stage:?}");
+    assert_eq!(stage.selected + stage.plain + stage.left_out, d.observations.len());
 }
 
 #[test]

@@ -6,7 +6,7 @@ use estimator::calib::crb::{cramer_rao_bound, selected_bound};
 use estimator::calib::ours::{OursConfig, solve_ours_prepared};
 use estimator::calib::prepare::prepare;
 use estimator::calib::selection::{
-    SelectionConfig, box_probability, box_probability_gradient, normal_mass, selection_likelihood,
+    SelectionConfig, SelectionError, box_probability, box_probability_gradient, normal_mass, selection_likelihood,
 };
 use estimator::calib::{KinematicNoise, pose_errors};
 use nalgebra::{Isometry3, Matrix2, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3, Vector6};
@@ -143,4 +143,26 @@ fn the_selection_aware_stage_removes_most_of_the_bias_the_guard_leaves() {
     }
     let ratio = (with / without).sqrt();
     assert!(ratio < 0.8, "RMS translation error with / without the stage = {ratio}");
+}
+
+#[test]
+fn a_stage_that_runs_away_is_refused_and_the_guarded_fit_kept() {
+    let d = generate_calibration(&protocol(CalibGeometry::default(), 0.01, 204)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    let guarded =
+        solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: None, ..OursConfig::default() }).unwrap();
+    // A limit no real move satisfies.
+    let strict = SelectionConfig { max_shift_sigmas: 1e-6, ..SelectionConfig::default() };
+    let o = solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: Some(strict), ..OursConfig::default() })
+        .unwrap();
+    assert!(o.selection.is_none());
+    assert!(
+        matches!(o.selection_refused, Some(SelectionError::RanAway { sigmas, .. }) if sigmas > 1e-6),
+        "{:?}",
+        o.selection_refused
+    );
+    assert_eq!(o.pose, guarded.pose);
+    // With the default limit the same data are fitted with their selection.
+    let o = solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() }).unwrap();
+    assert!(o.selection_refused.is_none() && o.selection.is_some_and(|s| s.shift_sigmas < 20.0));
 }

@@ -290,6 +290,29 @@ pub struct PipelineResultJson {
     pub ambiguity_ratio: Option<f64>,
     /// Solve time, milliseconds.
     pub solve_ms: f64,
+    /// Ours with a noise model: what its selection-aware stage did (absent otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub selection_stage: Option<SelectionStageJson>,
+}
+
+/// Our pipeline's selection-aware stage in a result file (`docs/calibration.md`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SelectionStageJson {
+    /// True when its pose is the result; false when it was refused (see `refused`) and the
+    /// result is the border-guarded robust fit.
+    pub applied: bool,
+    /// Observations fitted with their selection.
+    pub selected: usize,
+    /// Observations fitted as plain lines.
+    pub plain: usize,
+    /// Observations left out.
+    pub left_out: usize,
+    /// How far the stage moved from the robust fit, standard deviations.
+    pub shift_sigmas: f64,
+    /// Why it was refused, when it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refused: Option<String>,
 }
 
 /// The result file (JSON).

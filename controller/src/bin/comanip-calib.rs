@@ -140,6 +140,9 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                     )?,
                     None => hw_io::outln!("{}: {:.2} ms", r.pipeline, r.solve_ms)?,
                 }
+                if let Some(w) = &r.warning {
+                    eprintln!("comanip-calib: warning: {}: {w}", r.pipeline);
+                }
             }
             hw_io::outln!("wrote {}", out.display())?;
         }

@@ -4,7 +4,7 @@ use estimator::calib::ours::{OursResult, ResidualStats};
 use estimator::calib::{KinematicNoise, Observation, Setup};
 use hw_io::calib_files::{
     CALIB_FILE_VERSION, DATASET_FORMAT, DatasetFile, NoiseJson, ObservationJson, PipelineResultJson, ResidualJson,
-    TransformJson,
+    SelectionStageJson, TransformJson,
 };
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
@@ -51,6 +51,31 @@ pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicN
     }
 }
 
+fn selection_json(o: &OursResult) -> Option<SelectionStageJson> {
+    match (&o.selection, &o.selection_refused) {
+        (Some(s), _) => Some(SelectionStageJson {
+            applied: true,
+            selected: s.selected,
+            plain: s.plain,
+            left_out: s.left_out,
+            shift_sigmas: s.shift_sigmas,
+            refused: None,
+        }),
+        (None, Some(e)) => Some(SelectionStageJson {
+            applied: false,
+            selected: 0,
+            plain: 0,
+            left_out: 0,
+            shift_sigmas: match e {
+                estimator::calib::selection::SelectionError::RanAway { sigmas, .. } if sigmas.is_finite() => *sigmas,
+                _ => 0.0,
+            },
+            refused: Some(e.to_string()),
+        }),
+        (None, None) => None,
+    }
+}
+
 fn residual_json(r: &ResidualStats) -> ResidualJson {
     ResidualJson { count: r.count, rms_px: r.rms_px, median_px: r.median_px, max_px: r.max_px, inliers: r.inliers }
 }
@@ -88,5 +113,6 @@ pub fn result_json(
         }),
         ambiguity_ratio: ours.map(|o| if o.ambiguity_ratio.is_finite() { o.ambiguity_ratio } else { f64::MAX }),
         solve_ms,
+        selection_stage: ours.and_then(selection_json),
     }
 }

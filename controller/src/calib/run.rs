@@ -147,6 +147,9 @@ pub struct CalibrateSummary {
     pub errors: Option<PoseErrors>,
     /// Solve time, milliseconds.
     pub solve_ms: f64,
+    /// Why our selection-aware stage was refused, when it was (the result is then the
+    /// border-guarded robust fit).
+    pub warning: Option<String>,
 }
 
 fn read(path: &Path) -> Result<String, CalibrateError> {
@@ -189,6 +192,7 @@ pub fn calibrate(
             pipeline: "paper",
             errors: truth.map(|t| pose_errors(&r.pose, &t)),
             solve_ms: ms,
+            warning: None,
         });
     }
     if matches!(pipeline, Pipeline::Ours | Pipeline::Both) {
@@ -200,6 +204,7 @@ pub fn calibrate(
             pipeline: "ours",
             errors: truth.map(|t| pose_errors(&r.pose, &t)),
             solve_ms: ms,
+            warning: r.selection_refused.map(|e| format!("selection-aware stage not applied: {e}")),
         });
     }
     let file = ResultFile { format: RESULT_FORMAT.into(), version: CALIB_FILE_VERSION, results };

@@ -7,7 +7,7 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use estimator::calib::crb::{Crb, cramer_rao_bound};
+use estimator::calib::crb::{Crb, SelectedCrb, cramer_rao_bound, selected_bound};
 use estimator::calib::ours::{OursConfig, solve_ours_prepared};
 use estimator::calib::paper::{PaperConfig, solve_paper_prepared};
 use estimator::calib::prepare::prepare;
@@ -16,7 +16,8 @@ use plotters::prelude::*;
 use rand::SeedableRng;
 use rayon::prelude::*;
 use sim::calib::{
-    CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, generate_calibration, random_unit_quaternion,
+    CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, ecm_grid, generate_calibration, psm_grid,
+    random_unit_quaternion,
 };
 
 /// What to sweep.
@@ -116,6 +117,8 @@ pub struct Trial {
     pub paper: Option<PoseErrors>,
     /// Our pipeline errors (None: failed).
     pub ours: Option<PoseErrors>,
+    /// Our pipeline without its selection-aware stage (the border-guarded robust fit).
+    pub ours_guard_only: Option<PoseErrors>,
 }
 
 /// A condition's trials and its bound.
@@ -127,6 +130,8 @@ pub struct ConditionResult {
     pub trials: Vec<Trial>,
     /// The CRB of its noiseless geometry under its noise (None at σ = 0).
     pub crb: Option<Crb>,
+    /// The CRB of the lines its selection keeps, over its whole joint grid (None at σ = 0).
+    pub selected: Option<SelectedCrb>,
     /// |t_GT|, metres.
     pub t_norm_m: f64,
 }
@@ -146,16 +151,19 @@ fn protocol(c: &Condition, seed: u64) -> CalibProtocol {
 /// Runs one trial: generate, both pipelines, errors.
 pub fn run_trial(c: &Condition, seed: u64) -> Result<Trial, CalibProtocolError> {
     let d = generate_calibration(&protocol(c, seed))?;
-    let (paper, ours) = match prepare(&d.setup, &d.observations) {
-        Ok(set) => (
-            solve_paper_prepared(&set, &PaperConfig::default()).ok().map(|r| pose_errors(&r.pose, &d.truth)),
-            solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() })
-                .ok()
-                .map(|r| pose_errors(&r.pose, &d.truth)),
-        ),
-        Err(_) => (None, None),
+    let (paper, ours, ours_guard_only) = match prepare(&d.setup, &d.observations) {
+        Ok(set) => {
+            let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
+            let ours = |cfg: &OursConfig| solve_ours_prepared(&set, cfg).ok().map(|r| pose_errors(&r.pose, &d.truth));
+            (
+                solve_paper_prepared(&set, &PaperConfig::default()).ok().map(|r| pose_errors(&r.pose, &d.truth)),
+                ours(&cfg),
+                ours(&OursConfig { selection: None, ..cfg }),
+            )
+        }
+        Err(_) => (None, None, None),
     };
-    Ok(Trial { kept: d.observations.len(), dropped: d.dropped, paper, ours })
+    Ok(Trial { kept: d.observations.len(), dropped: d.dropped, paper, ours, ours_guard_only })
 }
 
 fn crb_of(c: &Condition) -> Option<Crb> {
@@ -165,6 +173,21 @@ fn crb_of(c: &Condition) -> Option<Crb> {
     let clean = generate_calibration(&protocol(&Condition { sigma: 0.0, ..*c }, 0)).ok()?;
     let noise = KinematicNoise { rot_rad: c.sigma, trans_m: c.sigma * c.units.metres(), pixel_px: 0.0 };
     cramer_rao_bound(&clean.setup, &clean.observations, &clean.truth, &noise).ok()
+}
+
+/// Monte Carlo draws per configuration for the selected bound: 256 on the 3⁴×3² grid, fewer
+/// on larger grids (the same total).
+fn selected_bound_of(c: &Condition) -> Option<SelectedCrb> {
+    if c.sigma == 0.0 {
+        return None;
+    }
+    let g = c.geometry();
+    let clean = generate_calibration(&protocol(&Condition { sigma: 0.0, ..*c }, 0)).ok()?;
+    let noise = KinematicNoise { rot_rad: c.sigma, trans_m: c.sigma * c.units.metres(), pixel_px: 0.0 };
+    let configs: Vec<([f64; 4], [f64; 3])> =
+        ecm_grid(&g, c.n_e).iter().flat_map(|e| psm_grid(&g, c.n_t).into_iter().map(move |p| (*e, p))).collect();
+    let samples = (256 * 729 / configs.len().max(1)).clamp(64, 256);
+    selected_bound(&clean.setup, &configs, &clean.truth, &noise, samples, 1).ok()
 }
 
 fn progress_bar(total: u64) -> indicatif::ProgressBar {
@@ -195,14 +218,16 @@ pub fn run_conditions(conditions: &[Condition], trials: usize, seed: u64) -> Res
     bar.finish_and_clear();
     let outcomes = outcomes?;
     let t_norm_m = CalibGeometry::default().truth.translation.vector.norm();
-    let crbs: Vec<Option<Crb>> = conditions.par_iter().map(crb_of).collect();
+    let crbs: Vec<(Option<Crb>, Option<SelectedCrb>)> =
+        conditions.par_iter().map(|c| (crb_of(c), selected_bound_of(c))).collect();
     Ok(conditions
         .iter()
         .enumerate()
         .map(|(i, c)| ConditionResult {
             condition: *c,
             trials: outcomes[i * trials..(i + 1) * trials].to_vec(),
-            crb: crbs[i],
+            crb: crbs[i].0,
+            selected: crbs[i].1,
             t_norm_m,
         })
         .collect())
@@ -233,6 +258,12 @@ pub struct Summary {
     pub paper_rms: [f64; 2],
     /// CRB: RMS |Δt| (mm), RMS e_R (°).
     pub crb: Option<[f64; 2]>,
+    /// CRB of the kept lines (selection): RMS |Δt| (mm), RMS e_R (°).
+    pub selected: Option<[f64; 2]>,
+    /// Expected kept observations under the selection model.
+    pub expected_kept: Option<f64>,
+    /// Ours without the selection-aware stage: RMS |Δt| (mm), RMS e_R (°), over its successes.
+    pub guard_only_rms: [f64; 2],
     /// Trials with e_R > 90° (paper, ours).
     pub wrong: [usize; 2],
     /// Failed trials (paper, ours).
@@ -259,6 +290,15 @@ pub fn summarise(r: &ConditionResult) -> Summary {
         ours_rms: [rms(&o_mm), rms(&o_r)],
         paper_rms: [rms(&p_mm), rms(&p_r)],
         crb: r.crb.map(|c| [c.translation_rms_m * 1e3, c.rotation_rms_rad.to_degrees()]),
+        selected: r.selected.map(|c| [c.bound.translation_rms_m * 1e3, c.bound.rotation_rms_rad.to_degrees()]),
+        expected_kept: r.selected.map(|c| c.expected_kept),
+        guard_only_rms: {
+            let g: Vec<PoseErrors> = r.trials.iter().filter_map(|t| t.ours_guard_only).collect();
+            [
+                rms(&g.iter().map(|e| e.translation_m * 1e3).collect::<Vec<_>>()),
+                rms(&g.iter().map(|e| e.rotation_rad.to_degrees()).collect::<Vec<_>>()),
+            ]
+        },
         wrong: [
             r.trials.iter().filter(|t| t.paper.is_some_and(|e| e.rotation_rad > core::f64::consts::FRAC_PI_2)).count(),
             r.trials.iter().filter(|t| t.ours.is_some_and(|e| e.rotation_rad > core::f64::consts::FRAC_PI_2)).count(),
@@ -290,8 +330,8 @@ const PLOT_FLOOR: f64 = 1e-4;
 /// The Markdown table of a list of conditions.
 pub fn table(results: &[ConditionResult]) -> String {
     let mut s = String::new();
-    s.push_str("| ρ unit | σ | n_e⁴×n_t² | sensor | kept | dropped | paper e_t % | paper e_t mm | paper e_R ° | ours e_t % | ours e_t mm | ours e_R ° | ours/paper e_t | ours/paper e_R | CRB t mm | CRB R ° | ours RMS/CRB t | ours RMS/CRB R | >90° p/o | failed p/o |\n");
-    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    s.push_str("| ρ unit | σ | n_e⁴×n_t² | sensor | kept | dropped | paper e_t % | paper e_t mm | paper e_R ° | ours e_t % | ours e_t mm | ours e_R ° | ours/paper e_t | ours/paper e_R | CRB t mm | CRB R ° | ours RMS/CRB t | ours RMS/CRB R | ours RMS/sel. CRB t | ours RMS/sel. CRB R | >90° p/o | failed p/o |\n");
+    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in results {
         let c = &r.condition;
         let m = summarise(r);
@@ -299,9 +339,13 @@ pub fn table(results: &[ConditionResult]) -> String {
             Some([t, rr_]) => (f(t, 3), f(rr_, 3), f(m.ours_rms[0] / t, 2), f(m.ours_rms[1] / rr_, 2)),
             None => ("–".into(), "–".into(), "–".into(), "–".into()),
         };
+        let (st, sr) = match m.selected {
+            Some([t, r_]) => (f(m.ours_rms[0] / t, 2), f(m.ours_rms[1] / r_, 2)),
+            None => ("–".into(), "–".into()),
+        };
         let _ = writeln!(
             s,
-            "| {} | {} | {}⁴×{}² | {}× | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {}/{} | {}/{} |",
+            "| {} | {} | {}⁴×{}² | {}× | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {}/{} | {}/{} |",
             c.units.name(),
             sigma_label(c.sigma),
             c.n_e,
@@ -321,10 +365,47 @@ pub fn table(results: &[ConditionResult]) -> String {
             crb_r,
             rt,
             rr,
+            st,
+            sr,
             m.wrong[0],
             m.wrong[1],
             m.failed[0],
             m.failed[1]
+        );
+    }
+    s
+}
+
+/// The selection table: bounds with and without the selection, ours with and without its
+/// selection-aware stage.
+pub fn selection_table(results: &[ConditionResult]) -> String {
+    let mut s = String::new();
+    s.push_str("| ρ unit | σ | sensor | kept | expected kept | CRB t mm | sel. CRB t mm | CRB R ° | sel. CRB R ° | ours w/o stage RMS t mm (/sel. CRB) | ours w/o stage RMS R ° (/sel. CRB) | ours RMS t mm (/sel. CRB) | ours RMS R ° (/sel. CRB) |\n");
+    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    for r in results {
+        let c = &r.condition;
+        let m = summarise(r);
+        let (Some(crb), Some(sel), Some(expected)) = (m.crb, m.selected, m.expected_kept) else { continue };
+        let _ = writeln!(
+            s,
+            "| {} | {} | {}× | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) | {} ({}) | {} ({}) |",
+            c.units.name(),
+            sigma_label(c.sigma),
+            c.sensor_scale,
+            f(m.kept, 0),
+            f(expected, 0),
+            f(crb[0], 3),
+            f(sel[0], 3),
+            f(crb[1], 3),
+            f(sel[1], 3),
+            f(m.guard_only_rms[0], 2),
+            ratio(m.guard_only_rms[0], sel[0]),
+            f(m.guard_only_rms[1], 3),
+            ratio(m.guard_only_rms[1], sel[1]),
+            f(m.ours_rms[0], 2),
+            ratio(m.ours_rms[0], sel[0]),
+            f(m.ours_rms[1], 3),
+            ratio(m.ours_rms[1], sel[1]),
         );
     }
     s
@@ -588,6 +669,12 @@ pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<Strin
         "## In-view selection check, ρ in m (n_e = n_t = 3)\n\nThe same trials on the protocol's 640×480 sensor and on a 1920×1440 one with the same focal length (`sensor`: 1×, 3×), where almost no combination leaves the view. Not the paper's protocol: it isolates what the in-view selection costs our pipeline (`docs/calibration.md`).\n"
     );
     md.push_str(&table(selection_res));
+    md.push('\n');
+    let _ = writeln!(
+        md,
+        "### The bound of the kept lines, and our selection-aware stage\n\nCRB: the bound of the noiseless geometry's kept lines as if unselected; sel. CRB: the bound of the lines the selection keeps, over the whole joint grid (Monte Carlo Fisher information, `docs/calibration.md`); expected kept: the selection model's count. Ours without the stage is the border-guarded robust fit.\n"
+    );
+    md.push_str(&selection_table(selection_res));
     md.push('\n');
     if !init.is_empty() {
         let _ = writeln!(

@@ -25,7 +25,7 @@ use super::KinematicNoise;
 use super::kinematics::skew;
 use super::paper::{PaperError, kronecker_rotation, linear_translation, refine_quaternion, wxyz};
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
-use super::selection::{SelectionConfig, refine_selected, tip_pixel_covariance, tip_projection};
+use super::selection::{SelectionConfig, SelectionError, refine_selected, tip_pixel_covariance, tip_projection};
 use super::{Observation, Setup};
 
 /// Two refined candidates whose rotations differ by more than this (radians, 10°) are
@@ -154,12 +154,14 @@ pub struct OursResult {
     /// Observations kept by the border guard (all of them when the guard is off or did not
     /// drop any).
     pub guard_kept: usize,
-    /// The selection-aware stage's bookkeeping, when it ran.
+    /// The selection-aware stage's bookkeeping, when it ran and was applied.
     pub selection: Option<SelectionSummary>,
+    /// Why the selection-aware stage was not applied (the pose is then the guarded fit).
+    pub selection_refused: Option<SelectionError>,
 }
 
 /// What the selection-aware stage did with the observations.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SelectionSummary {
     /// Fitted with their selection.
     pub selected: usize,
@@ -169,6 +171,8 @@ pub struct SelectionSummary {
     /// Left out (tip too close to the camera near the border, behind the camera, or a gross
     /// outlier of the first-order model).
     pub left_out: usize,
+    /// How far the stage moved from the guarded fit, in its standard deviations.
+    pub shift_sigmas: f64,
 }
 
 fn dist_and_grad(l: &Vector3<f64>, u: &Vector2<f64>) -> (f64, nalgebra::RowVector3<f64>) {
@@ -494,13 +498,22 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         }
     }
     // The selection-aware stage, from the guarded fit, on all observations.
-    if let Some(sel) = &cfg.selection
-        && let Some(fit) = refine_selected(set, &noise, &result.pose, sel)
-    {
-        result.covariance = fit.covariance;
-        result.pose = fit.pose;
-        result.residuals = ResidualStats { inliers: fit.selected + fit.plain, ..residual_stats(set, &fit.pose) };
-        result.selection = Some(SelectionSummary { selected: fit.selected, plain: fit.plain, left_out: fit.left_out });
+    if let Some(sel) = &cfg.selection {
+        match refine_selected(set, &noise, &result.pose, sel) {
+            Ok(fit) => {
+                result.covariance = fit.covariance;
+                result.pose = fit.pose;
+                result.residuals =
+                    ResidualStats { inliers: fit.selected + fit.plain, ..residual_stats(set, &fit.pose) };
+                result.selection = Some(SelectionSummary {
+                    selected: fit.selected,
+                    plain: fit.plain,
+                    left_out: fit.left_out,
+                    shift_sigmas: fit.shift_sigmas,
+                });
+            }
+            Err(e) => result.selection_refused = Some(e),
+        }
     }
     Ok(result)
 }
@@ -672,5 +685,6 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         iterations: candidates.iter().map(|c| c.iterations).sum(),
         guard_kept: set.obs.len(),
         selection: None,
+        selection_refused: None,
     })
 }

@@ -270,12 +270,21 @@ pub struct SelectionConfig {
     pub outlier_threshold: f64,
     /// Levenberg-Marquardt iterations per pass (two passes).
     pub max_iterations: usize,
+    /// The stage's result is refused when it lies farther than this from its start, in
+    /// standard deviations of the start's Gauss-Newton metric.
+    pub max_shift_sigmas: f64,
 }
 
 impl Default for SelectionConfig {
     /// Tuned on seeds 5000-5059 of the metre reading at σ = 0.01 (the sweep uses 1000-1029).
     fn default() -> Self {
-        Self { depth_ratio: 0.3, plain_guard_sigmas: 0.5, outlier_threshold: 9.2, max_iterations: 50 }
+        Self {
+            depth_ratio: 0.3,
+            plain_guard_sigmas: 0.5,
+            outlier_threshold: 9.2,
+            max_iterations: 50,
+            max_shift_sigmas: 20.0,
+        }
     }
 }
 
@@ -463,6 +472,29 @@ pub struct SelectionFit {
     /// Covariance of `(t m, δφ rad)`: the inverse Gauss-Newton matrix of the line residuals
     /// used, scaled by their dispersion (whitened squared residual per degree of freedom).
     pub covariance: Matrix6<f64>,
+    /// How far the stage moved from its start, in standard deviations of the start's
+    /// Gauss-Newton metric (dimensionless).
+    pub shift_sigmas: f64,
+}
+
+/// Why the selection-aware stage was not applied (our pipeline then keeps the guarded fit).
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum SelectionError {
+    /// No observation could be modelled (every tip behind the camera or every line an outlier).
+    #[error("no observation could be modelled")]
+    NoModel,
+    /// The Gauss-Newton matrix at the solution is singular.
+    #[error("the information matrix at the solution is singular")]
+    Singular,
+    /// The stage moved farther from the robust fit than the first-order model can be trusted
+    /// (typically beyond the noise the protocol was designed for).
+    #[error("the selection-aware fit moved {sigmas:.1} standard deviations from the robust fit (limit {max:.1})")]
+    RanAway {
+        /// The move, standard deviations.
+        sigmas: f64,
+        /// The limit.
+        max: f64,
+    },
 }
 
 /// Maximum likelihood of the kept lines from `start` (`T_e_t`, metres), under `noise` and the
@@ -472,7 +504,7 @@ pub fn refine_selected(
     noise: &KinematicNoise,
     start: &Isometry3<f64>,
     cfg: &SelectionConfig,
-) -> Option<SelectionFit> {
+) -> Result<SelectionFit, SelectionError> {
     let mut r = start.rotation.to_rotation_matrix().into_inner();
     let mut t = start.translation.vector;
     let apply = |r: &Matrix3<f64>, t: &Vector3<f64>, d: &Vector6<f64>| {
@@ -481,6 +513,8 @@ pub fn refine_selected(
     let mut iterations = 0;
     let mut counts = (0, 0, 0);
     let mut covariance = None;
+    // The Gauss-Newton matrix at the start, to measure how far the stage moves.
+    let mut start_metric: Option<Matrix6<f64>> = None;
     for _pass in 0..2 {
         let mut models: Vec<Model> = set.obs.iter().map(|o| model_at(set, o, &r, &t, noise, cfg)).collect();
         // Gross outliers of the first-order model.
@@ -498,7 +532,7 @@ pub fn refine_selected(
             .collect();
         let mut sorted: Vec<f64> = d2.iter().copied().filter(|v| v.is_finite()).collect();
         if sorted.is_empty() {
-            return None;
+            return Err(SelectionError::NoModel);
         }
         sorted.sort_unstable_by(|a, b| a.total_cmp(b));
         // The median of χ²₂/2 is ln 2.
@@ -525,6 +559,7 @@ pub fn refine_selected(
             acc.0.is_finite().then_some(acc)
         };
         let Some((mut f, mut g, mut h)) = eval(&r, &t, true) else { break };
+        start_metric.get_or_insert(h);
         let mut lambda = 1e-4;
         for _ in 0..cfg.max_iterations {
             iterations += 1;
@@ -573,14 +608,24 @@ pub fn refine_selected(
         let dispersion = quad / (dof - 6.0).max(1.0);
         covariance = h.try_inverse().map(|c| c * dispersion);
     }
-    let covariance = covariance.filter(|c| c.iter().all(|v| v.is_finite()))?;
-    Some(SelectionFit {
+    let covariance = covariance.filter(|c| c.iter().all(|v| v.is_finite())).ok_or(SelectionError::Singular)?;
+    // How far from the start, in its standard deviations (Mahalanobis in the start's metric).
+    let (rs, ts) = (start.rotation.to_rotation_matrix().into_inner(), start.translation.vector);
+    let mut d = Vector6::zeros();
+    d.fixed_rows_mut::<3>(0).copy_from(&(t - ts));
+    d.fixed_rows_mut::<3>(3).copy_from(&Rotation3::from_matrix_unchecked(r * rs.transpose()).scaled_axis());
+    let sigmas = start_metric.map_or(f64::INFINITY, |m| d.dot(&(m * d)).max(0.0).sqrt());
+    if !(sigmas.is_finite() && sigmas <= cfg.max_shift_sigmas) {
+        return Err(SelectionError::RanAway { sigmas, max: cfg.max_shift_sigmas });
+    }
+    Ok(SelectionFit {
         pose: Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r)),
         selected: counts.0,
         plain: counts.1,
         left_out: counts.2,
         iterations,
         covariance,
+        shift_sigmas: sigmas,
     })
 }
 

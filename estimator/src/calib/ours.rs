@@ -354,11 +354,7 @@ fn refine(
             let mut accepted = false;
             let mut small = false;
             while lambda < 1e10 {
-                let mut a = h;
-                for i in 0..6 {
-                    a[(i, i)] += lambda * h[(i, i)].max(1e-12);
-                }
-                let Some(step) = a.cholesky().map(|ch| ch.solve(&-g)) else {
+                let Some(step) = damped_step(&h, &g, lambda) else {
                     lambda *= 10.0;
                     continue;
                 };
@@ -382,6 +378,16 @@ fn refine(
         }
     }
     Refined { r, t, whiten, scale, iterations }
+}
+
+/// The Levenberg-Marquardt step `−(H + λ diag H)⁻¹ g` in `(t m, δφ rad)`; `None` when the
+/// damped matrix is not positive definite (raise `λ`).
+pub(crate) fn damped_step(h: &Matrix6<f64>, g: &Vector6<f64>, lambda: f64) -> Option<Vector6<f64>> {
+    let mut a = *h;
+    for i in 0..6 {
+        a[(i, i)] += lambda * h[(i, i)].max(1e-12);
+    }
+    a.cholesky().map(|ch| ch.solve(&-g))
 }
 
 /// Whitening matrices `Σ_i^{-1/2}` at `(r, t)` (identity without a noise model).

@@ -566,11 +566,7 @@ pub fn refine_selected(
             let mut accepted = false;
             let mut small = false;
             while lambda < 1e10 {
-                let mut a = h;
-                for i in 0..6 {
-                    a[(i, i)] += lambda * h[(i, i)].max(1e-12);
-                }
-                let Some(step) = a.cholesky().map(|c| c.solve(&-g)) else {
+                let Some(step) = super::ours::damped_step(&h, &g, lambda) else {
                     lambda *= 10.0;
                     continue;
                 };

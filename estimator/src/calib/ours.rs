@@ -12,6 +12,11 @@
 //! estimator of the linearised model, whose covariance the Cramér-Rao bound ([`super::crb`])
 //! bounds.
 //!
+//! Stages with a noise model: the robust fit from the linear starts and their mirrors; the
+//! border guard (refits on observations whose tip is predicted well inside the image); the
+//! selection-aware stage ([`super::selection`]: the likelihood of the kept lines, on all
+//! observations), refused when it runs away ([`OursResult::selection_refused`]).
+//!
 //! Parameters: `t` (metres, `{e}`) and a left rotation increment `δφ` (radians, `{e}`),
 //! `R ← exp(δφ^) R`. The covariance is reported in that order `(tx, ty, tz, φx, φy, φz)`.
 

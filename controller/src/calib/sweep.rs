@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use estimator::calib::crb::{Crb, SelectedCrb, cramer_rao_bound, selected_bound};
-use estimator::calib::ours::{OursConfig, solve_ours_prepared};
+use estimator::calib::ours::{OursConfig, OursResult, apply_selection_stage, solve_ours_prepared};
 use estimator::calib::paper::{PaperConfig, solve_paper_prepared};
 use estimator::calib::prepare::prepare;
 use estimator::calib::{KinematicNoise, PoseErrors, pose_errors};
@@ -153,12 +153,20 @@ pub fn run_trial(c: &Condition, seed: u64) -> Result<Trial, CalibProtocolError> 
     let d = generate_calibration(&protocol(c, seed))?;
     let (paper, ours, ours_guard_only) = match prepare(&d.setup, &d.observations) {
         Ok(set) => {
-            let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
-            let ours = |cfg: &OursConfig| solve_ours_prepared(&set, cfg).ok().map(|r| pose_errors(&r.pose, &d.truth));
+            // Ours is solved once without its selection-aware stage, which is then applied to
+            // that fit: both results from one solve.
+            let guarded =
+                solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: None, ..Default::default() });
+            let full = match (&guarded, d.noise, OursConfig::default().selection) {
+                (Ok(g), Some(noise), Some(sel)) => Some(apply_selection_stage(&set, &noise, &sel, *g)),
+                (Ok(g), _, _) => Some(*g),
+                (Err(_), _, _) => None,
+            };
+            let errors = |p: &OursResult| pose_errors(&p.pose, &d.truth);
             (
                 solve_paper_prepared(&set, &PaperConfig::default()).ok().map(|r| pose_errors(&r.pose, &d.truth)),
-                ours(&cfg),
-                ours(&OursConfig { selection: None, ..cfg }),
+                full.as_ref().map(errors),
+                guarded.as_ref().ok().map(errors),
             )
         }
         Err(_) => (None, None, None),

@@ -88,9 +88,9 @@ pub struct SelectedCrb {
 /// To first order the line residuals `r` and the unmeasured tip `e` are jointly Gaussian;
 /// a kept line's likelihood is `N(r; 0, Σ_r) · P(e ∈ B | r) / P(e ∈ B)`. Its Fisher
 /// information has no closed form: it is the mean outer product of the score over `samples`
-/// kept draws per configuration (ChaCha8 from `seed`; the score's probability terms by central
-/// differences). Repeatable for a seed; the bound moves by about 1 % across seeds at 256
-/// draws. It bounds unbiased estimators that use the kept lines (not which configurations were
+/// kept draws per configuration (ChaCha8 from `seed`; the normaliser's gradient analytic, the
+/// conditional term's by central differences). Repeatable for a seed; the bound moves by
+/// about 1 % across seeds at 256 draws. It bounds unbiased estimators that use the kept lines (not which configurations were
 /// dropped), on average over which ones are kept.
 pub fn selected_bound(
     setup: &Setup,
@@ -100,12 +100,13 @@ pub fn selected_bound(
     samples: usize,
     seed: u64,
 ) -> Result<SelectedCrb, CrbError> {
-    use nalgebra::{Matrix2, SMatrix, Vector2, Vector6};
+    use nalgebra::{SMatrix, Vector2, Vector6};
     use rand::{Rng, SeedableRng};
 
-    use super::ours::{noise_jacobian, residual_and_jacobian};
+    use super::ours::residual_and_jacobian;
     use super::selection::{
-        box_probability, kept_box, perturbation_variances, shifted_box_probability, tip_projection,
+        TipGivenLine, box_probability, box_probability_gradient, kept_box, line_tip_noise, perturbation_variances,
+        shifted_box_probability, tip_given_line, tip_projection,
     };
     if !noise.is_valid() {
         return Err(CrbError::NoiseModel);
@@ -129,37 +130,19 @@ pub fn selected_bound(
         let (_, jr) = residual_and_jacobian(&set, o, &r, &t);
         // e = tip − û: ∂e/∂pose = −∂û/∂pose.
         let jt: SMatrix<f64, 2, 6> = -(tp.proj * tp.dp_pose);
-        let mut m = SMatrix::<f64, 4, 18>::zeros();
-        m.fixed_view_mut::<2, 18>(0, 0).copy_from(&-noise_jacobian(&set, o, &r, &t));
-        m.fixed_view_mut::<2, 18>(2, 0).copy_from(&(tp.proj * tp.dp_noise));
-        let mut s4 = SMatrix::<f64, 4, 4>::identity() * (noise.pixel_px * noise.pixel_px);
-        for (c, sd) in sd.iter().enumerate() {
-            let col = m.column(c);
-            s4 += col * col.transpose() * (sd * sd);
-        }
-        let srr: Matrix2<f64> = s4.fixed_view::<2, 2>(0, 0).into_owned();
-        let stt: Matrix2<f64> = s4.fixed_view::<2, 2>(2, 2).into_owned();
-        let ser: Matrix2<f64> = s4.fixed_view::<2, 2>(2, 0).into_owned();
-        let srr_inv = srr.try_inverse().ok_or(CrbError::Singular)?;
+        let (m, s4) = line_tip_noise(&set, o, &r, &t, &tp, noise);
+        let TipGivenLine { srr_inv, stt, gain, cond } = tip_given_line(&s4).ok_or(CrbError::Singular)?;
         fisher0 += jr.transpose() * srr_inv * jr;
-        let gain = ser * srr_inv;
-        let cond = stt - gain * ser.transpose();
         let (lo, hi) = kept_box(&set, &tp.dir_px);
         let (lo0, hi0) = (lo - tp.px, hi - tp.px);
         // Kept ⇔ e(pose) ∈ [lo − û(pose), hi − û(pose)] = [lo0, hi0] + jt Δ.
-        let p_box = |d: &Vector6<f64>| {
-            let s = jt * d;
-            box_probability(&stt, &(lo0 + s), &(hi0 + s))
-        };
-        let p0 = p_box(&Vector6::zeros());
+        let p0 = box_probability(&stt, &lo0, &hi0);
         // Also skips a NaN probability.
         if p0.partial_cmp(&1e-9) != Some(core::cmp::Ordering::Greater) {
             continue;
         }
-        let mut grad_box = Vector6::zeros();
-        for k in 0..6 {
-            grad_box[k] = (p_box(&unit(k)).max(1e-300).ln() - p_box(&-unit(k)).max(1e-300).ln()) / (2.0 * H);
-        }
+        // ∂ ln P/∂Δ: the box moves by +jt Δ, i.e. e by −jt Δ relative to it.
+        let grad_box: Vector6<f64> = -(jt.transpose() * box_probability_gradient(&stt, &lo0, &hi0)) / p0;
         let p_cond = |rr: &Vector2<f64>, d: &Vector6<f64>| {
             let s = jt * d;
             shifted_box_probability(&(gain * (rr + jr * d)), &cond, &(lo0 + s), &(hi0 + s))

@@ -509,24 +509,37 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         }
     }
     // The selection-aware stage, from the guarded fit, on all observations.
-    if let Some(sel) = &cfg.selection {
-        match refine_selected(set, &noise, &result.pose, sel) {
-            Ok(fit) => {
-                result.covariance = fit.covariance;
-                result.pose = fit.pose;
-                result.residuals =
-                    ResidualStats { inliers: fit.selected + fit.plain, ..residual_stats(set, &fit.pose) };
-                result.selection = Some(SelectionSummary {
-                    selected: fit.selected,
-                    plain: fit.plain,
-                    left_out: fit.left_out,
-                    shift_sigmas: fit.shift_sigmas,
-                });
-            }
-            Err(e) => result.selection_refused = Some(e),
+    Ok(match &cfg.selection {
+        Some(sel) => apply_selection_stage(set, &noise, sel, result),
+        None => result,
+    })
+}
+
+/// The selection-aware stage ([`super::selection`]) from a guarded fit of
+/// [`solve_ours_prepared`] (run with `selection: None`): the stage's pose, covariance and
+/// bookkeeping, or the guarded fit with the reason when the stage is refused. For comparing
+/// both without solving twice.
+pub fn apply_selection_stage(
+    set: &PreparedSet,
+    noise: &KinematicNoise,
+    cfg: &SelectionConfig,
+    mut result: OursResult,
+) -> OursResult {
+    match refine_selected(set, noise, &result.pose, cfg) {
+        Ok(fit) => {
+            result.covariance = fit.covariance;
+            result.pose = fit.pose;
+            result.residuals = ResidualStats { inliers: fit.selected + fit.plain, ..residual_stats(set, &fit.pose) };
+            result.selection = Some(SelectionSummary {
+                selected: fit.selected,
+                plain: fit.plain,
+                left_out: fit.left_out,
+                shift_sigmas: fit.shift_sigmas,
+            });
         }
+        Err(e) => result.selection_refused = Some(e),
     }
-    Ok(result)
+    result
 }
 
 /// True when the tool tip of `o`, predicted at `(R, t)`, lies `k` standard deviations (of

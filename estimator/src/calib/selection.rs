@@ -34,7 +34,8 @@
 use std::vec::Vec;
 
 use nalgebra::{
-    Isometry3, Matrix2, Matrix3, Matrix6, Rotation3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
+    Isometry3, Matrix2, Matrix3, Matrix4, Matrix6, Rotation3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3,
+    Vector6,
 };
 
 use super::KinematicNoise;
@@ -61,9 +62,23 @@ pub struct TipProjection {
     pub dir_px: Vector2<f64>,
 }
 
-/// Projects observation `o`'s tool tip at pose `(R, t)` (`T_e_t`); `None` when it is less
-/// than 1 mm in front of the optical centre.
-pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipProjection> {
+/// The predicted tool tip's pixel and its pose derivatives: what the likelihood needs at every
+/// evaluation (the noise derivatives of [`TipProjection`] are only needed per pass).
+#[derive(Clone, Copy, Debug)]
+pub struct TipPixel {
+    /// The tip in the camera frame, metres.
+    pub p_c: Vector3<f64>,
+    /// Its ideal (undistorted) pixel position.
+    pub px: Vector2<f64>,
+    /// `∂px/∂p_c`, pixels per metre.
+    pub proj: SMatrix<f64, 2, 3>,
+    /// `∂p_c/∂(t, δφ)` (metres per metre / radian).
+    pub dp_pose: SMatrix<f64, 3, 6>,
+}
+
+/// Projects observation `o`'s tool tip at pose `(R, t)` (`T_e_t`) with its pose derivatives;
+/// `None` when it is less than 1 mm in front of the optical centre.
+pub fn tip_pixel(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipPixel> {
     let rt = o.r_ec.transpose();
     let tip_t = r * (o.m_t * o.insertion_m);
     let p = rt * (tip_t + t - o.o_ec);
@@ -80,6 +95,19 @@ pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
         cam.fy / p.z,
         -cam.fy * p.y / (p.z * p.z),
     );
+    // Pose: p = R_ecᵀ(R m d + t − o), R ← exp(δφ^) R.
+    let mut dp_pose = SMatrix::<f64, 3, 6>::zeros();
+    dp_pose.fixed_view_mut::<3, 3>(0, 0).copy_from(&rt);
+    dp_pose.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&tip_t)));
+    Some(TipPixel { p_c: p, px, proj, dp_pose })
+}
+
+/// Projects observation `o`'s tool tip at pose `(R, t)` (`T_e_t`) with its pose and noise
+/// derivatives and the shaft's image direction; `None` when it is less than 1 mm in front of
+/// the optical centre.
+pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipProjection> {
+    let TipPixel { p_c: p, px, proj, dp_pose } = tip_pixel(set, o, r, t)?;
+    let rt = o.r_ec.transpose();
     // Camera: right perturbation δc = Ad(X⁻¹) δe moves the point by p' = p + [p]× φc − ρc;
     // tool: δP = R2(ρa + ρb − d[ẑ]×φa) mapped into the camera by A = R_ecᵀ R R2.
     let mut dp_c = SMatrix::<f64, 3, 6>::zeros();
@@ -91,10 +119,6 @@ pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
     dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
     dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);
-    // Pose: p = R_ecᵀ(R m d + t − o), R ← exp(δφ^) R.
-    let mut dp_pose = SMatrix::<f64, 3, 6>::zeros();
-    dp_pose.fixed_view_mut::<3, 3>(0, 0).copy_from(&rt);
-    dp_pose.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&tip_t)));
     let back = -(rt * (r * o.m_t));
     let dir_px = (proj * back).try_normalize(1e-12).unwrap_or_else(Vector2::zeros);
     Some(TipProjection { p_c: p, px, proj, dp_noise: dp, dp_pose, dir_px })
@@ -316,6 +340,76 @@ enum Model {
     Out,
 }
 
+/// The joint first-order noise of an observation's two line residuals `r` and its tip pixel
+/// `e` at the pose of `tp`: the 4×18 map from the frame perturbations (pixels per metre /
+/// radian; a residual is the distance of a point of the actual, perturbed line to the model
+/// line, so it moves against the line's sensitivity) and the 4×4 covariance (pixels²), `r`
+/// first.
+pub fn line_tip_noise(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    tp: &TipProjection,
+    noise: &KinematicNoise,
+) -> (SMatrix<f64, 4, 18>, Matrix4<f64>) {
+    let mut m = SMatrix::<f64, 4, 18>::zeros();
+    m.fixed_view_mut::<2, 18>(0, 0).copy_from(&-noise_jacobian(set, o, r, t));
+    m.fixed_view_mut::<2, 18>(2, 0).copy_from(&(tp.proj * tp.dp_noise));
+    let mut s4 = Matrix4::identity() * (noise.pixel_px * noise.pixel_px);
+    for (c, v) in perturbation_variances(noise).iter().enumerate() {
+        let col = m.column(c);
+        s4 += col * col.transpose() * *v;
+    }
+    (m, s4)
+}
+
+/// The tip given the line, from the joint covariance `s4` of [`line_tip_noise`].
+#[derive(Clone, Copy, Debug)]
+pub struct TipGivenLine {
+    /// `Σ_r⁻¹` (pixels⁻²).
+    pub srr_inv: Matrix2<f64>,
+    /// `Σ_e`, the tip's covariance (pixels²).
+    pub stt: Matrix2<f64>,
+    /// `Σ_er Σ_r⁻¹`: the tip's conditional mean per unit residual.
+    pub gain: Matrix2<f64>,
+    /// `Σ_e − gain Σ_re`: the tip's conditional covariance given `r` (pixels²).
+    pub cond: Matrix2<f64>,
+}
+
+/// Conditions the tip on the line residuals; `None` when `Σ_r` is singular.
+pub fn tip_given_line(s4: &Matrix4<f64>) -> Option<TipGivenLine> {
+    let srr: Matrix2<f64> = s4.fixed_view::<2, 2>(0, 0).into_owned();
+    let stt: Matrix2<f64> = s4.fixed_view::<2, 2>(2, 2).into_owned();
+    let ser: Matrix2<f64> = s4.fixed_view::<2, 2>(2, 0).into_owned();
+    let srr_inv = srr.try_inverse()?;
+    let gain = ser * srr_inv;
+    Some(TipGivenLine { srr_inv, stt, gain, cond: stt - gain * ser.transpose() })
+}
+
+/// The parameter interval `[s_lo, s_hi]` of the line `point + s·dir` inside the box
+/// `[lo, hi]` (any units); `None` when the line misses the box.
+pub fn clip_line_to_box(
+    point: &Vector2<f64>,
+    dir: &Vector2<f64>,
+    lo: &Vector2<f64>,
+    hi: &Vector2<f64>,
+) -> Option<(f64, f64)> {
+    let (mut s_lo, mut s_hi) = (f64::NEG_INFINITY, f64::INFINITY);
+    for k in 0..2 {
+        if dir[k].abs() < 1e-12 {
+            if point[k] < lo[k] || point[k] > hi[k] {
+                return None;
+            }
+        } else {
+            let (a, b) = ((lo[k] - point[k]) / dir[k], (hi[k] - point[k]) / dir[k]);
+            s_lo = s_lo.max(a.min(b));
+            s_hi = s_hi.min(a.max(b));
+        }
+    }
+    (s_lo < s_hi).then_some((s_lo, s_hi))
+}
+
 fn model_at(
     set: &PreparedSet,
     o: &Prepared,
@@ -325,54 +419,25 @@ fn model_at(
     cfg: &SelectionConfig,
 ) -> Model {
     let Some(tp) = tip_projection(set, o, r, t) else { return Model::Out };
-    let Some(srr_inv) = residual_covariance(set, o, r, t, noise).try_inverse() else {
-        return Model::Out;
-    };
     if relative_depth_sd(&tp, noise) > cfg.depth_ratio {
-        return if super::ours::tip_well_inside(set, o, r, t, noise, cfg.plain_guard_sigmas) {
-            Model::Plain(srr_inv)
-        } else {
-            Model::Out
+        let plain = super::ours::tip_well_inside(set, o, r, t, noise, cfg.plain_guard_sigmas);
+        return match residual_covariance(set, o, r, t, noise).try_inverse() {
+            Some(srr_inv) if plain => Model::Plain(srr_inv),
+            _ => Model::Out,
         };
     }
-    // Joint noise map of (r, e): a residual is the distance of a point of the actual
-    // (perturbed) line to the model line, so it moves against the line's sensitivity.
-    let mut m = SMatrix::<f64, 4, 18>::zeros();
-    m.fixed_view_mut::<2, 18>(0, 0).copy_from(&-noise_jacobian(set, o, r, t));
-    m.fixed_view_mut::<2, 18>(2, 0).copy_from(&(tp.proj * tp.dp_noise));
-    let mut s4 = SMatrix::<f64, 4, 4>::identity() * (noise.pixel_px * noise.pixel_px);
-    for (c, v) in perturbation_variances(noise).iter().enumerate() {
-        let col = m.column(c);
-        s4 += col * col.transpose() * *v;
-    }
-    let srr: Matrix2<f64> = s4.fixed_view::<2, 2>(0, 0).into_owned();
-    let stt: Matrix2<f64> = s4.fixed_view::<2, 2>(2, 2).into_owned();
-    let ser: Matrix2<f64> = s4.fixed_view::<2, 2>(2, 0).into_owned();
-    let Some(srr_inv4) = srr.try_inverse() else { return Model::Plain(srr_inv) };
-    let gain = ser * srr_inv4;
-    let cond = stt - gain * ser.transpose();
+    let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
+    let Some(TipGivenLine { srr_inv, stt, gain, cond }) = tip_given_line(&s4) else { return Model::Out };
     let (lo, hi) = kept_box(set, &tp.dir_px);
     let Some(mut u) = (o.px[1] - o.px[0]).try_normalize(1e-12) else { return Model::Plain(srr_inv) };
     if u.dot(&tp.dir_px) < 0.0 {
         u = -u;
     }
     let (blo, bhi) = kept_box(set, &u);
-    let (mut s_lo, mut s_hi) = (f64::NEG_INFINITY, f64::INFINITY);
-    for k in 0..2 {
-        if u[k].abs() < 1e-12 {
-            if o.px[0][k] < blo[k] || o.px[0][k] > bhi[k] {
-                return Model::Plain(srr_inv);
-            }
-        } else {
-            let (a, b) = ((blo[k] - o.px[0][k]) / u[k], (bhi[k] - o.px[0][k]) / u[k]);
-            s_lo = s_lo.max(a.min(b));
-            s_hi = s_hi.min(a.max(b));
-        }
+    match clip_line_to_box(&o.px[0], &u, &blo, &bhi) {
+        Some((s_lo, s_hi)) => Model::Selected { srr_inv, stt, gain, cond, lo, hi, segment: (u, s_lo, s_hi) },
+        None => Model::Plain(srr_inv),
     }
-    if s_lo >= s_hi {
-        return Model::Plain(srr_inv);
-    }
-    Model::Selected { srr_inv: srr_inv4, stt, gain, cond, lo, hi, segment: (u, s_lo, s_hi) }
 }
 
 /// Probabilities below this are taken as this (a log-likelihood term is at most ~30).
@@ -402,7 +467,7 @@ fn term(
     let mut g = if want_grad { jr.transpose() * w } else { Vector6::zeros() };
     let mut h = if want_grad { jr.transpose() * srr_inv * jr } else { Matrix6::zeros() };
     if let Some(Model::Selected { stt, gain, cond, lo, hi, segment: (u, s_lo, s_hi), .. }) = rest {
-        let tp = tip_projection(set, o, r, t)?;
+        let tp = tip_pixel(set, o, r, t)?;
         // Normaliser: P(e ∈ [lo − û, hi − û]).
         let (blo, bhi) = (lo - tp.px, hi - tp.px);
         let p_box = box_probability(stt, &blo, &bhi);
@@ -636,18 +701,9 @@ pub fn shifted_box_probability(mean: &Vector2<f64>, c: &Matrix2<f64>, lo: &Vecto
         return box_probability(c, &(lo - mean), &(hi - mean));
     }
     let v = eig.eigenvectors.column(imax).into_owned();
-    let (mut a, mut b) = (f64::NEG_INFINITY, f64::INFINITY);
-    for k in 0..2 {
-        if v[k].abs() < 1e-12 {
-            if mean[k] < lo[k] || mean[k] > hi[k] {
-                return 0.0;
-            }
-        } else {
-            let (s0, s1) = ((lo[k] - mean[k]) / v[k], (hi[k] - mean[k]) / v[k]);
-            a = a.max(s0.min(s1));
-            b = b.min(s0.max(s1));
-        }
-    }
     let sd = lmax.sqrt();
-    normal_mass((a / sd).max(-40.0), (b / sd).min(40.0))
+    match clip_line_to_box(mean, &v, lo, hi) {
+        Some((a, b)) => normal_mass((a / sd).max(-40.0), (b / sd).min(40.0)),
+        None => 0.0,
+    }
 }

@@ -105,8 +105,8 @@ pub fn selected_bound(
 
     use super::ours::residual_and_jacobian;
     use super::selection::{
-        TipGivenLine, box_probability, box_probability_gradient, kept_box, line_tip_noise, perturbation_variances,
-        shifted_box_probability, tip_given_line, tip_projection,
+        TipGivenLine, box_probability, box_probability_gradient, kept_box, line_tip_noise, shifted_box_probability,
+        tip_given_line, tip_projection,
     };
     if !noise.is_valid() {
         return Err(CrbError::NoiseModel);
@@ -116,7 +116,7 @@ pub fn selected_bound(
     let set = prepare(setup, &predicted)?;
     let r = truth.rotation.to_rotation_matrix().into_inner();
     let t = truth.translation.vector;
-    let sd = perturbation_variances(noise).map(f64::sqrt);
+    let sd = noise.perturbation_variances().map(f64::sqrt);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let (mut fisher, mut fisher0, mut expected) = (Matrix6::zeros(), Matrix6::zeros(), 0.0);
     const H: f64 = 1e-6;
@@ -129,12 +129,12 @@ pub fn selected_bound(
         let Some(tp) = tip_projection(&set, o, &r, &t) else { continue };
         let (_, jr) = residual_and_jacobian(&set, o, &r, &t);
         // e = tip − û: ∂e/∂pose = −∂û/∂pose.
-        let jt: SMatrix<f64, 2, 6> = -(tp.proj * tp.dp_pose);
+        let jt: SMatrix<f64, 2, 6> = -(tp.pixel.proj * tp.pixel.dp_pose);
         let (m, s4) = line_tip_noise(&set, o, &r, &t, &tp, noise);
         let TipGivenLine { srr_inv, stt, gain, cond } = tip_given_line(&s4).ok_or(CrbError::Singular)?;
         fisher0 += jr.transpose() * srr_inv * jr;
         let (lo, hi) = kept_box(&set, &tp.dir_px);
-        let (lo0, hi0) = (lo - tp.px, hi - tp.px);
+        let (lo0, hi0) = (lo - tp.pixel.px, hi - tp.pixel.px);
         // Kept ⇔ e(pose) ∈ [lo − û(pose), hi − û(pose)] = [lo0, hi0] + jt Δ.
         let p0 = box_probability(&stt, &lo0, &hi0);
         // Also skips a NaN probability.

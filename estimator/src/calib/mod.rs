@@ -35,7 +35,7 @@ pub mod paper;
 pub mod prepare;
 pub mod selection;
 
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::{Isometry3, SMatrix, Vector3};
 use serde::{Deserialize, Serialize};
 
 pub use camera::Intrinsics;
@@ -91,6 +91,28 @@ impl KinematicNoise {
     pub fn is_valid(&self) -> bool {
         let all = [self.rot_rad, self.trans_m, self.pixel_px];
         all.iter().all(|v| v.is_finite() && *v >= 0.0) && all.iter().any(|v| *v > 0.0)
+    }
+
+    /// Variances of the 18 frame perturbations `(δ_ECM, δ_PSM2, δ_PSM3)`, each `(ρ, φ)`:
+    /// `ρ` in m², `φ` in rad².
+    pub fn perturbation_variances(&self) -> [f64; 18] {
+        let mut v = [0.0; 18];
+        for (c, x) in v.iter_mut().enumerate() {
+            *x = if c % 6 < 3 { self.trans_m * self.trans_m } else { self.rot_rad * self.rot_rad };
+        }
+        v
+    }
+
+    /// Covariance (pixels²) of `R` image quantities whose sensitivity to the 18 frame
+    /// perturbations is `g` (pixels per metre / radian), each with its own pixel noise:
+    /// `g diag(σ²) gᵀ + σ_px² I`.
+    pub fn propagate<const R: usize>(&self, g: &SMatrix<f64, R, 18>) -> SMatrix<f64, R, R> {
+        let mut cov = SMatrix::<f64, R, R>::identity() * (self.pixel_px * self.pixel_px);
+        for (c, v) in self.perturbation_variances().iter().enumerate() {
+            let col = g.column(c);
+            cov += col * col.transpose() * *v;
+        }
+        cov
     }
 }
 

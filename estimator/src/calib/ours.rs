@@ -264,20 +264,7 @@ pub fn residual_covariance(
     t: &Vector3<f64>,
     noise: &KinematicNoise,
 ) -> Matrix2<f64> {
-    let g = noise_jacobian(set, o, r, t);
-    let mut d = SMatrix::<f64, 18, 1>::zeros();
-    for f in 0..3 {
-        for k in 0..3 {
-            d[6 * f + k] = noise.trans_m * noise.trans_m;
-            d[6 * f + 3 + k] = noise.rot_rad * noise.rot_rad;
-        }
-    }
-    let mut s = Matrix2::identity() * (noise.pixel_px * noise.pixel_px);
-    for c in 0..18 {
-        let col = g.column(c);
-        s += col * col.transpose() * d[c];
-    }
-    s
+    noise.propagate(&noise_jacobian(set, o, r, t))
 }
 
 /// Inverse Cholesky factor `L⁻¹` of a 2×2 SPD matrix (identity if not SPD).
@@ -554,7 +541,7 @@ pub fn tip_well_inside(
 ) -> bool {
     let Some(tp) = tip_projection(set, o, r, t) else { return false };
     let cov = tip_pixel_covariance(&tp, noise);
-    let (u, v) = (tp.px.x, tp.px.y);
+    let (u, v) = (tp.pixel.px.x, tp.pixel.px.y);
     let cam = &set.intrinsics;
     let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
     u - su >= 0.0 && v - sv >= 0.0 && u + su <= cam.width as f64 - 1.0 && v + sv <= cam.height as f64 - 1.0

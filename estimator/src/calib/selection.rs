@@ -46,17 +46,11 @@ use super::prepare::{Prepared, PreparedSet};
 /// The predicted tool tip of an observation, seen by its camera.
 #[derive(Clone, Copy, Debug)]
 pub struct TipProjection {
-    /// The tip in the camera frame, metres.
-    pub p_c: Vector3<f64>,
-    /// Its ideal (undistorted) pixel position.
-    pub px: Vector2<f64>,
-    /// `∂px/∂p_c`, pixels per metre.
-    pub proj: SMatrix<f64, 2, 3>,
+    /// The tip's pixel and its pose derivatives.
+    pub pixel: TipPixel,
     /// `∂p_c/∂δ` for the 18 frame perturbations `(δ_ECM, δ_PSM2, δ_PSM3)`, each `(ρ m, φ rad)`:
     /// how the actual tip moves in the camera frame.
     pub dp_noise: SMatrix<f64, 3, 18>,
-    /// `∂p_c/∂(t, δφ)`: how the predicted tip moves with the pose (metres per metre / radian).
-    pub dp_pose: SMatrix<f64, 3, 6>,
     /// Unit image direction of the shaft from the tip toward robot 2's RCM (zero when the
     /// shaft is seen end-on).
     pub dir_px: Vector2<f64>,
@@ -106,7 +100,8 @@ pub fn tip_pixel(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<
 /// derivatives and the shaft's image direction; `None` when it is less than 1 mm in front of
 /// the optical centre.
 pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipProjection> {
-    let TipPixel { p_c: p, px, proj, dp_pose } = tip_pixel(set, o, r, t)?;
+    let pixel = tip_pixel(set, o, r, t)?;
+    let (p, proj) = (pixel.p_c, pixel.proj);
     let rt = o.r_ec.transpose();
     // Camera: right perturbation δc = Ad(X⁻¹) δe moves the point by p' = p + [p]× φc − ρc;
     // tool: δP = R2(ρa + ρb − d[ẑ]×φa) mapped into the camera by A = R_ecᵀ R R2.
@@ -121,36 +116,20 @@ pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);
     let back = -(rt * (r * o.m_t));
     let dir_px = (proj * back).try_normalize(1e-12).unwrap_or_else(Vector2::zeros);
-    Some(TipProjection { p_c: p, px, proj, dp_noise: dp, dp_pose, dir_px })
-}
-
-/// Variances of the 18 frame perturbations under `noise` (`ρ` m², `φ` rad²).
-pub fn perturbation_variances(noise: &KinematicNoise) -> [f64; 18] {
-    let mut v = [0.0; 18];
-    for (c, x) in v.iter_mut().enumerate() {
-        *x = if c % 6 < 3 { noise.trans_m * noise.trans_m } else { noise.rot_rad * noise.rot_rad };
-    }
-    v
+    Some(TipProjection { pixel, dp_noise: dp, dir_px })
 }
 
 /// The 2×2 covariance (pixels²) of the tip's pixel under `noise`.
 pub fn tip_pixel_covariance(tp: &TipProjection, noise: &KinematicNoise) -> Matrix2<f64> {
-    let g = tp.proj * tp.dp_noise;
-    let var = perturbation_variances(noise);
-    let mut cov = Matrix2::identity() * (noise.pixel_px * noise.pixel_px);
-    for (c, v) in var.iter().enumerate() {
-        let col = g.column(c);
-        cov += col * col.transpose() * *v;
-    }
-    cov
+    noise.propagate(&(tp.pixel.proj * tp.dp_noise))
 }
 
 /// Standard deviation of the tip's depth under `noise` over its depth (dimensionless): how
 /// far from linear its projection is.
 pub fn relative_depth_sd(tp: &TipProjection, noise: &KinematicNoise) -> f64 {
     let row = tp.dp_noise.row(2);
-    let var: f64 = perturbation_variances(noise).iter().enumerate().map(|(c, v)| row[c] * row[c] * v).sum();
-    var.sqrt() / tp.p_c.z
+    let var: f64 = noise.perturbation_variances().iter().enumerate().map(|(c, v)| row[c] * row[c] * v).sum();
+    var.sqrt() / tp.pixel.p_c.z
 }
 
 /// The box (ideal pixels, `(lo, hi)`) the tip must lie in for its observation to be recorded,
@@ -355,13 +334,8 @@ pub fn line_tip_noise(
 ) -> (SMatrix<f64, 4, 18>, Matrix4<f64>) {
     let mut m = SMatrix::<f64, 4, 18>::zeros();
     m.fixed_view_mut::<2, 18>(0, 0).copy_from(&-noise_jacobian(set, o, r, t));
-    m.fixed_view_mut::<2, 18>(2, 0).copy_from(&(tp.proj * tp.dp_noise));
-    let mut s4 = Matrix4::identity() * (noise.pixel_px * noise.pixel_px);
-    for (c, v) in perturbation_variances(noise).iter().enumerate() {
-        let col = m.column(c);
-        s4 += col * col.transpose() * *v;
-    }
-    (m, s4)
+    m.fixed_view_mut::<2, 18>(2, 0).copy_from(&(tp.pixel.proj * tp.dp_noise));
+    (m, noise.propagate(&m))
 }
 
 /// The tip given the line, from the joint covariance `s4` of [`line_tip_noise`].

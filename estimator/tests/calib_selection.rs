@@ -2,7 +2,7 @@
 //! probabilities, the likelihood's gradient, the bound of the kept lines, and our pipeline's
 //! selection-aware stage against the guard alone (simulated data from `sim`).
 
-use estimator::calib::crb::{cramer_rao_bound, selected_bound};
+use estimator::calib::crb::{CrbError, cramer_rao_bound, first_order_bound, selected_bound};
 use estimator::calib::ours::{OursConfig, solve_ours_prepared};
 use estimator::calib::prepare::prepare;
 use estimator::calib::selection::{
@@ -121,6 +121,38 @@ fn the_selected_bound_is_the_naive_one_when_nothing_is_cut_and_is_repeatable() {
     assert!(a.bound.translation_rms_m > 1.2 * a.unselected.translation_rms_m);
     assert_eq!(a.bound.translation_rms_m, a2.bound.translation_rms_m);
     assert!((a3.bound.translation_rms_m / a.bound.translation_rms_m - 1.0).abs() < 0.05);
+}
+
+#[test]
+fn the_first_order_bound_leaves_out_the_near_camera_tips_and_only_grows() {
+    let noise = KinematicNoise { rot_rad: 0.01, trans_m: 0.01, pixel_px: 0.0 };
+    let clean = generate_calibration(&protocol(CalibGeometry::default(), 0.0, 0)).unwrap();
+    let b = |ratio: f64| first_order_bound(&clean.setup, &clean.observations, &clean.truth, &noise, ratio);
+    // No limit: the naive bound itself.
+    let all = b(f64::INFINITY).unwrap();
+    let naive = cramer_rao_bound(&clean.setup, &clean.observations, &clean.truth, &noise).unwrap();
+    assert_eq!(all.excluded, 0);
+    assert!((all.bound.translation_rms_m / naive.translation_rms_m - 1.0).abs() < 1e-12);
+    // Tighter limits leave out more observations (the near-camera ones exist at 10 mm per
+    // frame) and the bound never shrinks.
+    let mut last = all;
+    for ratio in [0.5, 0.3, 0.2, 0.15] {
+        let x = b(ratio).unwrap();
+        assert!(x.excluded >= last.excluded, "{ratio}: {} < {}", x.excluded, last.excluded);
+        assert!(x.bound.translation_rms_m >= last.bound.translation_rms_m * (1.0 - 1e-12));
+        assert!(x.bound.rotation_rms_rad >= last.bound.rotation_rms_rad * (1.0 - 1e-12));
+        last = x;
+    }
+    let at_default = b(SelectionConfig::default().depth_ratio).unwrap();
+    assert!(at_default.excluded > 0 && at_default.excluded < clean.observations.len() / 5, "{}", at_default.excluded);
+    assert!(at_default.bound.translation_rms_m > naive.translation_rms_m);
+    // Nothing left: the pose is unobservable, a typed error.
+    assert_eq!(b(0.0).unwrap_err(), CrbError::Singular);
+    let bad = KinematicNoise { rot_rad: f64::NAN, ..noise };
+    assert_eq!(
+        first_order_bound(&clean.setup, &clean.observations, &clean.truth, &bad, 0.3).unwrap_err(),
+        CrbError::NoiseModel
+    );
 }
 
 #[test]

@@ -7,10 +7,11 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use estimator::calib::crb::{Crb, SelectedCrb, cramer_rao_bound, selected_bound};
+use estimator::calib::crb::{Crb, FirstOrderCrb, SelectedCrb, cramer_rao_bound, first_order_bound, selected_bound};
 use estimator::calib::ours::{OursConfig, OursResult, apply_selection_stage, solve_ours_prepared};
 use estimator::calib::paper::{PaperConfig, solve_paper_prepared};
 use estimator::calib::prepare::prepare;
+use estimator::calib::selection::SelectionConfig;
 use estimator::calib::{KinematicNoise, PoseErrors, pose_errors};
 use plotters::prelude::*;
 use rand::SeedableRng;
@@ -132,6 +133,9 @@ pub struct ConditionResult {
     pub crb: Option<Crb>,
     /// The CRB of the lines its selection keeps, over its whole joint grid (None at σ = 0).
     pub selected: Option<SelectedCrb>,
+    /// The CRB of its noiseless geometry's observations whose tip depth is certain enough for
+    /// the first-order model ([`SelectionConfig::depth_ratio`]; None at σ = 0).
+    pub first_order: Option<FirstOrderCrb>,
     /// |t_GT|, metres.
     pub t_norm_m: f64,
 }
@@ -174,13 +178,19 @@ pub fn run_trial(c: &Condition, seed: u64) -> Result<Trial, CalibProtocolError> 
     Ok(Trial { kept: d.observations.len(), dropped: d.dropped, paper, ours, ours_guard_only })
 }
 
-fn crb_of(c: &Condition) -> Option<Crb> {
+/// The naive bound of the condition's noiseless geometry, and the same restricted to the
+/// observations the first-order model describes.
+fn crb_of(c: &Condition) -> (Option<Crb>, Option<FirstOrderCrb>) {
     if c.sigma == 0.0 {
-        return None;
+        return (None, None);
     }
-    let clean = generate_calibration(&protocol(&Condition { sigma: 0.0, ..*c }, 0)).ok()?;
+    let Ok(clean) = generate_calibration(&protocol(&Condition { sigma: 0.0, ..*c }, 0)) else { return (None, None) };
     let noise = KinematicNoise { rot_rad: c.sigma, trans_m: c.sigma * c.units.metres(), pixel_px: 0.0 };
-    cramer_rao_bound(&clean.setup, &clean.observations, &clean.truth, &noise).ok()
+    let depth_ratio = SelectionConfig::default().depth_ratio;
+    (
+        cramer_rao_bound(&clean.setup, &clean.observations, &clean.truth, &noise).ok(),
+        first_order_bound(&clean.setup, &clean.observations, &clean.truth, &noise, depth_ratio).ok(),
+    )
 }
 
 /// Monte Carlo draws per configuration for the selected bound: 256 on the 3⁴×3² grid, fewer
@@ -226,7 +236,7 @@ pub fn run_conditions(conditions: &[Condition], trials: usize, seed: u64) -> Res
     bar.finish_and_clear();
     let outcomes = outcomes?;
     let t_norm_m = CalibGeometry::default().truth.translation.vector.norm();
-    let crbs: Vec<(Option<Crb>, Option<SelectedCrb>)> =
+    let crbs: Vec<((Option<Crb>, Option<FirstOrderCrb>), Option<SelectedCrb>)> =
         conditions.par_iter().map(|c| (crb_of(c), selected_bound_of(c))).collect();
     Ok(conditions
         .iter()
@@ -234,7 +244,8 @@ pub fn run_conditions(conditions: &[Condition], trials: usize, seed: u64) -> Res
         .map(|(i, c)| ConditionResult {
             condition: *c,
             trials: outcomes[i * trials..(i + 1) * trials].to_vec(),
-            crb: crbs[i].0,
+            crb: crbs[i].0.0,
+            first_order: crbs[i].0.1,
             selected: crbs[i].1,
             t_norm_m,
         })
@@ -268,6 +279,9 @@ pub struct Summary {
     pub crb: Option<[f64; 2]>,
     /// CRB of the kept lines (selection): RMS |Δt| (mm), RMS e_R (°).
     pub selected: Option<[f64; 2]>,
+    /// CRB of the observations the first-order model describes: RMS |Δt| (mm), RMS e_R (°),
+    /// and how many of the noiseless geometry's observations it leaves out.
+    pub first_order: Option<([f64; 2], usize)>,
     /// Expected kept observations under the selection model.
     pub expected_kept: Option<f64>,
     /// Ours without the selection-aware stage: RMS |Δt| (mm), RMS e_R (°), over its successes.
@@ -300,6 +314,9 @@ pub fn summarise(r: &ConditionResult) -> Summary {
         crb: r.crb.map(|c| [c.translation_rms_m * 1e3, c.rotation_rms_rad.to_degrees()]),
         selected: r.selected.map(|c| [c.bound.translation_rms_m * 1e3, c.bound.rotation_rms_rad.to_degrees()]),
         expected_kept: r.selected.map(|c| c.expected_kept),
+        first_order: r
+            .first_order
+            .map(|c| ([c.bound.translation_rms_m * 1e3, c.bound.rotation_rms_rad.to_degrees()], c.excluded)),
         guard_only_rms: {
             let g: Vec<PoseErrors> = r.trials.iter().filter_map(|t| t.ours_guard_only).collect();
             [
@@ -388,15 +405,19 @@ pub fn table(results: &[ConditionResult]) -> String {
 /// selection-aware stage.
 pub fn selection_table(results: &[ConditionResult]) -> String {
     let mut s = String::new();
-    s.push_str("| ρ unit | σ | sensor | kept | expected kept | CRB t mm | sel. CRB t mm | CRB R ° | sel. CRB R ° | ours w/o stage RMS t mm (/sel. CRB) | ours w/o stage RMS R ° (/sel. CRB) | ours RMS t mm (/sel. CRB) | ours RMS R ° (/sel. CRB) |\n");
-    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    s.push_str("| ρ unit | σ | sensor | kept | expected kept | CRB t mm | sel. CRB t mm | CRB R ° | sel. CRB R ° | ours w/o stage RMS t mm (/sel. CRB) | ours w/o stage RMS R ° (/sel. CRB) | ours RMS t mm (/sel. CRB) | ours RMS R ° (/sel. CRB) | 1st-order CRB t mm / R ° (obs. left out) | ours RMS / 1st-order CRB t, R |\n");
+    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in results {
         let c = &r.condition;
         let m = summarise(r);
-        let (Some(crb), Some(sel), Some(expected)) = (m.crb, m.selected, m.expected_kept) else { continue };
+        let (Some(crb), Some(sel), Some(expected), Some((first, left_out))) =
+            (m.crb, m.selected, m.expected_kept, m.first_order)
+        else {
+            continue;
+        };
         let _ = writeln!(
             s,
-            "| {} | {} | {}× | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) | {} ({}) | {} ({}) |",
+            "| {} | {} | {}× | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) | {} ({}) | {} ({}) | {} / {} ({}) | {}, {} |",
             c.units.name(),
             sigma_label(c.sigma),
             c.sensor_scale,
@@ -414,6 +435,11 @@ pub fn selection_table(results: &[ConditionResult]) -> String {
             ratio(m.ours_rms[0], sel[0]),
             f(m.ours_rms[1], 3),
             ratio(m.ours_rms[1], sel[1]),
+            f(first[0], 3),
+            f(first[1], 3),
+            left_out,
+            ratio(m.ours_rms[0], first[0]),
+            ratio(m.ours_rms[1], first[1]),
         );
     }
     s
@@ -680,7 +706,7 @@ pub fn run_sweep(opts: &SweepOptions, dir: &Path, command: &str) -> Result<Strin
     md.push('\n');
     let _ = writeln!(
         md,
-        "### The bound of the kept lines, and our selection-aware stage\n\nCRB: the bound of the noiseless geometry's kept lines as if unselected; sel. CRB: the bound of the lines the selection keeps, over the whole joint grid (Monte Carlo Fisher information, `docs/calibration.md`); expected kept: the selection model's count. Ours without the stage is the border-guarded robust fit.\n"
+        "### The bound of the kept lines, and our selection-aware stage\n\nCRB: the bound of the noiseless geometry's kept lines as if unselected; sel. CRB: the bound of the lines the selection keeps, over the whole joint grid (Monte Carlo Fisher information, `docs/calibration.md`); expected kept: the selection model's count. Ours without the stage is the border-guarded robust fit. 1st-order CRB: the naive bound of the noiseless geometry's observations whose tip depth has a standard deviation of at most 30 % of the depth (the selection-aware stage's `depth_ratio`; beyond it the first-order model of the tip's pixel fails and the stage uses the observation as a plain line or not at all), with the number of observations it leaves out.\n"
     );
     md.push_str(&selection_table(selection_res));
     md.push('\n');

@@ -52,18 +52,69 @@ pub fn cramer_rao_bound(
         return Err(CrbError::NoiseModel);
     }
     let set = prepare(setup, observations)?;
+    let (fisher, _) = fisher_information(&set, truth, noise, |_| true)?;
+    summarise(&fisher)
+}
+
+/// The naive bound restricted to the observations whose pixel the first-order model
+/// describes, and how many it left out.
+#[derive(Clone, Copy, Debug)]
+pub struct FirstOrderCrb {
+    /// The bound of the observations kept.
+    pub bound: Crb,
+    /// Observations left out: tip depth too uncertain (or the tip behind the camera).
+    pub excluded: usize,
+}
+
+/// [`cramer_rao_bound`] of the observations whose tool tip, at `truth` (`T_e_t`, metres), has
+/// a depth standard deviation under `noise` of at most `max_relative_depth_sd` of its depth
+/// ([`super::selection::relative_depth_sd`]; tips behind the camera are left out too).
+///
+/// Those are the observations for which the first-order model of the tip's pixel, on which
+/// the selection-aware stage rests, holds (it uses the others as plain lines or not at all):
+/// the bound of what a first-order estimator can exploit fully. Comparing it with the full
+/// bound measures how much information sits in the near-camera observations.
+pub fn first_order_bound(
+    setup: &Setup,
+    observations: &[Observation],
+    truth: &Isometry3<f64>,
+    noise: &KinematicNoise,
+    max_relative_depth_sd: f64,
+) -> Result<FirstOrderCrb, CrbError> {
+    use super::selection::{relative_depth_sd, tip_projection};
+    if !noise.is_valid() {
+        return Err(CrbError::NoiseModel);
+    }
+    let set = prepare(setup, observations)?;
+    let (r, t) = (truth.rotation.to_rotation_matrix().into_inner(), truth.translation.vector);
+    let (fisher, used) = fisher_information(&set, truth, noise, |o| {
+        tip_projection(&set, o, &r, &t).is_some_and(|tp| relative_depth_sd(&tp, noise) <= max_relative_depth_sd)
+    })?;
+    Ok(FirstOrderCrb { bound: summarise(&fisher)?, excluded: set.obs.len() - used })
+}
+
+/// `Σ J_iᵀ Σ_i⁻¹ J_i` at `truth` over the observations `keep` accepts, and how many it
+/// accepted.
+fn fisher_information(
+    set: &super::prepare::PreparedSet,
+    truth: &Isometry3<f64>,
+    noise: &KinematicNoise,
+    keep: impl Fn(&super::prepare::Prepared) -> bool,
+) -> Result<(Matrix6<f64>, usize), CrbError> {
     let r = truth.rotation.to_rotation_matrix().into_inner();
     let t = truth.translation.vector;
     let mut fisher = Matrix6::zeros();
-    for o in &set.obs {
-        let (_, j) = residual_and_jacobian(&set, o, &r, &t);
-        let s = residual_covariance(&set, o, &r, &t, noise);
+    let mut used = 0;
+    for o in set.obs.iter().filter(|o| keep(o)) {
+        let (_, j) = residual_and_jacobian(set, o, &r, &t);
+        let s = residual_covariance(set, o, &r, &t, noise);
         let Some(si) = s.try_inverse() else {
             return Err(CrbError::Singular);
         };
         fisher += j.transpose() * si * j;
+        used += 1;
     }
-    summarise(&fisher)
+    Ok((fisher, used))
 }
 
 /// The bound of the kept lines under the protocol's selection, for a whole joint grid.

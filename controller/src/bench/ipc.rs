@@ -23,6 +23,7 @@ use crate::timing::Histogram;
 pub const ROLE_ENV: &str = "COMANIP_BENCH_IPC_SUBSCRIBER";
 const SERVICE_ENV: &str = "COMANIP_BENCH_IPC_SERVICE";
 const COUNT_ENV: &str = "COMANIP_BENCH_IPC_COUNT";
+const PARENT_ENV: &str = "COMANIP_BENCH_IPC_PARENT";
 /// Samples published before measuring.
 pub const WARM_UP: u64 = 500;
 const PERIOD_NS: i64 = 1_000_000;
@@ -67,6 +68,7 @@ pub fn run(count: u64) -> Result<IpcReport, IpcBenchError> {
         .env(ROLE_ENV, "1")
         .env(SERVICE_ENV, &name)
         .env(COUNT_ENV, count.to_string())
+        .env(PARENT_ENV, std::process::id().to_string())
         .stdout(Stdio::piped())
         .spawn()
         .map_err(|e| IpcBenchError::Subscriber(e.to_string()))?;
@@ -121,6 +123,14 @@ pub fn run(count: u64) -> Result<IpcReport, IpcBenchError> {
 pub fn subscriber_main() -> Result<(), String> {
     let name = std::env::var(SERVICE_ENV).map_err(|_| "no service name".to_string())?;
     let count: u64 = std::env::var(COUNT_ENV).ok().and_then(|c| c.parse().ok()).ok_or("no sample count")?;
+    // Die quietly with the publisher: without it there is nothing to measure (and nobody to
+    // read an error). The parent may already be gone before the request takes effect.
+    // SAFETY: prctl with integer arguments only.
+    unsafe { libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM as libc::c_ulong) };
+    let parent: Option<i32> = std::env::var(PARENT_ENV).ok().and_then(|p| p.parse().ok());
+    if parent.is_some_and(|p| p != std::os::unix::process::parent_id() as i32) {
+        return Ok(());
+    }
     let mut sub = FulcrumSubscriber::connect(&name).map_err(|e| e.to_string())?;
     hw_io::outln!("READY").map_err(|e| format!("writing to standard output: {e}"))?;
     let mut hist = Histogram::new(20_000);

@@ -64,8 +64,12 @@ fn a_subscriber_process_receives_every_cycle_and_the_recording_replays_bit_for_b
     let dir = tmp("pubsub");
     let svc = service("pubsub");
     let msum = dir.join("monitor.json");
+    // The monitor stands for a subscriber that must not lose a sample: it gets room for a
+    // stall of the shared machine (the default 64-sample buffer covers only 64 ms).
+    let cfg = dir.join("buffer.toml");
+    std::fs::write(&cfg, "[output]\nsubscriber_buffer = 1000\n").unwrap();
     let mut monitor = Command::new(BIN)
-        .args(["monitor", "--service", &svc, "--count", "6000", "--duration-s", "60"])
+        .args(["monitor", "--service", &svc, "--buffer", "1000", "--count", "6000", "--duration-s", "60"])
         .args(["--summary-json", msum.to_str().unwrap()])
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(dir.join("monitor.err")).unwrap())
@@ -75,7 +79,8 @@ fn a_subscriber_process_receives_every_cycle_and_the_recording_replays_bit_for_b
     let rec = dir.join("rec");
     let dsum = dir.join("daemon.json");
     let out = Command::new(BIN)
-        .args(["--cycles", "6000", "--service", &svc, "--record-dir", rec.to_str().unwrap()])
+        .args(["--config", cfg.to_str().unwrap(), "--cycles", "6000", "--service", &svc])
+        .args(["--record-dir", rec.to_str().unwrap()])
         .args(["--summary-json", dsum.to_str().unwrap()])
         .output()
         .unwrap();

@@ -45,6 +45,51 @@ fn box_probability_matches_closed_forms_and_sampling() {
     assert!((p - mc).abs() < 4e-3, "quadrature {p} vs sampling {mc}");
 }
 
+/// `P(x ∈ [lo, hi])`, `x ~ N(0, s)`, by a 200 000-interval Simpson rule over the first
+/// coordinate (±9 standard deviations) of the second's conditional mass: the reference.
+fn box_probability_by_simpson(s: &Matrix2<f64>, lo: &Vector2<f64>, hi: &Vector2<f64>) -> f64 {
+    let (sd1, rho_sd) = (s[(0, 0)].sqrt(), s[(0, 1)] / s[(0, 0)]);
+    let cond_sd = (s[(1, 1)] - s[(0, 1)] * s[(0, 1)] / s[(0, 0)]).sqrt();
+    let (a, b) = ((lo[0] / sd1).max(-9.0), (hi[0] / sd1).min(9.0));
+    let n = 200_000;
+    let h = (b - a) / n as f64;
+    let f = |w: f64| {
+        let x1 = w * sd1;
+        let m = rho_sd * x1;
+        (-0.5 * w * w).exp() / (2.0 * std::f64::consts::PI).sqrt()
+            * normal_mass(((lo[1] - m) / cond_sd).max(-40.0), ((hi[1] - m) / cond_sd).min(40.0))
+    };
+    let inner: f64 = (1..n).map(|i| f(a + i as f64 * h) * if i % 2 == 1 { 4.0 } else { 2.0 }).sum();
+    h / 3.0 * (f(a) + inner + f(b))
+}
+
+#[test]
+fn box_probability_short_cuts_and_quadrature_match_a_fine_simpson_rule() {
+    // Tip covariances as the stage meets them (tens of pixels, correlated) and image-sized
+    // boxes: one coordinate far inside its faces given the other (either way round, including
+    // a tip far outside in the other coordinate, P small), near a corner, near one face.
+    let s = Matrix2::new(2500.0, 0.6 * 50.0 * 20.0, 0.6 * 50.0 * 20.0, 400.0);
+    let cases = [
+        (Vector2::new(-60.0, -300.0), Vector2::new(500.0, 300.0)), // 2nd far given any 1st in range
+        (Vector2::new(60.0, -300.0), Vector2::new(900.0, 300.0)),  // 1st 1.2σ / 3σ outside, P small
+        (Vector2::new(-400.0, -25.0), Vector2::new(400.0, 600.0)), // 1st far given any 2nd
+        (Vector2::new(-30.0, -15.0), Vector2::new(600.0, 500.0)),  // a corner
+        (Vector2::new(-500.0, -500.0), Vector2::new(500.0, 500.0)), // everything
+        // Faces about 4 conditional standard deviations away: too near for the short cuts.
+        (Vector2::new(-60.0, -150.0), Vector2::new(500.0, 150.0)),
+        (Vector2::new(-400.0, -25.0), Vector2::new(370.0, 600.0)),
+    ];
+    for (lo, hi) in cases {
+        let (p, want) = (box_probability(&s, &lo, &hi), box_probability_by_simpson(&s, &lo, &hi));
+        assert!(((p - want) / want).abs() < 3e-7, "box {lo:?}..{hi:?}: {p} vs Simpson {want}");
+    }
+    let sneg = Matrix2::new(400.0, -0.9 * 20.0 * 60.0, -0.9 * 20.0 * 60.0, 3600.0);
+    for (lo, hi) in cases {
+        let (p, want) = (box_probability(&sneg, &lo, &hi), box_probability_by_simpson(&sneg, &lo, &hi));
+        assert!(((p - want) / want).abs() < 3e-7, "box {lo:?}..{hi:?}: {p} vs Simpson {want}");
+    }
+}
+
 #[test]
 fn box_probability_gradient_matches_differences() {
     let s = Matrix2::new(900.0, -700.0, -700.0, 1600.0);

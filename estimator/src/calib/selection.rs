@@ -158,7 +158,9 @@ pub fn normal_mass(a: f64, b: f64) -> f64 {
     } else if b < 0.0 {
         0.5 * (libm::erfc(-b * s) - libm::erfc(-a * s))
     } else {
-        1.0 - 0.5 * (libm::erfc(-a * s) + libm::erfc(b * s))
+        // erfc(x) < 2.2e-17 for x > 6: below half an ulp of 1, so skipping it is exact.
+        let tail = |x: f64| if x > 6.0 { 0.0 } else { libm::erfc(x) };
+        1.0 - 0.5 * (tail(-a * s) + tail(b * s))
     }
 }
 
@@ -183,14 +185,32 @@ pub fn box_probability(s: &Matrix2<f64>, lo: &Vector2<f64>, hi: &Vector2<f64>) -
     let l = ch.l();
     let (l11, l21, l22) = (l[(0, 0)], l[(1, 0)], l[(1, 1)]);
     const CUT: f64 = 7.0;
-    let sd2 = s[(1, 1)].sqrt();
     let a = (lo[0] / l11).max(-CUT);
     let b = (hi[0] / l11).min(CUT);
     if a >= b {
         return 0.0;
     }
-    if lo[1] <= -CUT * sd2 && hi[1] >= CUT * sd2 {
+    // When one coordinate, given any value of the other inside its range, lies within its
+    // faces with probability ≥ 1 − 2Φ(−FAR) (FAR = 5.5: 3.8e-8), the box probability is
+    // the other's mass, to that relative error. The bounds given the other are linear in it,
+    // so checking the range's two ends suffices.
+    const FAR: f64 = 5.5;
+    let inside = |lo: f64, hi: f64, slope: f64, sd: f64, ends: [f64; 2]| {
+        ends.iter().all(|&v| (lo - slope * v) / sd <= -FAR && (hi - slope * v) / sd >= FAR)
+    };
+    // x2 given w1 = x1 / l11: mean l21 w1, standard deviation l22.
+    if inside(lo[1], hi[1], l21, l22, [a, b]) {
         return normal_mass(a, b);
+    }
+    // x1 given v2 = x2 / sd2: mean s12 / sd2 · v2, standard deviation √(s11 − s12² / s22).
+    let sd2 = s[(1, 1)].sqrt();
+    let (c, d) = ((lo[1] / sd2).max(-CUT), (hi[1] / sd2).min(CUT));
+    if c >= d {
+        return 0.0;
+    }
+    let cond1 = (s[(0, 0)] - s[(0, 1)] * s[(0, 1)] / s[(1, 1)]).max(0.0).sqrt();
+    if cond1 > 0.0 && inside(lo[0], hi[0], s[(0, 1)] / sd2, cond1, [c, d]) {
+        return normal_mass(c, d);
     }
     // x1 = l11 w1, x2 = l21 w1 + l22 w2: w2's bounds are linear in w1 with slope −l21/l22;
     // split where they cross 0 and ±4/|slope| around it, so each piece is smooth.

@@ -58,6 +58,81 @@ fn generate_then_calibrate_recovers_the_truth() {
 }
 
 #[test]
+fn wrong_lines_are_listed_in_the_truth_and_stand_out_in_the_residual_plot() {
+    let dir = tempfile::tempdir().unwrap();
+    let [d, t, r, svg] = ["d.json", "t.json", "r.json", "residuals.svg"].map(|f| dir.path().join(f));
+    let stdout = run_ok(
+        bin()
+            .args(["generate", "--n-e", "3", "--n-t", "3", "--seed", "2", "--wrong-lines", "0.05"])
+            .arg("--dataset")
+            .arg(&d)
+            .arg("--truth")
+            .arg(&t),
+    );
+    let truth = parse_truth(&std::fs::read_to_string(&t).unwrap()).unwrap();
+    let data = parse_dataset(&std::fs::read_to_string(&d).unwrap()).unwrap();
+    let n = data.observations.len();
+    let wrong = truth.wrong_lines.len();
+    assert_eq!(wrong, (0.05 * n as f64).round() as usize, "{stdout}");
+    assert!(stdout.contains(&format!("({wrong} with a wrong line)")), "{stdout}");
+    assert!(truth.wrong_lines.windows(2).all(|w| w[0] < w[1]) && truth.wrong_lines.iter().all(|&i| i < n));
+    let stdout = run_ok(
+        bin()
+            .arg("calibrate")
+            .arg("--dataset")
+            .arg(&d)
+            .arg("--truth")
+            .arg(&t)
+            .arg("--out")
+            .arg(&r)
+            .arg("--plot")
+            .arg(&svg),
+    );
+    assert!(stdout.contains(&format!("wrote {}", svg.display())), "{stdout}");
+    // Ours is robust to them; the figure's outlier class holds (nearly) exactly the wrong lines.
+    let result = parse_result(&std::fs::read_to_string(&r).unwrap()).unwrap();
+    let ours = result.results.iter().find(|p| p.pipeline == "ours").unwrap();
+    let dt: f64 = (0..3).map(|i| (ours.translation_m[i] - truth.truth.translation_m[i]).powi(2)).sum::<f64>().sqrt();
+    assert!(dt < 2e-3, "ours off by {dt} m with {wrong} wrong lines");
+    let text = std::fs::read_to_string(&svg).unwrap();
+    assert!(text.starts_with("<svg") && text.contains("ours: observed lines by residual"), "not the figure");
+    let count = |label: &str| -> usize {
+        let at = text.find(label).unwrap_or_else(|| panic!("no legend entry {label:?}"));
+        text[at + label.len()..].chars().take_while(char::is_ascii_digit).collect::<String>().parse().unwrap()
+    };
+    let outliers = count("&gt; 6 robust SD (outlier?): ");
+    assert!(outliers + 2 >= wrong && outliers <= wrong + 2, "{outliers} drawn as outliers, {wrong} wrong lines");
+    assert_eq!(count("≤ 3 robust SD: ") + count("3-6 robust SD: ") + outliers, n);
+    // Both pipelines' histograms.
+    assert!(text.contains("paper (RMS") && text.contains("ours (RMS"));
+
+    // A fraction outside 0..=1 is refused with the option's name.
+    let out = bin()
+        .args(["generate", "--wrong-lines", "1.5"])
+        .arg("--dataset")
+        .arg(&d)
+        .arg("--truth")
+        .arg(&t)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--wrong-lines 1.5"));
+    // An unwritable figure is a clear error after the result file was written.
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(&d)
+        .arg("--out")
+        .arg(&r)
+        .arg("--plot")
+        .arg(dir.path().join("missing-dir/residuals.svg"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("cannot write the residual plot"), "{out:?}");
+}
+
+#[test]
 fn calibrate_with_opencv_intrinsics_and_one_pipeline() {
     let dir = tempfile::tempdir().unwrap();
     generate(dir.path(), "0.01");

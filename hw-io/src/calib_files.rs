@@ -251,6 +251,10 @@ pub struct TruthFile {
     pub generated: usize,
     /// Combinations dropped because the tool was not in view.
     pub dropped: usize,
+    /// Observations (0-based, dataset order) whose line was replaced by a wrong one (a
+    /// simulated detector error); absent when none was.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub wrong_lines: Vec<usize>,
 }
 
 /// Residual statistics in a result file (pixels).
@@ -561,6 +565,32 @@ mod tests {
             matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("colour"))
         );
         assert!(matches!(parse_dataset("{\"format\": "), Err(CalibFileError::Json { line: 1, .. })));
+    }
+
+    #[test]
+    fn the_truth_files_wrong_lines_are_optional_and_round_trip() {
+        let mut t = TruthFile {
+            format: TRUTH_FORMAT.into(),
+            version: CALIB_FILE_VERSION,
+            truth: TransformJson { quaternion_wxyz: [1.0, 0.0, 0.0, 0.0], translation_m: [0.1, 0.02, 0.09] },
+            n_e: 3,
+            n_t: 3,
+            sigma: 0.01,
+            units: "mm".into(),
+            pixel_sigma_px: 0.0,
+            seed: 1,
+            generated: 729,
+            dropped: 223,
+            wrong_lines: Vec::new(),
+        };
+        // None: the key is not written, and a file without it (as before) parses.
+        let text = to_json(&t);
+        assert!(!text.contains("wrong_lines"), "{text}");
+        assert_eq!(parse_truth(&text).unwrap(), t);
+        t.wrong_lines = vec![3, 17, 40];
+        let text = to_json(&t);
+        assert!(text.contains("\"wrong_lines\""), "{text}");
+        assert_eq!(parse_truth(&text).unwrap().wrong_lines, [3, 17, 40]);
     }
 
     #[test]

@@ -337,3 +337,95 @@ pub fn random_unit_quaternion(rng: &mut impl Rng) -> [f64; 4] {
 pub fn rotation_distance(a: &Rotation3<f64>, b: &Rotation3<f64>) -> f64 {
     (a.inverse() * b).angle()
 }
+
+/// Replaces the lines of `round(fraction × n)` observations (chosen with `seed`, ChaCha8) by
+/// wrong ones, as a line detector gets wrong when it takes another instrument's edge or a
+/// reflection for the tool: a segment between two uniform points of the `intrinsics` image,
+/// at least 80 px long (ideal pixels). Returns the replaced observations' indices, ascending.
+/// `fraction` outside `0..=1` (or NaN) replaces none.
+pub fn corrupt_lines(
+    observations: &mut [Observation],
+    intrinsics: &Intrinsics,
+    fraction: f64,
+    seed: u64,
+) -> Vec<usize> {
+    if !(0.0..=1.0).contains(&fraction) {
+        return Vec::new();
+    }
+    let n = observations.len();
+    let count = ((fraction * n as f64).round() as usize).min(n);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5752_4f4e_474c_494e); // "WRONGLIN"
+    let mut idx: Vec<usize> = (0..n).collect();
+    // Partial Fisher-Yates: the first `count` entries are a uniform sample.
+    for i in 0..count {
+        let j = rng.random_range(i..n);
+        idx.swap(i, j);
+    }
+    let mut chosen = idx[..count].to_vec();
+    chosen.sort_unstable();
+    let (w, h) = (f64::from(intrinsics.width) - 1.0, f64::from(intrinsics.height) - 1.0);
+    for &i in &chosen {
+        let (a, b) = loop {
+            let a = Vector2::new(rng.random_range(0.0..=w), rng.random_range(0.0..=h));
+            let b = Vector2::new(rng.random_range(0.0..=w), rng.random_range(0.0..=h));
+            if (b - a).norm() >= 80.0 {
+                break (a, b);
+            }
+        };
+        observations[i].line_px = [[a.x, a.y], [b.x, b.y]];
+    }
+    chosen
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dataset() -> CalibDataset {
+        generate_calibration(&CalibProtocol {
+            geometry: CalibGeometry::default(),
+            n_e: 2,
+            n_t: 3,
+            sigma: 0.0,
+            units: NoiseUnits::Millimetre,
+            pixel_sigma_px: 0.0,
+            seed: 3,
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn corrupt_lines_replaces_the_requested_share_repeatably_inside_the_image() {
+        let d = dataset();
+        let k = d.setup.intrinsics;
+        let mut a = d.observations.clone();
+        let chosen = corrupt_lines(&mut a, &k, 0.25, 9);
+        assert_eq!(chosen.len(), (0.25 * a.len() as f64).round() as usize);
+        assert!(chosen.windows(2).all(|w| w[0] < w[1]));
+        for (i, (new, old)) in a.iter().zip(&d.observations).enumerate() {
+            if chosen.contains(&i) {
+                let [p, q] = new.line_px.map(|p| Vector2::new(p[0], p[1]));
+                assert!((q - p).norm() >= 80.0);
+                assert!(
+                    [p, q]
+                        .iter()
+                        .all(|x| (0.0..k.width as f64).contains(&x.x) && (0.0..k.height as f64).contains(&x.y))
+                );
+                assert_ne!(new.line_px, old.line_px);
+            } else {
+                assert_eq!(new, old, "observation {i} changed");
+            }
+        }
+        // Same seed, same corruption; another seed, another choice.
+        let mut b = d.observations.clone();
+        assert_eq!(corrupt_lines(&mut b, &k, 0.25, 9), chosen);
+        assert_eq!(a, b);
+        let mut c = d.observations.clone();
+        assert_ne!(corrupt_lines(&mut c, &k, 0.25, 10), chosen);
+        // Nothing for 0, everything for 1, nothing for a fraction outside 0..=1.
+        for (f, n) in [(0.0, 0), (1.0, d.observations.len()), (1.5, 0), (-0.1, 0), (f64::NAN, 0)] {
+            let mut o = d.observations.clone();
+            assert_eq!(corrupt_lines(&mut o, &k, f, 1).len(), n, "fraction {f}");
+        }
+    }
+}

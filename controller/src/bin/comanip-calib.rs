@@ -52,6 +52,10 @@ enum Command {
         /// Seed.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Fraction (0..=1) of the lines to replace by wrong ones (simulated detector errors;
+        /// the truth file lists them).
+        #[arg(long, default_value_t = 0.0)]
+        wrong_lines: f64,
     },
     /// Calibrate: dataset → result file.
     Calibrate {
@@ -67,6 +71,10 @@ enum Command {
         /// Result file to write (JSON).
         #[arg(long)]
         out: PathBuf,
+        /// Also write the residual figure (SVG): the observed lines in the image coloured by
+        /// their distance to the calibrated tool axis, and each pipeline's histogram.
+        #[arg(long)]
+        plot: Option<PathBuf>,
         /// Pipeline(s) to run.
         #[arg(long, value_enum, default_value = "both")]
         pipeline: Pipeline,
@@ -105,7 +113,7 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
     match cli.command {
-        Command::Generate { dataset, truth, n_e, n_t, sigma, units, pixel_sigma, seed } => {
+        Command::Generate { dataset, truth, n_e, n_t, sigma, units, pixel_sigma, seed, wrong_lines } => {
             let mut p = default_protocol();
             p.n_e = n_e;
             p.n_t = n_t;
@@ -116,18 +124,19 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             };
             p.pixel_sigma_px = pixel_sigma;
             p.seed = seed;
-            let g = generate(&p, &dataset, &truth)?;
+            let g = generate(&p, wrong_lines, &dataset, &truth)?;
             hw_io::outln!(
-                "{} observations kept, {} of {} dropped (tool not in view); wrote {} and {}",
+                "{} observations kept ({} with a wrong line), {} of {} dropped (tool not in view); wrote {} and {}",
                 g.kept,
+                g.wrong,
                 g.dropped,
                 g.generated,
                 dataset.display(),
                 truth.display()
             )?;
         }
-        Command::Calibrate { dataset, intrinsics, truth, out, pipeline } => {
-            let s = calibrate(&dataset, intrinsics.as_deref(), truth.as_deref(), &out, pipeline)?;
+        Command::Calibrate { dataset, intrinsics, truth, out, plot, pipeline } => {
+            let s = calibrate(&dataset, intrinsics.as_deref(), truth.as_deref(), &out, plot.as_deref(), pipeline)?;
             for r in s {
                 match r.errors {
                     Some(e) => hw_io::outln!(
@@ -145,6 +154,9 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 }
             }
             hw_io::outln!("wrote {}", out.display())?;
+            if let Some(p) = &plot {
+                hw_io::outln!("wrote {}", p.display())?;
+            }
         }
         Command::Sweep { out_dir, trials, quick, seed } => {
             let mut opts = SweepOptions::full();

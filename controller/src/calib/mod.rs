@@ -3,9 +3,11 @@
 //! - [`convert`]: file structs (`hw_io::calib_files`) ↔ estimator types.
 //! - [`run`]: `generate` (simulated dataset + ground truth), `calibrate` (dataset → result
 //!   file, paper / ours / both).
+//! - [`residual_plot`]: the residual figure of `calibrate --plot` (SVG).
 //! - [`sweep`]: the paper's simulation protocol sweeps (σ, n_e × n_t, random initial
 //!   quaternions) to a Markdown table and SVG box plots.
 
 pub mod convert;
+pub mod residual_plot;
 pub mod run;
 pub mod sweep;

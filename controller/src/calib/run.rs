@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use estimator::calib::ours::observation_residuals;
 use estimator::calib::ours::{OursConfig, OursError, solve_ours_prepared};
 use estimator::calib::paper::{PaperConfig, PaperError, solve_paper_prepared};
 use estimator::calib::prepare::{PrepareError, prepare};
@@ -11,9 +12,10 @@ use hw_io::calib_files::{
     CALIB_FILE_VERSION, CalibFileError, IntrinsicsFileError, RESULT_FORMAT, ResultFile, TRUTH_FORMAT, TruthFile,
     parse_dataset, parse_intrinsics_yaml, parse_truth, to_json,
 };
-use sim::calib::{CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, generate_calibration};
+use sim::calib::{CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, corrupt_lines, generate_calibration};
 
 use super::convert;
+use super::residual_plot::{PipelineResiduals, residual_figure};
 
 /// Which pipeline(s) `calibrate` runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -32,6 +34,9 @@ pub enum GenerateError {
     /// The protocol is invalid.
     #[error(transparent)]
     Protocol(#[from] CalibProtocolError),
+    /// The fraction of wrong lines is outside 0..=1.
+    #[error("--wrong-lines {0}: must be a fraction in 0..=1")]
+    WrongLines(f64),
     /// A file could not be written.
     #[error("cannot write {path}: {source}")]
     Write {
@@ -51,11 +56,24 @@ pub struct Generated {
     pub dropped: usize,
     /// Combinations tried.
     pub generated: usize,
+    /// Observations whose line was replaced by a wrong one.
+    pub wrong: usize,
 }
 
-/// Runs the simulation protocol and writes the dataset and its ground truth.
-pub fn generate(protocol: &CalibProtocol, dataset: &Path, truth: &Path) -> Result<Generated, GenerateError> {
-    let d = generate_calibration(protocol)?;
+/// Runs the simulation protocol, replaces a fraction `wrong_lines` (0..=1) of the lines by
+/// wrong ones ([`corrupt_lines`]), and writes the dataset and its ground truth (which lists
+/// the wrong lines).
+pub fn generate(
+    protocol: &CalibProtocol,
+    wrong_lines: f64,
+    dataset: &Path,
+    truth: &Path,
+) -> Result<Generated, GenerateError> {
+    if !(0.0..=1.0).contains(&wrong_lines) {
+        return Err(GenerateError::WrongLines(wrong_lines));
+    }
+    let mut d = generate_calibration(protocol)?;
+    let wrong = corrupt_lines(&mut d.observations, &d.setup.intrinsics, wrong_lines, protocol.seed);
     let file = convert::dataset_json(&d.setup, &d.observations, d.noise);
     write(dataset, &to_json(&file))?;
     let t = TruthFile {
@@ -70,9 +88,10 @@ pub fn generate(protocol: &CalibProtocol, dataset: &Path, truth: &Path) -> Resul
         seed: protocol.seed,
         generated: d.generated,
         dropped: d.dropped,
+        wrong_lines: wrong.clone(),
     };
     write(truth, &to_json(&t))?;
-    Ok(Generated { kept: d.observations.len(), dropped: d.dropped, generated: d.generated })
+    Ok(Generated { kept: d.observations.len(), dropped: d.dropped, generated: d.generated, wrong: wrong.len() })
 }
 
 fn write(path: &Path, text: &str) -> Result<(), GenerateError> {
@@ -136,6 +155,9 @@ pub enum CalibrateError {
         /// The OS error.
         source: std::io::Error,
     },
+    /// The residual figure could not be written.
+    #[error(transparent)]
+    Plot(#[from] super::residual_plot::ResidualPlotError),
 }
 
 /// Summary of one pipeline, for the terminal.
@@ -157,12 +179,14 @@ fn read(path: &Path) -> Result<String, CalibrateError> {
 }
 
 /// Reads a dataset (optionally overriding its intrinsics from a YAML file), runs the
-/// pipeline(s), writes the result file, and compares with a truth file if given.
+/// pipeline(s), writes the result file (and the residual figure to `plot`, SVG, when given),
+/// and compares with a truth file if given.
 pub fn calibrate(
     dataset: &Path,
     intrinsics: Option<&Path>,
     truth: Option<&Path>,
     out: &Path,
+    plot: Option<&Path>,
     pipeline: Pipeline,
 ) -> Result<Vec<CalibrateSummary>, CalibrateError> {
     let text = read(dataset)?;
@@ -182,12 +206,17 @@ pub fn calibrate(
     let set = prepare(&setup, &obs)?;
     let mut results = Vec::new();
     let mut summaries = Vec::new();
+    let mut residuals = Vec::new();
+    let per_observation = |pose: &nalgebra::Isometry3<f64>| -> Vec<f64> {
+        observation_residuals(&set, pose).iter().map(|r| r[0].abs().max(r[1].abs())).collect()
+    };
     if matches!(pipeline, Pipeline::Paper | Pipeline::Both) {
         let started = Instant::now();
         let r = solve_paper_prepared(&set, &PaperConfig::default())?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
         let stats = estimator::calib::ours::residual_stats(&set, &r.pose);
         results.push(convert::result_json("paper", &r.pose, &stats, None, ms));
+        residuals.push(PipelineResiduals { name: "paper", residuals_px: per_observation(&r.pose) });
         summaries.push(CalibrateSummary {
             pipeline: "paper",
             errors: truth.map(|t| pose_errors(&r.pose, &t)),
@@ -200,6 +229,7 @@ pub fn calibrate(
         let r = solve_ours_prepared(&set, &OursConfig { noise, ..OursConfig::default() })?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
         results.push(convert::result_json("ours", &r.pose, &r.residuals, Some(&r), ms));
+        residuals.push(PipelineResiduals { name: "ours", residuals_px: per_observation(&r.pose) });
         summaries.push(CalibrateSummary {
             pipeline: "ours",
             errors: truth.map(|t| pose_errors(&r.pose, &t)),
@@ -209,5 +239,9 @@ pub fn calibrate(
     }
     let file = ResultFile { format: RESULT_FORMAT.into(), version: CALIB_FILE_VERSION, results };
     std::fs::write(out, to_json(&file)).map_err(|source| CalibrateError::Write { path: out.to_owned(), source })?;
+    if let Some(plot) = plot {
+        let lines: Vec<[nalgebra::Vector2<f64>; 2]> = set.obs.iter().map(|o| o.px).collect();
+        residual_figure(plot, &set.intrinsics, &lines, &residuals)?;
+    }
     Ok(summaries)
 }

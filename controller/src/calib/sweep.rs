@@ -236,17 +236,23 @@ pub fn run_conditions(conditions: &[Condition], trials: usize, seed: u64) -> Res
     bar.finish_and_clear();
     let outcomes = outcomes?;
     let t_norm_m = CalibGeometry::default().truth.translation.vector.norm();
-    let crbs: Vec<((Option<Crb>, Option<FirstOrderCrb>), Option<SelectedCrb>)> =
-        conditions.par_iter().map(|c| (crb_of(c), selected_bound_of(c))).collect();
+    type Bounds = (Option<Crb>, Option<FirstOrderCrb>, Option<SelectedCrb>);
+    let crbs: Vec<Bounds> = conditions
+        .par_iter()
+        .map(|c| {
+            let (naive, first_order) = crb_of(c);
+            (naive, first_order, selected_bound_of(c))
+        })
+        .collect();
     Ok(conditions
         .iter()
         .enumerate()
         .map(|(i, c)| ConditionResult {
             condition: *c,
             trials: outcomes[i * trials..(i + 1) * trials].to_vec(),
-            crb: crbs[i].0.0,
-            first_order: crbs[i].0.1,
-            selected: crbs[i].1,
+            crb: crbs[i].0,
+            first_order: crbs[i].1,
+            selected: crbs[i].2,
             t_norm_m,
         })
         .collect())

@@ -394,16 +394,17 @@ fn orthonormalize(r: &Matrix3<f64>) -> Matrix3<f64> {
     UnitQuaternion::from_matrix(r).to_rotation_matrix().into_inner()
 }
 
-/// Pixel residual statistics of pose `T_e_t` over prepared observations (unweighted).
-pub fn residual_stats(set: &PreparedSet, pose: &Isometry3<f64>) -> ResidualStats {
+/// Each observation's residual pair at pose `T_e_t`: the signed distances (pixels) of its two
+/// line points to the tool axis projected by that pose, in input order.
+pub fn observation_residuals(set: &PreparedSet, pose: &Isometry3<f64>) -> Vec<Vector2<f64>> {
     let r = pose.rotation.to_rotation_matrix().into_inner();
     let t = pose.translation.vector;
-    let mut d: Vec<f64> = Vec::with_capacity(2 * set.obs.len());
-    for o in &set.obs {
-        let (res, _) = residual_and_jacobian(set, o, &r, &t);
-        d.push(res[0].abs());
-        d.push(res[1].abs());
-    }
+    set.obs.iter().map(|o| residual_and_jacobian(set, o, &r, &t).0).collect()
+}
+
+/// Pixel residual statistics of pose `T_e_t` over prepared observations (unweighted).
+pub fn residual_stats(set: &PreparedSet, pose: &Isometry3<f64>) -> ResidualStats {
+    let mut d: Vec<f64> = observation_residuals(set, pose).iter().flat_map(|r| [r[0].abs(), r[1].abs()]).collect();
     let rms = (d.iter().map(|v| v * v).sum::<f64>() / d.len().max(1) as f64).sqrt();
     let max = d.iter().cloned().fold(0.0, f64::max);
     ResidualStats { count: set.obs.len(), rms_px: rms, median_px: median(&mut d), max_px: max, inliers: set.obs.len() }

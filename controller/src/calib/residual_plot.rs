@@ -55,6 +55,23 @@ pub fn residual_class(residual_px: f64, scale_px: f64) -> usize {
     CLASSES.iter().position(|c| z <= c.0).unwrap_or(CLASSES.len() - 1)
 }
 
+/// Draws the series legend of a chart (white box, black border), or returns the error.
+macro_rules! legend {
+    ($chart:expr, $err:expr) => {
+        $chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| $err(&e))?
+    };
+}
+
+/// Root mean square of residuals (pixels); 0 for none.
+fn rms(residuals_px: &[f64]) -> f64 {
+    (residuals_px.iter().map(|r| r * r).sum::<f64>() / residuals_px.len().max(1) as f64).sqrt()
+}
+
 /// Writes the figure (SVG) for the observed lines `lines_px` (ideal pixels, dataset order)
 /// and the pipelines' residuals; the image panel shows the last pipeline's.
 pub fn residual_figure(
@@ -75,10 +92,10 @@ pub fn residual_figure(
 
     // Image panel: v grows downward, as in the image.
     let scale = robust_scale(&shown.residuals_px);
-    let rms = (shown.residuals_px.iter().map(|r| r * r).sum::<f64>() / shown.residuals_px.len().max(1) as f64).sqrt();
+    let shown_rms = rms(&shown.residuals_px);
     let mut chart = ChartBuilder::on(&left)
         .caption(
-            format!("{}: observed lines by residual (robust SD {scale:.2} px, RMS {rms:.2} px)", shown.name),
+            format!("{}: observed lines by residual (robust SD {scale:.2} px, RMS {shown_rms:.2} px)", shown.name),
             ("sans-serif", 16),
         )
         .margin(10)
@@ -112,12 +129,7 @@ pub fn residual_figure(
             .label(format!("{label}: {}", members.len()))
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 14, y)], style));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| err(&e))?;
+    legend!(chart, err);
 
     // Histogram panel: every pipeline, residuals beyond the axis counted in its last bin.
     let all: Vec<f64> =
@@ -164,18 +176,13 @@ pub fn residual_figure(
             })
             .collect();
         let style = color.stroke_width(2);
-        let rms = (p.residuals_px.iter().map(|r| r * r).sum::<f64>() / p.residuals_px.len().max(1) as f64).sqrt();
+        let p_rms = rms(&p.residuals_px);
         chart
             .draw_series(LineSeries::new(pts, style))
             .map_err(|e| err(&e))?
-            .label(format!("{} (RMS {rms:.2} px)", p.name))
+            .label(format!("{} (RMS {p_rms:.2} px)", p.name))
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 14, y)], style));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| err(&e))?;
+    legend!(chart, err);
     root.present().map_err(|e| err(&e))
 }

@@ -13,7 +13,8 @@ use controller::rt_loop::{CycleRecord, CycleSink, LogEvent, LoopCounters, LoopPa
 use controller::watchdog::LoopProgress;
 use hw_io::can::{CanBus, CanFrame, Message, RecvError, SendError, TimedFrame};
 use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, health};
-use sim::twin::{EmcyConfig, SimRobot, TwinConfig};
+use sim::encoders::EmcyInjection;
+use sim::twin::{SimRobot, TwinConfig};
 
 #[global_allocator]
 static GLOBAL: hw_io::rt_alloc::RtPoolAllocator = hw_io::rt_alloc::RtPoolAllocator::new();
@@ -192,7 +193,7 @@ fn a_node_silent_for_200_ms_is_flagged_stale_then_recovers() {
 fn an_emcy_burst_invalidates_until_cleared() {
     let mut t = twin();
     t.nodes[2].emcy = (0..5)
-        .map(|k| EmcyConfig {
+        .map(|k| EmcyInjection {
             at_us: 2_000_000 + k * 10_000,
             duration_us: 5_000,
             code: 0x7305,

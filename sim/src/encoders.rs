@@ -27,6 +27,7 @@ use hw_io::can::{
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
 
 /// Most frames [`VirtualNodes::on_sync`] returns for one SYNC. Per node: one TPDO, one
 /// heartbeat and up to three EMCYs; further due EMCYs wait for the next SYNC.
@@ -48,7 +49,8 @@ pub type SyncFrames = heapless::Vec<TimedFrame, MAX_FRAMES_PER_SYNC>;
 /// An injected fault of one node: an EMCY with `code` at `at_us`, and a clearing EMCY
 /// (code 0, register 0) at `at_us + duration_us`. Times in microseconds, the time base of
 /// [`VirtualNodes::on_sync`]; each EMCY goes out at the first SYNC at or after its time.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct EmcyInjection {
     /// Start of the fault, microseconds.
     pub at_us: u64,
@@ -56,14 +58,18 @@ pub struct EmcyInjection {
     pub duration_us: u64,
     /// CiA 301 emergency error code (non-zero; e.g. `0x7305` incremental sensor fault).
     pub code: u16,
-    /// CiA 301 error register (object 0x1001).
+    /// CiA 301 error register (object 0x1001); 0 when absent from a configuration file.
+    #[serde(default)]
     pub register: u8,
-    /// Manufacturer-specific bytes.
+    /// Manufacturer-specific bytes; zeros when absent from a configuration file.
+    #[serde(default)]
     pub vendor: [u8; 5],
 }
 
-/// Behaviour of one virtual node.
-#[derive(Clone, Debug, PartialEq)]
+/// Behaviour of one virtual node; also its form in `simrobot`'s configuration file
+/// (`[[nodes]]`, every key optional, defaults from [`NodeOptions::default`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
 pub struct NodeOptions {
     /// Delay from the SYNC to the node's frames, microseconds (may exceed the 1 ms SYNC
     /// period: the frame then arrives after the next SYNC).
@@ -77,8 +83,44 @@ pub struct NodeOptions {
     pub emcy: Vec<EmcyInjection>,
     /// Heartbeat period, microseconds; 0 disables heartbeats.
     pub heartbeat_period_us: u64,
-    /// Initial NMT state; only [`NmtState::Operational`] nodes send TPDOs.
+    /// Initial NMT state; only [`NmtState::Operational`] nodes send TPDOs. In a configuration
+    /// file: `"operational"`, `"pre-operational"`, `"stopped"` or `"boot-up"`.
+    #[serde(with = "nmt_by_name")]
     pub nmt: NmtState,
+}
+
+/// [`NmtState`] (a bus type without serde) by its kebab-case name in configuration files.
+mod nmt_by_name {
+    use hw_io::can::NmtState;
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    #[derive(Serialize, Deserialize)]
+    #[serde(rename_all = "kebab-case")]
+    enum Name {
+        Operational,
+        PreOperational,
+        Stopped,
+        BootUp,
+    }
+
+    pub fn serialize<S: Serializer>(state: &NmtState, s: S) -> Result<S::Ok, S::Error> {
+        match state {
+            NmtState::Operational => Name::Operational,
+            NmtState::PreOperational => Name::PreOperational,
+            NmtState::Stopped => Name::Stopped,
+            NmtState::BootUp => Name::BootUp,
+        }
+        .serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<NmtState, D::Error> {
+        Ok(match Name::deserialize(d)? {
+            Name::Operational => NmtState::Operational,
+            Name::PreOperational => NmtState::PreOperational,
+            Name::Stopped => NmtState::Stopped,
+            Name::BootUp => NmtState::BootUp,
+        })
+    }
 }
 
 impl Default for NodeOptions {

@@ -27,7 +27,7 @@
 //! ## Time
 //! One SYNC is one sample: the scenario's sample period must be the 1 ms SYNC period
 //! ([`SYNC_PERIOD_US`]). Sample `n` (counted from 0 over the whole run) is at
-//! `t_s = n · 0.001 s`. Times in [`NodeConfig`] (dropout windows, EMCY injections) are
+//! `t_s = n · 0.001 s`. Times in [`NodeOptions`] (dropout windows, EMCY injections) are
 //! microseconds since the first SYNC the twin answered; the frames returned by
 //! [`SimRobot::on_sync`] are stamped in the caller's time base (the `t_us` it passes, plus
 //! each node's latency).
@@ -48,14 +48,11 @@
 
 use estimator::kinematics::{AchillesConfig, JOINTS, KinematicsConfigError};
 use estimator::trocar::LineSample;
-use hw_io::can::{ENCODER_NODES, EncoderConfig, JointToCountsError, NmtState};
+use hw_io::can::{ENCODER_NODES, EncoderConfig, JointToCountsError};
 use nalgebra::{Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::encoders::{
-    DEFAULT_HEARTBEAT_PERIOD_US, DEFAULT_LATENCY_US, EmcyInjection, NodeOptions, SyncFrames, VirtualNodes,
-    VirtualNodesError,
-};
+use crate::encoders::{NodeOptions, SyncFrames, VirtualNodes, VirtualNodesError};
 use crate::robot::{IkError, IkTracker, ModelError, SimulatedArm};
 use crate::scenario::{Scenario, ScenarioConfig, Truth, TruthState, generate};
 
@@ -118,107 +115,6 @@ impl ModelErrorConfig {
     }
 }
 
-/// NMT state of a node at start-up (serde names: `"operational"`, `"pre-operational"`,
-/// `"stopped"`, `"boot-up"`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum NmtConfig {
-    /// Operational: sends TPDOs.
-    #[default]
-    Operational,
-    /// Pre-operational: heartbeats only, no TPDOs.
-    PreOperational,
-    /// Stopped: heartbeats only, no TPDOs.
-    Stopped,
-    /// Boot-up: heartbeats only, no TPDOs.
-    BootUp,
-}
-
-impl From<NmtConfig> for NmtState {
-    fn from(n: NmtConfig) -> Self {
-        match n {
-            NmtConfig::Operational => NmtState::Operational,
-            NmtConfig::PreOperational => NmtState::PreOperational,
-            NmtConfig::Stopped => NmtState::Stopped,
-            NmtConfig::BootUp => NmtState::BootUp,
-        }
-    }
-}
-
-/// An injected fault of one node (see [`EmcyInjection`]): an EMCY with `code` at `at_us`
-/// and a clearing EMCY `duration_us` later. Microseconds since the first SYNC.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct EmcyConfig {
-    /// Start of the fault, microseconds since the first SYNC.
-    pub at_us: u64,
-    /// Duration of the fault, microseconds.
-    pub duration_us: u64,
-    /// CiA 301 emergency error code (non-zero, e.g. `0x7305`).
-    pub code: u16,
-    /// CiA 301 error register.
-    #[serde(default)]
-    pub register: u8,
-    /// Manufacturer-specific bytes.
-    #[serde(default)]
-    pub vendor: [u8; 5],
-}
-
-/// Behaviour of one virtual encoder node (the serde form of [`NodeOptions`]).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct NodeConfig {
-    /// Delay from the SYNC to the node's frames, microseconds.
-    pub latency_us: u64,
-    /// Probability (0..=1) that the node's TPDO is lost at a given SYNC.
-    pub dropout_probability: f64,
-    /// Scripted dropouts `[start, end)`, microseconds since the first SYNC.
-    pub dropout_windows_us: Vec<[u64; 2]>,
-    /// Injected faults.
-    pub emcy: Vec<EmcyConfig>,
-    /// Heartbeat period, microseconds; 0 disables heartbeats.
-    pub heartbeat_period_us: u64,
-    /// NMT state at start-up.
-    pub nmt: NmtConfig,
-}
-
-impl Default for NodeConfig {
-    fn default() -> Self {
-        Self {
-            latency_us: DEFAULT_LATENCY_US,
-            dropout_probability: 0.0,
-            dropout_windows_us: Vec::new(),
-            emcy: Vec::new(),
-            heartbeat_period_us: DEFAULT_HEARTBEAT_PERIOD_US,
-            nmt: NmtConfig::Operational,
-        }
-    }
-}
-
-impl NodeConfig {
-    /// The options of [`VirtualNodes`] for this node.
-    pub fn options(&self) -> NodeOptions {
-        NodeOptions {
-            latency_us: self.latency_us,
-            dropout_probability: self.dropout_probability,
-            dropout_windows_us: self.dropout_windows_us.clone(),
-            emcy: self
-                .emcy
-                .iter()
-                .map(|e| EmcyInjection {
-                    at_us: e.at_us,
-                    duration_us: e.duration_us,
-                    code: e.code,
-                    register: e.register,
-                    vendor: e.vendor,
-                })
-                .collect(),
-            heartbeat_period_us: self.heartbeat_period_us,
-            nmt: self.nmt.into(),
-        }
-    }
-}
-
 /// Everything that defines a twin; the `--config` file of `simrobot` (see
 /// `configs/simrobot.toml`, which lists the defaults).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -238,7 +134,7 @@ pub struct TwinConfig {
     /// `[bus.encoder]`).
     pub encoder: EncoderConfig,
     /// Behaviour of the nodes carrying joints 1-2, 3-4 and 5-6 (exactly three).
-    pub nodes: [NodeConfig; ENCODER_NODES],
+    pub nodes: [NodeOptions; ENCODER_NODES],
     /// Seed of the nodes' random TPDO dropouts.
     pub nodes_seed: u64,
     /// Angle of joint 6 (roll about the instrument axis), radians, held constant.
@@ -467,7 +363,7 @@ impl SimRobot {
             return Err(TwinConfigError::Roll(config.roll_rad));
         }
         let arm = SimulatedArm::new(&config.kinematics, m.model_error())?;
-        let options: [NodeOptions; ENCODER_NODES] = core::array::from_fn(|k| config.nodes[k].options());
+        let options: [NodeOptions; ENCODER_NODES] = core::array::from_fn(|k| config.nodes[k].clone());
         let nodes = VirtualNodes::new(&config.encoder, options, config.nodes_seed)?;
         let scenario = generate(&config.scenario);
         let truth = scenario.truth.first().copied().unwrap_or(Truth {

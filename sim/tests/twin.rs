@@ -5,9 +5,10 @@
 use estimator::kinematics::Achilles;
 use hw_io::can::{JointAssembler, Message, NodeId, SyncSource, TimedFrame};
 use nalgebra::Vector3;
+use sim::encoders::EmcyInjection;
 use sim::robot::IkError;
 use sim::scenario::{ScenarioConfig, TruthState};
-use sim::twin::{EmcyConfig, ModelErrorConfig, SimRobot, TwinConfig, TwinError, TwinEvent};
+use sim::twin::{ModelErrorConfig, SimRobot, TwinConfig, TwinError, TwinEvent};
 
 /// A short scenario (about 6 s per cycle) so that debug-built tests stay fast.
 fn small(cycles: usize, seed: u64) -> TwinConfig {
@@ -189,7 +190,7 @@ fn node_faults_of_the_config_count_from_the_first_sync() {
     let mut config = small(1, 6);
     config.nodes[1].dropout_windows_us = vec![[10_000, 20_000]];
     config.nodes[2].emcy =
-        vec![EmcyConfig { at_us: 5_000, duration_us: 3_000, code: 0x7305, register: 1, vendor: [0; 5] }];
+        vec![EmcyInjection { at_us: 5_000, duration_us: 3_000, code: 0x7305, register: 1, vendor: [0; 5] }];
     config.nodes[0].latency_us = 300;
     let mut robot = SimRobot::new(&config).unwrap();
     let mut emcys = Vec::new();

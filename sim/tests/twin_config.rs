@@ -1,7 +1,8 @@
 //! `configs/simrobot.toml` lists exactly the defaults of `TwinConfig`, and config files are
 //! checked strictly.
 
-use sim::twin::{NmtConfig, SimRobot, TwinConfig};
+use hw_io::can::NmtState;
+use sim::twin::{SimRobot, TwinConfig};
 
 fn example() -> String {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/simrobot.toml");
@@ -26,7 +27,7 @@ fn an_empty_config_is_the_default_and_a_partial_one_overrides_only_its_keys() {
     let mut expected = TwinConfig { endless: true, ..TwinConfig::default() };
     expected.scenario.cycles = 3;
     expected.model_error.link_length_m = 0.0;
-    expected.nodes[1].nmt = NmtConfig::PreOperational;
+    expected.nodes[1].nmt = NmtState::PreOperational;
     assert_eq!(c, expected);
 }
 
@@ -38,6 +39,16 @@ fn unknown_keys_and_wrong_node_counts_are_refused() {
     assert!(err.to_string().contains("link_length"), "{err}");
     assert!(toml::from_str::<TwinConfig>("[[nodes]]\nlatency_us = 5\n").is_err());
     assert!(toml::from_str::<TwinConfig>("[[nodes]]\n[[nodes]]\n[[nodes]]\nnmt = \"running\"\n").is_err());
+    // Unknown keys inside a node table or an injected fault are named.
+    let err = toml::from_str::<TwinConfig>("[[nodes]]\nlatencyus = 5\n[[nodes]]\n[[nodes]]\n").unwrap_err();
+    assert!(err.to_string().contains("latencyus"), "{err}");
+    let bad_emcy = "[[nodes]]\nemcy = [{ at_us = 1, duration_us = 2, code = 1, colour = 3 }]\n[[nodes]]\n[[nodes]]\n";
+    let err = toml::from_str::<TwinConfig>(bad_emcy).unwrap_err();
+    assert!(err.to_string().contains("colour"), "{err}");
+    // A fault's register and vendor bytes are optional.
+    let emcy = "[[nodes]]\nemcy = [{ at_us = 1, duration_us = 2, code = 0x7305 }]\n[[nodes]]\n[[nodes]]\n";
+    let c = toml::from_str::<TwinConfig>(emcy).unwrap();
+    assert_eq!((c.nodes[0].emcy[0].code, c.nodes[0].emcy[0].register, c.nodes[0].emcy[0].vendor), (0x7305, 0, [0; 5]));
 }
 
 #[test]

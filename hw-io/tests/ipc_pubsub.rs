@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 
 use hw_io::ipc::{
     ConnectError, Continuity, CreateError, FULCRUM_SAMPLE_VERSION, FulcrumPublisher, FulcrumSample, FulcrumSubscriber,
-    PublisherOptions, RecvError, STATE_INSIDE, WaitError,
+    OpenError, PublisherOptions, RecvError, STATE_INSIDE, WaitError,
 };
 use nix::time::{ClockId, clock_gettime};
 
@@ -188,23 +188,26 @@ fn mismatched_capacities_are_an_error_not_a_silent_downgrade() {
     let name = service("mismatch");
     let _sub = FulcrumSubscriber::connect(&name).unwrap(); // creates with the defaults (buffer 64)
     let bigger = PublisherOptions { subscriber_buffer: 128, ..PublisherOptions::default() };
-    assert!(matches!(FulcrumPublisher::create(&name, &bigger), Err(CreateError::Service(_))));
+    assert!(matches!(FulcrumPublisher::create(&name, &bigger), Err(CreateError::Open(OpenError::Service(_)))));
     assert!(FulcrumPublisher::create(&name, &PublisherOptions::default()).is_ok());
 }
 
 #[test]
 fn invalid_names_and_options_are_typed_errors() {
-    assert!(matches!(FulcrumSubscriber::connect(""), Err(ConnectError::InvalidServiceName { .. })));
+    assert!(matches!(FulcrumSubscriber::connect(""), Err(ConnectError::Open(OpenError::InvalidServiceName { .. }))));
     assert!(matches!(
         FulcrumPublisher::create(&"x".repeat(10_000), &PublisherOptions::default()),
-        Err(CreateError::InvalidServiceName { .. })
+        Err(CreateError::Open(OpenError::InvalidServiceName { .. }))
     ));
     let zero = PublisherOptions { subscriber_buffer: 0, ..PublisherOptions::default() };
-    assert!(matches!(FulcrumPublisher::create(&service("bad-opts"), &zero), Err(CreateError::InvalidOptions(_))));
+    assert!(matches!(
+        FulcrumPublisher::create(&service("bad-opts"), &zero),
+        Err(CreateError::Open(OpenError::InvalidOptions(_)))
+    ));
     let history = PublisherOptions { history: 65, ..PublisherOptions::default() };
     assert!(matches!(
         FulcrumSubscriber::connect_with(&service("bad-opts"), &history),
-        Err(ConnectError::InvalidOptions(_))
+        Err(ConnectError::Open(OpenError::InvalidOptions(_)))
     ));
 }
 

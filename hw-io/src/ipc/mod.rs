@@ -23,5 +23,5 @@ mod subscriber;
 
 pub use message::{FULCRUM_SAMPLE_VERSION, FulcrumSample, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE, health};
 pub use publisher::{CreateError, FulcrumPublisher, PublishError};
-pub use service::PublisherOptions;
+pub use service::{OpenError, PublisherOptions};
 pub use subscriber::{ConnectError, Continuity, FulcrumSubscriber, Received, RecvError, SubscriberCounters, WaitError};

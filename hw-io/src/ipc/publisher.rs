@@ -2,43 +2,21 @@
 
 use std::time::Duration;
 
-use iceoryx2::node::{Node, NodeCreationFailure, NodeWaitFailure};
+use iceoryx2::node::{Node, NodeWaitFailure};
 use iceoryx2::port::notifier::{Notifier, NotifierCreateError, NotifierNotifyError};
 use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
 use iceoryx2::port::{LoanError, SendError};
 use iceoryx2::prelude::{BackpressureStrategy, ipc};
-use iceoryx2::service::builder::event::EventOpenOrCreateError;
-use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
-use iceoryx2::service::service_name::ServiceNameError;
 
 use super::FulcrumSample;
-use super::service::{self, PublisherOptions};
+use super::service::{self, OpenError, PublisherOptions, Services};
 
 /// Why [`FulcrumPublisher::create`] failed.
 #[derive(Debug, thiserror::Error)]
 pub enum CreateError {
-    /// The options are out of range (the message says which).
-    #[error("invalid publisher options: {0}")]
-    InvalidOptions(&'static str),
-    /// The service name is empty, too long or has invalid characters.
-    #[error("invalid service name {name:?}: {source}")]
-    InvalidServiceName {
-        /// The name given.
-        name: String,
-        /// iceoryx2's reason.
-        source: ServiceNameError,
-    },
-    /// The iceoryx2 node could not be created (permissions on /tmp/iceoryx2 or /dev/shm).
-    #[error("cannot create the iceoryx2 node: {0}")]
-    Node(#[source] NodeCreationFailure),
-    /// The publish-subscribe service could not be opened or created; `IncompatibleTypes` or an
-    /// incompatible capacity means it exists with other settings (another layout version, or
-    /// subscribers started with other [`PublisherOptions`]).
-    #[error("cannot open or create the publish-subscribe service: {0}")]
-    Service(#[source] PublishSubscribeOpenOrCreateError),
-    /// The event service could not be opened or created.
-    #[error("cannot open or create the event service: {0}")]
-    EventService(#[source] EventOpenOrCreateError),
+    /// The options, the name, the node or the services (shared with the subscriber side).
+    #[error(transparent)]
+    Open(#[from] OpenError),
     /// The publisher port could not be created; `ExceedsMaxSupportedPublishers` means another
     /// live publisher (a second daemon) owns this output.
     #[error("cannot create the publisher: {0}")]
@@ -92,12 +70,8 @@ impl FulcrumPublisher {
     /// Creating the node also removes the iceoryx2 resources of dead processes, so a daemon
     /// restarted after a crash or SIGKILL takes over its output while subscribers keep running.
     pub fn create(service_name: &str, opts: &PublisherOptions) -> Result<Self, CreateError> {
-        opts.check().map_err(CreateError::InvalidOptions)?;
-        let name = service::service_name(service_name)
-            .map_err(|source| CreateError::InvalidServiceName { name: service_name.to_owned(), source })?;
-        let node = service::node("fulcrumd", opts.iceoryx2_signal_handlers).map_err(CreateError::Node)?;
-        let pubsub = service::open_pubsub(&node, &name, opts).map_err(CreateError::Service)?;
-        let event = service::open_event(&node, &name, opts).map_err(CreateError::EventService)?;
+        let Services { node, pubsub, event } =
+            service::open_services(service_name, opts, "fulcrumd", opts.iceoryx2_signal_handlers)?;
         let publisher = pubsub
             .publisher_builder()
             .backpressure_strategy(BackpressureStrategy::DiscardData)

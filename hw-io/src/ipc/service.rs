@@ -5,11 +5,12 @@
 //! whose notifications wake blocking subscribers. Both sides call `open_or_create` with the same
 //! settings, derived from [`PublisherOptions`], so whichever starts first creates them.
 
-use iceoryx2::node::Node;
+use iceoryx2::node::{Node, NodeCreationFailure};
 use iceoryx2::prelude::{NodeBuilder, NodeName, ServiceName, SignalHandlingMode, ipc};
 use iceoryx2::service::builder::event::EventOpenOrCreateError;
 use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
 use iceoryx2::service::port_factory::{event, publish_subscribe};
+use iceoryx2::service::service_name::ServiceNameError;
 
 use super::FulcrumSample;
 
@@ -74,15 +75,61 @@ const MAX_PUBLISHERS: usize = 1;
 pub(crate) type PubSubFactory = publish_subscribe::PortFactory<ipc::Service, FulcrumSample, ()>;
 pub(crate) type EventFactory = event::PortFactory<ipc::Service>;
 
-pub(crate) fn service_name(name: &str) -> Result<ServiceName, iceoryx2::service::service_name::ServiceNameError> {
-    ServiceName::new(name)
+/// Why a fulcrum output's two services could not be opened (the part that
+/// [`FulcrumPublisher::create`](super::FulcrumPublisher::create) and
+/// [`FulcrumSubscriber::connect`](super::FulcrumSubscriber::connect) share).
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    /// The options are out of range (the message says which).
+    #[error("invalid options: {0}")]
+    InvalidOptions(&'static str),
+    /// The service name is empty, too long or has invalid characters.
+    #[error("invalid service name {name:?}: {source}")]
+    InvalidServiceName {
+        /// The name given.
+        name: String,
+        /// iceoryx2's reason.
+        source: ServiceNameError,
+    },
+    /// The iceoryx2 node could not be created (permissions on /tmp/iceoryx2 or /dev/shm).
+    #[error("cannot create the iceoryx2 node: {0}")]
+    Node(#[source] NodeCreationFailure),
+    /// The publish-subscribe service could not be opened or created; `IncompatibleTypes` or an
+    /// incompatible capacity means it exists with other settings: another layout version, or
+    /// the other side started with other [`PublisherOptions`].
+    #[error("cannot open or create the publish-subscribe service: {0}")]
+    Service(#[source] PublishSubscribeOpenOrCreateError),
+    /// The event service could not be opened or created.
+    #[error("cannot open or create the event service: {0}")]
+    EventService(#[source] EventOpenOrCreateError),
+}
+
+/// A node and the two services of one fulcrum output, opened (or created) with `opts`.
+pub(crate) struct Services {
+    pub node: Node<ipc::Service>,
+    pub pubsub: PubSubFactory,
+    pub event: EventFactory,
+}
+
+/// Checks `opts`, creates a node named `node_name` (a constant of this crate) with or without
+/// signal handlers, and opens or creates the output `service_name`'s two services.
+pub(crate) fn open_services(
+    service_name: &str,
+    opts: &PublisherOptions,
+    node_name: &'static str,
+    signal_handlers: bool,
+) -> Result<Services, OpenError> {
+    opts.check().map_err(OpenError::InvalidOptions)?;
+    let name = ServiceName::new(service_name)
+        .map_err(|source| OpenError::InvalidServiceName { name: service_name.to_owned(), source })?;
+    let node = node(node_name, signal_handlers).map_err(OpenError::Node)?;
+    let pubsub = open_pubsub(&node, &name, opts).map_err(OpenError::Service)?;
+    let event = open_event(&node, &name, opts).map_err(OpenError::EventService)?;
+    Ok(Services { node, pubsub, event })
 }
 
 /// A node with the given signal handling. `node_name` is a constant of this crate.
-pub(crate) fn node(
-    node_name: &'static str,
-    signal_handlers: bool,
-) -> Result<Node<ipc::Service>, iceoryx2::node::NodeCreationFailure> {
+fn node(node_name: &'static str, signal_handlers: bool) -> Result<Node<ipc::Service>, NodeCreationFailure> {
     let mode =
         if signal_handlers { SignalHandlingMode::HandleTerminationRequests } else { SignalHandlingMode::Disabled };
     let mut builder = NodeBuilder::new().signal_handling_mode(mode);
@@ -93,7 +140,7 @@ pub(crate) fn node(
     builder.create::<ipc::Service>()
 }
 
-pub(crate) fn open_pubsub(
+fn open_pubsub(
     node: &Node<ipc::Service>,
     name: &ServiceName,
     opts: &PublisherOptions,
@@ -109,7 +156,7 @@ pub(crate) fn open_pubsub(
         .open_or_create()
 }
 
-pub(crate) fn open_event(
+fn open_event(
     node: &Node<ipc::Service>,
     name: &ServiceName,
     opts: &PublisherOptions,

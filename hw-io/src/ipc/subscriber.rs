@@ -2,16 +2,13 @@
 
 use std::time::{Duration, Instant};
 
-use iceoryx2::node::{Node, NodeCreationFailure};
+use iceoryx2::node::Node;
 use iceoryx2::port::ReceiveError;
 use iceoryx2::port::listener::{Listener, ListenerCreateError, ListenerWaitError};
 use iceoryx2::port::subscriber::{Subscriber, SubscriberCreateError};
 use iceoryx2::prelude::ipc;
-use iceoryx2::service::builder::event::EventOpenOrCreateError;
-use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
-use iceoryx2::service::service_name::ServiceNameError;
 
-use super::service::{self, PublisherOptions};
+use super::service::{self, OpenError, PublisherOptions, Services};
 use super::{FULCRUM_SAMPLE_VERSION, FulcrumSample};
 
 /// Longest single sleep inside [`FulcrumSubscriber::wait`]: a safety net that re-checks the
@@ -62,27 +59,10 @@ pub struct SubscriberCounters {
 /// Why [`FulcrumSubscriber::connect`] failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ConnectError {
-    /// The options are out of range (the message says which).
-    #[error("invalid options: {0}")]
-    InvalidOptions(&'static str),
-    /// The service name is empty, too long or has invalid characters.
-    #[error("invalid service name {name:?}: {source}")]
-    InvalidServiceName {
-        /// The name given.
-        name: String,
-        /// iceoryx2's reason.
-        source: ServiceNameError,
-    },
-    /// The iceoryx2 node could not be created (permissions on /tmp/iceoryx2 or /dev/shm).
-    #[error("cannot create the iceoryx2 node: {0}")]
-    Node(#[source] NodeCreationFailure),
-    /// The publish-subscribe service could not be opened or created; `IncompatibleTypes` or an
-    /// incompatible capacity: the daemon runs another layout version or other options.
-    #[error("cannot open or create the publish-subscribe service: {0}")]
-    Service(#[source] PublishSubscribeOpenOrCreateError),
-    /// The event service could not be opened or created.
-    #[error("cannot open or create the event service: {0}")]
-    EventService(#[source] EventOpenOrCreateError),
+    /// The options, the name, the node or the services (shared with the daemon's side);
+    /// an incompatible service means the daemon runs another layout version or other options.
+    #[error(transparent)]
+    Open(#[from] OpenError),
     /// The subscriber port could not be created; `ExceedsMaxSupportedSubscribers` means all
     /// `max_subscribers` slots are taken by live subscribers.
     #[error("cannot create the subscriber: {0}")]
@@ -160,12 +140,8 @@ impl FulcrumSubscriber {
     /// capacities; `iceoryx2_signal_handlers` is ignored: a subscriber never installs signal
     /// handlers).
     pub fn connect_with(service_name: &str, opts: &PublisherOptions) -> Result<Self, ConnectError> {
-        opts.check().map_err(ConnectError::InvalidOptions)?;
-        let name = service::service_name(service_name)
-            .map_err(|source| ConnectError::InvalidServiceName { name: service_name.to_owned(), source })?;
-        let node = service::node("fulcrum-subscriber", false).map_err(ConnectError::Node)?;
-        let pubsub = service::open_pubsub(&node, &name, opts).map_err(ConnectError::Service)?;
-        let event = service::open_event(&node, &name, opts).map_err(ConnectError::EventService)?;
+        // A subscriber never installs signal handlers.
+        let Services { node, pubsub, event } = service::open_services(service_name, opts, "fulcrum-subscriber", false)?;
         let subscriber = pubsub
             .subscriber_builder()
             .buffer_size(opts.subscriber_buffer)

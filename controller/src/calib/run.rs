@@ -207,7 +207,11 @@ pub fn calibrate(
     let mut results = Vec::new();
     let mut summaries = Vec::new();
     let mut residuals = Vec::new();
+    // Per-observation residuals, only when a figure is asked for.
     let per_observation = |pose: &nalgebra::Isometry3<f64>| -> Vec<f64> {
+        if plot.is_none() {
+            return Vec::new();
+        }
         observation_residuals(&set, pose).iter().map(|r| r[0].abs().max(r[1].abs())).collect()
     };
     if matches!(pipeline, Pipeline::Paper | Pipeline::Both) {

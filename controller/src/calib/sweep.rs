@@ -178,34 +178,36 @@ pub fn run_trial(c: &Condition, seed: u64) -> Result<Trial, CalibProtocolError> 
     Ok(Trial { kept: d.observations.len(), dropped: d.dropped, paper, ours, ours_guard_only })
 }
 
-/// The naive bound of the condition's noiseless geometry, and the same restricted to the
-/// observations the first-order model describes.
-fn crb_of(c: &Condition) -> (Option<Crb>, Option<FirstOrderCrb>) {
-    if c.sigma == 0.0 {
-        return (None, None);
-    }
-    let Ok(clean) = generate_calibration(&protocol(&Condition { sigma: 0.0, ..*c }, 0)) else { return (None, None) };
-    let noise = KinematicNoise { rot_rad: c.sigma, trans_m: c.sigma * c.units.metres(), pixel_px: 0.0 };
-    let depth_ratio = SelectionConfig::default().depth_ratio;
-    (
-        cramer_rao_bound(&clean.setup, &clean.observations, &clean.truth, &noise).ok(),
-        first_order_bound(&clean.setup, &clean.observations, &clean.truth, &noise, depth_ratio).ok(),
-    )
+/// A condition's bounds, all from its one noiseless dataset (none at σ = 0).
+#[derive(Clone, Copy, Debug, Default)]
+struct Bounds {
+    naive: Option<Crb>,
+    first_order: Option<FirstOrderCrb>,
+    selected: Option<SelectedCrb>,
 }
 
-/// Monte Carlo draws per configuration for the selected bound: 256 on the 3⁴×3² grid, fewer
-/// on larger grids (the same total).
-fn selected_bound_of(c: &Condition) -> Option<SelectedCrb> {
+/// The naive bound of the condition's noiseless geometry, the same restricted to the
+/// observations the first-order model describes, and the bound of the kept lines over the
+/// whole joint grid (Monte Carlo draws per configuration: 256 on the 3⁴×3² grid, fewer on
+/// larger grids, the same total).
+fn bounds_of(c: &Condition) -> Bounds {
     if c.sigma == 0.0 {
-        return None;
+        return Bounds::default();
     }
-    let g = c.geometry();
-    let clean = generate_calibration(&protocol(&Condition { sigma: 0.0, ..*c }, 0)).ok()?;
+    let Ok(clean) = generate_calibration(&protocol(&Condition { sigma: 0.0, ..*c }, 0)) else {
+        return Bounds::default();
+    };
     let noise = KinematicNoise { rot_rad: c.sigma, trans_m: c.sigma * c.units.metres(), pixel_px: 0.0 };
+    let depth_ratio = SelectionConfig::default().depth_ratio;
+    let g = c.geometry();
     let configs: Vec<([f64; 4], [f64; 3])> =
         ecm_grid(&g, c.n_e).iter().flat_map(|e| psm_grid(&g, c.n_t).into_iter().map(move |p| (*e, p))).collect();
     let samples = (256 * 729 / configs.len().max(1)).clamp(64, 256);
-    selected_bound(&clean.setup, &configs, &clean.truth, &noise, samples, 1).ok()
+    Bounds {
+        naive: cramer_rao_bound(&clean.setup, &clean.observations, &clean.truth, &noise).ok(),
+        first_order: first_order_bound(&clean.setup, &clean.observations, &clean.truth, &noise, depth_ratio).ok(),
+        selected: selected_bound(&clean.setup, &configs, &clean.truth, &noise, samples, 1).ok(),
+    }
 }
 
 fn progress_bar(total: u64) -> indicatif::ProgressBar {
@@ -236,23 +238,16 @@ pub fn run_conditions(conditions: &[Condition], trials: usize, seed: u64) -> Res
     bar.finish_and_clear();
     let outcomes = outcomes?;
     let t_norm_m = CalibGeometry::default().truth.translation.vector.norm();
-    type Bounds = (Option<Crb>, Option<FirstOrderCrb>, Option<SelectedCrb>);
-    let crbs: Vec<Bounds> = conditions
-        .par_iter()
-        .map(|c| {
-            let (naive, first_order) = crb_of(c);
-            (naive, first_order, selected_bound_of(c))
-        })
-        .collect();
+    let bounds: Vec<Bounds> = conditions.par_iter().map(bounds_of).collect();
     Ok(conditions
         .iter()
         .enumerate()
         .map(|(i, c)| ConditionResult {
             condition: *c,
             trials: outcomes[i * trials..(i + 1) * trials].to_vec(),
-            crb: crbs[i].0,
-            first_order: crbs[i].1,
-            selected: crbs[i].2,
+            crb: bounds[i].naive,
+            first_order: bounds[i].first_order,
+            selected: bounds[i].selected,
             t_norm_m,
         })
         .collect())

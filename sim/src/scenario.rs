@@ -52,6 +52,54 @@ pub struct ScenarioConfig {
     pub wrist_noise_m: f64,
     /// Measurement noise on the axis direction, degrees (one sigma, per axis).
     pub axis_noise_deg: f64,
+    /// How the surgeon moves between trocars and approaches them (the motion-style family;
+    /// the default is the original surgeon, every new behaviour off).
+    pub style: StyleConfig,
+}
+
+/// Timing of position and axis within a free transfer between two poses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TransferTiming {
+    /// Position and axis move together (one minimum-jerk profile): the original surgeon.
+    #[default]
+    Together,
+    /// The position moves over the whole transfer, the axis turns within a random
+    /// sub-interval of it (starting at 20-40 % of the transfer and lasting 20-40 % of it):
+    /// position and orientation move out of step, so for a moment the hand pivots about a
+    /// point on the shaft.
+    AxisWithin,
+    /// The axis turns first (about the wrist), then the wrist translates.
+    RotateThenTranslate,
+    /// The wrist translates first, then the axis turns (about the wrist).
+    TranslateThenRotate,
+    /// Each free motion draws one of the four timings above at random.
+    Mixed,
+}
+
+/// The motion-style family of the simulated surgeon (`docs/simulator.md`). Probabilities are
+/// per transfer or per approach, in [0, 1].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StyleConfig {
+    /// Timing of position and axis in every free motion.
+    pub transfer: TransferTiming,
+    /// Probability that a transfer contains a hand pivot: the instrument pivots in two
+    /// directions (a cone, 4-12° at 0.4-1.2 Hz) about a point of the shaft 5 cm from the
+    /// wrist to 3 cm from the tip, for 0.4-1.5 s, without sliding through it.
+    pub shaft_pivot_probability: f64,
+    /// Probability that an approach hovers: the tip descends slowly to 1-4 cm above the port
+    /// and the hand aligns the instrument by pivoting about the tip (2-6°, 0.6-2 s) before
+    /// entering.
+    pub hover_probability: f64,
+    /// Probability that an approach aims: the tip advances from 4-8 cm above the port to
+    /// 5 mm above it while the axis pivots about the port itself (lines through the port,
+    /// beyond the tip), then enters. Without the instrument length this is geometrically an
+    /// insertion.
+    pub aim_probability: f64,
+    /// Probability that after an extraction the surgeon re-enters the same trocar (after a
+    /// short lift) instead of moving to another.
+    pub reinsert_probability: f64,
 }
 
 impl Default for ScenarioConfig {
@@ -72,6 +120,7 @@ impl Default for ScenarioConfig {
             wrist_rotation_probability: 0.3,
             wrist_noise_m: 0.0001,
             axis_noise_deg: 0.03,
+            style: StyleConfig::default(),
         }
     }
 }
@@ -156,6 +205,30 @@ fn min_jerk(u: f64) -> f64 {
     u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
 }
 
+/// Where position and axis move within a free motion: each runs its minimum-jerk profile
+/// over its own sub-interval `(start, end)` of the motion's fraction `u`.
+#[derive(Clone, Copy, Debug)]
+struct Profile {
+    pos: (f64, f64),
+    axis: (f64, f64),
+}
+
+impl Profile {
+    fn blend(range: (f64, f64), u: f64) -> f64 {
+        if range == (0.0, 1.0) {
+            // Exactly the original surgeon's profile.
+            return min_jerk(u);
+        }
+        min_jerk((u - range.0) / (range.1 - range.0).max(1e-9))
+    }
+    fn position(&self, u: f64) -> f64 {
+        Self::blend(self.pos, u)
+    }
+    fn axis(&self, u: f64) -> f64 {
+        Self::blend(self.axis, u)
+    }
+}
+
 /// A unit vector perpendicular to `z`.
 fn perpendicular(z: &Vector3<f64>) -> Vector3<f64> {
     let a = if z.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
@@ -216,8 +289,41 @@ impl Builder<'_> {
         self.out.events.push(TrueEvent { t_s: self.t, sample, trocar, insertion });
     }
 
+    /// The position and axis profiles of one free motion, `(position(u), axis(u))` with `u`
+    /// the fraction of the motion, each going from 0 to 1 (minimum jerk). Draws from the
+    /// random stream only when the style is not [`TransferTiming::Together`], so the original
+    /// surgeon's motion is unchanged.
+    fn transfer_profile(&mut self) -> Profile {
+        let timing = match self.cfg.style.transfer {
+            TransferTiming::Mixed => match self.rng.random_range(0..4) {
+                0 => TransferTiming::Together,
+                1 => TransferTiming::AxisWithin,
+                2 => TransferTiming::RotateThenTranslate,
+                _ => TransferTiming::TranslateThenRotate,
+            },
+            t => t,
+        };
+        match timing {
+            TransferTiming::Together | TransferTiming::Mixed => Profile { pos: (0.0, 1.0), axis: (0.0, 1.0) },
+            TransferTiming::AxisWithin => {
+                let a = self.rng.random_range(0.2..0.4);
+                let len = self.rng.random_range(0.2..0.4);
+                Profile { pos: (0.0, 1.0), axis: (a, a + len) }
+            }
+            TransferTiming::RotateThenTranslate => {
+                let k = self.rng.random_range(0.35..0.55);
+                Profile { pos: (k, 1.0), axis: (0.0, k) }
+            }
+            TransferTiming::TranslateThenRotate => {
+                let k = self.rng.random_range(0.45..0.65);
+                Profile { pos: (0.0, k), axis: (k, 1.0) }
+            }
+        }
+    }
+
     /// Free motion from the current pose to (wrist, axis), with wobble and, sometimes, the
-    /// wrist-rotation trap in the middle.
+    /// wrist-rotation trap in the middle. Position and axis follow the style's transfer
+    /// timing ([`TransferTiming`]).
     fn free_motion(&mut self, seconds: f64, target_wrist: Vector3<f64>, target_axis: Vector3<f64>) {
         let n = self.samples(seconds);
         let (w0, a0) = (self.wrist, self.axis);
@@ -227,9 +333,10 @@ impl Builder<'_> {
         let trap = self.rng.random_bool(self.cfg.wrist_rotation_probability.clamp(0.0, 1.0));
         let trap_axis = perpendicular(&a0);
         let trap_amp = self.rng.random_range(0.2..0.4);
+        let profile = self.transfer_profile();
+        let (ps, axs) = (|u: f64| profile.position(u), |u: f64| profile.axis(u));
         for i in 0..n {
             let u = (i + 1) as f64 / n as f64;
-            let s = min_jerk(u);
             let env = (std::f64::consts::PI * u).sin();
             let t = i as f64 * self.cfg.sample_period_s;
             // With the trap, the wobble fades out before the wrist holds still and back in
@@ -244,25 +351,113 @@ impl Builder<'_> {
                 min_jerk((u - 0.6) / 0.4)
             };
             let wobble = Vector3::new(wob[0].at(t), wob[1].at(t), wob[2].at(t)) * env * fade;
-            let mut wrist = w0 + (target_wrist - w0) * s + wobble;
-            let mut axis = q0.slerp(&q1, s) * a0;
+            let mut wrist = w0 + (target_wrist - w0) * ps(u) + wobble;
+            let mut axis = q0.slerp(&q1, axs(u)) * a0;
             if trap && (0.2..0.6).contains(&u) {
                 // Hold the wrist still and rotate the instrument about it.
                 let v = (u - 0.2) / 0.4;
-                let hold = w0 + (target_wrist - w0) * min_jerk(0.2);
+                let hold = w0 + (target_wrist - w0) * ps(0.2);
                 wrist = hold;
                 axis = UnitQuaternion::from_axis_angle(
                     &Unit::new_normalize(trap_axis),
                     trap_amp * (2.0 * std::f64::consts::PI * v).sin(),
-                ) * (q0.slerp(&q1, min_jerk(0.2)) * a0);
+                ) * (q0.slerp(&q1, axs(0.2)) * a0);
             } else if trap && u >= 0.6 {
                 let v = (u - 0.6) / 0.4;
-                let hold = w0 + (target_wrist - w0) * min_jerk(0.2);
+                let hold = w0 + (target_wrist - w0) * ps(0.2);
                 wrist = hold + (target_wrist - hold) * min_jerk(v) + wobble;
-                axis = q0.slerp(&q1, min_jerk(0.2) + (1.0 - min_jerk(0.2)) * min_jerk(v)) * a0;
+                axis = q0.slerp(&q1, axs(0.2) + (1.0 - axs(0.2)) * min_jerk(v)) * a0;
             }
             self.push(wrist, axis, TruthState::Outside, None);
         }
+    }
+
+    /// A hand pivot about a point of the shaft (style `shaft_pivot_probability`): the axis
+    /// swings in two directions about the point `P + d·z` of the current line, which stays
+    /// fixed in space and on the shaft (no slide through it). Starts and ends continuous.
+    fn shaft_pivot(&mut self) {
+        let l = self.cfg.instrument_length_m;
+        let d = self.rng.random_range(0.05..(l - 0.03).max(0.06));
+        let seconds = self.rng.random_range(0.4..1.5);
+        let amp = self.rng.random_range(4.0_f64..12.0).to_radians();
+        let f = [0.4, 1.2];
+        let pitch = Wave::new(&mut self.rng, amp, f);
+        let yaw = Wave::new(&mut self.rng, amp, f);
+        let a0 = self.axis;
+        let centre = self.wrist + a0 * d;
+        let e1 = perpendicular(&a0);
+        let e2 = a0.cross(&e1);
+        for i in 0..self.samples(seconds) {
+            let t = (i + 1) as f64 * self.cfg.sample_period_s;
+            let axis = UnitQuaternion::from_scaled_axis(e1 * pitch.at(t) + e2 * yaw.at(t)) * a0;
+            self.push(centre - axis * d, axis, TruthState::Outside, None);
+        }
+    }
+
+    /// A hovering approach (style `hover_probability`), from the approach pose (tip
+    /// `approach_m` above `port` along `entry`): the tip descends slowly to `h` above the
+    /// port, the hand aligns the instrument by pivoting about the tip, and the axis comes
+    /// back to `entry`. Returns the tip's final height above the port, metres.
+    fn hover(&mut self, port: Vector3<f64>, entry: Vector3<f64>, approach_m: f64) -> f64 {
+        let l = self.cfg.instrument_length_m;
+        let h = self.rng.random_range(0.01..0.04_f64).min(approach_m);
+        let descend_s = self.rng.random_range(0.3..1.0);
+        let n = self.samples(descend_s);
+        for i in 0..n {
+            let u = min_jerk((i + 1) as f64 / n as f64);
+            let above = approach_m + (h - approach_m) * u;
+            self.push(port - entry * (l + above), entry, TruthState::Outside, None);
+        }
+        let seconds = self.rng.random_range(0.6..2.0);
+        let amp = self.rng.random_range(2.0_f64..6.0).to_radians();
+        let pitch = Wave::new(&mut self.rng, amp, [0.3, 0.8]);
+        let yaw = Wave::new(&mut self.rng, amp, [0.3, 0.8]);
+        let tip = port - entry * h;
+        let e1 = perpendicular(&entry);
+        let e2 = entry.cross(&e1);
+        let n = self.samples(seconds);
+        for i in 0..n {
+            let u = (i + 1) as f64 / n as f64;
+            let t = (i + 1) as f64 * self.cfg.sample_period_s;
+            // The envelope brings the axis back to `entry` at the end.
+            let env = (std::f64::consts::PI * u).sin();
+            let axis = UnitQuaternion::from_scaled_axis((e1 * pitch.at(t) + e2 * yaw.at(t)) * env) * entry;
+            self.push(tip - axis * l, axis, TruthState::Outside, None);
+        }
+        h
+    }
+
+    /// An aiming approach (style `aim_probability`), from the approach pose: the tip
+    /// advances from `approach_m` to 5 mm above the port while the axis pivots about the port
+    /// itself (every line passes through it, beyond the tip). Returns the tip's final height
+    /// above the port, metres.
+    fn aim(&mut self, port: Vector3<f64>, entry: Vector3<f64>, approach_m: f64) -> f64 {
+        let l = self.cfg.instrument_length_m;
+        let start = self.rng.random_range(0.04..0.08_f64);
+        let end = 0.005;
+        // Rise from the approach height to the aiming start along the axis first.
+        let n = self.samples(0.3);
+        for i in 0..n {
+            let u = min_jerk((i + 1) as f64 / n as f64);
+            let above = approach_m + (start - approach_m) * u;
+            self.push(port - entry * (l + above), entry, TruthState::Outside, None);
+        }
+        let seconds = self.rng.random_range(0.8..1.6);
+        let amp = self.rng.random_range(3.0_f64..8.0).to_radians();
+        let pitch = Wave::new(&mut self.rng, amp, [0.4, 1.0]);
+        let yaw = Wave::new(&mut self.rng, amp, [0.4, 1.0]);
+        let e1 = perpendicular(&entry);
+        let e2 = entry.cross(&e1);
+        let n = self.samples(seconds);
+        for i in 0..n {
+            let u = (i + 1) as f64 / n as f64;
+            let t = (i + 1) as f64 * self.cfg.sample_period_s;
+            let env = (std::f64::consts::PI * u).sin();
+            let axis = UnitQuaternion::from_scaled_axis((e1 * pitch.at(t) + e2 * yaw.at(t)) * env) * entry;
+            let above = start + (end - start) * min_jerk(u);
+            self.push(port - axis * (l + above), axis, TruthState::Outside, None);
+        }
+        end
     }
 
     /// One insertion, manipulation and extraction at trocar `index`, starting from the
@@ -367,6 +562,12 @@ pub fn generate(cfg: &ScenarioConfig) -> Scenario {
                 index = rng.random_range(0..cfg.trocars_base_m.len());
             }
         }
+        // Re-insertion into the same trocar (style): decided on the builder's stream, so the
+        // original surgeon's draws are unchanged.
+        let p = cfg.style.reinsert_probability.clamp(0.0, 1.0);
+        if last != usize::MAX && p > 0.0 && b.rng.random_bool(p) {
+            index = last;
+        }
         last = index;
         let entry = entry_direction(&mut rng);
         let outside_s = rng.random_range(cfg.outside_s[0]..cfg.outside_s[1].max(cfg.outside_s[0] + 1e-9));
@@ -382,8 +583,22 @@ pub fn generate(cfg: &ScenarioConfig) -> Scenario {
         let retreat_axis = tilt * b.axis;
         let split = rng.random_range(0.35..0.55);
         b.free_motion(outside_s * split, retreat_wrist, retreat_axis);
+        let p = cfg.style.shaft_pivot_probability.clamp(0.0, 1.0);
+        if p > 0.0 && b.rng.random_bool(p) {
+            b.shaft_pivot();
+        }
         b.free_motion(outside_s * (1.0 - split), approach_wrist, entry);
-        b.visit(index, entry, inside_s, approach_m);
+        let port = b.trocar_at(index, b.t);
+        let (hover, aim) =
+            (cfg.style.hover_probability.clamp(0.0, 1.0), cfg.style.aim_probability.clamp(0.0, 1.0));
+        let approach = if hover > 0.0 && b.rng.random_bool(hover) {
+            b.hover(port, entry, approach_m)
+        } else if aim > 0.0 && b.rng.random_bool(aim) {
+            b.aim(port, entry, approach_m)
+        } else {
+            approach_m
+        };
+        b.visit(index, entry, inside_s, approach);
     }
     // Leave: a last stretch of free motion away from the patient.
     let away = b.wrist + Vector3::new(0.0, 0.0, 0.1);
@@ -404,8 +619,54 @@ impl ScenarioConfig {
         if !(self.instrument_length_m > 0.1 && self.instrument_length_m < 1.0) {
             return Err(format!("scenario.instrument_length_m = {}: allowed (0.1, 1) m", self.instrument_length_m));
         }
+        let st = &self.style;
+        for (key, p) in [
+            ("scenario.style.shaft_pivot_probability", st.shaft_pivot_probability),
+            ("scenario.style.hover_probability", st.hover_probability),
+            ("scenario.style.aim_probability", st.aim_probability),
+            ("scenario.style.reinsert_probability", st.reinsert_probability),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(format!("{key} = {p}: allowed [0, 1]"));
+            }
+        }
         Ok(())
     }
+}
+
+/// A trocar layout on a simulated abdomen: `count` ports on a spherical dome of radius
+/// `dome_radius_m` whose top is at `top_base_m` (metres, robot base frame), spread within
+/// `spread_m` of the top (horizontal distance) and at least `min_separation_m` apart.
+/// Deterministic by `seed`. Returns `None` when 10 000 draws (100 fresh starts) could not
+/// place them.
+pub fn dome_layout(
+    seed: u64,
+    count: usize,
+    top_base_m: [f64; 3],
+    spread_m: f64,
+    min_separation_m: f64,
+    dome_radius_m: f64,
+) -> Option<Vec<[f64; 3]>> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut out: Vec<Vector3<f64>> = Vec::with_capacity(count);
+    let top = Vector3::from(top_base_m);
+    for draw in 0..10_000 {
+        if out.len() == count {
+            break;
+        }
+        if draw % 100 == 99 {
+            // A greedy placement that got stuck: start again.
+            out.clear();
+        }
+        let r = spread_m * rng.random_range(0.0..1.0_f64).sqrt();
+        let az = rng.random_range(0.0..2.0 * std::f64::consts::PI);
+        let drop = dome_radius_m - (dome_radius_m * dome_radius_m - r * r).max(0.0).sqrt();
+        let p = top + Vector3::new(r * az.cos(), r * az.sin(), -drop);
+        if out.iter().all(|q| (q - p).norm() >= min_separation_m) {
+            out.push(p);
+        }
+    }
+    (out.len() == count).then(|| out.iter().map(|p| [p.x, p.y, p.z]).collect())
 }
 
 #[cfg(test)]
@@ -438,5 +699,88 @@ mod tests {
         for (i, e) in a.events.iter().enumerate() {
             assert_eq!(e.insertion, i % 2 == 0);
         }
+    }
+
+    /// Every motion style keeps the scenario's invariants: deterministic, continuous, the
+    /// true line through the true pivot while inside with the tip beyond it, events
+    /// alternating; and each behaviour changes the motion.
+    #[test]
+    fn every_style_is_continuous_consistent_and_different() {
+        let base = ScenarioConfig { cycles: 4, ..Default::default() };
+        let plain = generate(&base);
+        let timings = [
+            TransferTiming::AxisWithin,
+            TransferTiming::RotateThenTranslate,
+            TransferTiming::TranslateThenRotate,
+            TransferTiming::Mixed,
+        ];
+        let mut styles: Vec<StyleConfig> =
+            timings.iter().map(|&transfer| StyleConfig { transfer, ..Default::default() }).collect();
+        styles.push(StyleConfig { shaft_pivot_probability: 1.0, ..Default::default() });
+        styles.push(StyleConfig { hover_probability: 1.0, ..Default::default() });
+        styles.push(StyleConfig { aim_probability: 1.0, ..Default::default() });
+        styles.push(StyleConfig { reinsert_probability: 1.0, ..Default::default() });
+        for style in styles {
+            let cfg = ScenarioConfig { style, ..base.clone() };
+            cfg.check().unwrap();
+            let a = generate(&cfg);
+            assert_eq!(a.measured, generate(&cfg).measured, "{style:?} not deterministic");
+            assert_ne!(a.measured, plain.measured, "{style:?} changed nothing");
+            assert_eq!(a.events.len(), 8, "{style:?}");
+            for (i, e) in a.events.iter().enumerate() {
+                assert_eq!(e.insertion, i % 2 == 0, "{style:?}");
+            }
+            let max_step = a
+                .truth
+                .windows(2)
+                .map(|w| (w[1].line.wrist_base_m - w[0].line.wrist_base_m).norm())
+                .fold(0.0, f64::max);
+            assert!(max_step < 0.002, "{style:?}: wrist jumps {max_step} m in one sample");
+            let max_turn = a
+                .truth
+                .windows(2)
+                .map(|w| w[1].line.axis_base.dot(&w[0].line.axis_base).clamp(-1.0, 1.0).acos())
+                .fold(0.0, f64::max);
+            assert!(max_turn < 0.01, "{style:?}: axis turns {max_turn} rad in one sample");
+            for t in &a.truth {
+                if let Some(f) = t.fulcrum_base_m {
+                    let v = f - t.line.wrist_base_m;
+                    let along = t.line.axis_base.dot(&v);
+                    assert!((v - t.line.axis_base * along).norm() < 1e-9, "{style:?}");
+                    assert!(along < cfg.instrument_length_m + 1e-9, "{style:?}");
+                }
+            }
+        }
+        // Re-insertion always: every cycle after the first visits the same trocar.
+        let cfg = ScenarioConfig { style: StyleConfig { reinsert_probability: 1.0, ..Default::default() }, ..base };
+        let a = generate(&cfg);
+        assert!(a.events.iter().all(|e| e.trocar == a.events[0].trocar));
+    }
+
+    #[test]
+    fn style_probabilities_are_checked() {
+        let cfg = ScenarioConfig {
+            style: StyleConfig { hover_probability: 1.5, ..Default::default() },
+            ..Default::default()
+        };
+        assert!(cfg.check().unwrap_err().contains("scenario.style.hover_probability"));
+    }
+
+    #[test]
+    fn dome_layouts_keep_their_separation_and_lie_on_the_dome() {
+        let top = [0.3, 0.0, 0.03];
+        for seed in 0..20 {
+            let l = dome_layout(seed, 4, top, 0.085, 0.09, 0.25).unwrap();
+            assert_eq!(l, dome_layout(seed, 4, top, 0.085, 0.09, 0.25).unwrap());
+            let centre = Vector3::new(top[0], top[1], top[2] - 0.25);
+            for (i, p) in l.iter().enumerate() {
+                let p = Vector3::from(*p);
+                assert!(((p - centre).norm() - 0.25).abs() < 1e-12);
+                for q in &l[i + 1..] {
+                    assert!((p - Vector3::from(*q)).norm() >= 0.09);
+                }
+            }
+        }
+        assert!(dome_layout(1, 20, top, 0.05, 0.09, 0.25).is_none(), "20 ports cannot fit");
     }
 }

@@ -261,7 +261,9 @@ fn a_one_axis_swing_is_not_a_trocar_but_a_cone_through_the_same_point_is() {
             let pitch = 0.2 * (2.0 * std::f64::consts::PI * 0.4 * t).sin();
             let yaw = if cone { 0.15 * (2.0 * std::f64::consts::PI * 0.3 * t).sin() } else { 0.0 };
             let axis = (UnitQuaternion::from_euler_angles(pitch, yaw, 0.0) * Vector3::new(0.0, 0.0, -1.0)).normalize();
-            let e = d.step(&line_through(&f, &axis, 0.20));
+            // The instrument slides through the point (±1 cm), as through a body wall.
+            let depth = 0.20 + 0.01 * (2.0 * std::f64::consts::PI * 0.25 * t).sin();
+            let e = d.step(&line_through(&f, &axis, depth));
             inside |= e.state.is_inside();
         }
         inside
@@ -313,7 +315,9 @@ fn the_adaptive_extraction_gate_sees_a_small_departure() {
             let axis = cone_axis(0.2 + 0.1 * (1.3 * t).sin(), 1.7 * t);
             // From 7 s on, the line passes 4 mm beside the fulcrum (the instrument has left).
             let offset = if t >= 7.0 { axis.cross(&Vector3::x()).normalize() * 0.004 } else { Vector3::zeros() };
-            let e = d.step(&line_through(&(f + offset), &axis, 0.2));
+            // The instrument slides in and out of the trocar (±1 cm), as in any manipulation.
+            let depth = 0.2 + 0.01 * (0.9 * t).sin();
+            let e = d.step(&line_through(&(f + offset), &axis, depth));
             if t < 7.0 && e.state.is_inside() && inside_at.is_none() {
                 inside_at = Some(t);
             }

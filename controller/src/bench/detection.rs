@@ -128,6 +128,8 @@ pub struct Run {
     pub allocations: u64,
     /// Steps run.
     pub steps: u64,
+    /// The detector's trocar list after the last sample (metres, robot base frame).
+    pub final_trocars_base_m: Vec<Vector3<f64>>,
 }
 
 /// Runs `setting` over `trace`. With `timed`, every step is timed with the monotonic clock
@@ -169,7 +171,8 @@ pub fn run(trace: &Trace, setting: &Setting, timed: bool) -> Result<Run, estimat
             TrocarState::Outside => None,
         });
     }
-    Ok(Run { detected, ids, step_times: times, allocations, steps: n as u64 })
+    let final_trocars_base_m = det.known_trocars().iter().map(|(_, f)| *f).collect();
+    Ok(Run { detected, ids, step_times: times, allocations, steps: n as u64, final_trocars_base_m })
 }
 
 /// One true insertion and what a detector made of it.

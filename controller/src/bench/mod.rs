@@ -3,12 +3,14 @@
 //!
 //! - [`trace`]: simulated sessions decoded as the daemon decodes them;
 //! - [`detection`]: the four detector settings, per-run scoring;
+//! - [`families`]: the motion-style families, tuning families marked, held-out reported;
 //! - [`bound`]: the motion-only bound of each true event;
 //! - [`report`]: aggregation, Markdown tables and the Table III consistency check;
 //! - [`plots`]: SVG figures (plotters).
 
 pub mod bound;
 pub mod detection;
+pub mod families;
 pub mod ipc;
 pub mod plots;
 pub mod report;

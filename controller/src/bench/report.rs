@@ -144,6 +144,8 @@ pub fn run_detection(opts: &DetectionOptions, progress: &(dyn Fn() + Sync)) -> R
                 cycles: opts.cycles_per_trace,
                 placement: *p,
                 model_error: opts.model_error,
+                style: Default::default(),
+                dome_seed: None,
             })
         })
         .collect();

@@ -13,7 +13,7 @@
 use estimator::kinematics::Achilles;
 use estimator::trocar::LineSample;
 use nalgebra::{Rotation3, Vector3};
-use sim::scenario::{TrueEvent, TruthState};
+use sim::scenario::{StyleConfig, TrueEvent, TruthState};
 use sim::score::GroundTruth;
 use sim::twin::{DEFAULT_TROCARS_BASE_M, SimRobot, TwinConfig};
 
@@ -65,6 +65,18 @@ pub struct TraceSpec {
     /// The true arm differs from the nominal one by the twin's default calibration error
     /// (false: a perfectly calibrated arm, to separate the estimator's own error).
     pub model_error: bool,
+    /// The surgeon's motion style (default: the original surgeon).
+    pub style: StyleConfig,
+    /// When set, the trocars are a random layout on a dome drawn from this seed
+    /// ([`dome_layout_base_m`]) instead of `placement`'s four trocars.
+    pub dome_seed: Option<u64>,
+}
+
+/// Random trocar layouts of the benchmark's held-out geometry: four ports at least 9 cm
+/// apart on a dome of radius 0.25 m whose top is 3 cm above the default trocars' centroid,
+/// within 8 cm of it horizontally (inside the default arm's reach), metres, robot base frame.
+pub fn dome_layout_base_m(seed: u64) -> Option<Vec<[f64; 3]>> {
+    sim::scenario::dome_layout(seed, 4, [0.30, -0.01, 0.035], 0.085, 0.09, 0.25)
 }
 
 /// One decoded session with its ground truth. Implements [`GroundTruth`].
@@ -116,7 +128,14 @@ pub fn twin_config(spec: &TraceSpec) -> TwinConfig {
     let mut cfg = TwinConfig::default();
     cfg.scenario.seed = spec.seed;
     cfg.scenario.cycles = spec.cycles;
-    cfg.scenario.trocars_base_m = spec.placement.trocars_base_m();
+    // A dome layout that cannot be drawn (never with the benchmark's parameters, checked by
+    // a test) keeps no trocar at all, so the twin refuses it loudly instead of running the
+    // default layout under the dome's name.
+    cfg.scenario.trocars_base_m = match spec.dome_seed {
+        Some(seed) => dome_layout_base_m(seed).unwrap_or_default(),
+        None => spec.placement.trocars_base_m(),
+    };
+    cfg.scenario.style = spec.style;
     cfg.nodes_seed = spec.seed;
     if !spec.model_error {
         cfg.model_error = sim::twin::ModelErrorConfig::zero();

@@ -13,6 +13,7 @@ use std::process::ExitCode;
 use std::sync::atomic::AtomicBool;
 
 use clap::{Parser, Subcommand};
+use controller::bench::families::{FAMILIES, FamilyOptions, FamilyReport, REPORT_SEEDS, TUNING_SEEDS, run_families};
 use controller::bench::ipc::{self, IpcReport};
 use controller::bench::plots;
 use controller::bench::report::{DetectionOptions, DetectionReport, run_detection};
@@ -42,6 +43,28 @@ enum Command {
     Loop(LoopArgs),
     /// iceoryx2 publish → blocking-wait receive latency between two processes.
     Ipc(IpcArgs),
+    /// Detection per motion-style family: tuning families marked, held-out families reported.
+    Families(FamiliesArgs),
+}
+
+#[derive(clap::Args)]
+struct FamiliesArgs {
+    /// Scenario seeds (each family runs once per seed). Default: the report seeds (never used
+    /// for tuning); `--tuning` uses the tuning seeds and the tuning families only.
+    #[arg(long = "family-seeds", value_delimiter = ',')]
+    family_seeds: Option<Vec<u64>>,
+    /// Insert/extract cycles per trace.
+    #[arg(long = "family-cycles", default_value_t = 100)]
+    family_cycles: usize,
+    /// Run only the tuning families on the tuning seeds (what the thresholds were chosen on).
+    #[arg(long)]
+    tuning: bool,
+    /// fulcrumd configuration whose `[detector]` tables the benchmark uses.
+    #[arg(long = "family-config")]
+    family_config: Option<PathBuf>,
+    /// Print the sample indices of every false detection (diagnosis).
+    #[arg(long)]
+    list_false: bool,
 }
 
 #[derive(clap::Args)]
@@ -133,6 +156,39 @@ fn detection(a: &DetectionArgs) -> Result<DetectionReport, String> {
     };
     let r = run_detection(&opts, &|| bar.inc(1)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
+    Ok(r)
+}
+
+fn families(a: &FamiliesArgs) -> Result<FamilyReport, String> {
+    let detector = match &a.family_config {
+        Some(p) => Config::load(p).map_err(|e| e.to_string())?.detector,
+        None => Default::default(),
+    };
+    let seeds = match (&a.family_seeds, a.tuning) {
+        (Some(s), _) => s.clone(),
+        (None, true) => TUNING_SEEDS.to_vec(),
+        (None, false) => REPORT_SEEDS.to_vec(),
+    };
+    let opts = FamilyOptions { seeds, cycles_per_trace: a.family_cycles, tuning_only: a.tuning, detector };
+    let n_fam = FAMILIES.iter().filter(|f| f.tuned || !opts.tuning_only).count();
+    let bar = if std::io::stderr().is_terminal() {
+        let b = indicatif::ProgressBar::new((n_fam * opts.seeds.len()) as u64);
+        b.set_message("traces");
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let r = run_families(&opts, &|| bar.inc(1)).map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    if a.list_false {
+        for f in &r.families {
+            for (set, c) in r.settings.iter().zip(&f.cells) {
+                if !c.false_at.is_empty() {
+                    eprintln!("{} / {}: false detections at (seed, sample) {:?}", f.family.key, set.key, c.false_at);
+                }
+            }
+        }
+    }
     Ok(r)
 }
 
@@ -279,6 +335,7 @@ fn main() -> ExitCode {
         Command::Detection(a) => detection(a).map(|r| Some(r.markdown())),
         Command::Loop(a) => run_loop(a).map(|s| Some(loop_markdown(&s))),
         Command::Ipc(a) => ipc::run(a.samples).map(|r| Some(ipc_markdown(&r))).map_err(|e| e.to_string()),
+        Command::Families(a) => families(a).map(|r| Some(r.markdown())),
     };
     let printed = match &result {
         Ok(Some(report)) => hw_io::outln!("{report}"),

@@ -112,6 +112,15 @@ pub struct FastConfig {
     /// Insertion needs the fulcrum in front of the wrist, along the axis towards the tip, by
     /// more than this, metres (signed depth guard; the paper's trap is a pivot at the wrist).
     pub insert_min_depth_m: f64,
+    /// Insertion needs the instrument to have slid through the fulcrum by at least this
+    /// much over the segment's lines, metres: the range of the fulcrum's depth along the
+    /// shaft, `zᵀ(F − P)`. A body wall lets the tool slide through it while it pivots; the
+    /// virtual pivot of a hand (a point of the shaft that stays still for a moment) stays at
+    /// one place on the shaft. Range [0, 0.1].
+    pub insert_min_slide_m: f64,
+    /// An insertion becomes a confirmed trocar (enters the trocar list, can be re-entered
+    /// from memory) once it has lasted this long, seconds. Range [0, 10].
+    pub confirm_s: f64,
     /// Insertion needs the segment to span at least this long, seconds (persistence: a trocar
     /// constrains the axis continuously, a momentary virtual pivot does not).
     pub min_persistence_s: f64,
@@ -165,9 +174,11 @@ impl Default for FastConfig {
             min_lines: 8,
             noise_floor_m: 0.001,
             insert_max_std_m: 0.004,
-            insert_min_cross_spread_deg: 0.006,
+            insert_min_cross_spread_deg: 0.03,
             consistency_rms_m: 0.0006,
             insert_min_depth_m: 0.05,
+            insert_min_slide_m: 0.001,
+            confirm_s: 1.5,
             min_persistence_s: 0.3,
             break_gate_m: 0.006,
             slide_restart_m: 0.01,
@@ -314,6 +325,14 @@ impl FastConfig {
         positive("fast.consistency_rms_m", self.consistency_rms_m, 0.1, "(0, 0.1] m")?;
         positive("fast.insert_min_depth_m", self.insert_min_depth_m, 2.0, "(0, 2] m")?;
         duration("fast.min_persistence_s", self.min_persistence_s)?;
+        duration("fast.confirm_s", self.confirm_s)?;
+        if !(0.0..=0.1).contains(&self.insert_min_slide_m) {
+            return Err(ConfigError::OutOfRange {
+                key: "fast.insert_min_slide_m",
+                value: self.insert_min_slide_m,
+                allowed: "[0, 0.1] m",
+            });
+        }
         positive("fast.break_gate_m", self.break_gate_m, 0.5, "(0, 0.5] m")?;
         positive("fast.slide_restart_m", self.slide_restart_m, 1.0, "(0, 1] m")?;
         if !(self.insert_min_cross_spread_deg.is_finite() && (0.0..=10.0).contains(&self.insert_min_cross_spread_deg)) {

@@ -69,7 +69,28 @@ struct KnownTrocar {
     id: u8,
     fulcrum_base_m: Vector3<f64>,
     last_seen_step: u64,
+    /// Confirmed insertions merged into this entry (capped: the entry follows a trocar
+    /// that moves slowly, e.g. when the patient is repositioned).
+    visits: u32,
 }
+
+/// A line passes *through* the fulcrum, for the slide evidence, when it is within this many
+/// times the segment's RMS line distance of it ...
+const SLIDE_THROUGH_SIGMAS: f64 = 2.0;
+/// ... or within this distance, metres (quantisation floor).
+const SLIDE_THROUGH_MIN_M: f64 = 0.00025;
+
+/// The slide evidence ignores `1/SLIDE_TRIM_DIVISOR` of the lines at each end of the depth
+/// range (its 10th to 90th percentiles).
+const SLIDE_TRIM_DIVISOR: usize = 10;
+
+/// Newest lines of the segment that must still pass through the fulcrum for an insertion ...
+const RECENT_LINES: usize = 3;
+/// ... within this many times the segment's RMS line distance.
+const RECENT_SIGMAS: f64 = 3.0;
+
+/// Most visits an entry's fulcrum averages over.
+const MEMORY_MAX_VISITS: u32 = 8;
 
 #[derive(Clone, Copy, Debug)]
 struct MemoryCandidate {
@@ -88,6 +109,7 @@ pub struct FastDetector {
     min_persistence_steps: u64,
     extract_persistence_steps: u32,
     memory_persistence_steps: u32,
+    confirm_steps: u64,
     segment: Deque<Stored, WINDOW_CAPACITY>,
     sums: NormalSums,
     updates_since_rebuild: u32,
@@ -103,6 +125,11 @@ pub struct FastDetector {
     memory: Vec<KnownTrocar, MEMORY_CAPACITY>,
     next_id: u8,
     candidate: Option<MemoryCandidate>,
+    /// Step of the current insertion.
+    inside_since_step: u64,
+    /// The current insertion is a confirmed trocar (lasted `confirm_s`, or re-entered from
+    /// the list).
+    confirmed: bool,
     last: Estimate,
 }
 
@@ -129,6 +156,7 @@ impl FastDetector {
             min_persistence_steps: steps(cfg.min_persistence_s, sample_period_s),
             extract_persistence_steps: steps(cfg.extract_persistence_s, sample_period_s).max(1) as u32,
             memory_persistence_steps: steps(cfg.memory_persistence_s, sample_period_s).max(1) as u32,
+            confirm_steps: steps(cfg.confirm_s, sample_period_s),
             segment: Deque::new(),
             sums: NormalSums::new(),
             updates_since_rebuild: 0,
@@ -144,6 +172,8 @@ impl FastDetector {
             memory: Vec::new(),
             next_id: 0,
             candidate: None,
+            inside_since_step: 0,
+            confirmed: false,
             last: Estimate::outside(),
         })
     }
@@ -158,10 +188,14 @@ impl FastDetector {
         self.out_count = 0;
         self.tip_count = 0;
         self.candidate = None;
+        self.confirmed = false;
         self.last = Estimate::outside();
     }
 
-    /// Remembered trocars: `(id, fulcrum)` pairs, metres, robot base frame.
+    /// The trocar list: confirmed trocars as `(id, fulcrum)` pairs, metres, robot base frame.
+    /// An insertion enters it once it has lasted `confirm_s` (merged with an entry within
+    /// `memory_merge_m`, whose fulcrum becomes the mean of its visits); the entry seen least
+    /// recently is forgotten when the list is full.
     pub fn known_trocars(&self) -> impl Iterator<Item = (u8, Vector3<f64>)> + '_ {
         self.memory.iter().map(|k| (k.id, k.fulcrum_base_m))
     }
@@ -236,11 +270,17 @@ impl FastDetector {
         }
     }
 
-    fn memory_slot_near(&self, point: &Vector3<f64>) -> Option<usize> {
+    fn fresh_id(&mut self) -> u8 {
+        let id = self.next_id;
+        self.next_id = self.next_id.wrapping_add(1);
+        id
+    }
+
+    fn memory_slot_near(&self, point: &Vector3<f64>, within_m: f64) -> Option<usize> {
         let mut best: Option<(usize, f64)> = None;
         for (i, k) in self.memory.iter().enumerate() {
             let d = (k.fulcrum_base_m - point).norm();
-            if d < self.cfg.memory_merge_m && best.is_none_or(|(_, bd)| d < bd) {
+            if d < within_m && best.is_none_or(|(_, bd)| d < bd) {
                 best = Some((i, d));
             }
         }
@@ -250,15 +290,20 @@ impl FastDetector {
     /// Records `fulcrum` in the memory (merging with a known trocar); returns its id.
     fn remember(&mut self, fulcrum: &Vector3<f64>) -> u8 {
         let now = self.step_index;
-        if let Some(i) = self.memory_slot_near(fulcrum) {
+        if let Some(i) = self.memory_slot_near(fulcrum, self.cfg.memory_merge_m) {
             let k = &mut self.memory[i];
-            k.fulcrum_base_m = *fulcrum;
+            let n = f64::from(k.visits);
+            k.fulcrum_base_m = (k.fulcrum_base_m * n + fulcrum) / (n + 1.0);
+            k.visits = (k.visits + 1).min(MEMORY_MAX_VISITS);
             k.last_seen_step = now;
             return k.id;
         }
-        let id = self.next_id;
-        self.next_id = self.next_id.wrapping_add(1);
-        let entry = KnownTrocar { id, fulcrum_base_m: *fulcrum, last_seen_step: now };
+        let id = match self.state {
+            // A provisional id of this insertion that matches no entry becomes the entry's.
+            TrocarState::Inside { id } if !self.memory.iter().any(|k| k.id == id) => id,
+            _ => self.fresh_id(),
+        };
+        let entry = KnownTrocar { id, fulcrum_base_m: *fulcrum, last_seen_step: now, visits: 1 };
         if self.memory.push(entry).is_err() {
             // Full: replace the trocar seen least recently.
             let mut oldest = 0;
@@ -279,8 +324,10 @@ impl FastDetector {
         }
     }
 
-    fn enter(&mut self, fulcrum: Vector3<f64>, id: u8) {
+    fn enter(&mut self, fulcrum: Vector3<f64>, id: u8, confirmed: bool) {
         self.state = TrocarState::Inside { id };
+        self.inside_since_step = self.step_index;
+        self.confirmed = confirmed;
         self.fulcrum_base_m = fulcrum;
         self.inside_sums = self.sums;
         let g0 = self.cfg.extract_gate_m / self.cfg.extract_gate_sigmas;
@@ -290,9 +337,17 @@ impl FastDetector {
         self.candidate = None;
     }
 
+    /// Ends the insertion: a confirmed one enters (or updates) the trocar list.
+    fn end_insertion(&mut self) {
+        if self.confirmed {
+            let f = self.fulcrum_base_m;
+            self.remember(&f);
+        }
+        self.confirmed = false;
+    }
+
     fn leave(&mut self, line: &LineSample) {
-        let f = self.fulcrum_base_m;
-        self.remember(&f);
+        self.end_insertion();
         self.state = TrocarState::Outside;
         self.out_count = 0;
         self.tip_count = 0;
@@ -368,8 +423,63 @@ impl FastDetector {
             && depth > self.cfg.insert_min_depth_m
             && self.tip_beyond(depth)
             && self.step_index - first.step >= self.min_persistence_steps
-            && lsq::line_distance(line, &f) <= self.cfg.extract_gate_m;
+            && lsq::line_distance(line, &f) <= self.cfg.extract_gate_m
+            && self.newest_consistent(&f, fit.rms_m)
+            && self.slide_range_m(&f, (SLIDE_THROUGH_SIGMAS * fit.rms_m).max(SLIDE_THROUGH_MIN_M))
+                >= self.cfg.insert_min_slide_m;
         ok.then_some(f)
+    }
+
+    /// How far the instrument has slid through `point` over the newer half of the segment's
+    /// lines, metres: the spread of `zᵀ(point − P)` between its 10th and 90th percentiles,
+    /// over the lines
+    /// that pass through the point within `through_m`. Lines at the ends of a virtual pivot
+    /// (where the hand starts to move away, or the few lines of a slide before the pivot
+    /// began) are not a slide *through* the point while it pivots: the distance gate drops
+    /// the first, the percentiles the second. Allocation-free (a stack buffer and two
+    /// selections, O(window)); evaluated last, only when every other insertion test has
+    /// passed.
+    fn slide_range_m(&self, point: &Vector3<f64>, through_m: f64) -> f64 {
+        let mut depths = [0.0_f64; WINDOW_CAPACITY];
+        let mut n = 0;
+        // The newer half of the segment: a trocar lets the tool slide through it while it
+        // pivots, now; a slide followed by a pivot (a hovering hand) slides only in the
+        // older half.
+        let skip = self.segment.len() / 2;
+        for s in self.segment.iter().skip(skip) {
+            if lsq::line_distance(&s.line, point) <= through_m && n < WINDOW_CAPACITY {
+                depths[n] = lsq::signed_depth(&s.line, point);
+                n += 1;
+            }
+        }
+        if n < 2 {
+            return 0.0;
+        }
+        let d = &mut depths[..n];
+        let k = n / SLIDE_TRIM_DIVISOR;
+        let (_, lo, _) = d.select_nth_unstable_by(k, f64::total_cmp);
+        let lo = *lo;
+        let (_, hi, _) = d.select_nth_unstable_by(n - 1 - k, f64::total_cmp);
+        *hi - lo
+    }
+
+    /// Do the newest lines of the segment still pass through `point`, within
+    /// `RECENT_SIGMAS` times the segment's RMS distance `rms_m`? A trocar keeps the current
+    /// line on the fulcrum; at the end of a virtual pivot the newest lines drift away from
+    /// it, one after the other, while the old ones keep the RMS low.
+    fn newest_consistent(&self, point: &Vector3<f64>, rms_m: f64) -> bool {
+        let gate = RECENT_SIGMAS * rms_m.max(SLIDE_THROUGH_MIN_M);
+        self.segment.iter().rev().take(RECENT_LINES).all(|s| lsq::line_distance(&s.line, point) <= gate)
+    }
+
+    /// The trocar id for an insertion at `fulcrum`: the listed trocar within twice the merge
+    /// distance (a first detection is less precise than a listed fulcrum), else a new
+    /// provisional id.
+    fn id_for(&mut self, fulcrum: &Vector3<f64>) -> (u8, bool) {
+        match self.memory_slot_near(fulcrum, 2.0 * self.cfg.memory_merge_m) {
+            Some(i) => (self.memory[i].id, true),
+            None => (self.fresh_id(), false),
+        }
     }
 
     /// Feeds one sample; returns the estimate after it. Allocation-free; O(1) except for the
@@ -389,7 +499,7 @@ impl FastDetector {
             && !self.memory.is_empty()
             && let Some((f, id)) = self.check_memory(&line)
         {
-            self.enter(f, id);
+            self.enter(f, id, true);
             self.restart_segment(&line);
             self.last_included = Some(line);
         }
@@ -415,14 +525,15 @@ impl FastDetector {
         match self.state {
             TrocarState::Outside => {
                 if let Some(f) = self.check_insertion(&line) {
-                    let id = match self.memory_slot_near(&f) {
-                        Some(i) => self.memory[i].id,
-                        None => self.remember(&f),
-                    };
-                    self.enter(f, id);
+                    let (id, listed) = self.id_for(&f);
+                    self.enter(f, id, listed);
                 }
             }
             TrocarState::Inside { .. } => {
+                if !self.confirmed && self.step_index - self.inside_since_step >= self.confirm_steps {
+                    self.confirmed = true;
+                }
+
                 if included && lsq::line_distance(&line, &self.fulcrum_base_m) <= self.extract_gate_m() {
                     self.inside_sums.decay(1.0 - 1.0 / self.cfg.inside_memory_lines);
                     self.inside_sums.add(&line);

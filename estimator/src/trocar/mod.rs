@@ -213,6 +213,15 @@ impl Detector {
         }
     }
 
+    /// The confirmed trocars the detector knows (its trocar list): `(id, fulcrum)` pairs,
+    /// metres, robot base frame. Empty in paper mode, which has no trocar identity.
+    pub fn known_trocars(&self) -> heapless::Vec<(u8, Vector3<f64>), MEMORY_CAPACITY> {
+        match self {
+            Detector::Paper(_) => heapless::Vec::new(),
+            Detector::Fast(d) => d.known_trocars().collect(),
+        }
+    }
+
     /// The active mode.
     pub fn mode(&self) -> DetectorMode {
         match self {

@@ -177,7 +177,7 @@ impl Default for FastConfig {
             insert_min_cross_spread_deg: 0.03,
             consistency_rms_m: 0.0006,
             insert_min_depth_m: 0.05,
-            insert_min_slide_m: 0.001,
+            insert_min_slide_m: 0.0005,
             confirm_s: 1.5,
             min_persistence_s: 0.3,
             break_gate_m: 0.006,

@@ -9,19 +9,26 @@
 //!    recording of the inputs reproduces the outputs bit for bit.
 //!
 //! ## Stale data policy
-//! - Input flagged by a node fault (stale node, EMCY, heartbeat lost or not operational):
-//!   the output is invalid and the detector is **reset** before it next steps (the surgeon
-//!   may have moved anywhere meanwhile). That first valid cycle carries `DETECTOR_RESET`.
-//! - Input of a single incomplete cycle, a failed SYNC, a bus error or a sample refused by
-//!   the kinematics or the detector: the output is invalid and the detector is **frozen**
-//!   (not stepped); it resumes with the next complete cycle.
+//! - Every cycle whose input is not valid (an incomplete cycle, a stale node, a failed
+//!   SYNC, a bus error, a sample refused by the kinematics or the detector) publishes an
+//!   invalid output, and the detector is **frozen** (not stepped): a **gap**.
+//! - When valid input returns after a gap of at most `[detector] max_gap_s` (50 ms by
+//!   default), the detector **resumes** where it was and checks the first fresh sample
+//!   against its state ([`estimator::trocar::Detector::resume_after_gap`]: inside, a line
+//!   that has left the fulcrum ends the insertion at once); a 3 ms glitch no longer throws
+//!   the trocar away.
+//! - After a longer gap, or an EMCY or a lost heartbeat (or a node not operational) at any
+//!   point, the detector is **reset** before it next steps (the surgeon may have moved
+//!   anywhere meanwhile). That first valid cycle carries `DETECTOR_RESET`.
 //! - Valid only when every invalidating flag is clear; every float of a valid output is
 //!   finite (checked), otherwise the output is downgraded to invalid with `BAD_SAMPLE`.
 //!
 //! Both stages are allocation-free after construction.
 
 use estimator::kinematics::{Achilles, AchillesConfig, KinematicsConfigError};
-use estimator::trocar::{ConfigError as DetectorConfigError, Detector, DetectorConfig, LineSample, TrocarState};
+use estimator::trocar::{
+    ConfigError as DetectorConfigError, Detector, DetectorConfig, GapOutcome, LineSample, TrocarState,
+};
 use hw_io::can::{
     CanFrame, ConfigError as EncoderConfigError, DecodeError, ENCODER_NODES, EncoderConfig, JOINTS, JointAssembler,
     Message,
@@ -31,11 +38,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::health::{HealthConfig, HealthMonitor};
 
-/// Node flags that make the detector reset.
-const RESET_FLAGS: u32 = flags::NODE_STALE[0]
-    | flags::NODE_STALE[1]
-    | flags::NODE_STALE[2]
-    | flags::NODE_EMCY[0]
+/// Node flags that make the detector reset whatever the gap's length (a node in fault or
+/// silent: its data cannot be trusted until it recovers). A stale node only makes a gap.
+const RESET_FLAGS: u32 = flags::NODE_EMCY[0]
     | flags::NODE_EMCY[1]
     | flags::NODE_EMCY[2]
     | flags::NODE_HEARTBEAT[0]
@@ -330,6 +335,10 @@ pub struct Estimation {
     arm: Achilles,
     detector: Detector,
     reset_pending: bool,
+    /// Consecutive cycles whose input never reached the detector since it last stepped
+    /// (0 before its first step: nothing to resume).
+    gap_cycles: u64,
+    stepped: bool,
 }
 
 impl Estimation {
@@ -345,6 +354,8 @@ impl Estimation {
             arm: Achilles::new(kinematics)?,
             detector: Detector::new(detector)?,
             reset_pending: false,
+            gap_cycles: 0,
+            stepped: false,
         })
     }
 
@@ -358,19 +369,25 @@ impl Estimation {
             if input.received_mask == (1 << ENCODER_NODES) - 1 {
                 out.joints_rad = self.encoders.counts_to_rad(&input.counts);
             }
+            self.gap_cycles += u64::from(self.stepped);
             return out;
         }
         let q = self.encoders.counts_to_rad(&input.counts);
         out.joints_rad = q;
         let Ok(pose) = self.arm.forward(&q) else {
             out.health |= flags::BAD_SAMPLE;
+            self.gap_cycles += u64::from(self.stepped);
             return out;
         };
         if self.reset_pending {
             self.detector.reset();
             self.reset_pending = false;
             out.health |= flags::DETECTOR_RESET;
+        } else if self.gap_cycles > 0 && self.detector.resume_after_gap(self.gap_cycles) == GapOutcome::Reset {
+            out.health |= flags::DETECTOR_RESET;
         }
+        self.gap_cycles = 0;
+        self.stepped = true;
         let est = self.detector.step(&LineSample::new(pose.wrist_base_m, pose.axis_base));
         out.wrist_base_m = pose.wrist_base_m.into();
         out.axis_base = pose.axis_base.into();

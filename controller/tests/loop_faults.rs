@@ -12,7 +12,7 @@ use controller::cycle::{Acquisition, Estimation};
 use controller::rt_loop::{CycleRecord, CycleSink, LogEvent, LoopCounters, LoopParams, RtLoop};
 use controller::watchdog::LoopProgress;
 use hw_io::can::{CanBus, CanFrame, Message, RecvError, SendError, TimedFrame};
-use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, health};
+use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_OUTSIDE, STATE_INVALID, health};
 use sim::encoders::EmcyInjection;
 use sim::twin::{SimRobot, TwinConfig};
 
@@ -187,6 +187,37 @@ fn a_node_silent_for_200_ms_is_flagged_stale_then_recovers() {
     let bad: Vec<_> = samples[3_300..].iter().filter(|s| !s.is_valid()).map(|s| (s.sequence, s.health)).collect();
     assert!(bad.is_empty(), "{:?}", &bad[..bad.len().min(5)]);
     assert_eq!(lp.acquisition_stats().incomplete_cycles, 200);
+}
+
+/// Short gaps (a node silent for up to `max_gap_s`, 50 ms) freeze the detector: the trocar
+/// is kept, no reset, no extraction, every cycle of the gap invalid. A longer gap resets.
+#[test]
+fn a_short_gap_keeps_the_trocar_and_a_long_one_resets() {
+    // Where the instrument is inside a detected trocar in the gap-free run.
+    let (clean, _, _) = run(twin(), 8_000, Vec::new(), (0, 0));
+    let start = (2_000..7_000)
+        .find(|&i| clean[i..i + 400].iter().all(|s| s.state == STATE_INSIDE))
+        .expect("an insertion in the first 7 s");
+    let at = start + 150;
+    for (gap_ms, resets) in [(3u64, false), (20, false), (50, false), (60, true)] {
+        let mut t = twin();
+        t.nodes[1].dropout_windows_us = vec![[at as u64 * 1000, (at as u64 + gap_ms) * 1000]];
+        let (samples, _, _) = run(t, at as u64 + 300, Vec::new(), (0, 0));
+        assert_never_invalid_data_as_valid(&samples);
+        let gap = &samples[at..at + gap_ms as usize];
+        assert!(gap.iter().all(|s| s.state == STATE_INVALID), "{gap_ms} ms: a gap cycle was valid");
+        let after = &samples[at + gap_ms as usize];
+        assert!(after.is_valid(), "{gap_ms} ms: not valid after the gap: {:#x}", after.health);
+        assert_eq!(after.health & health::DETECTOR_RESET != 0, resets, "{gap_ms} ms: reset flag");
+        if !resets {
+            // The trocar is kept through the gap and after it, with the same id.
+            assert_eq!(after.state, STATE_INSIDE, "{gap_ms} ms: the trocar was dropped");
+            assert_eq!(after.trocar_id, samples[at - 1].trocar_id);
+            assert!(samples[at + gap_ms as usize..].iter().take(200).all(|s| s.state == STATE_INSIDE));
+        } else {
+            assert_eq!(after.state, STATE_OUTSIDE, "a long gap must reset to outside");
+        }
+    }
 }
 
 #[test]

@@ -104,3 +104,41 @@ fn only_confirmed_insertions_enter_the_trocar_list_and_visits_merge() {
     }
     assert_eq!(d.known_trocars().len(), 1, "a second visit made a second entry");
 }
+
+/// After a short gap in the input the first fresh line is checked at once: still through
+/// the fulcrum, the trocar is kept; off it (the instrument left during the gap), the
+/// insertion ends on that very sample, without the usual persistence. A gap longer than
+/// `max_gap_s` resets.
+#[test]
+fn the_first_line_after_a_gap_is_checked_against_the_fulcrum() {
+    use estimator::trocar::GapOutcome;
+    let f = Vector3::new(0.30, -0.02, 0.05);
+    let lines = cone_swing(&f, 3.0, |t| 0.12 + 0.01 * (2.0 * std::f64::consts::PI * 0.3 * t).sin());
+    let inside = |d: &mut Detector| {
+        for l in &lines {
+            d.step(l);
+        }
+        assert!(d.step(&lines[lines.len() - 1]).state.is_inside());
+    };
+    // Consistent after a 20 ms gap: stays inside.
+    let mut d = fast(FastConfig::default());
+    inside(&mut d);
+    assert_eq!(d.resume_after_gap(20), GapOutcome::Resumed);
+    assert!(d.step(&lines[lines.len() - 1]).state.is_inside());
+    // Moved 1 cm sideways during the gap: outside on the first sample.
+    let mut d = fast(FastConfig::default());
+    inside(&mut d);
+    let l = lines[lines.len() - 1];
+    let moved = LineSample::new(l.wrist_base_m + Vector3::new(0.01, 0.0, 0.0), l.axis_base);
+    // Without a gap, one such sample is not enough (extraction needs 10 ms of evidence) ...
+    let mut e = d.clone();
+    assert!(e.step(&moved).state.is_inside());
+    // ... after a gap it is.
+    assert_eq!(d.resume_after_gap(30), GapOutcome::Resumed);
+    assert!(!d.step(&moved).state.is_inside(), "the line left the fulcrum during the gap");
+    // Longer than max_gap_s (50 ms): reset.
+    let mut d = fast(FastConfig::default());
+    inside(&mut d);
+    assert_eq!(d.resume_after_gap(51), GapOutcome::Reset);
+    assert!(!d.step(&lines[lines.len() - 1]).state.is_inside());
+}

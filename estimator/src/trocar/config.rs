@@ -26,6 +26,10 @@ pub struct DetectorConfig {
     pub mode: DetectorMode,
     /// Sample period, seconds (1 kHz: 0.001). Converts the fast mode's durations to samples.
     pub sample_period_s: f64,
+    /// Longest gap in the input (samples that never reached the detector: missing TPDOs,
+    /// a stale node, a failed SYNC) after which the detector resumes where it was, seconds;
+    /// a longer gap resets it (the instrument may have moved anywhere). Range [0, 10].
+    pub max_gap_s: f64,
     /// Paper-mode parameters.
     pub paper: PaperConfig,
     /// Fast-mode parameters.
@@ -37,6 +41,7 @@ impl Default for DetectorConfig {
         Self {
             mode: DetectorMode::Fast,
             sample_period_s: 0.001,
+            max_gap_s: 0.05,
             paper: PaperConfig::default(),
             fast: FastConfig::default(),
         }
@@ -247,6 +252,7 @@ impl DetectorConfig {
     /// Checks every key; the first violation is returned.
     pub fn validate(&self) -> Result<(), ConfigError> {
         positive("sample_period_s", self.sample_period_s, 1.0, "(0, 1] s")?;
+        duration("max_gap_s", self.max_gap_s)?;
         self.paper.validate()?;
         self.fast.validate()
     }

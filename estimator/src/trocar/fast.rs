@@ -131,6 +131,10 @@ pub struct FastDetector {
     /// the list).
     confirmed: bool,
     last: Estimate,
+    sample_period_s: f64,
+    max_gap_s: f64,
+    /// The next sample follows a gap in the input: check it against the state at once.
+    after_gap: bool,
 }
 
 fn steps(seconds: f64, period_s: f64) -> u64 {
@@ -175,6 +179,9 @@ impl FastDetector {
             inside_since_step: 0,
             confirmed: false,
             last: Estimate::outside(),
+            sample_period_s,
+            max_gap_s: 0.05,
+            after_gap: false,
         })
     }
 
@@ -189,7 +196,58 @@ impl FastDetector {
         self.tip_count = 0;
         self.candidate = None;
         self.confirmed = false;
+        self.after_gap = false;
         self.last = Estimate::outside();
+    }
+
+    /// The longest input gap it resumes after, seconds (see
+    /// [`super::Detector::resume_after_gap`]). Validated by [`super::DetectorConfig`].
+    pub fn with_max_gap_s(mut self, max_gap_s: f64) -> Self {
+        self.max_gap_s = max_gap_s;
+        self
+    }
+
+    /// Sample period, seconds.
+    pub fn sample_period_s(&self) -> f64 {
+        self.sample_period_s
+    }
+
+    /// Longest input gap it resumes after, seconds.
+    pub fn max_gap_s(&self) -> f64 {
+        self.max_gap_s
+    }
+
+    /// A short gap in the input ended: the next sample is checked against the state at once
+    /// (inside: extraction without persistence if the line has left the fulcrum or the tip
+    /// is back over it; outside: the segment restarts at that line).
+    pub fn check_after_gap(&mut self) {
+        self.after_gap = true;
+    }
+
+    /// The check of the first sample after a gap (see [`Self::check_after_gap`]). Returns
+    /// true when the insertion ended.
+    fn resume_check(&mut self, line: &LineSample) -> bool {
+        self.after_gap = false;
+        self.candidate = None;
+        if !self.state.is_inside() {
+            // The motion during the gap was not seen: the lines before and after it are not
+            // one motion (and a jump along the axis is not an axial slide).
+            self.restart_segment(line);
+            self.last_included = Some(*line);
+            return false;
+        }
+        let off = lsq::line_distance(line, &self.fulcrum_base_m) > self.extract_gate_m();
+        let tip_out = self
+            .cfg
+            .instrument_length_m
+            .is_some_and(|l| lsq::signed_depth(line, &self.fulcrum_base_m) > l + self.cfg.tip_margin_m);
+        if off || tip_out {
+            self.leave(line);
+            return true;
+        }
+        self.out_count = 0;
+        self.tip_count = 0;
+        false
     }
 
     /// The trocar list: confirmed trocars as `(id, fulcrum)` pairs, metres, robot base frame.
@@ -491,7 +549,9 @@ impl FastDetector {
         };
         self.step_index += 1;
 
-        if self.state.is_inside() {
+        if self.after_gap && self.resume_check(&line) {
+            // Left during the gap: reported outside from this sample on.
+        } else if self.state.is_inside() {
             if self.check_extraction(&line) {
                 self.leave(&line);
             }

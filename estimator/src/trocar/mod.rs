@@ -172,6 +172,15 @@ pub(crate) fn differs_enough(last: &LineSample, new: &LineSample, delta_d_m: f64
     d > delta_d_m || last.axis_base.dot(&new.axis_base) < cos_delta_theta
 }
 
+/// What [`Detector::resume_after_gap`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GapOutcome {
+    /// The gap was short: the detector resumes with its state, checked on the next sample.
+    Resumed,
+    /// The gap was longer than `max_gap_s`: the detector was reset to `Outside`.
+    Reset,
+}
+
 /// Either detector, chosen by configuration. `step` once per sample.
 // Both variants are large fixed buffers (tens of KiB) held inline on purpose: no heap, no
 // indirection on the 1 kHz path. Construct once, keep it in a long-lived place.
@@ -190,8 +199,12 @@ impl Detector {
     pub fn new(config: &DetectorConfig) -> Result<Self, ConfigError> {
         config.validate()?;
         Ok(match config.mode {
-            DetectorMode::Paper => Detector::Paper(paper::PaperDetector::new(&config.paper)?),
-            DetectorMode::Fast => Detector::Fast(fast::FastDetector::new(&config.fast, config.sample_period_s)?),
+            DetectorMode::Paper => Detector::Paper(
+                paper::PaperDetector::new(&config.paper)?.with_timing(config.sample_period_s, config.max_gap_s),
+            ),
+            DetectorMode::Fast => Detector::Fast(
+                fast::FastDetector::new(&config.fast, config.sample_period_s)?.with_max_gap_s(config.max_gap_s),
+            ),
         })
     }
 
@@ -210,6 +223,38 @@ impl Detector {
         match self {
             Detector::Paper(d) => d.reset(),
             Detector::Fast(d) => d.reset(),
+        }
+    }
+
+    /// Tells the detector that `missed_samples` samples (metres and seconds do not enter:
+    /// samples at the configured period) never reached it, because the input was missing or
+    /// invalid. A gap up to `max_gap_s` freezes the detector: it resumes where it was, and
+    /// the first sample after the gap is checked against its state (fast mode: inside, a
+    /// line that no longer passes through the fulcrum, or a tip back over it, ends the
+    /// insertion at once, without the usual persistence; outside, the line segment restarts,
+    /// since the motion during the gap was not seen). A longer gap resets it.
+    /// Allocation-free; called in the real-time loop.
+    pub fn resume_after_gap(&mut self, missed_samples: u64) -> GapOutcome {
+        let period = match self {
+            Detector::Paper(d) => d.sample_period_s(),
+            Detector::Fast(d) => d.sample_period_s(),
+        };
+        if missed_samples as f64 * period > self.max_gap_s() + 1e-12 {
+            self.reset();
+            return GapOutcome::Reset;
+        }
+        match self {
+            // The paper has no notion of gaps: its windows simply go on.
+            Detector::Paper(_) => {}
+            Detector::Fast(d) => d.check_after_gap(),
+        }
+        GapOutcome::Resumed
+    }
+
+    fn max_gap_s(&self) -> f64 {
+        match self {
+            Detector::Paper(d) => d.max_gap_s(),
+            Detector::Fast(d) => d.max_gap_s(),
         }
     }
 

@@ -220,6 +220,43 @@ fn a_short_gap_keeps_the_trocar_and_a_long_one_resets() {
     }
 }
 
+/// Random TPDO loss (1 % per frame on every node: a lost frame every ~33 cycles) leaves the
+/// detection as it is without loss: the gaps freeze and resume, nothing resets.
+#[test]
+fn random_tpdo_loss_changes_no_detection() {
+    let (clean, _, _) = run(twin(), 20_000, Vec::new(), (0, 0));
+    let mut t = twin();
+    for node in &mut t.nodes {
+        node.dropout_probability = 0.01;
+    }
+    let (lossy, lp, _) = run(t, 20_000, Vec::new(), (0, 0));
+    assert_never_invalid_data_as_valid(&lossy);
+    assert!(lp.acquisition_stats().incomplete_cycles > 300, "the loss did not happen");
+    assert!(lossy.iter().all(|s| s.health & health::DETECTOR_RESET == 0), "a short gap reset the detector");
+    // The same insertions and extractions as the loss-free run, each within a few cycles of
+    // it (a lost line near a decision moves the decision by a sample or two).
+    let transitions = |v: &[FulcrumSample]| {
+        let mut last = STATE_OUTSIDE;
+        let mut out = Vec::new();
+        for (i, s) in v.iter().enumerate() {
+            if s.state != STATE_INVALID {
+                if s.state != last {
+                    out.push((i, s.state));
+                }
+                last = s.state;
+            }
+        }
+        out
+    };
+    let (a, b) = (transitions(&clean), transitions(&lossy));
+    assert!(a.len() >= 2, "the clean run should insert and extract: {a:?}");
+    assert_eq!(a.len(), b.len(), "clean {a:?} lossy {b:?}");
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.1, y.1);
+        assert!(x.0.abs_diff(y.0) <= 10, "a decision moved from cycle {} to {}", x.0, y.0);
+    }
+}
+
 #[test]
 fn an_emcy_burst_invalidates_until_cleared() {
     let mut t = twin();

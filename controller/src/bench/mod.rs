@@ -9,6 +9,7 @@
 //! - [`plots`]: SVG figures (plotters).
 
 pub mod bound;
+pub mod bus_loss;
 pub mod detection;
 pub mod families;
 pub mod ipc;

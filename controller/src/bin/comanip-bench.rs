@@ -13,6 +13,7 @@ use std::process::ExitCode;
 use std::sync::atomic::AtomicBool;
 
 use clap::{Parser, Subcommand};
+use controller::bench::bus_loss::{LossReport, run_bus_loss};
 use controller::bench::families::{FAMILIES, FamilyOptions, FamilyReport, REPORT_SEEDS, TUNING_SEEDS, run_families};
 use controller::bench::ipc::{self, IpcReport};
 use controller::bench::plots;
@@ -45,6 +46,18 @@ enum Command {
     Ipc(IpcArgs),
     /// Detection per motion-style family: tuning families marked, held-out families reported.
     Families(FamiliesArgs),
+    /// The daemon's stale-data policy under random TPDO loss and bursts of missing TPDOs.
+    BusLoss(BusLossArgs),
+}
+
+#[derive(clap::Args)]
+struct BusLossArgs {
+    /// Scenario seeds of the traces (placement C1).
+    #[arg(long = "loss-seeds", value_delimiter = ',', default_values_t = [101u64, 102, 103, 104])]
+    loss_seeds: Vec<u64>,
+    /// Insert/extract cycles per trace.
+    #[arg(long = "loss-cycles", default_value_t = 90)]
+    loss_cycles: usize,
 }
 
 #[derive(clap::Args)]
@@ -109,6 +122,8 @@ struct AllArgs {
     ipc: IpcArgs,
     #[command(flatten)]
     families: FamiliesArgs,
+    #[command(flatten)]
+    loss: BusLossArgs,
     /// The Markdown report to write.
     #[arg(long, default_value = "docs/BENCHMARKS.md")]
     report: PathBuf,
@@ -194,6 +209,20 @@ fn families(a: &FamiliesArgs) -> Result<FamilyReport, String> {
     Ok(r)
 }
 
+fn bus_loss(a: &BusLossArgs) -> Result<LossReport, String> {
+    let n = (a.loss_seeds.len() * controller::bench::bus_loss::CONDITIONS.len()) as u64;
+    let bar = if std::io::stderr().is_terminal() {
+        let b = indicatif::ProgressBar::new(n);
+        b.set_message("runs");
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let r = run_bus_loss(&a.loss_seeds, a.loss_cycles, &|| bar.inc(1)).map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    Ok(r)
+}
+
 fn run_loop(a: &LoopArgs) -> Result<RunSummary, String> {
     let mut config = Config::default();
     config.recorder.enabled = false;
@@ -254,6 +283,8 @@ fn all(a: &AllArgs) -> Result<(), String> {
     let det = detection(&a.detection)?;
     eprintln!("comanip-bench: motion-style families ...");
     let fam = families(&a.families)?;
+    eprintln!("comanip-bench: bus loss and gaps ...");
+    let loss = bus_loss(&a.loss)?;
     eprintln!("comanip-bench: loop timing ({} s) ...", a.looping.seconds);
     let lp = run_loop(&a.looping)?;
     eprintln!("comanip-bench: iceoryx2 latency ({} samples) ...", a.ipc.samples);
@@ -324,6 +355,14 @@ fn all(a: &AllArgs) -> Result<(), String> {
     );
     md.push_str(&fam.markdown());
     let _ = writeln!(md);
+    let _ = writeln!(md, "## Bus loss and gaps\n");
+    let _ = writeln!(
+        md,
+        "`comanip-bench bus-loss`: the daemon's own decoding and stale-data policy (`Estimation`) on the benchmark's \
+         traces with TPDO frames dropped before acquisition (method: [benchmark-method.md](benchmark-method.md#bus-loss-and-gaps)). \
+         Spurious extractions and resets per hour of simulated motion (counts in brackets).\n"
+    );
+    md.push_str(&loss.markdown());
     let _ = writeln!(md, "## Loop timing: fulcrumd on the in-process simulated robot\n");
     md.push_str(&loop_markdown(&lp));
     let _ = writeln!(md, "\n![loop timing]({})\n", rel("loop_timing.svg"));
@@ -353,6 +392,7 @@ fn main() -> ExitCode {
         Command::Loop(a) => run_loop(a).map(|s| Some(loop_markdown(&s))),
         Command::Ipc(a) => ipc::run(a.samples).map(|r| Some(ipc_markdown(&r))).map_err(|e| e.to_string()),
         Command::Families(a) => families(a).map(|r| Some(r.markdown())),
+        Command::BusLoss(a) => bus_loss(a).map(|r| Some(r.markdown())),
     };
     let printed = match &result {
         Ok(Some(report)) => hw_io::outln!("{report}"),

@@ -231,8 +231,8 @@ impl Detector {
     /// invalid. A gap up to `max_gap_s` freezes the detector: it resumes where it was, and
     /// the first sample after the gap is checked against its state (fast mode: inside, a
     /// line that no longer passes through the fulcrum, or a tip back over it, ends the
-    /// insertion at once, without the usual persistence; outside, the line segment restarts,
-    /// since the motion during the gap was not seen). A longer gap resets it.
+    /// insertion at once, without the usual persistence; outside, the segment of lines goes
+    /// on: in 50 ms the hand moves a few millimetres). A longer gap resets it.
     /// Allocation-free; called in the real-time loop.
     pub fn resume_after_gap(&mut self, missed_samples: u64) -> GapOutcome {
         let period = match self {

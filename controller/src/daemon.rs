@@ -24,7 +24,9 @@ use tracing::{info, warn};
 
 use crate::config::Config;
 use crate::cycle::{Acquisition, AcquisitionStats, Estimation};
+use crate::health_log::HealthLog;
 use crate::recorder::{self, RecorderProducer, RecorderStatsSnapshot, RunInfo};
+use crate::recording_dir;
 use crate::rt::{self, RealtimeReport};
 use crate::rt_loop::{
     CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopParams, LoopTiming, RECORD_KIND, RtLoop,
@@ -132,6 +134,10 @@ pub enum DaemonError {
     /// The flight recorder could not start.
     #[error("flight recorder: {0}")]
     Recorder(#[from] recorder::StartError),
+    /// No recording directory could be chosen (the packaged default is not writable and the
+    /// user has no state directory).
+    #[error(transparent)]
+    RecordingDir(#[from] crate::recording_dir::RecordingDirError),
     /// Real-time set-up failed with `realtime.require = true`.
     #[error("real-time set-up: {0}")]
     Realtime(#[from] rt::RealtimeError),
@@ -215,25 +221,45 @@ pub fn health_names(flags: u32) -> String {
     if v.is_empty() { "ok".into() } else { v.join(",") }
 }
 
-fn log_event(e: &LogEvent, period_s: f64) {
+/// What the simulated truth says next to a detection (the built-in simulated robot only):
+/// the true trocar and the fulcrum's error, or what is wrong with the detection.
+pub fn truth_note(
+    state: u32,
+    fulcrum_base_m: [f64; 3],
+    truth: Option<(sim::scenario::TruthState, Option<nalgebra::Vector3<f64>>)>,
+) -> String {
+    use sim::scenario::TruthState;
+    let Some((truth_state, pivot)) = truth else { return String::new() };
+    match (state, truth_state, pivot) {
+        (STATE_INSIDE, TruthState::Inside { index }, Some(p)) => {
+            let err_mm = (nalgebra::Vector3::from(fulcrum_base_m) - p).norm() * 1e3;
+            format!(" [truth: trocar {index}, fulcrum {err_mm:.1} mm from the true pivot]")
+        }
+        (STATE_INSIDE, _, _) => " [truth: outside: a FALSE detection]".to_string(),
+        (STATE_OUTSIDE, TruthState::Inside { index }, _) => format!(" [truth: still inside trocar {index}]"),
+        (STATE_OUTSIDE, _, _) => " [truth: outside]".to_string(),
+        _ => String::new(),
+    }
+}
+
+fn log_event(e: &LogEvent, period_s: f64, sim: Option<&SimRobotThread>, health: &mut HealthLog) {
     match *e {
         LogEvent::State { sequence, state, trocar_id, fulcrum_base_m: f } => {
             let t = sequence as f64 * period_s;
+            let note = truth_note(state, f, sim.and_then(|s| s.truth_at(sequence)));
             if state == STATE_INSIDE {
                 info!(
-                    "{t:9.3} s  DETECTED inside trocar #{trocar_id}, fulcrum ({:+.4}, {:+.4}, {:+.4}) m",
+                    "{t:9.3} s  DETECTED inside trocar #{trocar_id}, fulcrum ({:+.4}, {:+.4}, {:+.4}) m{note}",
                     f[0], f[1], f[2]
                 );
             } else {
-                info!("{t:9.3} s  DETECTED {}", state_name(state));
+                info!("{t:9.3} s  DETECTED {}{note}", state_name(state));
             }
         }
-        LogEvent::Health { sequence, old, new } => {
-            let t = sequence as f64 * period_s;
-            if new == 0 {
-                info!("{t:9.3} s  health ok (was {})", health_names(old));
-            } else {
-                warn!("{t:9.3} s  health {}", health_names(new));
+        LogEvent::Health { sequence, old: _, new } => {
+            // Lasting conditions get their own lines, short flaps a count (health_log).
+            for line in health.change(sequence as f64 * period_s, new) {
+                info!("{line}");
             }
         }
         LogEvent::Overrun { sequence, skipped } => {
@@ -271,7 +297,19 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
 
     // Flight recorder.
     let (rec_producer, rec_handle) = if cfg.recorder.enabled {
-        let (p, h) = recorder::start::<CycleRecord, RECORDER_QUEUE>(&cfg.recorder, run_info)?;
+        // The packaged default directory, unwritable for an ordinary user: the user's state
+        // directory instead, with a warning (recording_dir).
+        let chosen = recording_dir::choose(
+            &cfg.recorder.dir,
+            std::path::Path::new(recording_dir::PACKAGED_DIR),
+            std::env::var_os("XDG_STATE_HOME"),
+            std::env::var_os("HOME"),
+        )?;
+        if let Some(w) = &chosen.warning {
+            warn!("{w}");
+        }
+        let rec_cfg = recorder::RecorderConfig { dir: chosen.dir, ..cfg.recorder.clone() };
+        let (p, h) = recorder::start::<CycleRecord, RECORDER_QUEUE>(&rec_cfg, run_info)?;
         info!("flight recorder: {}", h.first_file().display());
         (Some(p), Some(h))
     } else {
@@ -300,10 +338,10 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         let bus = InProcessBus::new();
         let endpoint = bus.endpoint().map_err(|e| DaemonError::Sim(e.to_string()))?;
         let controller = bus.endpoint().map_err(|e| DaemonError::Sim(e.to_string()))?;
-        sim = Some(
-            sim_robot::spawn(endpoint, cfg, opts.sim_seed, stop, period_s)
-                .map_err(|e| DaemonError::Sim(e.to_string()))?,
-        );
+        let thread = sim_robot::spawn(endpoint, cfg, opts.sim_seed, stop, period_s)
+            .map_err(|e| DaemonError::Sim(e.to_string()))?;
+        info!("simulated robot: {}", thread.priority_note);
+        sim = Some(thread);
         (Box::new(controller), "in-process simulated robot".to_string())
     } else {
         let mut b = SocketCanBus::open(&cfg.bus.iface)
@@ -398,7 +436,8 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
             return Err(DaemonError::Thread("the real-time thread died during set-up".into()));
         }
     };
-    for line in &realtime {
+    // Refused steps were already warned about (with what would permit them) by rt.
+    for line in realtime.iter().filter(|l| !l.contains("refused")) {
         info!("real-time: {line}");
     }
 
@@ -406,6 +445,7 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
     // line on the per-cycle conditions (incomplete cycles, overruns) if any occurred, and one
     // on the frames the bus dropped (receive queue full) if any were.
     let mut last_report = std::time::Instant::now();
+    let mut health_log = HealthLog::new();
     let mut reported = (0u64, 0u64);
     let mut reported_drops = 0u64;
     while !handle.is_finished() {
@@ -426,9 +466,16 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
                 warn!("{}", drops_line("last 10 s", drops - reported_drops, drops));
                 reported_drops = drops;
             }
+            if let Some(line) = health_log.flaps() {
+                warn!("last 10 s: {line}");
+            }
+        }
+        let now_s = progress.snapshot().cycles as f64 * period_s;
+        for line in health_log.tick(now_s) {
+            warn!("{line}");
         }
         while let Some(e) = log_rx.dequeue() {
-            log_event(&e, period_s);
+            log_event(&e, period_s, sim.as_ref(), &mut health_log);
         }
         if let Some(s) = &sim {
             s.drain_truth(|line| info!("{line}"));
@@ -441,7 +488,7 @@ pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, Da
         warn!("{}", drops_line("since the last report", drops - reported_drops, drops));
     }
     while let Some(e) = log_rx.dequeue() {
-        log_event(&e, period_s);
+        log_event(&e, period_s, sim.as_ref(), &mut health_log);
     }
     let sim_syncs_answered = match sim {
         Some(s) => {

@@ -12,7 +12,7 @@ use controller::cycle::{Acquisition, Estimation};
 use controller::rt_loop::{CycleRecord, CycleSink, LogEvent, LoopCounters, LoopParams, RtLoop};
 use controller::watchdog::LoopProgress;
 use hw_io::can::{CanBus, CanFrame, Message, RecvError, SendError, TimedFrame};
-use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_OUTSIDE, STATE_INVALID, health};
+use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE, health};
 use sim::encoders::EmcyInjection;
 use sim::twin::{SimRobot, TwinConfig};
 

@@ -589,8 +589,7 @@ pub fn generate(cfg: &ScenarioConfig) -> Scenario {
         }
         b.free_motion(outside_s * (1.0 - split), approach_wrist, entry);
         let port = b.trocar_at(index, b.t);
-        let (hover, aim) =
-            (cfg.style.hover_probability.clamp(0.0, 1.0), cfg.style.aim_probability.clamp(0.0, 1.0));
+        let (hover, aim) = (cfg.style.hover_probability.clamp(0.0, 1.0), cfg.style.aim_probability.clamp(0.0, 1.0));
         let approach = if hover > 0.0 && b.rng.random_bool(hover) {
             b.hover(port, entry, approach_m)
         } else if aim > 0.0 && b.rng.random_bool(aim) {

@@ -38,7 +38,10 @@ fn a_hand_pivot_about_a_point_of_the_shaft_is_not_a_trocar_but_a_slide_through_i
     // The hand swings the instrument about a point 12 cm in front of the wrist, for 3 s:
     // consistent lines, a cone of directions, 12 cm deep, persistent, and no slide.
     let pivot = cone_swing(&f, 3.0, |_| 0.12);
-    assert!(!ever_inside(&mut fast(FastConfig::default()), &pivot), "a virtual pivot of the hand was taken for a trocar");
+    assert!(
+        !ever_inside(&mut fast(FastConfig::default()), &pivot),
+        "a virtual pivot of the hand was taken for a trocar"
+    );
     // Without the slide evidence, the same motion is declared (the test is not vacuous).
     let no_slide = FastConfig { insert_min_slide_m: 0.0, ..Default::default() };
     assert!(ever_inside(&mut fast(no_slide), &pivot), "the motion should pass every other insertion test");
@@ -69,7 +72,8 @@ fn a_slide_before_the_pivot_is_not_a_slide_through_it() {
 fn only_confirmed_insertions_enter_the_trocar_list_and_visits_merge() {
     let t1 = Vector3::new(0.30, -0.05, 0.02);
     let t2 = Vector3::new(0.32, 0.06, 0.01);
-    let sliding = |f: &Vector3<f64>, s: f64| cone_swing(f, s, |t| 0.15 + 0.01 * (2.0 * std::f64::consts::PI * 0.3 * t).sin());
+    let sliding =
+        |f: &Vector3<f64>, s: f64| cone_swing(f, s, |t| 0.15 + 0.01 * (2.0 * std::f64::consts::PI * 0.3 * t).sin());
     let cfg = FastConfig { confirm_s: 1.5, ..Default::default() };
     let mut d = fast(cfg);
     // A short insertion at t1 (detected, left after well under 1.5 s): not listed.

@@ -18,8 +18,8 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use sim::scenario::TruthState;
 use sim::scenario::TrueEvent;
+use sim::scenario::TruthState;
 use sim::score::{Detected, mean, score_against};
 use sim::twin::SimRobot;
 
@@ -170,8 +170,8 @@ fn is_tpdo(frame: &hw_io::can::CanFrame) -> Option<u8> {
 fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCell>, BenchError> {
     let cfg = twin_config(spec);
     let mut twin = SimRobot::new(&cfg).map_err(TraceError::from)?;
-    let mut acq = Acquisition::new(&cfg.encoder, HealthConfig::default())
-        .map_err(|e| TraceError::Pipeline(e.to_string()))?;
+    let mut acq =
+        Acquisition::new(&cfg.encoder, HealthConfig::default()).map_err(|e| TraceError::Pipeline(e.to_string()))?;
     let mut ests: Vec<Estimation> = sets
         .iter()
         .map(|s| Estimation::new(&cfg.encoder, &cfg.kinematics, &s.config))

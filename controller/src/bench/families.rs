@@ -55,13 +55,7 @@ pub struct Family {
     pub tuned: bool,
 }
 
-const fn style(
-    transfer: TransferTiming,
-    shaft_pivot: f64,
-    hover: f64,
-    aim: f64,
-    reinsert: f64,
-) -> StyleConfig {
+const fn style(transfer: TransferTiming, shaft_pivot: f64, hover: f64, aim: f64, reinsert: f64) -> StyleConfig {
     StyleConfig {
         transfer,
         shaft_pivot_probability: shaft_pivot,
@@ -254,8 +248,7 @@ pub fn run_families(opts: &FamilyOptions, progress: &(dyn Fn() + Sync)) -> Resul
     let length = sim::twin::TwinConfig::default().scenario.instrument_length_m;
     let sets = settings(length, &opts.detector);
     let fams: Vec<Family> = FAMILIES.iter().filter(|f| f.tuned || !opts.tuning_only).copied().collect();
-    let jobs: Vec<(usize, u64)> =
-        (0..fams.len()).flat_map(|f| opts.seeds.iter().map(move |&s| (f, s))).collect();
+    let jobs: Vec<(usize, u64)> = (0..fams.len()).flat_map(|f| opts.seeds.iter().map(move |&s| (f, s))).collect();
     type Job = (usize, Result<Vec<Cell>, String>);
     let results: Vec<Result<Job, BenchError>> = jobs
         .par_iter()

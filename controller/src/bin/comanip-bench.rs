@@ -385,6 +385,9 @@ fn main() -> ExitCode {
         };
     }
     let cli = Cli::parse();
+    // iceoryx2's messages (the loop and IPC benchmarks open services) through tracing; without
+    // a subscriber they are dropped, as the report is the output here.
+    hw_io::ipc::route_iceoryx2_logs_to_tracing();
     // The report to print, if the command has one (`all` writes files).
     let result = match &cli.command {
         Command::All(a) => all(a).map(|()| None),

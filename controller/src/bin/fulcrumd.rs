@@ -155,6 +155,9 @@ fn init_logging() {
     } else {
         builder.without_time().init();
     }
+    // iceoryx2's own messages join the same stream (and its "no config file" notice, expected
+    // here, goes to debug).
+    hw_io::ipc::route_iceoryx2_logs_to_tracing();
 }
 
 fn install_signal_handlers() {

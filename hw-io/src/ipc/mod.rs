@@ -21,6 +21,9 @@ mod publisher;
 mod service;
 mod subscriber;
 
+pub mod logging;
+
+pub use logging::route_iceoryx2_logs_to_tracing;
 pub use message::{FULCRUM_SAMPLE_VERSION, FulcrumSample, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE, health};
 pub use publisher::{CreateError, FulcrumPublisher, PublishError};
 pub use service::{OpenError, PublisherOptions};

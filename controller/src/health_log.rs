@@ -16,7 +16,7 @@ use std::collections::BTreeMap;
 use crate::daemon::health_names;
 
 /// A condition that lasts this long gets its own lines, seconds.
-pub const LASTING_S: f64 = 0.5;
+pub const LASTING_S: f64 = 0.1;
 
 /// Flags that can be set at once (bits of `hw_io::ipc::health`).
 const BITS: usize = 32;
@@ -132,10 +132,10 @@ mod tests {
             lines.extend(log.change(t, h::NODE_STALE[1]));
             lines.extend(log.tick(t + 0.01));
             lines.extend(log.change(t + 0.02, 0));
-            lines.extend(log.tick(t + 0.5));
+            lines.extend(log.tick(t + 0.9));
         }
         assert!(lines.is_empty(), "{lines:?}");
-        assert_eq!(log.flaps().as_deref(), Some("short health conditions (under 0.5 s each): node2-stale ×7"));
+        assert_eq!(log.flaps().as_deref(), Some("short health conditions (under 0.1 s each): node2-stale ×7"));
         assert_eq!(log.flaps(), None, "the counts start again");
     }
 
@@ -143,8 +143,8 @@ mod tests {
     fn a_lasting_condition_gets_a_start_and_an_end_line() {
         let mut log = HealthLog::new();
         assert!(log.change(10.0, h::NODE_EMCY[0]).is_empty());
-        assert!(log.tick(10.2).is_empty());
-        let began = log.tick(10.6);
+        assert!(log.tick(10.05).is_empty());
+        let began = log.tick(10.15);
         assert_eq!(began, vec![HealthLine::Began { name: "node1-emcy".into(), since_s: 10.0 }]);
         assert!(log.tick(11.0).is_empty(), "announced once");
         let cleared = log.change(12.5, 0);
@@ -157,9 +157,9 @@ mod tests {
     fn conditions_are_followed_one_by_one() {
         let mut log = HealthLog::new();
         log.change(0.0, h::NODE_STALE[0] | h::NODE_HEARTBEAT[2]);
-        log.change(0.1, h::NODE_HEARTBEAT[2]);
+        log.change(0.05, h::NODE_HEARTBEAT[2]);
         let began = log.tick(1.0);
         assert_eq!(began.len(), 1);
-        assert_eq!(log.flaps().as_deref(), Some("short health conditions (under 0.5 s each): node1-stale ×1"));
+        assert_eq!(log.flaps().as_deref(), Some("short health conditions (under 0.1 s each): node1-stale ×1"));
     }
 }

@@ -202,7 +202,7 @@ pub struct FamilyResult {
     pub family: Family,
     /// One cell per setting, in [`settings`] order.
     pub cells: Vec<Cell>,
-    /// Traces the twin could not run (a pose out of the arm's reach), with the reason.
+    /// Traces the twin could not run (the inverse kinematics did not converge), with the reason.
     pub skipped: Vec<String>,
 }
 
@@ -397,7 +397,10 @@ impl FamilyReport {
         }
         let skipped: Vec<&String> = self.families.iter().flat_map(|f| &f.skipped).collect();
         if !skipped.is_empty() {
-            let _ = writeln!(s, "\nTraces the twin could not run (out of the arm's reach), not counted:");
+            let _ = writeln!(
+                s,
+                "\nTraces the twin could not run (its inverse kinematics did not converge on a pose near the passive wrist's singularity), not counted:"
+            );
             for r in skipped {
                 let _ = writeln!(s, "- {r}");
             }

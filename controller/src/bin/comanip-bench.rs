@@ -375,6 +375,10 @@ fn all(a: &AllArgs) -> Result<(), String> {
 }
 
 fn main() -> ExitCode {
+    // iceoryx2's messages (the loop and IPC benchmarks open services, in this process and in
+    // the IPC subscriber child) through tracing; without a subscriber they are dropped, as the
+    // report is the output here.
+    hw_io::ipc::route_iceoryx2_logs_to_tracing();
     if std::env::var_os(ipc::ROLE_ENV).is_some() {
         return match ipc::subscriber_main() {
             Ok(()) => ExitCode::SUCCESS,
@@ -385,9 +389,6 @@ fn main() -> ExitCode {
         };
     }
     let cli = Cli::parse();
-    // iceoryx2's messages (the loop and IPC benchmarks open services) through tracing; without
-    // a subscriber they are dropped, as the report is the output here.
-    hw_io::ipc::route_iceoryx2_logs_to_tracing();
     // The report to print, if the command has one (`all` writes files).
     let result = match &cli.command {
         Command::All(a) => all(a).map(|()| None),

@@ -199,6 +199,33 @@ impl Wave {
     }
 }
 
+/// A hand's two-direction swing of the instrument axis about `axis0`: pitch and yaw waves
+/// about two directions perpendicular to it.
+#[derive(Clone, Copy, Debug)]
+struct ConeSwing {
+    pitch: Wave,
+    yaw: Wave,
+    e1: Vector3<f64>,
+    e2: Vector3<f64>,
+    axis0: Vector3<f64>,
+}
+
+impl ConeSwing {
+    /// Peak amplitude `amplitude_rad`, frequencies in `f_hz`.
+    fn new(rng: &mut ChaCha8Rng, axis0: Vector3<f64>, amplitude_rad: f64, f_hz: [f64; 2]) -> Self {
+        let pitch = Wave::new(rng, amplitude_rad, f_hz);
+        let yaw = Wave::new(rng, amplitude_rad, f_hz);
+        let e1 = perpendicular(&axis0);
+        Self { pitch, yaw, e1, e2: axis0.cross(&e1), axis0 }
+    }
+
+    /// The axis at `t` seconds, the swing scaled by `envelope` (0: `axis0`).
+    fn axis(&self, t: f64, envelope: f64) -> Vector3<f64> {
+        UnitQuaternion::from_scaled_axis((self.e1 * self.pitch.at(t) + self.e2 * self.yaw.at(t)) * envelope)
+            * self.axis0
+    }
+}
+
 /// Minimum-jerk blend from 0 to 1 over `u` in [0, 1].
 fn min_jerk(u: f64) -> f64 {
     let u = u.clamp(0.0, 1.0);
@@ -380,16 +407,11 @@ impl Builder<'_> {
         let d = self.rng.random_range(0.05..(l - 0.03).max(0.06));
         let seconds = self.rng.random_range(0.4..1.5);
         let amp = self.rng.random_range(4.0_f64..12.0).to_radians();
-        let f = [0.4, 1.2];
-        let pitch = Wave::new(&mut self.rng, amp, f);
-        let yaw = Wave::new(&mut self.rng, amp, f);
-        let a0 = self.axis;
-        let centre = self.wrist + a0 * d;
-        let e1 = perpendicular(&a0);
-        let e2 = a0.cross(&e1);
+        let swing = ConeSwing::new(&mut self.rng, self.axis, amp, [0.4, 1.2]);
+        let centre = self.wrist + self.axis * d;
         for i in 0..self.samples(seconds) {
             let t = (i + 1) as f64 * self.cfg.sample_period_s;
-            let axis = UnitQuaternion::from_scaled_axis(e1 * pitch.at(t) + e2 * yaw.at(t)) * a0;
+            let axis = swing.axis(t, 1.0);
             self.push(centre - axis * d, axis, TruthState::Outside, None);
         }
     }
@@ -402,29 +424,32 @@ impl Builder<'_> {
         let l = self.cfg.instrument_length_m;
         let h = self.rng.random_range(0.01..0.04_f64).min(approach_m);
         let descend_s = self.rng.random_range(0.3..1.0);
-        let n = self.samples(descend_s);
-        for i in 0..n {
-            let u = min_jerk((i + 1) as f64 / n as f64);
-            let above = approach_m + (h - approach_m) * u;
-            self.push(port - entry * (l + above), entry, TruthState::Outside, None);
-        }
+        self.slide_above(port, entry, approach_m, h, descend_s);
         let seconds = self.rng.random_range(0.6..2.0);
         let amp = self.rng.random_range(2.0_f64..6.0).to_radians();
-        let pitch = Wave::new(&mut self.rng, amp, [0.3, 0.8]);
-        let yaw = Wave::new(&mut self.rng, amp, [0.3, 0.8]);
+        let swing = ConeSwing::new(&mut self.rng, entry, amp, [0.3, 0.8]);
         let tip = port - entry * h;
-        let e1 = perpendicular(&entry);
-        let e2 = entry.cross(&e1);
         let n = self.samples(seconds);
         for i in 0..n {
             let u = (i + 1) as f64 / n as f64;
             let t = (i + 1) as f64 * self.cfg.sample_period_s;
             // The envelope brings the axis back to `entry` at the end.
-            let env = (std::f64::consts::PI * u).sin();
-            let axis = UnitQuaternion::from_scaled_axis((e1 * pitch.at(t) + e2 * yaw.at(t)) * env) * entry;
+            let axis = swing.axis(t, (std::f64::consts::PI * u).sin());
             self.push(tip - axis * l, axis, TruthState::Outside, None);
         }
         h
+    }
+
+    /// A pure slide along `entry` with the tip going from `from_above` to `to_above` metres
+    /// above `port` in `seconds` (minimum jerk): no line carries information.
+    fn slide_above(&mut self, port: Vector3<f64>, entry: Vector3<f64>, from_above: f64, to_above: f64, seconds: f64) {
+        let l = self.cfg.instrument_length_m;
+        let n = self.samples(seconds);
+        for i in 0..n {
+            let u = min_jerk((i + 1) as f64 / n as f64);
+            let above = from_above + (to_above - from_above) * u;
+            self.push(port - entry * (l + above), entry, TruthState::Outside, None);
+        }
     }
 
     /// An aiming approach (style `aim_probability`), from the approach pose: the tip
@@ -436,24 +461,15 @@ impl Builder<'_> {
         let start = self.rng.random_range(0.04..0.08_f64);
         let end = 0.005;
         // Rise from the approach height to the aiming start along the axis first.
-        let n = self.samples(0.3);
-        for i in 0..n {
-            let u = min_jerk((i + 1) as f64 / n as f64);
-            let above = approach_m + (start - approach_m) * u;
-            self.push(port - entry * (l + above), entry, TruthState::Outside, None);
-        }
+        self.slide_above(port, entry, approach_m, start, 0.3);
         let seconds = self.rng.random_range(0.8..1.6);
         let amp = self.rng.random_range(3.0_f64..8.0).to_radians();
-        let pitch = Wave::new(&mut self.rng, amp, [0.4, 1.0]);
-        let yaw = Wave::new(&mut self.rng, amp, [0.4, 1.0]);
-        let e1 = perpendicular(&entry);
-        let e2 = entry.cross(&e1);
+        let swing = ConeSwing::new(&mut self.rng, entry, amp, [0.4, 1.0]);
         let n = self.samples(seconds);
         for i in 0..n {
             let u = (i + 1) as f64 / n as f64;
             let t = (i + 1) as f64 * self.cfg.sample_period_s;
-            let env = (std::f64::consts::PI * u).sin();
-            let axis = UnitQuaternion::from_scaled_axis((e1 * pitch.at(t) + e2 * yaw.at(t)) * env) * entry;
+            let axis = swing.axis(t, (std::f64::consts::PI * u).sin());
             let above = start + (end - start) * min_jerk(u);
             self.push(port - axis * (l + above), axis, TruthState::Outside, None);
         }

@@ -28,7 +28,7 @@ use hw_io::ipc::{STATE_INSIDE, STATE_OUTSIDE, health};
 
 use super::detection::{Setting, settings};
 use super::report::BenchError;
-use super::trace::{PLACEMENTS, Trace, TraceError, TraceSpec, twin_config};
+use super::trace::{PLACEMENTS, Trace, TraceError, TraceSpec, drive, twin_config, twin_events};
 use crate::cycle::{Acquisition, Estimation};
 use crate::health::HealthConfig;
 
@@ -188,16 +188,8 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
     let mut pivots = Vec::new();
     let mut events: Vec<TrueEvent> = Vec::new();
     let mut dropped = 0u64;
-    let mut counter: u8 = 1;
     let mut k: u64 = 0;
-    let mut t_us: u64 = 1_000_000;
-    loop {
-        let answer = twin.on_sync(counter, t_us).map_err(|source| TraceError::Twin {
-            seed: spec.seed,
-            placement: spec.placement.name,
-            source,
-        })?;
-        let Some(frames) = answer else { break };
+    drive(&mut twin, spec, |frames, t_us, twin| {
         if let Loss::Burst(ms) = loss
             && k >= burst_until
             && rng.random_bool(1e-3 / BURST_INTERVAL_S)
@@ -206,7 +198,7 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
             burst_node = node_ids[rng.random_range(0..node_ids.len())];
         }
         acq.start_cycle();
-        for f in frames.iter() {
+        for f in frames {
             let drop = match (loss, is_tpdo(&f.frame)) {
                 (Loss::Random(p), Some(_)) => rng.random_bool(p),
                 (Loss::Burst(_), Some(node)) => k < burst_until && node == burst_node,
@@ -233,13 +225,9 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
         let truth = twin.truth();
         truth_states.push(truth.state);
         pivots.push(truth.fulcrum_base_m);
-        for e in twin.events() {
-            events.push(TrueEvent { t_s: e.t_s, sample: e.sample as usize, trocar: e.trocar, insertion: e.insertion });
-        }
-        counter = if counter >= 240 { 1 } else { counter + 1 };
-        t_us += 1000;
+        events.extend(twin_events(twin));
         k += 1;
-    }
+    })?;
     let trace = Trace {
         spec: *spec,
         lines: vec![None; truth_states.len()],

@@ -187,6 +187,23 @@ pub struct Cell {
 }
 
 impl Cell {
+    /// Adds another cell's counts and samples.
+    pub fn add(&mut self, c: &Cell) {
+        self.insertions += c.insertions;
+        self.detected += c.detected;
+        self.false_outside += c.false_outside;
+        self.false_wrong_place += c.false_wrong_place;
+        self.far_samples += c.far_samples;
+        self.spurious_extractions += c.spurious_extractions;
+        self.early_extractions += c.early_extractions;
+        self.insertion_delays_s.extend(&c.insertion_delays_s);
+        self.insertion_bounds_s.extend(&c.insertion_bounds_s);
+        self.extraction_delays_s.extend(&c.extraction_delays_s);
+        self.lists_exact += c.lists_exact;
+        self.traces += c.traces;
+        self.false_at.extend(&c.false_at);
+    }
+
     /// Mean insertion delay over the mean motion-only bound (the main detection table's
     /// ratio).
     pub fn insertion_ratio(&self) -> f64 {
@@ -319,20 +336,8 @@ pub fn run_families(opts: &FamilyOptions, progress: &(dyn Fn() + Sync)) -> Resul
         let (f, cells) = r?;
         match cells {
             Ok(cells) => {
-                for (acc, c) in out[f].cells.iter_mut().zip(cells) {
-                    acc.insertions += c.insertions;
-                    acc.detected += c.detected;
-                    acc.false_outside += c.false_outside;
-                    acc.false_wrong_place += c.false_wrong_place;
-                    acc.far_samples += c.far_samples;
-                    acc.spurious_extractions += c.spurious_extractions;
-                    acc.early_extractions += c.early_extractions;
-                    acc.insertion_delays_s.extend(c.insertion_delays_s);
-                    acc.insertion_bounds_s.extend(c.insertion_bounds_s);
-                    acc.extraction_delays_s.extend(c.extraction_delays_s);
-                    acc.lists_exact += c.lists_exact;
-                    acc.traces += c.traces;
-                    acc.false_at.extend(c.false_at);
+                for (acc, c) in out[f].cells.iter_mut().zip(&cells) {
+                    acc.add(c);
                 }
             }
             Err(reason) => out[f].skipped.push(reason),
@@ -377,18 +382,7 @@ impl FamilyReport {
             for f in &self.families {
                 let c = &f.cells[k];
                 if !f.family.tuned {
-                    held.insertions += c.insertions;
-                    held.detected += c.detected;
-                    held.false_outside += c.false_outside;
-                    held.false_wrong_place += c.false_wrong_place;
-                    held.far_samples += c.far_samples;
-                    held.spurious_extractions += c.spurious_extractions;
-                    held.early_extractions += c.early_extractions;
-                    held.insertion_delays_s.extend(&c.insertion_delays_s);
-                    held.insertion_bounds_s.extend(&c.insertion_bounds_s);
-                    held.extraction_delays_s.extend(&c.extraction_delays_s);
-                    held.lists_exact += c.lists_exact;
-                    held.traces += c.traces;
+                    held.add(c);
                 }
                 let name = if f.family.tuned { format!("{} (tuned)", f.family.key) } else { f.family.key.to_string() };
                 let _ = writeln!(s, "{}", row(&name, c, set.key != "paper"));

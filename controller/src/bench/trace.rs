@@ -160,17 +160,9 @@ pub fn generate(spec: &TraceSpec) -> Result<Trace, TraceError> {
         trocars_base_m: cfg.scenario.trocars_base_m.clone(),
         instrument_length_m: cfg.scenario.instrument_length_m,
     };
-    let mut counter: u8 = 1;
-    let mut t_us: u64 = 1_000_000;
-    loop {
-        let answer = twin.on_sync(counter, t_us).map_err(|source| TraceError::Twin {
-            seed: spec.seed,
-            placement: spec.placement.name,
-            source,
-        })?;
-        let Some(frames) = answer else { break };
+    drive(&mut twin, spec, |frames, t_us, twin| {
         acq.start_cycle();
-        for f in frames.iter() {
+        for f in frames {
             acq.on_frame(&f.frame, f.unix_time_us * 1000);
         }
         let input = acq.end_cycle((t_us + 900) * 1000, false);
@@ -184,18 +176,42 @@ pub fn generate(spec: &TraceSpec) -> Result<Trace, TraceError> {
         out.lines.push(line);
         out.states.push(truth.state);
         out.pivots.push(truth.fulcrum_base_m);
-        for e in twin.events() {
-            out.events.push(TrueEvent {
-                t_s: e.t_s,
-                sample: e.sample as usize,
-                trocar: e.trocar,
-                insertion: e.insertion,
-            });
-        }
+        out.events.extend(twin_events(twin));
+    })?;
+    Ok(out)
+}
+
+/// Drives `twin` to its end as the daemon would: a SYNC every millisecond of bus time
+/// (counter 1..=240), each answer handed to `on_sync` with the SYNC's time (Unix
+/// microseconds of the simulated bus) and the twin (its truth and events for that sample).
+pub fn drive(
+    twin: &mut SimRobot,
+    spec: &TraceSpec,
+    mut on_sync: impl FnMut(&[hw_io::can::TimedFrame], u64, &SimRobot),
+) -> Result<(), TraceError> {
+    let mut counter: u8 = 1;
+    let mut t_us: u64 = 1_000_000;
+    loop {
+        let answer = twin.on_sync(counter, t_us).map_err(|source| TraceError::Twin {
+            seed: spec.seed,
+            placement: spec.placement.name,
+            source,
+        })?;
+        let Some(frames) = answer else { return Ok(()) };
+        on_sync(&frames, t_us, twin);
         counter = if counter >= 240 { 1 } else { counter + 1 };
         t_us += 1000;
     }
-    Ok(out)
+}
+
+/// The true events the twin crossed at its last sample.
+pub fn twin_events(twin: &SimRobot) -> impl Iterator<Item = TrueEvent> + '_ {
+    twin.events().iter().map(|e| TrueEvent {
+        t_s: e.t_s,
+        sample: e.sample as usize,
+        trocar: e.trocar,
+        insertion: e.insertion,
+    })
 }
 
 fn acq_complete(input: &crate::cycle::CycleInput) -> bool {

@@ -762,8 +762,13 @@ fn check_run(a: &Artifacts, summary: &str, rec_dir: &str, run_samples: &[&Sample
         | health::BUS_ERROR
         | health::NODE_HEARTBEAT.iter().fold(0, |m, f| m | f)
         | if allowed.emcy { 0 } else { health::NODE_EMCY.iter().fold(0, |m, f| m | f) };
-    let node_flags = health::INVALIDATING
-        & !(health::INCOMPLETE_CYCLE | health::SYNC_SEND_FAILED | health::BUS_ERROR | health::BAD_SAMPLE);
+    // The stale-data policy (docs/daemon.md): EMCY and heartbeat faults reset; a gap of
+    // invalid cycles resets when longer than `detector.max_gap_s` (counted once the detector
+    // has stepped), and is resumed otherwise.
+    let fault_flags = health::NODE_EMCY.iter().chain(&health::NODE_HEARTBEAT).fold(0, |m, f| m | f);
+    let max_gap_cycles = config.detector.max_gap_s / config.detector.sample_period_s + 1e-9;
+    let mut gap_cycles = 0u64;
+    let mut stepped = false;
     for (r, s) in records.iter().zip(run_samples) {
         let seq = r.sequence;
         assert_eq!(seq, s.sequence);
@@ -778,11 +783,21 @@ fn check_run(a: &Artifacts, summary: &str, rec_dir: &str, run_samples: &[&Sample
         }
         // Never a valid estimate from stale, missing or faulty data.
         assert_eq!(r.output.state == STATE_INVALID, h & health::INVALIDATING != 0, "cycle {seq}: {r:?}");
-        if h & node_flags != 0 {
+        if h & fault_flags != 0 {
             reset_pending = true;
-        } else if r.output.state != STATE_INVALID && reset_pending {
-            assert_ne!(h & health::DETECTOR_RESET, 0, "cycle {seq}: first valid cycle after a node fault: {r:?}");
+        }
+        if r.output.state == STATE_INVALID {
+            gap_cycles += u64::from(stepped);
+        } else {
+            let expected = reset_pending || gap_cycles as f64 > max_gap_cycles;
+            assert_eq!(
+                h & health::DETECTOR_RESET != 0,
+                expected,
+                "cycle {seq}: first valid cycle after {gap_cycles} invalid ones (fault {reset_pending}): {r:?}"
+            );
             reset_pending = false;
+            gap_cycles = 0;
+            stepped = true;
         }
     }
     let rr = replay::replay_recording(&rec_path).expect("replay --recording");

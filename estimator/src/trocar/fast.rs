@@ -131,8 +131,6 @@ pub struct FastDetector {
     /// the list).
     confirmed: bool,
     last: Estimate,
-    sample_period_s: f64,
-    max_gap_s: f64,
     /// The next sample follows a gap in the input: check it against the state at once.
     after_gap: bool,
 }
@@ -179,8 +177,6 @@ impl FastDetector {
             inside_since_step: 0,
             confirmed: false,
             last: Estimate::outside(),
-            sample_period_s,
-            max_gap_s: 0.05,
             after_gap: false,
         })
     }
@@ -198,23 +194,6 @@ impl FastDetector {
         self.confirmed = false;
         self.after_gap = false;
         self.last = Estimate::outside();
-    }
-
-    /// The longest input gap it resumes after, seconds (see
-    /// [`super::Detector::resume_after_gap`]). Validated by [`super::DetectorConfig`].
-    pub fn with_max_gap_s(mut self, max_gap_s: f64) -> Self {
-        self.max_gap_s = max_gap_s;
-        self
-    }
-
-    /// Sample period, seconds.
-    pub fn sample_period_s(&self) -> f64 {
-        self.sample_period_s
-    }
-
-    /// Longest input gap it resumes after, seconds.
-    pub fn max_gap_s(&self) -> f64 {
-        self.max_gap_s
     }
 
     /// A short gap in the input ended: the next sample is checked against the state at once

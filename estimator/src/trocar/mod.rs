@@ -181,12 +181,22 @@ pub enum GapOutcome {
     Reset,
 }
 
-/// Either detector, chosen by configuration. `step` once per sample.
+/// Either detector, chosen by configuration, with the input-gap policy. `step` once per
+/// sample.
+#[derive(Clone, Debug)]
+pub struct Detector {
+    kind: Kind,
+    /// Sample period, seconds.
+    sample_period_s: f64,
+    /// Longest input gap resumed after, seconds.
+    max_gap_s: f64,
+}
+
 // Both variants are large fixed buffers (tens of KiB) held inline on purpose: no heap, no
 // indirection on the 1 kHz path. Construct once, keep it in a long-lived place.
 #[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
-pub enum Detector {
+enum Kind {
     /// The paper's method.
     Paper(paper::PaperDetector),
     /// comanip's method.
@@ -198,80 +208,65 @@ impl Detector {
     /// point: everything is sized here).
     pub fn new(config: &DetectorConfig) -> Result<Self, ConfigError> {
         config.validate()?;
-        Ok(match config.mode {
-            DetectorMode::Paper => Detector::Paper(
-                paper::PaperDetector::new(&config.paper)?.with_timing(config.sample_period_s, config.max_gap_s),
-            ),
-            DetectorMode::Fast => Detector::Fast(
-                fast::FastDetector::new(&config.fast, config.sample_period_s)?.with_max_gap_s(config.max_gap_s),
-            ),
-        })
+        let kind = match config.mode {
+            DetectorMode::Paper => Kind::Paper(paper::PaperDetector::new(&config.paper)?),
+            DetectorMode::Fast => Kind::Fast(fast::FastDetector::new(&config.fast, config.sample_period_s)?),
+        };
+        Ok(Self { kind, sample_period_s: config.sample_period_s, max_gap_s: config.max_gap_s })
     }
 
     /// Feeds one sample (one control cycle) and returns the estimate after it.
     #[inline]
     pub fn step(&mut self, sample: &LineSample) -> Estimate {
-        match self {
-            Detector::Paper(d) => d.step(sample),
-            Detector::Fast(d) => d.step(sample),
+        match &mut self.kind {
+            Kind::Paper(d) => d.step(sample),
+            Kind::Fast(d) => d.step(sample),
         }
     }
 
     /// Forgets every line and returns to `Outside` (used when the input goes stale). The fast
     /// detector keeps its trocar memory.
     pub fn reset(&mut self) {
-        match self {
-            Detector::Paper(d) => d.reset(),
-            Detector::Fast(d) => d.reset(),
+        match &mut self.kind {
+            Kind::Paper(d) => d.reset(),
+            Kind::Fast(d) => d.reset(),
         }
     }
 
-    /// Tells the detector that `missed_samples` samples (metres and seconds do not enter:
-    /// samples at the configured period) never reached it, because the input was missing or
-    /// invalid. A gap up to `max_gap_s` freezes the detector: it resumes where it was, and
-    /// the first sample after the gap is checked against its state (fast mode: inside, a
-    /// line that no longer passes through the fulcrum, or a tip back over it, ends the
-    /// insertion at once, without the usual persistence; outside, the segment of lines goes
-    /// on: in 50 ms the hand moves a few millimetres). A longer gap resets it.
-    /// Allocation-free; called in the real-time loop.
+    /// Tells the detector that `missed_samples` samples (at the configured sample period)
+    /// never reached it, because the input was missing or invalid. A gap up to `max_gap_s`
+    /// (seconds) freezes the detector: it resumes where it was, and the first sample after the
+    /// gap is checked against its state (fast mode: inside, a line that no longer passes
+    /// through the fulcrum, or a tip back over it, ends the insertion at once, without the
+    /// usual persistence; outside, the segment of lines goes on: in 50 ms the hand moves a few
+    /// millimetres). A longer gap resets it. Allocation-free; called in the real-time loop.
     pub fn resume_after_gap(&mut self, missed_samples: u64) -> GapOutcome {
-        let period = match self {
-            Detector::Paper(d) => d.sample_period_s(),
-            Detector::Fast(d) => d.sample_period_s(),
-        };
-        if missed_samples as f64 * period > self.max_gap_s() + 1e-12 {
+        if missed_samples as f64 * self.sample_period_s > self.max_gap_s + 1e-12 {
             self.reset();
             return GapOutcome::Reset;
         }
-        match self {
+        match &mut self.kind {
             // The paper has no notion of gaps: its windows simply go on.
-            Detector::Paper(_) => {}
-            Detector::Fast(d) => d.check_after_gap(),
+            Kind::Paper(_) => {}
+            Kind::Fast(d) => d.check_after_gap(),
         }
         GapOutcome::Resumed
-    }
-
-    fn max_gap_s(&self) -> f64 {
-        match self {
-            Detector::Paper(d) => d.max_gap_s(),
-            Detector::Fast(d) => d.max_gap_s(),
-        }
     }
 
     /// The confirmed trocars the detector knows (its trocar list): `(id, fulcrum)` pairs,
     /// metres, robot base frame. Empty in paper mode, which has no trocar identity.
     pub fn known_trocars(&self) -> heapless::Vec<(u8, Vector3<f64>), MEMORY_CAPACITY> {
-        match self {
-            Detector::Paper(_) => heapless::Vec::new(),
-            Detector::Fast(d) => d.known_trocars().collect(),
+        match &self.kind {
+            Kind::Paper(_) => heapless::Vec::new(),
+            Kind::Fast(d) => d.known_trocars().collect(),
         }
     }
 
     /// The active mode.
     pub fn mode(&self) -> DetectorMode {
-        match self {
-            Detector::Paper(_) => DetectorMode::Paper,
-            Detector::Fast(_) => DetectorMode::Fast,
+        match self.kind {
+            Kind::Paper(_) => DetectorMode::Paper,
+            Kind::Fast(_) => DetectorMode::Fast,
         }
     }
 }

@@ -54,8 +54,6 @@ pub struct PaperDetector {
     next_id: u8,
     id: u8,
     last: Estimate,
-    sample_period_s: f64,
-    max_gap_s: f64,
 }
 
 fn fit_window(lines: &Deque<LineSample, WINDOW_CAPACITY>) -> Option<WindowFit> {
@@ -91,27 +89,7 @@ impl PaperDetector {
             next_id: 0,
             id: 0,
             last: Estimate::outside(),
-            sample_period_s: 0.001,
-            max_gap_s: 0.05,
         })
-    }
-
-    /// The sample period (seconds) and the longest input gap it resumes after (seconds;
-    /// see [`super::Detector::resume_after_gap`]). Validated by [`super::DetectorConfig`].
-    pub fn with_timing(mut self, sample_period_s: f64, max_gap_s: f64) -> Self {
-        self.sample_period_s = sample_period_s;
-        self.max_gap_s = max_gap_s;
-        self
-    }
-
-    /// Sample period, seconds.
-    pub fn sample_period_s(&self) -> f64 {
-        self.sample_period_s
-    }
-
-    /// Longest input gap it resumes after, seconds.
-    pub fn max_gap_s(&self) -> f64 {
-        self.max_gap_s
     }
 
     /// Empties both lists and returns to `Outside`.

@@ -3,13 +3,12 @@
 
 use estimator::calib::crb::cramer_rao_bound;
 use estimator::calib::kinematics::se3_exp;
-use estimator::calib::ours::{
-    OursConfig, OursError, noise_jacobian, residual_and_jacobian, solve_ours, solve_ours_prepared,
-};
+use estimator::calib::ours::{OursConfig, OursError, solve_ours, solve_ours_prepared};
 use estimator::calib::paper::{
     PaperConfig, PaperError, eq10_w, kronecker_row, project_to_so3, refine_quaternion, solve_paper, wxyz,
 };
 use estimator::calib::prepare::{PrepareError, Prepared, PreparedSet, prepare};
+use estimator::calib::residual::{noise_jacobian, residual_and_jacobian};
 use estimator::calib::{KinematicNoise, Observation, pose_errors};
 use nalgebra::{
     Isometry3, Matrix3, Point3, Rotation3, SVector, Translation3, UnitQuaternion, Vector2, Vector3, Vector4,

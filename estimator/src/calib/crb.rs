@@ -2,15 +2,15 @@
 //!
 //! Observations: each line's two point-to-line distances `r_i` (pixels), which to first order
 //! are Gaussian with covariance `Σ_i = σ_px² I + G_i diag(σ²) G_iᵀ` (`G_i` = the Jacobian
-//! w.r.t. the 18 frame perturbations, [`super::ours::noise_jacobian`]), independent across
+//! w.r.t. the 18 frame perturbations, [`super::residual::noise_jacobian`]), independent across
 //! observations. The Fisher information of the six pose parameters `(t m, δφ rad)` is
 //! `F = Σ J_iᵀ Σ_i⁻¹ J_i` with `J_i = ∂r_i/∂(t, δφ)` at the truth; the bound is `F⁻¹`. It
 //! bounds unbiased estimators that use the lines only (not where the tip appears on them).
 
 use nalgebra::{Isometry3, Matrix6};
 
-use super::ours::{residual_and_jacobian, residual_covariance};
 use super::prepare::{PrepareError, prepare};
+use super::residual::{residual_and_jacobian, residual_covariance};
 use std::vec::Vec;
 
 use super::{KinematicNoise, Observation, Setup};
@@ -154,7 +154,7 @@ pub fn selected_bound(
     use nalgebra::{SMatrix, Vector2, Vector6};
     use rand::{Rng, SeedableRng};
 
-    use super::ours::residual_and_jacobian;
+    use super::residual::residual_and_jacobian;
     use super::selection::{
         TipGivenLine, box_probability, box_probability_gradient, kept_box, line_tip_noise, shifted_box_probability,
         tip_given_line, tip_projection,

@@ -19,13 +19,18 @@
 //!   step (Eq. 1) and the projection of a 3-D line.
 //! - [`prepare`]: one [`Observation`] → camera pose, plane normal and tool direction, and the
 //!   degenerate-data checks shared by both pipelines.
+//! - [`residual`]: the residual model (image distances in pixels, their Jacobians and
+//!   covariance, the damped step), shared by what follows.
 //! - [`paper`]: the paper's pipeline, faithful (Eq. 5, Eq. 7-9, Eq. 10).
-//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, the
-//!   near-180° ambiguity detected and resolved.
 //! - [`selection`]: the selection of observations (a line is recorded only when the tool tip
 //!   is in view) as a likelihood, and our pipeline's final, selection-aware stage.
+//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, the
+//!   near-180° ambiguity detected and resolved; ends with the selection stage.
 //! - [`crb`]: the Cramér-Rao bounds for a geometry and a kinematic noise model, without and
 //!   with the selection.
+//!
+//! The order is the import order: prepare → residual → paper / selection → ours, with crb on
+//! residual and selection; no module imports one listed after it.
 
 pub mod camera;
 pub mod crb;
@@ -33,6 +38,7 @@ pub mod kinematics;
 pub mod ours;
 pub mod paper;
 pub mod prepare;
+pub mod residual;
 pub mod selection;
 
 use nalgebra::{Isometry3, SMatrix, Vector3};

@@ -23,25 +23,19 @@
 use std::vec::Vec;
 
 use nalgebra::{
-    Isometry3, Matrix2, Matrix3, Matrix6, Rotation3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
+    Isometry3, Matrix2, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
 };
 
 use super::KinematicNoise;
-use super::kinematics::skew;
 use super::paper::{PaperError, kronecker_rotation, linear_translation, refine_quaternion, wxyz};
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
-use super::selection::{SelectionConfig, SelectionError, refine_selected, tip_pixel_covariance, tip_projection};
+use super::residual::{damped_step, residual_and_jacobian, residual_covariance};
+use super::selection::{SelectionConfig, SelectionError, refine_selected, tip_well_inside};
 use super::{Observation, Setup};
 
 /// Two refined candidates whose rotations differ by more than this (radians, 10°) are
 /// different solutions for the ambiguity check.
 pub const DISTINCT_SOLUTION_RAD: f64 = 0.1745;
-
-/// 2×6 Jacobian of one observation's residual pair w.r.t. `(t, δφ)`.
-pub type Jac6 = SMatrix<f64, 2, 6>;
-/// 2×18 Jacobian of one observation's residual pair w.r.t. the frame perturbations
-/// `(δ_ECM, δ_PSM2, δ_PSM3)`, each `(ρ m, φ rad)`.
-pub type Jac18 = SMatrix<f64, 2, 18>;
 
 /// Options of our pipeline.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -180,93 +174,6 @@ pub struct SelectionSummary {
     pub shift_sigmas: f64,
 }
 
-fn dist_and_grad(l: &Vector3<f64>, u: &Vector2<f64>) -> (f64, nalgebra::RowVector3<f64>) {
-    let s2 = l.x * l.x + l.y * l.y;
-    let s = s2.sqrt();
-    let lu = l.x * u.x + l.y * u.y + l.z;
-    let r = lu / s;
-    let g = nalgebra::RowVector3::new(u.x / s - lu * l.x / (s2 * s), u.y / s - lu * l.y / (s2 * s), 1.0 / s);
-    (r, g)
-}
-
-/// Residual pair (pixels) of observation `o` for pose `(R, t)` and its Jacobian w.r.t.
-/// `(t, δφ)`.
-pub fn residual_and_jacobian(
-    set: &PreparedSet,
-    o: &Prepared,
-    r: &Matrix3<f64>,
-    t: &Vector3<f64>,
-) -> (Vector2<f64>, Jac6) {
-    let rm = r * o.m_t;
-    let rt = o.r_ec.transpose();
-    let p_c = rt * (t - o.o_ec);
-    let d_c = rt * rm;
-    let nv = p_c.cross(&d_c);
-    let l = set.k_inv_t * nv;
-    let dn_dt = -skew(&d_c) * rt;
-    let dn_dphi = skew(&p_c) * rt * (-skew(&rm));
-    let mut dn = SMatrix::<f64, 3, 6>::zeros();
-    dn.fixed_view_mut::<3, 3>(0, 0).copy_from(&dn_dt);
-    dn.fixed_view_mut::<3, 3>(0, 3).copy_from(&dn_dphi);
-    let dl = set.k_inv_t * dn;
-    let mut res = Vector2::zeros();
-    let mut jac = Jac6::zeros();
-    for j in 0..2 {
-        let (rj, g) = dist_and_grad(&l, &o.px[j]);
-        res[j] = rj;
-        jac.set_row(j, &(g * dl));
-    }
-    (res, jac)
-}
-
-/// Jacobian (pixels per metre / radian) of observation `o`'s residual pair w.r.t. the 18
-/// frame perturbations of the simulation protocol at pose `(R, t)`: `δ_ECM` right-multiplied
-/// on the ECM end effector, `δ_PSM2`, `δ_PSM3` on PSM frames 2 and 3, each `(ρ, φ)`.
-pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Jac18 {
-    let rt = o.r_ec.transpose();
-    let rm = r * o.m_t;
-    let p_c = rt * (r * (o.m_t * o.insertion_m) + t - o.o_ec);
-    let d_c = rt * rm;
-    let (sp, sd) = (skew(&p_c), skew(&d_c));
-    let mut dn = SMatrix::<f64, 3, 18>::zeros();
-    // Camera: right perturbation δc = Ad(X⁻¹) δe in the camera frame.
-    let mut dn_c = SMatrix::<f64, 3, 6>::zeros();
-    dn_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&sd);
-    dn_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&(sp * sd - sd * sp));
-    let ad = &set.hand_eye_inv_adjoint;
-    dn.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dn_c * *ad));
-    // Tool: δP = R2(ρa + ρb − d[ẑ]×φa), δD = −R2[ẑ]×(φa + φb), mapped into the camera.
-    let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
-    let z = skew(&Vector3::z());
-    let d = o.insertion_m;
-    let dn_rho = -sd * a;
-    let dn_phi_a = sd * a * z * d - sp * a * z;
-    let dn_phi_b = -sp * a * z;
-    dn.fixed_view_mut::<3, 3>(0, 6).copy_from(&dn_rho);
-    dn.fixed_view_mut::<3, 3>(0, 9).copy_from(&dn_phi_a);
-    dn.fixed_view_mut::<3, 3>(0, 12).copy_from(&dn_rho);
-    dn.fixed_view_mut::<3, 3>(0, 15).copy_from(&dn_phi_b);
-    let l = set.k_inv_t * p_c.cross(&d_c);
-    let dl = set.k_inv_t * dn;
-    let mut g = Jac18::zeros();
-    for j in 0..2 {
-        let (_, grad) = dist_and_grad(&l, &o.px[j]);
-        g.set_row(j, &(grad * dl));
-    }
-    g
-}
-
-/// The 2×2 covariance (pixels²) of observation `o`'s residual pair under `noise` at `(R, t)`.
-pub fn residual_covariance(
-    set: &PreparedSet,
-    o: &Prepared,
-    r: &Matrix3<f64>,
-    t: &Vector3<f64>,
-    noise: &KinematicNoise,
-) -> Matrix2<f64> {
-    noise.propagate(&noise_jacobian(set, o, r, t))
-}
-
 /// Inverse Cholesky factor `L⁻¹` of a 2×2 SPD matrix (identity if not SPD).
 fn whitener(s: &Matrix2<f64>) -> Matrix2<f64> {
     match s.cholesky() {
@@ -370,16 +277,6 @@ fn refine(
         }
     }
     Refined { r, t, whiten, scale, iterations }
-}
-
-/// The Levenberg-Marquardt step `−(H + λ diag H)⁻¹ g` in `(t m, δφ rad)`; `None` when the
-/// damped matrix is not positive definite (raise `λ`).
-pub(crate) fn damped_step(h: &Matrix6<f64>, g: &Vector6<f64>, lambda: f64) -> Option<Vector6<f64>> {
-    let mut a = *h;
-    for i in 0..6 {
-        a[(i, i)] += lambda * h[(i, i)].max(1e-12);
-    }
-    a.cholesky().map(|ch| ch.solve(&-g))
 }
 
 /// Whitening matrices `Σ_i^{-1/2}` at `(r, t)` (identity without a noise model).
@@ -528,24 +425,6 @@ pub fn apply_selection_stage(
         Err(e) => result.selection_refused = Some(e),
     }
     result
-}
-
-/// True when the tool tip of `o`, predicted at `(R, t)`, lies `k` standard deviations (of
-/// its pixel position under `noise`) inside the image.
-pub fn tip_well_inside(
-    set: &PreparedSet,
-    o: &Prepared,
-    r: &Matrix3<f64>,
-    t: &Vector3<f64>,
-    noise: &KinematicNoise,
-    k: f64,
-) -> bool {
-    let Some(tp) = tip_projection(set, o, r, t) else { return false };
-    let cov = tip_pixel_covariance(&tp, noise);
-    let (u, v) = (tp.pixel.px.x, tp.pixel.px.y);
-    let cam = &set.intrinsics;
-    let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
-    u - su >= 0.0 && v - sv >= 0.0 && u + su <= cam.width as f64 - 1.0 && v + sv <= cam.height as f64 - 1.0
 }
 
 /// One solve. `from`: refine only from this pose (no linear start, no mirror), keeping the

@@ -9,7 +9,7 @@
 //! it by maximising the likelihood of the kept lines.
 //!
 //! ## Model (first order in the 18 frame perturbations, at the current pose)
-//! The two line residuals `r` (pixels, [`super::ours::residual_and_jacobian`]) and the tip
+//! The two line residuals `r` (pixels, [`super::residual::residual_and_jacobian`]) and the tip
 //! `e` (the actual tip's pixel minus its prediction `û`) are jointly Gaussian,
 //! `(r, e) ~ N(0, Σ)`. Kept when the tip is in the box `B` (ideal pixels) where both the tip
 //! and the point `min_shaft_px` further along the shaft are in the image ([`kept_box`]). The
@@ -40,8 +40,8 @@ use nalgebra::{
 
 use super::KinematicNoise;
 use super::kinematics::skew;
-use super::ours::{Jac6, noise_jacobian, residual_and_jacobian, residual_covariance};
 use super::prepare::{Prepared, PreparedSet};
+use super::residual::{Jac6, damped_step, noise_jacobian, residual_and_jacobian, residual_covariance};
 
 /// The predicted tool tip of an observation, seen by its camera.
 #[derive(Clone, Copy, Debug)]
@@ -125,6 +125,24 @@ pub fn tip_pixel_covariance(tp: &TipProjection, noise: &KinematicNoise) -> Matri
 }
 
 /// Standard deviation of the tip's depth under `noise` over its depth (dimensionless): how
+/// True when the tool tip of `o`, predicted at `(R, t)`, lies `k` standard deviations (of
+/// its pixel position under `noise`) inside the image.
+pub fn tip_well_inside(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    k: f64,
+) -> bool {
+    let Some(tp) = tip_projection(set, o, r, t) else { return false };
+    let cov = tip_pixel_covariance(&tp, noise);
+    let (u, v) = (tp.pixel.px.x, tp.pixel.px.y);
+    let cam = &set.intrinsics;
+    let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
+    u - su >= 0.0 && v - sv >= 0.0 && u + su <= cam.width as f64 - 1.0 && v + sv <= cam.height as f64 - 1.0
+}
+
 /// far from linear its projection is.
 pub fn relative_depth_sd(tp: &TipProjection, noise: &KinematicNoise) -> f64 {
     let row = tp.dp_noise.row(2);
@@ -414,7 +432,7 @@ fn model_at(
 ) -> Model {
     let Some(tp) = tip_projection(set, o, r, t) else { return Model::Out };
     if relative_depth_sd(&tp, noise) > cfg.depth_ratio {
-        let plain = super::ours::tip_well_inside(set, o, r, t, noise, cfg.plain_guard_sigmas);
+        let plain = tip_well_inside(set, o, r, t, noise, cfg.plain_guard_sigmas);
         return match residual_covariance(set, o, r, t, noise).try_inverse() {
             Some(srr_inv) if plain => Model::Plain(srr_inv),
             _ => Model::Out,
@@ -625,7 +643,7 @@ pub fn refine_selected(
             let mut accepted = false;
             let mut small = false;
             while lambda < 1e10 {
-                let Some(step) = super::ours::damped_step(&h, &g, lambda) else {
+                let Some(step) = damped_step(&h, &g, lambda) else {
                     lambda *= 10.0;
                     continue;
                 };

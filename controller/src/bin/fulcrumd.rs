@@ -2,7 +2,8 @@
 //!
 //! `fulcrumd` runs the 1 kHz loop: on the CAN interface of the config (or `--iface`), or,
 //! when none is configured, on the built-in simulated robot (an in-process bus), printing
-//! detections as the simulated surgeon moves. See `docs/operations.md`.
+//! detections as the simulated surgeon moves. See `docs/daemon.md` (commands, stale-data policy,
+//! the demo's first minute) and `docs/systemd.md` (running it as a service).
 //!
 //! Exit codes: 0 success; 1 `replay` found a difference; 2 error; 141 the standard output was
 //! closed by its reader (`fulcrumd monitor | head`: no message; `monitor` still writes its

@@ -2,7 +2,9 @@
 //!
 //! Registers an endoscope-holding RCM arm (robot 1, ECM-like) to a tool-holding RCM arm
 //! (robot 2, PSM-like) from the image line of the tool shaft and the joint readings of both
-//! arms only (Wang et al., RA-L 2017, `shared/papers/dual-rcm-calibration.md`).
+//! arms only (Wang et al., "Vision-Based Calibration of Dual RCM-Based Robot Arms in
+//! Human-Robot Collaborative Minimally Invasive Surgery", IEEE Robotics and Automation
+//! Letters, 2017).
 //!
 //! ## Frames and units (see also `docs/calibration.md`)
 //! - `{e}`: robot 1's remote centre of motion (RCM). `{t}`: robot 2's RCM. `{f}`: robot 1's

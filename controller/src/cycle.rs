@@ -33,19 +33,19 @@ use hw_io::can::{
     CanFrame, ConfigError as EncoderConfigError, DecodeError, ENCODER_NODES, EncoderConfig, JOINTS, JointAssembler,
     Message,
 };
-use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE, health as flags};
+use hw_io::ipc::{FulcrumSample, HealthFlags as Flags, OutputState};
 use serde::{Deserialize, Serialize};
 
 use crate::health::{HealthConfig, HealthMonitor};
 
 /// Node flags that make the detector reset whatever the gap's length (a node in fault or
 /// silent: its data cannot be trusted until it recovers). A stale node only makes a gap.
-const RESET_FLAGS: u32 = flags::NODE_EMCY[0]
-    | flags::NODE_EMCY[1]
-    | flags::NODE_EMCY[2]
-    | flags::NODE_HEARTBEAT[0]
-    | flags::NODE_HEARTBEAT[1]
-    | flags::NODE_HEARTBEAT[2];
+const RESET_FLAGS: Flags = Flags::NODE1_EMCY
+    .union(Flags::NODE2_EMCY)
+    .union(Flags::NODE3_EMCY)
+    .union(Flags::NODE1_HEARTBEAT)
+    .union(Flags::NODE2_HEARTBEAT)
+    .union(Flags::NODE3_HEARTBEAT);
 
 /// One cycle's input to [`Estimation`]: what acquisition delivered.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -54,8 +54,8 @@ pub struct CycleInput {
     pub counts: [i32; JOINTS],
     /// Bit k set when node k (joint order: joints 1-2, 3-4, 5-6) delivered its TPDO.
     pub received_mask: u8,
-    /// Acquisition health flags ([`hw_io::ipc::health`]).
-    pub flags: u32,
+    /// Acquisition health flags (recorded as their `u32` bits, as before they were typed).
+    pub flags: Flags,
 }
 
 /// Counters of everything acquisition saw, since start-up.
@@ -216,29 +216,35 @@ impl Acquisition {
         let mut f = self.health.end_cycle(received_mask, now_ns);
         self.stats.cycles += 1;
         if !missing.is_empty() {
-            f |= flags::INCOMPLETE_CYCLE;
+            f |= Flags::INCOMPLETE_CYCLE;
             self.stats.incomplete_cycles += 1;
             self.stats.missing_tpdos += missing.len() as u64;
         }
         if sync_failed {
-            f |= flags::SYNC_SEND_FAILED;
+            f |= Flags::SYNC_SEND_FAILED;
         }
         if self.bus_error {
-            f |= flags::BUS_ERROR;
+            f |= Flags::BUS_ERROR;
         }
         CycleInput { counts, received_mask, flags: f }
     }
 }
 
-/// One cycle's estimate: what is published (less the sequence and timing fields).
+/// One cycle's estimate: what is published (less the sequence and timing fields), typed; it
+/// becomes the wire's `u32`s only in [`CycleOutput::to_sample`].
+///
+/// Recorded with postcard in every [`crate::rt_loop::CycleRecord`]: `state` as the `u32` of its
+/// variant and `health` as its `u32` bits, the same bytes as when both were plain `u32`s (old
+/// recordings replay, `controller/tests/replay_fixture.rs`). A recorded state that is no
+/// [`OutputState`] fails to decode ([`crate::recorder::ReadError::Decode`]).
 #[derive(Clone, Copy, Debug, PartialEq, Default, Serialize, Deserialize)]
 pub struct CycleOutput {
-    /// `STATE_INVALID`, `STATE_OUTSIDE` or `STATE_INSIDE` ([`hw_io::ipc`]).
-    pub state: u32,
+    /// Invalid, outside or inside.
+    pub state: OutputState,
     /// Trocar identity when inside, else 0.
     pub trocar_id: u32,
     /// Health flags: the input's plus `BAD_SAMPLE` / `DETECTOR_RESET`.
-    pub health: u32,
+    pub health: Flags,
     /// Fulcrum, metres, robot base frame (zero unless inside).
     pub fulcrum_base_m: [f64; 3],
     /// Fit residual, metres (0 without a fit).
@@ -295,10 +301,10 @@ impl CycleOutput {
     }
 
     /// Fills the estimate fields of a published sample (the caller sets sequence, run id,
-    /// timestamp and timings).
+    /// timestamp and timings): the one place where state and health become the wire's `u32`s.
     pub fn to_sample(&self) -> FulcrumSample {
         let mut s = FulcrumSample::invalid(self.health);
-        s.state = self.state;
+        s.state = self.state.into();
         s.trocar_id = self.trocar_id;
         s.fulcrum_base_m = self.fulcrum_base_m;
         s.residual_m = self.residual_m;
@@ -361,11 +367,11 @@ impl Estimation {
 
     /// Processes one cycle's input.
     pub fn process(&mut self, input: &CycleInput) -> CycleOutput {
-        let mut out = CycleOutput { state: STATE_INVALID, health: input.flags, ..Default::default() };
-        if input.flags & RESET_FLAGS != 0 {
+        let mut out = CycleOutput { state: OutputState::Invalid, health: input.flags, ..Default::default() };
+        if input.flags.intersects(RESET_FLAGS) {
             self.reset_pending = true;
         }
-        if input.flags & flags::INVALIDATING != 0 {
+        if input.flags.intersects(Flags::INVALIDATING) {
             if input.received_mask == (1 << ENCODER_NODES) - 1 {
                 out.joints_rad = self.encoders.counts_to_rad(&input.counts);
             }
@@ -375,16 +381,16 @@ impl Estimation {
         let q = self.encoders.counts_to_rad(&input.counts);
         out.joints_rad = q;
         let Ok(pose) = self.arm.forward(&q) else {
-            out.health |= flags::BAD_SAMPLE;
+            out.health |= Flags::BAD_SAMPLE;
             self.gap_cycles += u64::from(self.stepped);
             return out;
         };
         if self.reset_pending {
             self.detector.reset();
             self.reset_pending = false;
-            out.health |= flags::DETECTOR_RESET;
+            out.health |= Flags::DETECTOR_RESET;
         } else if self.gap_cycles > 0 && self.detector.resume_after_gap(self.gap_cycles) == GapOutcome::Reset {
-            out.health |= flags::DETECTOR_RESET;
+            out.health |= Flags::DETECTOR_RESET;
         }
         self.gap_cycles = 0;
         self.stepped = true;
@@ -400,20 +406,20 @@ impl Estimation {
             out.fit_lines = fit.lines;
         }
         if est.rejected.is_some() {
-            out.health |= flags::BAD_SAMPLE;
+            out.health |= Flags::BAD_SAMPLE;
             return out;
         }
         match (est.state, est.fulcrum_base_m) {
             (TrocarState::Inside { id }, Some(f)) => {
-                out.state = STATE_INSIDE;
+                out.state = OutputState::Inside;
                 out.trocar_id = u32::from(id);
                 out.fulcrum_base_m = f.into();
             }
-            _ => out.state = STATE_OUTSIDE,
+            _ => out.state = OutputState::Outside,
         }
         if !out.all_finite() {
-            out.state = STATE_INVALID;
-            out.health |= flags::BAD_SAMPLE;
+            out.state = OutputState::Invalid;
+            out.health |= Flags::BAD_SAMPLE;
             out.fulcrum_base_m = [0.0; 3];
         }
         out
@@ -462,7 +468,7 @@ mod tests {
             a.on_frame(&frame(Message::Tpdo { node: n(k), counts: [k as i32, 0] }), 0);
         }
         let input = a.end_cycle(0, false);
-        assert_eq!(input.flags, 0);
+        assert_eq!(input.flags, Flags::empty());
         assert_eq!(input.received_mask, 0b111);
         assert_eq!(input.counts[0], 1);
         let s = a.stats();
@@ -476,7 +482,7 @@ mod tests {
         a.on_frame(&frame(Message::Tpdo { node: n(1), counts: [0, 0] }), 0);
         a.on_frame(&frame(Message::Tpdo { node: n(3), counts: [0, 0] }), 0);
         let input = a.end_cycle(0, false);
-        assert_eq!(input.flags, flags::INCOMPLETE_CYCLE);
+        assert_eq!(input.flags, Flags::INCOMPLETE_CYCLE);
         assert_eq!(input.received_mask, 0b101);
         for _ in 0..2 {
             a.start_cycle();
@@ -484,7 +490,7 @@ mod tests {
         }
         a.start_cycle();
         let input = a.end_cycle(0, false);
-        assert_ne!(input.flags & flags::NODE_STALE[1], 0);
+        assert!(input.flags.contains(Flags::NODE2_STALE));
         // A late TPDO is counted, not used.
         a.on_frame_between_cycles(&frame(Message::Tpdo { node: n(2), counts: [0, 0] }), 0);
         assert_eq!(a.stats().late_tpdos, 1);
@@ -500,8 +506,8 @@ mod tests {
         let mut a = acquisition();
         let mut e = estimation();
         let out = e.process(&full_cycle(&mut a, 0, [0, 0, 32768, 0, 0, 0]));
-        assert_eq!(out.state, STATE_OUTSIDE);
-        assert_eq!(out.health, 0);
+        assert_eq!(out.state, OutputState::Outside);
+        assert_eq!(out.health, Flags::empty());
         assert!(out.wrist_base_m.iter().any(|v| *v != 0.0));
         let sample = out.to_sample();
         assert!(sample.is_valid());
@@ -513,21 +519,98 @@ mod tests {
         let mut e = estimation();
         let mut a = acquisition();
         let good = full_cycle(&mut a, 0, [0, 0, 32768, 0, 0, 0]);
-        assert_eq!(e.process(&good).state, STATE_OUTSIDE);
+        assert_eq!(e.process(&good).state, OutputState::Outside);
         // Incomplete: invalid, frozen, no reset afterwards.
-        let out = e.process(&CycleInput { flags: flags::INCOMPLETE_CYCLE, received_mask: 0b011, ..good });
-        assert_eq!(out.state, STATE_INVALID);
+        let out = e.process(&CycleInput { flags: Flags::INCOMPLETE_CYCLE, received_mask: 0b011, ..good });
+        assert_eq!(out.state, OutputState::Invalid);
         assert_eq!(out.joints_rad, [0.0; 6]);
         let out = e.process(&good);
-        assert_eq!(out.health & flags::DETECTOR_RESET, 0);
+        assert!(!out.health.contains(Flags::DETECTOR_RESET));
         // EMCY: invalid, and the next valid cycle resets the detector.
-        let out = e.process(&CycleInput { flags: flags::NODE_EMCY[0], ..good });
-        assert_eq!(out.state, STATE_INVALID);
+        let out = e.process(&CycleInput { flags: Flags::NODE1_EMCY, ..good });
+        assert_eq!(out.state, OutputState::Invalid);
         assert_eq!(out.fulcrum_base_m, [0.0; 3]);
         let out = e.process(&good);
-        assert_eq!(out.state, STATE_OUTSIDE);
-        assert_ne!(out.health & flags::DETECTOR_RESET, 0);
-        assert_eq!(e.process(&good).health & flags::DETECTOR_RESET, 0);
+        assert_eq!(out.state, OutputState::Outside);
+        assert!(out.health.contains(Flags::DETECTOR_RESET));
+        assert!(!e.process(&good).health.contains(Flags::DETECTOR_RESET));
+    }
+
+    /// `CycleOutput` as it was recorded before state and health were typed.
+    #[derive(Serialize, Deserialize)]
+    struct RawOutput {
+        state: u32,
+        trocar_id: u32,
+        health: u32,
+        fulcrum_base_m: [f64; 3],
+        residual_m: f64,
+        fulcrum_std_m: f64,
+        conditioning: f64,
+        wrist_base_m: [f64; 3],
+        axis_base: [f64; 3],
+        joints_rad: [f64; JOINTS],
+        window_fill: u16,
+        window_len: u16,
+        fit_lines: u16,
+    }
+
+    fn raw(state: u32, health: u32) -> RawOutput {
+        RawOutput {
+            state,
+            trocar_id: 3,
+            health,
+            fulcrum_base_m: [0.25, -0.5, 1e-9],
+            residual_m: 1e-4,
+            fulcrum_std_m: 2e-4,
+            conditioning: 0.3,
+            wrist_base_m: [0.1, 0.2, 0.3],
+            axis_base: [0.0, 0.6, 0.8],
+            joints_rad: [0.1, -0.2, 0.3, -0.4, 0.5, -0.6],
+            window_fill: 100,
+            window_len: 128,
+            fit_lines: 300,
+        }
+    }
+
+    #[test]
+    fn the_typed_output_records_the_same_postcard_bytes_as_the_raw_u32s() {
+        let healths =
+            [0, Flags::INCOMPLETE_CYCLE.bits() | Flags::OVERRUN.bits(), Flags::all().bits(), 1 << 20, u32::MAX];
+        for state in [OutputState::Invalid, OutputState::Outside, OutputState::Inside] {
+            for health in healths {
+                let old = postcard::to_allocvec(&raw(u32::from(state), health)).unwrap();
+                let typed: CycleOutput = postcard::from_bytes(&old).unwrap();
+                assert_eq!((typed.state, typed.health.bits()), (state, health));
+                assert_eq!(postcard::to_allocvec(&typed).unwrap(), old, "{state:?} {health:#x}");
+            }
+        }
+        let input = CycleInput { counts: [1, -2, 3, -4, 5, -6], received_mask: 0b101, flags: Flags::NODE2_STALE };
+        let bytes = postcard::to_allocvec(&input).unwrap();
+        let raw_input: ([i32; JOINTS], u8, u32) = postcard::from_bytes(&bytes).unwrap();
+        assert_eq!(raw_input, (input.counts, 0b101, Flags::NODE2_STALE.bits()));
+    }
+
+    #[test]
+    fn a_recorded_unknown_state_is_a_decode_error_not_a_panic() {
+        for state in [3, 7, u32::MAX] {
+            let bytes = postcard::to_allocvec(&raw(state, 0)).unwrap();
+            assert!(postcard::from_bytes::<CycleOutput>(&bytes).is_err(), "state {state}");
+        }
+    }
+
+    #[test]
+    fn to_sample_puts_the_wire_values_and_they_read_back_typed() {
+        let out = CycleOutput {
+            state: OutputState::Inside,
+            trocar_id: 2,
+            health: Flags::DETECTOR_RESET | Flags::OVERRUN,
+            fulcrum_base_m: [0.1, 0.2, 0.3],
+            ..Default::default()
+        };
+        let s = out.to_sample();
+        assert_eq!((s.state, s.health), (2, Flags::DETECTOR_RESET.bits() | Flags::OVERRUN.bits()));
+        assert_eq!((s.state(), s.health()), (Ok(out.state), out.health));
+        assert_eq!(s.fulcrum(), Some([0.1, 0.2, 0.3]));
     }
 
     #[test]

@@ -18,7 +18,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use hw_io::can::{CanBus, InProcessBus, SocketCanBus};
-use hw_io::ipc::{FulcrumPublisher, FulcrumSample, PublisherOptions, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE};
+use hw_io::ipc::{FulcrumPublisher, FulcrumSample, OutputState, PublisherOptions};
 use serde::Serialize;
 use tracing::{info, warn};
 
@@ -181,64 +181,24 @@ struct RtResult {
     bus_dropped: u64,
 }
 
-/// Names a state for people.
-pub fn state_name(state: u32) -> &'static str {
-    match state {
-        STATE_INVALID => "INVALID",
-        STATE_OUTSIDE => "outside",
-        STATE_INSIDE => "INSIDE",
-        _ => "unknown",
-    }
-}
-
-/// Names the set health flags for people (comma-separated; "ok" when none).
-pub fn health_names(flags: u32) -> String {
-    use hw_io::ipc::health as h;
-    let mut v = Vec::new();
-    for k in 0..3 {
-        if flags & h::NODE_STALE[k] != 0 {
-            v.push(format!("node{}-stale", k + 1));
-        }
-        if flags & h::NODE_EMCY[k] != 0 {
-            v.push(format!("node{}-emcy", k + 1));
-        }
-        if flags & h::NODE_HEARTBEAT[k] != 0 {
-            v.push(format!("node{}-heartbeat", k + 1));
-        }
-    }
-    for (bit, name) in [
-        (h::INCOMPLETE_CYCLE, "incomplete-cycle"),
-        (h::OVERRUN, "overrun"),
-        (h::SYNC_SEND_FAILED, "sync-send-failed"),
-        (h::BUS_ERROR, "bus-error"),
-        (h::BAD_SAMPLE, "bad-sample"),
-        (h::DETECTOR_RESET, "detector-reset"),
-    ] {
-        if flags & bit != 0 {
-            v.push(name.to_string());
-        }
-    }
-    if v.is_empty() { "ok".into() } else { v.join(",") }
-}
-
 /// What the simulated truth says next to a detection (the built-in simulated robot only):
 /// the true trocar and the fulcrum's error, or what is wrong with the detection.
 pub fn truth_note(
-    state: u32,
+    state: OutputState,
     fulcrum_base_m: [f64; 3],
     truth: Option<(sim::scenario::TruthState, Option<nalgebra::Vector3<f64>>)>,
 ) -> String {
     use sim::scenario::TruthState;
     let Some((truth_state, pivot)) = truth else { return String::new() };
     match (state, truth_state, pivot) {
-        (STATE_INSIDE, TruthState::Inside { index }, Some(p)) => {
+        (OutputState::Inside, TruthState::Inside { index }, Some(p)) => {
             let err_mm = (nalgebra::Vector3::from(fulcrum_base_m) - p).norm() * 1e3;
             format!(" [truth: trocar {index}, fulcrum {err_mm:.1} mm from the true pivot]")
         }
-        (STATE_INSIDE, _, _) => " [truth: outside: a FALSE detection]".to_string(),
-        (STATE_OUTSIDE, TruthState::Inside { index }, _) => format!(" [truth: still inside trocar {index}]"),
-        (STATE_OUTSIDE, _, _) => " [truth: outside]".to_string(),
-        _ => String::new(),
+        (OutputState::Inside, _, _) => " [truth: outside: a FALSE detection]".to_string(),
+        (OutputState::Outside, TruthState::Inside { index }, _) => format!(" [truth: still inside trocar {index}]"),
+        (OutputState::Outside, _, _) => " [truth: outside]".to_string(),
+        (OutputState::Invalid, _, _) => String::new(),
     }
 }
 
@@ -247,13 +207,13 @@ fn log_event(e: &LogEvent, period_s: f64, sim: Option<&SimRobotThread>, health: 
         LogEvent::State { sequence, state, trocar_id, fulcrum_base_m: f } => {
             let t = sequence as f64 * period_s;
             let note = truth_note(state, f, sim.and_then(|s| s.truth_at(sequence)));
-            if state == STATE_INSIDE {
+            if state == OutputState::Inside {
                 info!(
                     "{t:9.3} s  DETECTED inside trocar #{trocar_id}, fulcrum ({:+.4}, {:+.4}, {:+.4}) m{note}",
                     f[0], f[1], f[2]
                 );
             } else {
-                info!("{t:9.3} s  DETECTED {}{note}", state_name(state));
+                info!("{t:9.3} s  DETECTED {state}{note}");
             }
         }
         LogEvent::Health { sequence, old: _, new } => {

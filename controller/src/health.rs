@@ -1,7 +1,7 @@
 //! Data health of the encoder nodes: missing TPDOs, EMCY, heartbeats.
 //!
 //! A node's data are **invalid** while any of these holds (each raises its own flag of
-//! [`hw_io::ipc::health`]):
+//! [`hw_io::ipc::HealthFlags`]):
 //! - its TPDO has been missing for `stale_after_cycles` consecutive cycles (`NODE_STALE`);
 //! - it has sent an EMCY with a non-zero error code not yet cleared by an EMCY with error
 //!   code `0x0000` (`NODE_EMCY`);
@@ -17,7 +17,7 @@
 //! Times are nanoseconds of `CLOCK_MONOTONIC` (or any monotonic time base, consistently).
 
 use hw_io::can::{ENCODER_NODES, Message, NmtState, NodeId};
-use hw_io::ipc::health as flags;
+use hw_io::ipc::HealthFlags as Flags;
 use serde::{Deserialize, Serialize};
 
 /// Health thresholds (the `[health]` table of the config).
@@ -115,10 +115,10 @@ impl HealthMonitor {
 
     /// Closes a cycle at `now_ns`: `received_mask` has bit k set when node k (joint order)
     /// delivered its TPDO this cycle. Returns the node flags (stale, EMCY, heartbeat).
-    pub fn end_cycle(&mut self, received_mask: u8, now_ns: u64) -> u32 {
+    pub fn end_cycle(&mut self, received_mask: u8, now_ns: u64) -> Flags {
         let started = *self.started_ns.get_or_insert(now_ns);
         let timeout_ns = u64::from(self.config.heartbeat_timeout_ms) * 1_000_000;
-        let mut out = 0;
+        let mut out = Flags::empty();
         for k in 0..ENCODER_NODES {
             let st = &mut self.state[k];
             if received_mask & (1 << k) != 0 {
@@ -127,16 +127,16 @@ impl HealthMonitor {
                 st.missed_cycles = st.missed_cycles.saturating_add(1);
             }
             if st.missed_cycles >= self.config.stale_after_cycles {
-                out |= flags::NODE_STALE[k];
+                out |= Flags::NODE_STALE[k];
             }
             if st.emcy_code != 0 {
-                out |= flags::NODE_EMCY[k];
+                out |= Flags::NODE_EMCY[k];
             }
             let last = st.last_heartbeat_ns.unwrap_or(started);
             let silent = now_ns.saturating_sub(last) > timeout_ns;
             let not_operational = st.nmt.is_some_and(|s| s != NmtState::Operational);
             if silent || not_operational {
-                out |= flags::NODE_HEARTBEAT[k];
+                out |= Flags::NODE_HEARTBEAT[k];
             }
         }
         out
@@ -170,11 +170,11 @@ mod tests {
     fn a_node_goes_stale_after_n_missed_cycles_and_recovers() {
         let mut m = monitor();
         heartbeats(&mut m, 0);
-        assert_eq!(m.end_cycle(0b111, 0), 0);
-        assert_eq!(m.end_cycle(0b101, 1_000_000), 0);
-        assert_eq!(m.end_cycle(0b101, 2_000_000), 0);
-        assert_eq!(m.end_cycle(0b101, 3_000_000), flags::NODE_STALE[1]);
-        assert_eq!(m.end_cycle(0b111, 4_000_000), 0);
+        assert_eq!(m.end_cycle(0b111, 0), Flags::empty());
+        assert_eq!(m.end_cycle(0b101, 1_000_000), Flags::empty());
+        assert_eq!(m.end_cycle(0b101, 2_000_000), Flags::empty());
+        assert_eq!(m.end_cycle(0b101, 3_000_000), Flags::NODE_STALE[1]);
+        assert_eq!(m.end_cycle(0b111, 4_000_000), Flags::empty());
     }
 
     #[test]
@@ -183,35 +183,35 @@ mod tests {
         heartbeats(&mut m, 0);
         let n3 = ids()[2];
         m.on_message(&Message::Emcy { node: n3, code: 0x7300, register: 1, vendor: [0; 5] }, 0);
-        assert_eq!(m.end_cycle(0b111, 0), flags::NODE_EMCY[2]);
+        assert_eq!(m.end_cycle(0b111, 0), Flags::NODE_EMCY[2]);
         assert_eq!(m.emcy_code(2), 0x7300);
         m.on_message(&Message::Emcy { node: n3, code: 0, register: 0, vendor: [0; 5] }, 0);
-        assert_eq!(m.end_cycle(0b111, 0), 0);
+        assert_eq!(m.end_cycle(0b111, 0), Flags::empty());
     }
 
     #[test]
     fn heartbeat_timeout_and_non_operational_state_are_flagged() {
         let mut m = monitor();
         heartbeats(&mut m, 0);
-        assert_eq!(m.end_cycle(0b111, 250_000_000), 0);
+        assert_eq!(m.end_cycle(0b111, 250_000_000), Flags::empty());
         // Nodes 1 and 3 keep beating, node 2 stops.
         for n in [ids()[0], ids()[2]] {
             m.on_message(&Message::Heartbeat { node: n, state: NmtState::Operational }, 200_000_000);
         }
-        assert_eq!(m.end_cycle(0b111, 250_000_001), flags::NODE_HEARTBEAT[1]);
+        assert_eq!(m.end_cycle(0b111, 250_000_001), Flags::NODE_HEARTBEAT[1]);
         m.on_message(&Message::Heartbeat { node: ids()[1], state: NmtState::PreOperational }, 260_000_000);
-        assert_eq!(m.end_cycle(0b111, 260_000_000), flags::NODE_HEARTBEAT[1]);
+        assert_eq!(m.end_cycle(0b111, 260_000_000), Flags::NODE_HEARTBEAT[1]);
         m.on_message(&Message::Heartbeat { node: ids()[1], state: NmtState::Operational }, 270_000_000);
-        assert_eq!(m.end_cycle(0b111, 270_000_000), 0);
+        assert_eq!(m.end_cycle(0b111, 270_000_000), Flags::empty());
     }
 
     #[test]
     fn a_node_never_heard_is_flagged_after_the_timeout_from_start() {
         let mut m = monitor();
-        assert_eq!(m.end_cycle(0b111, 1_000), 0);
+        assert_eq!(m.end_cycle(0b111, 1_000), Flags::empty());
         assert_eq!(
             m.end_cycle(0b111, 1_000 + 250_000_001),
-            flags::NODE_HEARTBEAT[0] | flags::NODE_HEARTBEAT[1] | flags::NODE_HEARTBEAT[2]
+            Flags::NODE_HEARTBEAT[0] | Flags::NODE_HEARTBEAT[1] | Flags::NODE_HEARTBEAT[2]
         );
     }
 
@@ -221,7 +221,7 @@ mod tests {
         let n9 = NodeId::new(9).unwrap();
         assert!(!m.on_message(&Message::Emcy { node: n9, code: 1, register: 0, vendor: [0; 5] }, 0));
         heartbeats(&mut m, 0);
-        assert_eq!(m.end_cycle(0b111, 0), 0);
+        assert_eq!(m.end_cycle(0b111, 0), Flags::empty());
     }
 
     #[test]

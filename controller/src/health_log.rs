@@ -13,21 +13,21 @@
 
 use std::collections::BTreeMap;
 
-use crate::daemon::health_names;
+use hw_io::ipc::HealthFlags;
 
 /// A condition that lasts this long gets its own lines, seconds.
 pub const LASTING_S: f64 = 0.1;
 
-/// Flags that can be set at once (bits of `hw_io::ipc::health`).
+/// Flags that can be set at once (the bits of [`HealthFlags`], unknown ones included).
 const BITS: usize = 32;
 
 /// The aggregator. Not for the real-time loop (it formats strings): the daemon's supervisor
 /// thread feeds it.
 #[derive(Debug, Default)]
 pub struct HealthLog {
-    active: u32,
+    active: HealthFlags,
     since_s: [f64; BITS],
-    announced: u32,
+    announced: HealthFlags,
     flaps: BTreeMap<String, u64>,
 }
 
@@ -71,18 +71,18 @@ impl HealthLog {
 
     /// The lasting flags changed to `new` at `t_s` (seconds of loop time). Returns the lines
     /// of lasting conditions that cleared.
-    pub fn change(&mut self, t_s: f64, new: u32) -> Vec<HealthLine> {
+    pub fn change(&mut self, t_s: f64, new: HealthFlags) -> Vec<HealthLine> {
         let mut out = Vec::new();
         for b in 0..BITS {
-            let bit = 1u32 << b;
-            let (was, is) = (self.active & bit != 0, new & bit != 0);
+            let bit = HealthFlags::from_bits_retain(1 << b);
+            let (was, is) = (self.active.contains(bit), new.contains(bit));
             if is && !was {
                 self.since_s[b] = t_s;
             } else if was && !is {
-                let name = health_names(bit);
-                if self.announced & bit != 0 {
+                let name = bit.to_string();
+                if self.announced.contains(bit) {
                     out.push(HealthLine::Cleared { name, at_s: t_s, lasted_s: t_s - self.since_s[b] });
-                    self.announced &= !bit;
+                    self.announced.remove(bit);
                 } else {
                     *self.flaps.entry(name).or_insert(0) += 1;
                 }
@@ -97,10 +97,10 @@ impl HealthLog {
     pub fn tick(&mut self, now_s: f64) -> Vec<HealthLine> {
         let mut out = Vec::new();
         for b in 0..BITS {
-            let bit = 1u32 << b;
-            if self.active & bit != 0 && self.announced & bit == 0 && now_s - self.since_s[b] >= LASTING_S {
-                self.announced |= bit;
-                out.push(HealthLine::Began { name: health_names(bit), since_s: self.since_s[b] });
+            let bit = HealthFlags::from_bits_retain(1 << b);
+            if self.active.contains(bit) && !self.announced.contains(bit) && now_s - self.since_s[b] >= LASTING_S {
+                self.announced.insert(bit);
+                out.push(HealthLine::Began { name: bit.to_string(), since_s: self.since_s[b] });
             }
         }
         out
@@ -121,7 +121,7 @@ impl HealthLog {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use hw_io::ipc::health as h;
+    use hw_io::ipc::HealthFlags as h;
 
     #[test]
     fn short_flaps_are_counted_not_printed() {
@@ -131,7 +131,7 @@ mod tests {
             let t = k as f64 * 1.3;
             lines.extend(log.change(t, h::NODE_STALE[1]));
             lines.extend(log.tick(t + 0.01));
-            lines.extend(log.change(t + 0.02, 0));
+            lines.extend(log.change(t + 0.02, h::empty()));
             lines.extend(log.tick(t + 0.9));
         }
         assert!(lines.is_empty(), "{lines:?}");
@@ -147,7 +147,7 @@ mod tests {
         let began = log.tick(10.15);
         assert_eq!(began, vec![HealthLine::Began { name: "node1-emcy".into(), since_s: 10.0 }]);
         assert!(log.tick(11.0).is_empty(), "announced once");
-        let cleared = log.change(12.5, 0);
+        let cleared = log.change(12.5, h::empty());
         assert_eq!(cleared, vec![HealthLine::Cleared { name: "node1-emcy".into(), at_s: 12.5, lasted_s: 2.5 }]);
         assert_eq!(log.flaps(), None, "a lasting condition is not a flap");
         assert_eq!(cleared[0].to_string(), "   12.500 s  health node1-emcy cleared after 2.500 s");

@@ -1,7 +1,7 @@
 //! One line of `fulcrumd monitor --samples-out`: a received sample and when it arrived, as
 //! JSON. The monitor writes it; tests and diagnosis tools read it back with the same type.
 
-use hw_io::ipc::{Continuity, Received};
+use hw_io::ipc::{Continuity, HealthFlags, OutputState, Received, UnknownState};
 use serde::{Deserialize, Serialize};
 
 /// Continuity of a sample against the previous one (see [`Continuity`]).
@@ -33,10 +33,10 @@ pub struct SampleLine {
     pub sequence: u64,
     /// SYNC instant of the cycle, nanoseconds of `CLOCK_MONOTONIC`.
     pub timestamp_ns: u64,
-    /// `STATE_INVALID`, `STATE_OUTSIDE` or `STATE_INSIDE` (`hw_io::ipc`).
-    pub state: u32,
-    /// Health flags.
-    pub health: u32,
+    /// Invalid, outside or inside (in JSON its wire value: 0, 1, 2).
+    pub state: OutputState,
+    /// Health flags (in JSON their `u32` bits).
+    pub health: HealthFlags,
     /// Trocar identity while inside, else 0.
     pub trocar_id: u32,
     /// Fulcrum, metres, robot base frame.
@@ -48,8 +48,9 @@ pub struct SampleLine {
 }
 
 impl SampleLine {
-    /// The line of sample `r`, received at `rx_ns` (nanoseconds of `CLOCK_MONOTONIC`).
-    pub fn new(rx_ns: u64, r: &Received) -> Self {
+    /// The line of sample `r`, received at `rx_ns` (nanoseconds of `CLOCK_MONOTONIC`);
+    /// [`UnknownState`] when the sample's state is no [`OutputState`].
+    pub fn new(rx_ns: u64, r: &Received) -> Result<Self, UnknownState> {
         let (event, missed) = match r.event {
             Continuity::First => (SampleEvent::First, 0),
             Continuity::InOrder => (SampleEvent::InOrder, 0),
@@ -57,19 +58,19 @@ impl SampleLine {
             Continuity::Restart => (SampleEvent::Restart, 0),
         };
         let x = &r.sample;
-        Self {
+        Ok(Self {
             rx_ns,
             event,
             missed,
             run_id: x.run_id,
             sequence: x.sequence,
             timestamp_ns: x.timestamp_ns,
-            state: x.state,
-            health: x.health,
+            state: x.state()?,
+            health: x.health(),
             trocar_id: x.trocar_id,
             fulcrum_base_m: x.fulcrum_base_m,
             joints_rad: x.joints_rad,
             window_fill: x.window_fill,
-        }
+        })
     }
 }

@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 
 use hw_io::can::candump::{CandumpReadError, CandumpReader};
 use hw_io::can::{CanFrame, SYNC_COB_ID};
+use hw_io::ipc::HealthFlags;
 use serde::Serialize;
 
 use crate::config::{Config, LoadError};
@@ -254,13 +255,11 @@ pub struct LogVsRecording {
 /// Health flags the loop adds from its own timing, which a bus log cannot know (`OVERRUN`):
 /// left out when inputs are compared, and taken from the recording when a log cycle is
 /// replayed against it.
-pub const LOOP_ONLY_FLAGS: u32 = hw_io::ipc::health::OVERRUN;
+pub const LOOP_ONLY_FLAGS: HealthFlags = HealthFlags::OVERRUN;
 
 /// The same bus input: counts, received nodes and flags other than [`LOOP_ONLY_FLAGS`].
 pub fn same_bus_input(a: &CycleInput, b: &CycleInput) -> bool {
-    a.counts == b.counts
-        && a.received_mask == b.received_mask
-        && a.flags & !LOOP_ONLY_FLAGS == b.flags & !LOOP_ONLY_FLAGS
+    a.counts == b.counts && a.received_mask == b.received_mask && a.flags - LOOP_ONLY_FLAGS == b.flags - LOOP_ONLY_FLAGS
 }
 
 /// Aligns the log's cycles with the recording (first 1000 candidate offsets, by inputs),

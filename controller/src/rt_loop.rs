@@ -18,7 +18,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use hw_io::can::{CanBus, CanFrame, RecvError, SyncSource, TimedFrame, unix_time_now_us};
-use hw_io::ipc::{FulcrumSample, STATE_INVALID, health as flags};
+use hw_io::ipc::{FulcrumSample, HealthFlags as Flags, OutputState};
 use serde::{Deserialize, Serialize};
 
 use crate::cycle::{Acquisition, AcquisitionStats, CycleInput, CycleOutput, Estimation};
@@ -52,12 +52,13 @@ pub const RECORD_KIND: &str = "fulcrumd.cycle.v1";
 /// What the loop hands to the logging thread (lock-free, `Copy`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum LogEvent {
-    /// The published state changed (`STATE_*` of [`hw_io::ipc`]).
+    /// The published state changed (to outside or inside: invalid cycles are counted, not
+    /// logged as state changes).
     State {
         /// Cycle number.
         sequence: u64,
         /// New state.
-        state: u32,
+        state: OutputState,
         /// Trocar identity when inside.
         trocar_id: u32,
         /// Fulcrum, metres, robot base frame (zero unless inside).
@@ -68,9 +69,9 @@ pub enum LogEvent {
         /// Cycle number.
         sequence: u64,
         /// Previous flags.
-        old: u32,
+        old: Flags,
         /// New flags.
-        new: u32,
+        new: Flags,
     },
     /// One or more periods were skipped because a cycle overran.
     Overrun {
@@ -215,9 +216,9 @@ pub struct RtLoop<B: CanBus> {
     progress: LoopProgress,
     timing: LoopTiming,
     sequence: u64,
-    last_state: u32,
-    last_trocar: u32,
-    last_health: u32,
+    /// The last valid state logged with its trocar, `None` before the first valid cycle.
+    last_state: Option<(OutputState, u32)>,
+    last_health: Flags,
     prev_cycle_ns: u32,
     /// Frames read after their cycle's window closed (bus time): handled between cycles,
     /// first thing in the next cycle.
@@ -246,9 +247,8 @@ impl<B: CanBus> RtLoop<B> {
             progress,
             timing: LoopTiming::new(),
             sequence: 0,
-            last_state: u32::MAX,
-            last_trocar: 0,
-            last_health: 0,
+            last_state: None,
+            last_health: Flags::empty(),
             prev_cycle_ns: 0,
             pending: heapless::Deque::new(),
             early: heapless::Vec::new(),
@@ -433,7 +433,7 @@ impl<B: CanBus> RtLoop<B> {
         let collected_ns = monotonic_now_ns();
         let mut input = self.acquisition.end_cycle(collected_ns, sync_failed);
         if skipped > 0 {
-            input.flags |= flags::OVERRUN;
+            input.flags |= Flags::OVERRUN;
         }
         // 4. Estimate and publish.
         let output = self.estimation.process(&input);
@@ -484,30 +484,32 @@ impl<B: CanBus> RtLoop<B> {
         }
         // State changes of valid estimates only: a one-cycle data gap is not a state change
         // (it is counted, and the daemon reports counts periodically).
-        if output.state != STATE_INVALID && (output.state != self.last_state || output.trocar_id != self.last_trocar) {
+        let valid = output.state.is_valid();
+        let state = (output.state, output.trocar_id);
+        if valid && self.last_state != Some(state) {
             log(LogEvent::State {
                 sequence: seq,
                 state: output.state,
                 trocar_id: output.trocar_id,
                 fulcrum_base_m: output.fulcrum_base_m,
             });
-            self.last_state = output.state;
-            self.last_trocar = output.trocar_id;
+            self.last_state = Some(state);
         }
         // Lasting health conditions only; per-cycle ones are counted.
-        let h = output.health & !(flags::OVERRUN | flags::INCOMPLETE_CYCLE | flags::DETECTOR_RESET);
+        let h = output.health - (Flags::OVERRUN | Flags::INCOMPLETE_CYCLE | Flags::DETECTOR_RESET);
         if h != self.last_health {
             log(LogEvent::Health { sequence: seq, old: self.last_health, new: h });
             self.last_health = h;
         }
-        if input.flags & flags::INCOMPLETE_CYCLE != 0 {
+        if input.flags.contains(Flags::INCOMPLETE_CYCLE) {
             p.incomplete_cycles.fetch_add(1, Ordering::Relaxed);
         }
-        if output.state != STATE_INVALID {
+        if valid {
             p.valid_cycles.fetch_add(1, Ordering::Relaxed);
         }
         p.bus_dropped_rx_frames.store(self.bus.dropped_rx_frames(), Ordering::Relaxed);
-        self.progress.record_cycle(output.state != STATE_INVALID, output.state, output.health);
+        // The watchdog stores them in atomics: their wire `u32`s.
+        self.progress.record_cycle(valid, output.state.into(), output.health.bits());
         self.sequence += 1;
     }
 }

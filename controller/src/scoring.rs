@@ -2,7 +2,6 @@
 
 use std::path::Path;
 
-use hw_io::ipc::STATE_INSIDE;
 use nalgebra::Vector3;
 use serde::Serialize;
 use sim::score::{self, Detected, Score};
@@ -101,7 +100,7 @@ impl ScoreReport {
 pub fn score_log(log: &LogReplay, truth_path: &Path) -> Result<ScoreReport, ScoreError> {
     let truth = TruthFile::open(truth_path)?;
     let detections = log.cycles.iter().map(|c| {
-        let inside = c.output.state == STATE_INSIDE;
+        let inside = c.output.state.is_inside();
         let f = c.output.fulcrum_base_m;
         (
             At::UnixTimeUs(c.sync_unix_us),

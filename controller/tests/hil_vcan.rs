@@ -31,7 +31,7 @@ use controller::rt::monotonic_now_ns;
 use controller::rt_loop::CycleRecord;
 use hw_io::can::candump::CandumpReader;
 use hw_io::can::{CanBus, CanFrame, SocketCanBus};
-use hw_io::ipc::{STATE_INSIDE, STATE_INVALID, health};
+use hw_io::ipc::{HealthFlags, OutputState};
 use serde_json::Value;
 use sim::score::Detected;
 use sim::truth_file::{At, TruthFile, score_detections};
@@ -757,15 +757,15 @@ fn check_run(a: &Artifacts, summary: &str, rec_dir: &str, run_samples: &[&Sample
     let stale_after = config.health.stale_after_cycles;
     let mut missing_run = [0u32; 3];
     let mut reset_pending = false;
-    let never = health::BAD_SAMPLE
-        | health::SYNC_SEND_FAILED
-        | health::BUS_ERROR
-        | health::NODE_HEARTBEAT.iter().fold(0, |m, f| m | f)
-        | if allowed.emcy { 0 } else { health::NODE_EMCY.iter().fold(0, |m, f| m | f) };
+    let never = HealthFlags::BAD_SAMPLE
+        | HealthFlags::SYNC_SEND_FAILED
+        | HealthFlags::BUS_ERROR
+        | HealthFlags::NODE_HEARTBEAT.into_iter().collect()
+        | if allowed.emcy { HealthFlags::empty() } else { HealthFlags::NODE_EMCY.into_iter().collect() };
     // The stale-data policy (docs/daemon.md): EMCY and heartbeat faults reset; a gap of
     // invalid cycles resets when longer than `detector.max_gap_s` (counted once the detector
     // has stepped), and is resumed otherwise.
-    let fault_flags = health::NODE_EMCY.iter().chain(&health::NODE_HEARTBEAT).fold(0, |m, f| m | f);
+    let fault_flags: HealthFlags = HealthFlags::NODE_EMCY.into_iter().chain(HealthFlags::NODE_HEARTBEAT).collect();
     let max_gap_cycles = config.detector.max_gap_s / config.detector.sample_period_s + 1e-9;
     let mut gap_cycles = 0u64;
     let mut stepped = false;
@@ -775,23 +775,28 @@ fn check_run(a: &Artifacts, summary: &str, rec_dir: &str, run_samples: &[&Sample
         // Published = recorded.
         assert_eq!((r.output.state, r.output.health, r.output.fulcrum_base_m), (s.state, s.health, s.fulcrum_base_m));
         let h = r.output.health;
-        assert_eq!(h & never, 0, "cycle {seq}: unexpected flags {h:#x}");
-        assert_eq!(r.input.received_mask != ALL_NODES, h & health::INCOMPLETE_CYCLE != 0, "cycle {seq}: {r:?}");
+        assert!(!h.intersects(never), "cycle {seq}: unexpected flags {h}");
+        assert_eq!(r.input.received_mask != ALL_NODES, h.contains(HealthFlags::INCOMPLETE_CYCLE), "cycle {seq}: {r:?}");
         for (k, run) in missing_run.iter_mut().enumerate() {
             *run = if r.input.received_mask & (1 << k) == 0 { *run + 1 } else { 0 };
-            assert_eq!(*run >= stale_after, h & health::NODE_STALE[k] != 0, "cycle {seq}: NODE_STALE[{k}] rule: {r:?}");
+            let stale = h.contains(HealthFlags::NODE_STALE[k]);
+            assert_eq!(*run >= stale_after, stale, "cycle {seq}: NODE_STALE[{k}] rule: {r:?}");
         }
         // Never a valid estimate from stale, missing or faulty data.
-        assert_eq!(r.output.state == STATE_INVALID, h & health::INVALIDATING != 0, "cycle {seq}: {r:?}");
-        if h & fault_flags != 0 {
+        assert_eq!(
+            r.output.state == OutputState::Invalid,
+            h.intersects(HealthFlags::INVALIDATING),
+            "cycle {seq}: {r:?}"
+        );
+        if h.intersects(fault_flags) {
             reset_pending = true;
         }
-        if r.output.state == STATE_INVALID {
+        if r.output.state == OutputState::Invalid {
             gap_cycles += u64::from(stepped);
         } else {
             let expected = reset_pending || gap_cycles as f64 > max_gap_cycles;
             assert_eq!(
-                h & health::DETECTOR_RESET != 0,
+                h.contains(HealthFlags::DETECTOR_RESET),
                 expected,
                 "cycle {seq}: first valid cycle after {gap_cycles} invalid ones (fault {reset_pending}): {r:?}"
             );
@@ -925,10 +930,10 @@ fn tpdo_sent_per_sync(a: &Artifacts, cob_id: u32) -> Vec<bool> {
 /// valid estimate holds).
 fn score_valid(
     truth: &TruthFile,
-    estimates: impl Iterator<Item = (u64, u32, [f64; 3])>,
+    estimates: impl Iterator<Item = (u64, OutputState, [f64; 3])>,
 ) -> controller::scoring::ScoreReport {
-    let detections = estimates.filter(|&(_, state, _)| state != STATE_INVALID).map(|(sample, state, f)| {
-        let inside = state == STATE_INSIDE;
+    let detections = estimates.filter(|&(_, state, _)| state != OutputState::Invalid).map(|(sample, state, f)| {
+        let inside = state == OutputState::Inside;
         let fulcrum = inside.then(|| nalgebra::Vector3::new(f[0], f[1], f[2]));
         (At::Sample(sample), Detected { inside, fulcrum_base_m: fulcrum })
     });
@@ -1000,7 +1005,7 @@ fn hil_clean_insert_extract_cycles() {
     // A guest stall of 3 cycles or more makes a node stale, and the stale-data policy resets
     // the detector (its history then differs from the offline run's, legitimately); without
     // such a reset, the chain must not change the number of false detections.
-    let resets = samples.iter().filter(|s| s.health & health::DETECTOR_RESET != 0).count();
+    let resets = samples.iter().filter(|s| s.health.intersects(HealthFlags::DETECTOR_RESET)).count();
     assert_eq!(off.false_detections, 0, "the detector's own false detections on this scenario: {}", off.describe());
     if resets == 0 {
         assert_eq!(live.false_detections, 0, "false detections over vcan: {}", live.describe());
@@ -1033,13 +1038,13 @@ fn hil_node_silent_200ms_then_back() {
     // The daemon (log cycle k = its cycle k: candump ran first): stale from the 3rd silent
     // cycle to the end of the window, every cycle of the window invalid, valid again after it
     // with the detector reset (checked by the rules in check_run).
-    assert!(samples[first..=last].iter().all(|s| s.state == STATE_INVALID));
-    assert!(samples[first + 2..=last].iter().all(|s| s.health & health::NODE_STALE[1] != 0));
-    let back = samples[last + 1..].iter().find(|s| s.state != STATE_INVALID).expect("valid again");
-    assert_ne!(back.health & health::DETECTOR_RESET, 0, "{back:?}");
+    assert!(samples[first..=last].iter().all(|s| s.state == OutputState::Invalid));
+    assert!(samples[first + 2..=last].iter().all(|s| s.health.intersects(HealthFlags::NODE_STALE[1])));
+    let back = samples[last + 1..].iter().find(|s| s.state != OutputState::Invalid).expect("valid again");
+    assert!(back.health.intersects(HealthFlags::DETECTOR_RESET), "{back:?}");
     // The instrument was inside its trocar and detected before the fault, and again after it.
-    assert!(samples[..first].iter().any(|s| s.state == STATE_INSIDE), "detected before the fault");
-    assert!(samples[last..].iter().any(|s| s.state == STATE_INSIDE), "re-detected after the fault");
+    assert!(samples[..first].iter().any(|s| s.state == OutputState::Inside), "detected before the fault");
+    assert!(samples[last..].iter().any(|s| s.state == OutputState::Inside), "re-detected after the fault");
     let log = fulcrumd_stderr(&a, "daemon");
     assert!(log.contains("health node2-stale"), "the daemon logged the stale node:\n{log}");
 }
@@ -1077,7 +1082,7 @@ fn hil_malformed_frames_at_2khz() {
     for id in 0x181..=0x183 {
         assert!(tpdo_sent_per_sync(&a, id).iter().all(|&s| s), "node {id:#x} skipped a SYNC");
     }
-    assert!(samples.iter().any(|s| s.state == STATE_INSIDE), "the instrument was detected in its trocar");
+    assert!(samples.iter().any(|s| s.state == OutputState::Inside), "the instrument was detected in its trocar");
     check_candump_replay(&a, &run);
 }
 
@@ -1092,12 +1097,12 @@ fn hil_emcy_burst() {
     assert_eq!(u(&a.json("daemon.json")["acquisition"]["emcy_frames"]), 2 * EMCY_COUNT);
     // One flagged stretch per EMCY (raise to clear), every flagged sample invalid, the detector
     // reset after each (rules in check_run); only node 3.
-    let st = stretches(&samples, |s| s.health & health::NODE_EMCY[2] != 0);
+    let st = stretches(&samples, |s| s.health.intersects(HealthFlags::NODE_EMCY[2]));
     assert_eq!(st.len() as u64, EMCY_COUNT, "NODE_EMCY[2] stretches {st:?}");
-    assert!(samples.iter().all(|s| s.health & (health::NODE_EMCY[0] | health::NODE_EMCY[1]) == 0));
-    assert!(st.iter().all(|&(f, l)| samples[f..=l].iter().all(|s| s.state == STATE_INVALID)));
+    assert!(samples.iter().all(|s| !s.health.intersects(HealthFlags::NODE1_EMCY | HealthFlags::NODE2_EMCY)));
+    assert!(st.iter().all(|&(f, l)| samples[f..=l].iter().all(|s| s.state == OutputState::Invalid)));
     let last = st.last().map_or(0, |s| s.1);
-    assert!(samples[last + 1..].iter().any(|s| s.state == STATE_INSIDE), "re-detected after the burst");
+    assert!(samples[last + 1..].iter().any(|s| s.state == OutputState::Inside), "re-detected after the burst");
     assert!(fulcrumd_stderr(&a, "daemon").contains("node3-emcy"));
 }
 
@@ -1208,13 +1213,13 @@ fn hil_receive_queue_overflow_is_counted() {
         samples[after + 1].health
     );
     assert!(
-        samples[after..after + 2].iter().any(|s| s.health & health::OVERRUN != 0),
+        samples[after..after + 2].iter().any(|s| s.health.intersects(HealthFlags::OVERRUN)),
         "OVERRUN after the stop: {:?}",
         &samples[after..after + 2]
     );
     let skipped_at_least = stalled_ms * 1000 / u64::from(HIL_PERIOD_US) - 1;
     assert!(u(&d["overruns"]) >= skipped_at_least, "{} overruns, stopped {stalled_ms} ms", d["overruns"]);
-    assert!(samples[..after].iter().any(|s| s.state == STATE_INSIDE), "detected before the stop");
-    assert!(samples[after..].iter().any(|s| s.state == STATE_INSIDE), "detected after the stop");
+    assert!(samples[..after].iter().any(|s| s.state == OutputState::Inside), "detected before the stop");
+    assert!(samples[after..].iter().any(|s| s.state == OutputState::Inside), "detected after the stop");
     check_candump_replay(&a, &run);
 }

@@ -12,7 +12,7 @@ use controller::cycle::{Acquisition, Estimation};
 use controller::rt_loop::{CycleRecord, CycleSink, LogEvent, LoopCounters, LoopParams, RtLoop};
 use controller::watchdog::LoopProgress;
 use hw_io::can::{CanBus, CanFrame, Message, RecvError, SendError, TimedFrame};
-use hw_io::ipc::{FulcrumSample, STATE_INSIDE, STATE_INVALID, STATE_OUTSIDE, health};
+use hw_io::ipc::{FulcrumSample, HealthFlags, OutputState};
 use sim::encoders::EmcyInjection;
 use sim::twin::{SimRobot, TwinConfig};
 
@@ -150,8 +150,15 @@ fn assert_never_invalid_data_as_valid(samples: &[FulcrumSample]) {
     for s in samples {
         let floats = s.fulcrum_base_m.iter().chain(&s.wrist_base_m).chain(&s.axis_base).chain(&s.joints_rad);
         assert!(floats.chain([s.residual_m, s.fulcrum_std_m, s.conditioning].iter()).all(|v| v.is_finite()));
-        if s.health & health::INVALIDATING != 0 {
-            assert_eq!(s.state, STATE_INVALID, "seq {}: flags {:#x} but state {}", s.sequence, s.health, s.state);
+        if s.health().intersects(HealthFlags::INVALIDATING) {
+            assert_eq!(
+                s.state(),
+                Ok(OutputState::Invalid),
+                "seq {}: flags {} but state {}",
+                s.sequence,
+                s.health(),
+                s.state
+            );
             assert_eq!(s.fulcrum(), None);
         }
     }
@@ -166,7 +173,7 @@ fn clean_run_detects_insertions_publishes_every_cycle_and_allocates_nothing() {
     assert_eq!(lp.acquisition_stats().incomplete_cycles, 0);
     let valid = samples.iter().filter(|s| s.is_valid()).count();
     assert_eq!(valid, 30_000);
-    let inside = samples.iter().filter(|s| s.state == STATE_INSIDE).count();
+    let inside = samples.iter().filter(|s| s.state() == Ok(OutputState::Inside)).count();
     assert!(inside > 5_000, "inside {inside} cycles");
     assert_never_invalid_data_as_valid(&samples);
 }
@@ -178,12 +185,12 @@ fn a_node_silent_for_200_ms_is_flagged_stale_then_recovers() {
     t.nodes[1].dropout_windows_us = vec![[3_000_000, 3_200_000]];
     let (samples, lp, _) = run(t, 8_000, Vec::new(), (0, 0));
     assert_never_invalid_data_as_valid(&samples);
-    let stale: Vec<_> = samples.iter().filter(|s| s.health & health::NODE_STALE[1] != 0).collect();
+    let stale: Vec<_> = samples.iter().filter(|s| s.health().intersects(HealthFlags::NODE_STALE[1])).collect();
     // Stale from the 3rd missed cycle to the end of the window.
     assert!((195..=200).contains(&stale.len()), "{} stale cycles", stale.len());
-    assert!(samples[3_000..3_200].iter().all(|s| s.state == STATE_INVALID));
+    assert!(samples[3_000..3_200].iter().all(|s| s.state() == Ok(OutputState::Invalid)));
     assert!(samples[3_200].is_valid(), "valid again at once: {:#x}", samples[3_200].health);
-    assert_ne!(samples[3_200].health & health::DETECTOR_RESET, 0);
+    assert!(samples[3_200].health().intersects(HealthFlags::DETECTOR_RESET));
     let bad: Vec<_> = samples[3_300..].iter().filter(|s| !s.is_valid()).map(|s| (s.sequence, s.health)).collect();
     assert!(bad.is_empty(), "{:?}", &bad[..bad.len().min(5)]);
     assert_eq!(lp.acquisition_stats().incomplete_cycles, 200);
@@ -196,7 +203,7 @@ fn a_short_gap_keeps_the_trocar_and_a_long_one_resets() {
     // Where the instrument is inside a detected trocar in the gap-free run.
     let (clean, _, _) = run(twin(), 8_000, Vec::new(), (0, 0));
     let start = (2_000..7_000)
-        .find(|&i| clean[i..i + 400].iter().all(|s| s.state == STATE_INSIDE))
+        .find(|&i| clean[i..i + 400].iter().all(|s| s.state() == Ok(OutputState::Inside)))
         .expect("an insertion in the first 7 s");
     let at = start + 150;
     for (gap_ms, resets) in [(3u64, false), (20, false), (50, false), (60, true)] {
@@ -205,17 +212,17 @@ fn a_short_gap_keeps_the_trocar_and_a_long_one_resets() {
         let (samples, _, _) = run(t, at as u64 + 300, Vec::new(), (0, 0));
         assert_never_invalid_data_as_valid(&samples);
         let gap = &samples[at..at + gap_ms as usize];
-        assert!(gap.iter().all(|s| s.state == STATE_INVALID), "{gap_ms} ms: a gap cycle was valid");
+        assert!(gap.iter().all(|s| s.state() == Ok(OutputState::Invalid)), "{gap_ms} ms: a gap cycle was valid");
         let after = &samples[at + gap_ms as usize];
         assert!(after.is_valid(), "{gap_ms} ms: not valid after the gap: {:#x}", after.health);
-        assert_eq!(after.health & health::DETECTOR_RESET != 0, resets, "{gap_ms} ms: reset flag");
+        assert_eq!(after.health().intersects(HealthFlags::DETECTOR_RESET), resets, "{gap_ms} ms: reset flag");
         if !resets {
             // The trocar is kept through the gap and after it, with the same id.
-            assert_eq!(after.state, STATE_INSIDE, "{gap_ms} ms: the trocar was dropped");
+            assert_eq!(after.state(), Ok(OutputState::Inside), "{gap_ms} ms: the trocar was dropped");
             assert_eq!(after.trocar_id, samples[at - 1].trocar_id);
-            assert!(samples[at + gap_ms as usize..].iter().take(200).all(|s| s.state == STATE_INSIDE));
+            assert!(samples[at + gap_ms as usize..].iter().take(200).all(|s| s.state() == Ok(OutputState::Inside)));
         } else {
-            assert_eq!(after.state, STATE_OUTSIDE, "a long gap must reset to outside");
+            assert_eq!(after.state(), Ok(OutputState::Outside), "a long gap must reset to outside");
         }
     }
 }
@@ -232,18 +239,22 @@ fn random_tpdo_loss_changes_no_detection() {
     let (lossy, lp, _) = run(t, 20_000, Vec::new(), (0, 0));
     assert_never_invalid_data_as_valid(&lossy);
     assert!(lp.acquisition_stats().incomplete_cycles > 300, "the loss did not happen");
-    assert!(lossy.iter().all(|s| s.health & health::DETECTOR_RESET == 0), "a short gap reset the detector");
+    assert!(
+        lossy.iter().all(|s| !s.health().intersects(HealthFlags::DETECTOR_RESET)),
+        "a short gap reset the detector"
+    );
     // The same insertions and extractions as the loss-free run, each within a few cycles of
     // it (a lost line near a decision moves the decision by a sample or two).
     let transitions = |v: &[FulcrumSample]| {
-        let mut last = STATE_OUTSIDE;
+        let mut last = OutputState::Outside;
         let mut out = Vec::new();
         for (i, s) in v.iter().enumerate() {
-            if s.state != STATE_INVALID {
-                if s.state != last {
-                    out.push((i, s.state));
+            let state = s.state().expect("a known state");
+            if state.is_valid() {
+                if state != last {
+                    out.push((i, state));
                 }
-                last = s.state;
+                last = state;
             }
         }
         out
@@ -271,7 +282,7 @@ fn an_emcy_burst_invalidates_until_cleared() {
         .collect();
     let (samples, lp, _) = run(t, 4_000, Vec::new(), (0, 0));
     assert_never_invalid_data_as_valid(&samples);
-    let flagged = samples.iter().filter(|s| s.health & health::NODE_EMCY[2] != 0).count();
+    let flagged = samples.iter().filter(|s| s.health().intersects(HealthFlags::NODE_EMCY[2])).count();
     assert!((20..=35).contains(&flagged), "{flagged} cycles flagged");
     assert!(samples[2_100..].iter().all(|s| s.is_valid()));
     assert_eq!(lp.acquisition_stats().emcy_frames, 10);

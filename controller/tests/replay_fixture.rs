@@ -5,9 +5,10 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use controller::recorder::{MAGIC, PREAMBLE_BYTES};
+use controller::recorder::{MAGIC, PREAMBLE_BYTES, ReadError, RecordingReader};
 use controller::replay::{self, load_recording};
 use controller::rt_loop::CycleRecord;
+use hw_io::ipc::{HealthFlags, OutputState};
 
 fn fixture_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/cycle-v1")
@@ -55,11 +56,12 @@ fn the_old_recording_covers_every_state_and_some_health_flags() {
     let (_, _, records, truncations) = load_recording(&fixture_dir()).unwrap();
     assert!(truncations.is_empty(), "{truncations:?}");
     let count = |f: &dyn Fn(&CycleRecord) -> bool| records.iter().filter(|r| f(r)).count();
-    assert!(count(&|r| r.output.state == hw_io::ipc::STATE_INVALID) > 0);
-    assert!(count(&|r| r.output.state == hw_io::ipc::STATE_OUTSIDE) > 0);
-    assert!(count(&|r| r.output.state == hw_io::ipc::STATE_INSIDE) > 0);
-    assert!(count(&|r| r.output.health != 0) > 0);
-    assert!(count(&|r| r.output.health & hw_io::ipc::health::INCOMPLETE_CYCLE != 0) > 0);
+    assert!(count(&|r| r.output.state == OutputState::Invalid) > 0);
+    assert!(count(&|r| r.output.state == OutputState::Outside) > 0);
+    assert!(count(&|r| r.output.state == OutputState::Inside) > 0);
+    assert!(count(&|r| !r.output.health.is_empty()) > 0);
+    assert!(count(&|r| r.output.health.contains(HealthFlags::INCOMPLETE_CYCLE)) > 0);
+    assert!(count(&|r| r.input.flags.contains(HealthFlags::OVERRUN)) > 0);
 }
 
 #[test]
@@ -73,6 +75,40 @@ fn every_record_reencodes_to_the_same_postcard_bytes() {
         assert_eq!(rec.sequence, i as u64);
         assert_eq!(postcard::to_allocvec(&rec).unwrap(), *p, "record {i} re-encodes differently");
     }
+}
+
+#[test]
+fn a_record_with_an_unknown_state_is_a_typed_read_error() {
+    // The fixture's file with one record's state byte set to 7 (and its CRC fixed): the reader
+    // must return `ReadError::Decode` at that frame, not panic.
+    let mut bytes = std::fs::read(fixture_file()).unwrap();
+    let (mut at, mut k) = (PREAMBLE_BYTES, 0);
+    let frame_at = loop {
+        let len = u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+        if k == 1001 {
+            break at;
+        }
+        at += 8 + len;
+        k += 1;
+    };
+    let len = u32::from_le_bytes(bytes[frame_at..frame_at + 4].try_into().unwrap()) as usize;
+    let payload = &bytes[frame_at + 4..frame_at + 4 + len];
+    let rec: CycleRecord = postcard::from_bytes(payload).unwrap();
+    // The output's state follows sequence, sync_ns and input: find its offset by re-encoding.
+    let head = postcard::to_allocvec(&(rec.sequence, rec.sync_ns, rec.input)).unwrap().len();
+    assert_eq!(payload[head], u8::try_from(u32::from(rec.output.state)).unwrap(), "the state byte");
+    bytes[frame_at + 4 + head] = 7;
+    let crc = crc32fast::hash(&bytes[frame_at + 4..frame_at + 4 + len]);
+    bytes[frame_at + 4 + len..frame_at + 8 + len].copy_from_slice(&crc.to_le_bytes());
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(fixture_file().file_name().unwrap());
+    std::fs::write(&path, &bytes).unwrap();
+    match RecordingReader::<CycleRecord>::open(&path).unwrap().read_all() {
+        Err(ReadError::Decode { offset, .. }) => assert_eq!(offset, frame_at as u64),
+        other => panic!("expected a decode error, got {:?}", other.map(|r| r.records.len())),
+    }
+    let err = replay::replay_recording(&path).unwrap_err();
+    assert!(err.to_string().contains("does not decode"), "{err}");
 }
 
 #[test]

@@ -14,7 +14,7 @@
 use std::process::ExitCode;
 use std::time::Duration;
 
-use hw_io::ipc::{Continuity, FulcrumSubscriber, STATE_INSIDE};
+use hw_io::ipc::{Continuity, FulcrumSubscriber, OutputState};
 
 fn run(service: &str, samples: Option<u64>) -> Result<(), Box<dyn std::error::Error>> {
     let mut sub = FulcrumSubscriber::connect(service)?;
@@ -34,20 +34,25 @@ fn run(service: &str, samples: Option<u64>) -> Result<(), Box<dyn std::error::Er
             Continuity::First | Continuity::InOrder => {}
         }
         let s = r.sample;
-        // Never use an invalid sample: its health flags say why (docs/output.md).
-        if !s.is_valid() {
-            continue;
-        }
-        let state = (s.state, s.trocar_id);
-        if last_state != Some(state) {
-            match s.fulcrum() {
-                Some(f) if s.state == STATE_INSIDE => println!(
+        // Never use an invalid sample: its health flags say why (docs/output.md). A state this
+        // program does not know (a newer daemon) is treated as invalid too.
+        let state = match s.state() {
+            Ok(OutputState::Invalid) => continue,
+            Ok(state) => state,
+            Err(unknown) => {
+                eprintln!("cycle {}: {unknown}: ignored", s.sequence);
+                continue;
+            }
+        };
+        if last_state != Some((state, s.trocar_id)) {
+            match (state, s.fulcrum()) {
+                (OutputState::Inside, Some(f)) => println!(
                     "cycle {}: inside trocar #{}, fulcrum ({:+.4}, {:+.4}, {:+.4}) m, robot base frame",
                     s.sequence, s.trocar_id, f[0], f[1], f[2]
                 ),
                 _ => println!("cycle {}: outside: no fulcrum to guide to", s.sequence),
             }
-            last_state = Some(state);
+            last_state = Some((state, s.trocar_id));
         }
     }
     let c = sub.counters();

@@ -3,28 +3,39 @@
 //! CAN frames and bus backends, shared-memory messages and files. Typed errors for every
 //! malformed input; nothing here panics on any byte pattern.
 //!
-//! ## Modules
-//! - [`can`]: the encoder bus. Our own allocation-free [`can::CanFrame`], the CANopen-style
-//!   protocol (SYNC every 1 ms, one TPDO1 per encoder node, heartbeat, EMCY; see
-//!   `docs/can-protocol.md`), encoder counts to radians, and the bus backends behind the
-//!   one trait [`can::CanBus`]: Linux SocketCAN, an in-process bus, candump-log replay.
-//! - [`ipc`]: the daemon's shared-memory output (iceoryx2): the [`ipc::FulcrumSample`]
-//!   message, [`ipc::FulcrumPublisher`] and the client library [`ipc::FulcrumSubscriber`]
-//!   (see `docs/output.md`).
-//! - [`calib_files`]: the dual RCM-arm calibration's files: camera intrinsics (OpenCV /
-//!   ROS YAML), dataset, ground truth and result (JSON), see `docs/calibration.md`.
-//! - [`stdout`]: the command-line tools' standard output, quiet on a closed pipe
+//! ## Modules and features
+//! Each boundary is a Cargo feature (all three are default); a client links only what it reads.
+//! A guidance-force module that subscribes to fulcrumd's output needs
+//! `hw-io = { default-features = false, features = ["ipc"] }`: no SocketCAN, nix or nalgebra.
+//!
+//! - [`can`] (feature `can`: socketcan, nix): the encoder bus. Our own allocation-free
+//!   [`can::CanFrame`], the CANopen-style protocol (SYNC every 1 ms, one TPDO1 per encoder
+//!   node, heartbeat, EMCY; see `docs/can-protocol.md`), encoder counts to radians, and the bus
+//!   backends behind the one trait [`can::CanBus`]: Linux SocketCAN, an in-process bus,
+//!   candump-log replay.
+//! - [`ipc`] (feature `ipc`: iceoryx2, bitflags, tracing): shared-memory messages. The
+//!   versioned [`ipc::Message`] trait and the generic [`ipc::Publisher`] /
+//!   [`ipc::Subscriber`] (version check, continuity); the daemon's [`ipc::FulcrumSample`] with
+//!   its typed [`ipc::OutputState`] and [`ipc::HealthFlags`], [`ipc::FulcrumPublisher`] and
+//!   the client library [`ipc::FulcrumSubscriber`] (see `docs/output.md`).
+//! - [`calib_files`] (feature `calib-files`: estimator, serde_json, serde_yaml_ng): the dual
+//!   RCM-arm calibration's files: camera intrinsics (OpenCV / ROS YAML), dataset, ground truth
+//!   and result (JSON), see `docs/calibration.md`.
+//! - [`stdout`] (always): the command-line tools' standard output, quiet on a closed pipe
 //!   ([`outln!`]).
-//! - [`rt_alloc`]: a global allocator that serves the small allocations of real-time threads
-//!   (iceoryx2's 48 bytes per published sample) from a static lock-free pool.
+//! - [`rt_alloc`] (always): a global allocator that serves the small allocations of real-time
+//!   threads (iceoryx2's 48 bytes per published sample) from a static lock-free pool.
 //!
 //! Units: times are microseconds since the Unix epoch (`unix_time_us`) or
 //! [`std::time::Duration`]s; joint positions on the bus are encoder counts, and radians
 //! after [`can::EncoderConfig::counts_to_rad`].
 #![warn(missing_docs)]
 
+#[cfg(feature = "calib-files")]
 pub mod calib_files;
+#[cfg(feature = "can")]
 pub mod can;
+#[cfg(feature = "ipc")]
 pub mod ipc;
 pub mod rt_alloc;
 pub mod stdout;

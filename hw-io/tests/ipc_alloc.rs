@@ -5,7 +5,7 @@
 //! This binary's global allocator is `RtPoolAllocator`, exactly as fulcrumd declares it. Only one
 //! test here marks a thread real-time, so the process-wide real-time counters are its own.
 
-use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber, PublisherOptions};
+use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber, HealthFlags, PublisherOptions};
 use hw_io::rt_alloc::{self, RtPoolAllocator};
 
 #[global_allocator]
@@ -16,7 +16,7 @@ fn service(test: &str) -> String {
 }
 
 fn sample(run_id: u64, sequence: u64) -> FulcrumSample {
-    let mut s = FulcrumSample::invalid(0);
+    let mut s = FulcrumSample::invalid(HealthFlags::empty());
     s.run_id = run_id;
     s.sequence = sequence;
     s

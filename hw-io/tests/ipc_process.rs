@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber, PublisherOptions};
+use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber, HealthFlags, PublisherOptions};
 
 const CHILD_ENV: &str = "COMANIP_IPC_TEST_CHILD";
 const SERVICE_ENV: &str = "COMANIP_IPC_TEST_SERVICE";
@@ -27,7 +27,7 @@ fn service(test: &str) -> String {
 }
 
 fn sample(run_id: u64, sequence: u64) -> FulcrumSample {
-    let mut s = FulcrumSample::invalid(0);
+    let mut s = FulcrumSample::invalid(HealthFlags::empty());
     s.run_id = run_id;
     s.sequence = sequence;
     s

@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 
 use hw_io::ipc::{
     ConnectError, Continuity, CreateError, FULCRUM_SAMPLE_VERSION, FulcrumPublisher, FulcrumSample, FulcrumSubscriber,
-    OpenError, PublisherOptions, RecvError, STATE_INSIDE, WaitError,
+    HealthFlags, OpenError, OutputState, PublisherOptions, RecvError, WaitError,
 };
 use nix::time::{ClockId, clock_gettime};
 
@@ -14,7 +14,7 @@ fn service(test: &str) -> String {
 }
 
 fn sample(run_id: u64, sequence: u64) -> FulcrumSample {
-    let mut s = FulcrumSample::invalid(0);
+    let mut s = FulcrumSample::invalid(HealthFlags::empty());
     s.run_id = run_id;
     s.sequence = sequence;
     s
@@ -32,7 +32,7 @@ fn subscriber_started_before_the_daemon_receives_every_field_in_order() {
     assert!(sub.try_recv().unwrap().is_none());
     let mut publisher = FulcrumPublisher::create(&name, &PublisherOptions::default()).unwrap();
     let mut inside = sample(42, 0);
-    inside.state = STATE_INSIDE;
+    inside.state = OutputState::Inside.into();
     inside.fulcrum_base_m = [0.1, -0.2, 0.3];
     inside.joints_rad = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
     inside.timestamp_ns = 123_456_789;
@@ -146,8 +146,9 @@ fn samples_of_another_layout_version_are_refused_and_counted() {
     publisher.publish(&sample(3, 2)).unwrap();
     assert_eq!(sub.try_recv().unwrap().unwrap().event, Continuity::First);
     match sub.try_recv() {
-        Err(RecvError::VersionMismatch { found, expected }) => {
-            assert_eq!((found, expected), (FULCRUM_SAMPLE_VERSION + 1, FULCRUM_SAMPLE_VERSION))
+        Err(RecvError::VersionMismatch { type_name, found, expected }) => {
+            assert_eq!((found, expected), (FULCRUM_SAMPLE_VERSION + 1, FULCRUM_SAMPLE_VERSION));
+            assert_eq!(type_name, "comanip::FulcrumSample");
         }
         other => panic!("expected a version mismatch, got {other:?}"),
     }
@@ -275,5 +276,5 @@ fn layout_table_of_docs_output_md_matches_the_struct() {
     }
     // The last field (u32) ends the struct: no trailing padding.
     assert_eq!(offset_of!(FulcrumSample, prev_cycle_compute_ns) + 4, size_of::<FulcrumSample>());
-    assert!(doc.contains(&format!("`0x{:04X}`", hw_io::ipc::health::INVALIDATING)));
+    assert!(doc.contains(&format!("`0x{:04X}`", HealthFlags::INVALIDATING.bits())));
 }

@@ -24,7 +24,7 @@ use sim::score::{Detected, mean, score_against};
 use sim::twin::SimRobot;
 
 use hw_io::can::Message;
-use hw_io::ipc::{STATE_INSIDE, STATE_OUTSIDE, health};
+use hw_io::ipc::{HealthFlags, OutputState};
 
 use super::detection::{Setting, settings};
 use super::report::BenchError;
@@ -181,7 +181,7 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
     let node_ids: Vec<u8> = cfg.encoder.node_ids.to_vec();
     let mut burst_until: u64 = 0;
     let mut burst_node: u8 = 0;
-    let mut states: Vec<Vec<u32>> = vec![Vec::new(); sets.len()];
+    let mut states: Vec<Vec<OutputState>> = vec![Vec::new(); sets.len()];
     let mut fulcrums: Vec<Vec<Option<nalgebra::Vector3<f64>>>> = vec![Vec::new(); sets.len()];
     let mut cells = vec![LossCell::default(); sets.len()];
     let mut truth_states = Vec::new();
@@ -213,14 +213,14 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
         let input = acq.end_cycle((t_us + 900) * 1000, false);
         for (j, e) in ests.iter_mut().enumerate() {
             let out = e.process(&input);
-            if out.health & health::DETECTOR_RESET != 0 {
+            if out.health.contains(HealthFlags::DETECTOR_RESET) {
                 cells[j].resets += 1;
             }
-            if out.health & health::INVALIDATING != 0 {
+            if out.health.intersects(HealthFlags::INVALIDATING) {
                 cells[j].invalid_cycles += 1;
             }
             states[j].push(out.state);
-            fulcrums[j].push((out.state == STATE_INSIDE).then(|| nalgebra::Vector3::from(out.fulcrum_base_m)));
+            fulcrums[j].push(out.state.is_inside().then(|| nalgebra::Vector3::from(out.fulcrum_base_m)));
         }
         let truth = twin.truth();
         truth_states.push(truth.state);
@@ -249,8 +249,8 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
             .iter()
             .zip(&fulcrums[j])
             .map(|(s, f)| {
-                if *s == STATE_INSIDE || *s == STATE_OUTSIDE {
-                    held = Detected { inside: *s == STATE_INSIDE, fulcrum_base_m: *f };
+                if s.is_valid() {
+                    held = Detected { inside: s.is_inside(), fulcrum_base_m: *f };
                 }
                 held
             })
@@ -265,17 +265,17 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
         let mut last_valid_inside = false;
         for (i, s) in states[j].iter().enumerate() {
             match *s {
-                STATE_INSIDE => last_valid_inside = true,
-                STATE_OUTSIDE => {
+                OutputState::Inside => last_valid_inside = true,
+                OutputState::Outside => {
                     if last_valid_inside && matches!(trace.states[i], TruthState::Inside { .. }) {
                         let next_out = trace.events.iter().find(|e| !e.insertion && e.sample >= i);
-                        if !next_out.is_some_and(|e| e.sample - i <= early) {
+                        if next_out.is_none_or(|e| e.sample - i > early) {
                             cell.spurious_extractions += 1;
                         }
                     }
                     last_valid_inside = false;
                 }
-                _ => {}
+                OutputState::Invalid => {}
             }
         }
     }

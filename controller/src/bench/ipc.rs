@@ -12,7 +12,7 @@ use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber, PublisherOptions};
+use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber, HealthFlags, PublisherOptions};
 use hw_io::rt_alloc;
 use serde::{Deserialize, Serialize};
 
@@ -81,7 +81,7 @@ pub fn run(count: u64) -> Result<IpcReport, IpcBenchError> {
     let mut next = libc::timespec { tv_sec: 0, tv_nsec: 0 };
     // SAFETY: writes into the local timespec.
     unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut next) };
-    let mut sample = FulcrumSample::invalid(0);
+    let mut sample = FulcrumSample::invalid(HealthFlags::empty());
     sample.run_id = monotonic_now_ns() ^ (u64::from(std::process::id()) << 32);
     let mut allocs = 0;
     for seq in 0..WARM_UP + count {

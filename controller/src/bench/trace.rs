@@ -215,7 +215,8 @@ pub fn twin_events(twin: &SimRobot) -> impl Iterator<Item = TrueEvent> + '_ {
 }
 
 fn acq_complete(input: &crate::cycle::CycleInput) -> bool {
-    input.received_mask == (1 << hw_io::can::ENCODER_NODES) - 1 && input.flags & hw_io::ipc::health::INVALIDATING == 0
+    input.received_mask == (1 << hw_io::can::ENCODER_NODES) - 1
+        && !input.flags.intersects(hw_io::ipc::HealthFlags::INVALIDATING)
 }
 
 impl Trace {

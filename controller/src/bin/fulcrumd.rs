@@ -17,10 +17,10 @@ use std::time::{Duration, Instant};
 
 use clap::{Args, Parser, Subcommand};
 use controller::config::Config;
-use controller::daemon::{self, RunOptions, health_names, state_name};
+use controller::daemon::{self, RunOptions};
 use controller::replay;
 use estimator::trocar::DetectorMode;
-use hw_io::ipc::{Continuity, FulcrumSubscriber, STATE_INSIDE};
+use hw_io::ipc::{Continuity, FulcrumSubscriber, HealthFlags, OutputState, UnknownState};
 use hw_io::outln;
 use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 
@@ -307,7 +307,8 @@ fn monitor(args: MonitorArgs) -> Result<(), CliError> {
     tracing::info!("monitor: waiting for samples on {:?}", args.service);
     let start = Instant::now();
     let mut s = MonitorSummary::default();
-    let (mut last_state, mut last_health) = (u32::MAX, u32::MAX);
+    // The last printed state and health; `None` before the first sample.
+    let mut last: Option<(Result<OutputState, UnknownState>, HealthFlags)> = None;
     let mut last_status = Instant::now();
     let mut last_rx: Option<Instant> = None;
     // The first failed write to the standard output ends the loop; the files are still written.
@@ -326,8 +327,13 @@ fn monitor(args: MonitorArgs) -> Result<(), CliError> {
             }
         };
         let now = Instant::now();
-        if let Some(w) = samples_out.as_mut() {
-            let line = controller::monitor::SampleLine::new(controller::rt::monotonic_now_ns(), &r);
+        let state = r.sample.state();
+        if let Err(unknown) = state {
+            tracing::warn!("sample {}: {unknown}: counted invalid", r.sample.sequence);
+        }
+        if let (Some(w), Ok(line)) =
+            (samples_out.as_mut(), controller::monitor::SampleLine::new(controller::rt::monotonic_now_ns(), &r))
+        {
             let written =
                 serde_json::to_writer(&mut *w, &line).map_err(std::io::Error::from).and_then(|()| w.write_all(b"\n"));
             if let Err(e) = written {
@@ -344,13 +350,13 @@ fn monitor(args: MonitorArgs) -> Result<(), CliError> {
         s.last_sequence = Some(x.sequence);
         if x.is_valid() {
             s.valid += 1;
-            if x.health & hw_io::ipc::health::INVALIDATING != 0 {
+            if x.health().intersects(HealthFlags::INVALIDATING) {
                 s.valid_with_invalidating_flags += 1;
             }
         } else {
             s.invalid += 1;
         }
-        if x.state == STATE_INSIDE {
+        if state == Ok(OutputState::Inside) {
             s.inside += 1;
         }
         let floats = x.fulcrum_base_m.iter().chain(&x.wrist_base_m).chain(&x.axis_base).chain(&x.joints_rad);
@@ -362,29 +368,24 @@ fn monitor(args: MonitorArgs) -> Result<(), CliError> {
             Continuity::Gap { missed } => tracing::warn!("missed {missed} samples before {}", x.sequence),
             _ => {}
         }
-        if args.all || x.state != last_state || x.health != last_health {
+        let state_text = state.map_or_else(|UnknownState(v)| format!("unknown({v})"), |s| s.to_string());
+        if args.all || last != Some((state, x.health())) {
             let f = x.fulcrum_base_m;
             printed = outln!(
                 "seq {:>9}  {:<7}  trocar {}  fulcrum ({:+.4}, {:+.4}, {:+.4}) m  std {:.2} mm  health {}",
                 x.sequence,
-                state_name(x.state),
+                state_text,
                 x.trocar_id,
                 f[0],
                 f[1],
                 f[2],
                 x.fulcrum_std_m * 1e3,
-                health_names(x.health)
+                x.health()
             );
-            last_state = x.state;
-            last_health = x.health;
+            last = Some((state, x.health()));
         } else if last_status.elapsed() >= Duration::from_secs(1) {
-            printed = outln!(
-                "seq {:>9}  {:<7}  ({} received, {} missed)",
-                x.sequence,
-                state_name(x.state),
-                s.received,
-                s.missed
-            );
+            printed =
+                outln!("seq {:>9}  {:<7}  ({} received, {} missed)", x.sequence, state_text, s.received, s.missed);
             last_status = Instant::now();
         }
     }

@@ -1,17 +1,17 @@
-//! The daemon's side: one publisher per fulcrum output.
+//! The daemon's side: one publisher per output, generic over the [`Message`] it carries.
 
 use std::time::Duration;
 
 use iceoryx2::node::{Node, NodeWaitFailure};
 use iceoryx2::port::notifier::{Notifier, NotifierCreateError, NotifierNotifyError};
-use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
+use iceoryx2::port::publisher::{Publisher as IoxPublisher, PublisherCreateError};
 use iceoryx2::port::{LoanError, SendError};
 use iceoryx2::prelude::{BackpressureStrategy, ipc};
 
-use super::FulcrumSample;
 use super::service::{self, OpenError, PublisherOptions, Services};
+use super::{FulcrumSample, Message};
 
-/// Why [`FulcrumPublisher::create`] failed.
+/// Why [`Publisher::create`] failed.
 #[derive(Debug, thiserror::Error)]
 pub enum CreateError {
     /// The options, the name, the node or the services (shared with the subscriber side).
@@ -26,52 +26,74 @@ pub enum CreateError {
     Notifier(#[source] NotifierCreateError),
 }
 
-/// Why [`FulcrumPublisher::publish`] failed. The sample was not delivered (`Loan`, `Send`) or
+/// Why [`Publisher::publish`] failed. The message was not delivered (`Loan`, `Send`) or
 /// delivered without waking blocking subscribers (`Notify`; they still get it within their
 /// wait's re-check interval).
 #[derive(Debug, thiserror::Error)]
 pub enum PublishError {
-    /// No free sample in the shared-memory data segment.
-    #[error("cannot loan a sample: {0}")]
+    /// No free slot in the shared-memory data segment.
+    #[error("cannot loan a shared-memory slot: {0}")]
     Loan(#[source] LoanError),
     /// Delivery to the subscribers failed.
-    #[error("cannot send the sample: {0}")]
+    #[error("cannot send the message: {0}")]
     Send(#[source] SendError),
     /// The wake-up notification failed.
     #[error("cannot notify the subscribers: {0}")]
     Notify(#[source] NotifierNotifyError),
 }
 
-/// Publishes [`FulcrumSample`]s on a fulcrum output and wakes its blocking subscribers.
+/// Publishes messages `M` on an output and wakes its blocking subscribers.
 ///
 /// Created once at start-up on the thread that will publish (the iceoryx2 ports are
-/// single-threaded: `FulcrumPublisher` is neither `Send` nor `Sync`).
+/// single-threaded: a `Publisher` is neither `Send` nor `Sync`). fulcrumd's is a
+/// [`FulcrumPublisher`].
+///
+/// ```no_run
+/// use hw_io::ipc::{FulcrumSample, HealthFlags, OutputState, Publisher, PublisherOptions};
+///
+/// # fn main() -> Result<(), Box<dyn core::error::Error>> {
+/// let mut publisher = Publisher::<FulcrumSample>::create("comanip/fulcrum", &PublisherOptions::default())?;
+/// let run_id = 0x5eed; // random per start in a real daemon
+/// for sequence in 0..1000 {
+///     let mut sample = FulcrumSample::invalid(HealthFlags::empty());
+///     sample.state = OutputState::Outside.into();
+///     sample.sequence = sequence;
+///     sample.run_id = run_id;
+///     publisher.publish(&sample)?;
+/// }
+/// assert_eq!(publisher.published(), 1000);
+/// # Ok(()) }
+/// ```
 ///
 /// ## Real-time use
-/// [`publish`](Self::publish) copies the 200-byte sample into shared memory, sends it and
-/// notifies: no lock, no blocking (a full subscriber buffer overwrites its oldest sample), and
-/// no heap allocation except iceoryx2's one 48-byte `Rc` per sample, which
-/// [`crate::rt_alloc`] serves from a static pool on a thread that called
+/// [`publish`](Self::publish) copies the message (200 bytes for a [`FulcrumSample`]) into shared
+/// memory, sends it and notifies: no lock, no blocking (a full subscriber buffer overwrites its
+/// oldest message), and no heap allocation except iceoryx2's one 48-byte `Rc` per message,
+/// which [`crate::rt_alloc`] serves from a static pool on a thread that called
 /// [`crate::rt_alloc::enter_realtime`]. When a subscriber connects or goes away, the next
 /// `publish` also updates the connections (opening or closing shared memory: system calls and
 /// allocations, once per connect or disconnect).
 #[derive(Debug)]
-pub struct FulcrumPublisher {
-    publisher: Publisher<ipc::Service, FulcrumSample, ()>,
+pub struct Publisher<M: Message> {
+    publisher: IoxPublisher<ipc::Service, M, ()>,
     notifier: Notifier<ipc::Service>,
     node: Node<ipc::Service>,
     signal_handlers: bool,
     published: u64,
 }
 
-impl FulcrumPublisher {
-    /// Opens (or creates) the fulcrum output `service_name` and its publisher.
+/// fulcrumd's publisher: [`FulcrumSample`]s, once per control cycle.
+pub type FulcrumPublisher = Publisher<FulcrumSample>;
+
+impl<M: Message> Publisher<M> {
+    /// Opens (or creates) the output `service_name` for messages `M` and its publisher; the
+    /// iceoryx2 node is named [`Message::PUBLISHER_NODE_NAME`].
     ///
     /// Creating the node also removes the iceoryx2 resources of dead processes, so a daemon
     /// restarted after a crash or SIGKILL takes over its output while subscribers keep running.
     pub fn create(service_name: &str, opts: &PublisherOptions) -> Result<Self, CreateError> {
         let Services { node, pubsub, event } =
-            service::open_services(service_name, opts, "fulcrumd", opts.iceoryx2_signal_handlers)?;
+            service::open_services::<M>(service_name, opts, M::PUBLISHER_NODE_NAME, opts.iceoryx2_signal_handlers)?;
         let publisher = pubsub
             .publisher_builder()
             .backpressure_strategy(BackpressureStrategy::DiscardData)
@@ -86,18 +108,19 @@ impl FulcrumPublisher {
         Ok(this)
     }
 
-    /// Publishes one sample: loan a shared-memory slot, copy `sample` into it verbatim (the
-    /// caller sets every field, `version` included), send it to every connected subscriber,
-    /// then notify the event service so that blocking subscribers wake up.
-    pub fn publish(&mut self, sample: &FulcrumSample) -> Result<(), PublishError> {
+    /// Publishes one message: loan a shared-memory slot, copy `message` into it verbatim (the
+    /// caller sets every field, version, sequence and run id included), send it to every
+    /// connected subscriber, then notify the event service so that blocking subscribers wake
+    /// up.
+    pub fn publish(&mut self, message: &M) -> Result<(), PublishError> {
         let slot = self.publisher.loan_uninit().map_err(PublishError::Loan)?;
-        slot.write_payload(*sample).send().map_err(PublishError::Send)?;
+        slot.write_payload(*message).send().map_err(PublishError::Send)?;
         self.published += 1;
         self.notifier.notify().map_err(PublishError::Notify)?;
         Ok(())
     }
 
-    /// Samples sent since creation.
+    /// Messages sent since creation.
     pub fn published(&self) -> u64 {
         self.published
     }

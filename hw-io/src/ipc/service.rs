@@ -1,9 +1,10 @@
-//! The two iceoryx2 services behind one fulcrum output, opened identically by both sides.
+//! The two iceoryx2 services behind one output, opened identically by both sides.
 //!
-//! A fulcrum output named `N` is a publish-subscribe service `N` carrying [`FulcrumSample`]s and
-//! an event service also named `N` (iceoryx2 keys services by name *and* messaging pattern)
-//! whose notifications wake blocking subscribers. Both sides call `open_or_create` with the same
-//! settings, derived from [`PublisherOptions`], so whichever starts first creates them.
+//! An output named `N` is a publish-subscribe service `N` carrying one [`Message`] type (e.g.
+//! [`FulcrumSample`](super::FulcrumSample)s) and an event service also named `N` (iceoryx2 keys
+//! services by name *and* messaging pattern) whose notifications wake blocking subscribers. Both
+//! sides call `open_or_create` with the same settings, derived from [`PublisherOptions`], so
+//! whichever starts first creates them.
 
 use iceoryx2::node::{Node, NodeCreationFailure};
 use iceoryx2::prelude::{NodeBuilder, NodeName, ServiceName, SignalHandlingMode, ipc};
@@ -12,9 +13,9 @@ use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateE
 use iceoryx2::service::port_factory::{event, publish_subscribe};
 use iceoryx2::service::service_name::ServiceNameError;
 
-use super::FulcrumSample;
+use super::Message;
 
-/// Settings of a fulcrum output: the service's capacities and the publisher's signal handling.
+/// Settings of an output (of any [`Message`]): the service's capacities and the publisher's signal handling.
 ///
 /// The capacities are fixed when the service is created (by whichever side comes first) and
 /// checked when it is opened: a subscriber must be given the same values as the daemon (the
@@ -25,16 +26,16 @@ pub struct PublisherOptions {
     /// Subscribers that can be connected at the same time (each holds a receive buffer in
     /// shared memory). Default 8. At least 1.
     pub max_subscribers: usize,
-    /// Samples each subscriber's buffer holds; when it is full the oldest sample is
+    /// Messages each subscriber's buffer holds; when it is full the oldest one is
     /// overwritten (the publisher never blocks) and the subscriber sees a
     /// [`Continuity::Gap`](super::Continuity::Gap). Default 64 (64 ms at 1 kHz). At least 1.
     pub subscriber_buffer: usize,
-    /// Latest samples a newly connected subscriber receives at once. Default 0: a subscriber
-    /// starts with the next cycle's sample. At most `subscriber_buffer`.
+    /// Latest messages a newly connected subscriber receives at once. Default 0: a subscriber
+    /// starts with the next message (the next cycle's sample). At most `subscriber_buffer`.
     pub history: usize,
     /// Install iceoryx2's own handlers for SIGINT, SIGTERM and other non-fatal signals when the
     /// publisher is created, and report a received SIGINT/SIGTERM through
-    /// [`FulcrumPublisher::termination_requested`](super::FulcrumPublisher::termination_requested).
+    /// [`Publisher::termination_requested`](super::Publisher::termination_requested).
     /// Default `false`: fulcrumd handles signals itself, and with `false` iceoryx2 installs no
     /// signal handler at all. With `true`, SIGINT and SIGTERM no longer end the process: the
     /// owner must poll `termination_requested`.
@@ -69,15 +70,15 @@ impl PublisherOptions {
     }
 }
 
-/// The only publisher of a fulcrum output: a second daemon on the same name is refused.
+/// The only publisher of an output: a second daemon on the same name is refused.
 const MAX_PUBLISHERS: usize = 1;
 
-pub(crate) type PubSubFactory = publish_subscribe::PortFactory<ipc::Service, FulcrumSample, ()>;
+pub(crate) type PubSubFactory<M> = publish_subscribe::PortFactory<ipc::Service, M, ()>;
 pub(crate) type EventFactory = event::PortFactory<ipc::Service>;
 
-/// Why a fulcrum output's two services could not be opened (the part that
-/// [`FulcrumPublisher::create`](super::FulcrumPublisher::create) and
-/// [`FulcrumSubscriber::connect`](super::FulcrumSubscriber::connect) share).
+/// Why an output's two services could not be opened (the part that
+/// [`Publisher::create`](super::Publisher::create) and
+/// [`Subscriber::connect`](super::Subscriber::connect) share).
 #[derive(Debug, thiserror::Error)]
 pub enum OpenError {
     /// The options are out of range (the message says which).
@@ -104,21 +105,22 @@ pub enum OpenError {
     EventService(#[source] EventOpenOrCreateError),
 }
 
-/// A node and the two services of one fulcrum output, opened (or created) with `opts`.
-pub(crate) struct Services {
+/// A node and the two services of one output, opened (or created) with `opts`.
+pub(crate) struct Services<M: Message> {
     pub node: Node<ipc::Service>,
-    pub pubsub: PubSubFactory,
+    pub pubsub: PubSubFactory<M>,
     pub event: EventFactory,
 }
 
-/// Checks `opts`, creates a node named `node_name` (a constant of this crate) with or without
-/// signal handlers, and opens or creates the output `service_name`'s two services.
-pub(crate) fn open_services(
+/// Checks `opts`, creates a node named `node_name` (a constant of the message type) with or
+/// without signal handlers, and opens or creates the output `service_name`'s two services for
+/// messages `M`.
+pub(crate) fn open_services<M: Message>(
     service_name: &str,
     opts: &PublisherOptions,
     node_name: &'static str,
     signal_handlers: bool,
-) -> Result<Services, OpenError> {
+) -> Result<Services<M>, OpenError> {
     opts.check().map_err(OpenError::InvalidOptions)?;
     let name = ServiceName::new(service_name)
         .map_err(|source| OpenError::InvalidServiceName { name: service_name.to_owned(), source })?;
@@ -128,25 +130,25 @@ pub(crate) fn open_services(
     Ok(Services { node, pubsub, event })
 }
 
-/// A node with the given signal handling. `node_name` is a constant of this crate.
+/// A node with the given signal handling. `node_name` is a constant of a message type.
 fn node(node_name: &'static str, signal_handlers: bool) -> Result<Node<ipc::Service>, NodeCreationFailure> {
     let mode =
         if signal_handlers { SignalHandlingMode::HandleTerminationRequests } else { SignalHandlingMode::Disabled };
     let mut builder = NodeBuilder::new().signal_handling_mode(mode);
-    // Node names are constants of this crate; an invalid one just leaves the node unnamed.
+    // Node names are constants of the message types; an invalid one just leaves the node unnamed.
     if let Ok(name) = NodeName::new(node_name) {
         builder = builder.name(&name);
     }
     builder.create::<ipc::Service>()
 }
 
-fn open_pubsub(
+fn open_pubsub<M: Message>(
     node: &Node<ipc::Service>,
     name: &ServiceName,
     opts: &PublisherOptions,
-) -> Result<PubSubFactory, PublishSubscribeOpenOrCreateError> {
+) -> Result<PubSubFactory<M>, PublishSubscribeOpenOrCreateError> {
     node.service_builder(name)
-        .publish_subscribe::<FulcrumSample>()
+        .publish_subscribe::<M>()
         .max_publishers(MAX_PUBLISHERS)
         .max_subscribers(opts.max_subscribers)
         .max_nodes(opts.max_nodes())

@@ -219,3 +219,14 @@ impl PaperDetector {
         est
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use crate::trocar::test_support::run_scripted;
+    use crate::trocar::{DetectorConfig, DetectorMode};
+
+    #[test]
+    fn paper_mode_follows_insertions_and_extractions() {
+        run_scripted(&DetectorConfig { mode: DetectorMode::Paper, ..Default::default() }, 3.0);
+    }
+}

@@ -269,7 +269,7 @@ fn run_one(spec: &TraceSpec, loss: Loss, sets: &[Setting]) -> Result<Vec<LossCel
                 STATE_OUTSIDE => {
                     if last_valid_inside && matches!(trace.states[i], TruthState::Inside { .. }) {
                         let next_out = trace.events.iter().find(|e| !e.insertion && e.sample >= i);
-                        if !next_out.is_some_and(|e| e.sample - i <= early) {
+                        if next_out.is_none_or(|e| e.sample - i > early) {
                             cell.spurious_extractions += 1;
                         }
                     }

@@ -90,7 +90,10 @@ pub struct RecorderProducer<T: 'static> {
 }
 
 impl<T: Copy + Send + 'static> RecorderProducer<T> {
-    /// Queues one record for the writer. Never blocks, allocates or does I/O.
+    /// Queues one record for the writer.
+    ///
+    /// **Real-time (1 kHz loop):** called once a cycle; a few atomic operations and a copy,
+    /// never blocks, allocates or does I/O.
     ///
     /// Returns false when the record was refused: the queue is full (counted in
     /// `dropped_queue_full`) or the recorder has shut down (counted in `dropped_closed`).

@@ -46,12 +46,16 @@ pub struct LineSample {
 impl LineSample {
     /// A line through `wrist_base_m` (metres) along `axis_base` (unit vector), both in the
     /// robot base frame. Nothing is checked here: detectors check every sample.
+    ///
+    /// **Real-time (1 kHz loop):** called every cycle; a copy, nothing else.
     pub fn new(wrist_base_m: Vector3<f64>, axis_base: Vector3<f64>) -> Self {
         Self { wrist_base_m, axis_base }
     }
 
     /// Checks that every component is finite, that |P| is below 100 m and that |z| is 1
     /// within 1e-6; renormalises z.
+    ///
+    /// **Real-time (1 kHz loop):** called on every sample by the detectors; allocation-free.
     pub fn validated(&self) -> Result<Self, SampleError> {
         if !self.wrist_base_m.iter().all(|v| v.is_finite()) {
             return Err(SampleError::NonFiniteWrist);
@@ -104,6 +108,8 @@ pub enum TrocarState {
 
 impl TrocarState {
     /// True in [`TrocarState::Inside`].
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn is_inside(&self) -> bool {
         matches!(self, TrocarState::Inside { .. })
     }
@@ -208,6 +214,8 @@ enum Kind {
 impl Detector {
     /// Validates `config` and builds the selected detector (the only allocation-free-after
     /// point: everything is sized here).
+    ///
+    /// **Not for the real-time loop:** validates and sizes every window; call it at start-up.
     pub fn new(config: &DetectorConfig) -> Result<Self, ConfigError> {
         config.validate()?;
         let kind = match config.mode {
@@ -218,6 +226,9 @@ impl Detector {
     }
 
     /// Feeds one sample (one control cycle) and returns the estimate after it.
+    ///
+    /// **Real-time (1 kHz loop):** called every cycle; allocation-free, O(window) at worst, no
+    /// I/O.
     #[inline]
     pub fn step(&mut self, sample: &LineSample) -> Estimate {
         match &mut self.kind {
@@ -228,6 +239,8 @@ impl Detector {
 
     /// Forgets every line and returns to `Outside` (used when the input goes stale). The fast
     /// detector keeps its trocar memory.
+    ///
+    /// **Real-time (1 kHz loop):** called when the input goes stale; allocation-free.
     pub fn reset(&mut self) {
         match &mut self.kind {
             Kind::Paper(d) => d.reset(),
@@ -241,7 +254,9 @@ impl Detector {
     /// gap is checked against its state (fast mode: inside, a line that no longer passes
     /// through the fulcrum, or a tip back over it, ends the insertion at once, without the
     /// usual persistence; outside, the segment of lines goes on: in 50 ms the hand moves a few
-    /// millimetres). A longer gap resets it. Allocation-free; called in the real-time loop.
+    /// millimetres). A longer gap resets it.
+    ///
+    /// **Real-time (1 kHz loop):** called after a gap in the input; allocation-free.
     pub fn resume_after_gap(&mut self, missed_samples: u64) -> GapOutcome {
         if missed_samples as f64 * self.sample_period_s > self.max_gap_s + 1e-12 {
             self.reset();

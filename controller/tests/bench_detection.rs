@@ -1,6 +1,5 @@
 //! The detection benchmark end to end on a small run: twin traces decoded as the daemon does,
 //! the four settings scored on the same lines, the motion-only bound, the report and figures.
-#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use controller::bench::plots;
 use controller::bench::report::{DetectionOptions, run_detection};

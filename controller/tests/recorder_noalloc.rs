@@ -1,7 +1,6 @@
 //! The real-time side allocates nothing: recorder pushes, the periodic clock and the progress
 //! counter, checked with a counting global allocator (per-thread counts, so parallel tests and
 //! the writer thread do not disturb the measure).
-#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use controller::recorder::{self, RecorderConfig, RunInfo};
 use controller::rt::{Periodic, monotonic_now_ns, sleep_until_ns};

@@ -2,7 +2,6 @@
 //! tracking, joint assembly and counts-to-radians; and candump reading after warm-up.
 //!
 //! A counting global allocator counts the allocations of the current thread only.
-#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::time::Duration;
 

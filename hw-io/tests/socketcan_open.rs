@@ -4,7 +4,6 @@
 //! EAFNOSUPPORT, which must come out as `OpenError::NoKernelCan` with a message saying
 //! what to do. On a kernel with CAN (the vcan hardware-in-loop suite), an unknown interface
 //! must come out as `OpenError::NoSuchInterface` instead.
-#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use hw_io::can::{OpenError, SocketCanBus};
 

@@ -1,7 +1,6 @@
 //! `SimRobot::on_sync` allocates nothing in steady state: a counting global allocator
 //! watches it over thousands of SYNCs (insertions and extractions included). Only endless
 //! mode's next scenario may allocate.
-#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use sim::twin::{SimRobot, TwinConfig};
 

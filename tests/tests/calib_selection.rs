@@ -1,7 +1,6 @@
 //! The selection of observations (a line is kept only when the tool tip is in view): box
 //! probabilities, the likelihood's gradient, the bound of the kept lines, and our pipeline's
 //! selection-aware stage against the guard alone (simulated data from `sim`).
-#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::crb::{CrbError, cramer_rao_bound, first_order_bound, selected_bound};
 use estimator::calib::ours::{OursConfig, solve_ours_prepared};

@@ -1,7 +1,6 @@
 //! The detector against the simulated surgeon: the fast mode sees every insertion and every
 //! extraction of `sim`'s scenarios. (The scripted-motion tests of both modes live beside the
 //! detectors, in `estimator/src/trocar/{mod,fast,paper,lsq}.rs`.)
-#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::trocar::{Detector, DetectorConfig};
 use sim::scenario::{ScenarioConfig, generate};

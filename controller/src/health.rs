@@ -80,6 +80,9 @@ pub struct HealthMonitor {
 
 impl HealthMonitor {
     /// A monitor for the nodes carrying joints 1-2, 3-4, 5-6 (in that order).
+    ///
+    /// **Not for the real-time loop:** call it at start-up (the loop owns the monitor
+    /// afterwards).
     pub fn new(config: HealthConfig, nodes: [NodeId; ENCODER_NODES]) -> Self {
         let fresh = NodeHealth { missed_cycles: 0, emcy_code: 0, last_heartbeat_ns: None, nmt: None };
         Self { config, nodes, state: [fresh; ENCODER_NODES], started_ns: None }
@@ -91,6 +94,8 @@ impl HealthMonitor {
 
     /// Takes an EMCY or heartbeat into account (other messages are ignored), received at
     /// `now_ns`. Returns false when the message came from a node that is not ours.
+    ///
+    /// **Real-time (1 kHz loop):** called for every EMCY and heartbeat; allocation-free.
     pub fn on_message(&mut self, msg: &Message, now_ns: u64) -> bool {
         match *msg {
             Message::Emcy { node, code, .. } => match self.index(node) {
@@ -115,6 +120,8 @@ impl HealthMonitor {
 
     /// Closes a cycle at `now_ns`: `received_mask` has bit k set when node k (joint order)
     /// delivered its TPDO this cycle. Returns the node flags (stale, EMCY, heartbeat).
+    ///
+    /// **Real-time (1 kHz loop):** called at every cycle end; allocation-free.
     pub fn end_cycle(&mut self, received_mask: u8, now_ns: u64) -> Flags {
         let started = *self.started_ns.get_or_insert(now_ns);
         let timeout_ns = u64::from(self.config.heartbeat_timeout_ms) * 1_000_000;
@@ -143,6 +150,8 @@ impl HealthMonitor {
     }
 
     /// The active EMCY error code of node `k` (0-based, joint order), 0 when none.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn emcy_code(&self, k: usize) -> u16 {
         self.state.get(k).map_or(0, |s| s.emcy_code)
     }

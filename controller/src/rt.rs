@@ -703,10 +703,12 @@ mod tests {
                 // SAFETY: sched_getscheduler / sched_getparam on the calling thread.
                 let policy = unsafe { libc::sched_getscheduler(0) };
                 let mut p = libc::sched_param { sched_priority: 0 };
+                // SAFETY: `p` is a valid, writable `sched_param` for the call's duration.
                 unsafe { libc::sched_getparam(0, &mut p) };
                 let affinity = nix::sched::sched_getaffinity(Pid::from_raw(0)).unwrap();
                 let only0 = affinity.is_set(0).unwrap() && (1..configured_cpus()).all(|c| !affinity.is_set(c).unwrap());
                 // A thread spawned from the real-time thread starts as SCHED_OTHER.
+                // SAFETY: sched_getscheduler on the calling thread; no pointer is passed.
                 let child_policy = std::thread::spawn(|| unsafe { libc::sched_getscheduler(0) }).join().unwrap();
                 (r, policy, p.sched_priority, only0, child_policy)
             })
@@ -776,6 +778,7 @@ mod tests {
             .stack_size(1024 * 1024)
             .spawn(move || {
                 let r = apply_to_current_thread(&cfg);
+                // SAFETY: sched_getscheduler on the calling thread; no pointer is passed.
                 (r, unsafe { libc::sched_getscheduler(0) })
             })
             .unwrap()

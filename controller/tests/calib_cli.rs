@@ -1,5 +1,6 @@
 //! `comanip-calib` end to end on a small simulated dataset: generate → calibrate → result
 //! file; malformed inputs give clear errors; a quick sweep writes its table and plots.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::path::Path;
 use std::process::Command;

@@ -1,6 +1,7 @@
 //! The real `fulcrumd` binary on its built-in simulated robot: the real loop, the real
 //! iceoryx2 output read by a separate `fulcrumd monitor` process, the flight recorder and
 //! `replay`. Timing is not asserted here (the machine is shared); counts are.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};

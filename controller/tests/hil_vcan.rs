@@ -15,6 +15,7 @@
 //! coarse (late wake-ups by milliseconds, one CPU), so the assertions are on behaviour and
 //! counts; the one time bound is the "the subscriber receives again within 1 s".
 //! A VM that cannot start (exit code 125) is a failure, never a skip.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::collections::BTreeMap;
 use std::fs::File;

@@ -2,6 +2,7 @@
 //! answers each SYNC at once (virtual time: 1 ms per SYNC), with injected faults. Checks the
 //! health flags, that no estimate built on stale data is published as valid, that nothing
 //! is NaN, recovery, and that the loop allocates nothing.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::collections::VecDeque;
 use std::sync::Arc;

@@ -1,5 +1,6 @@
 //! Flight recorder, end to end through files on disk: round trip, rotation and the disk budget,
 //! exact drop counts, corruption, truncation, bad files and disk errors.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::fs;
 use std::path::{Path, PathBuf};

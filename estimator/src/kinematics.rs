@@ -188,6 +188,8 @@ pub struct Achilles {
 
 impl Achilles {
     /// Validates `config` and builds the model.
+    ///
+    /// **Not for the real-time loop:** validates the configuration; call it at start-up.
     pub fn new(config: &AchillesConfig) -> Result<Self, KinematicsConfigError> {
         config.validate()?;
         Ok(Self { config: *config })
@@ -224,6 +226,8 @@ impl Achilles {
 
     /// Forward kinematics from measured joint angles (radians) to the instrument line.
     /// Allocation-free.
+    ///
+    /// **Real-time (1 kHz loop):** called every cycle; allocation-free, no I/O, bounded time.
     pub fn forward(&self, q_rad: &[f64; JOINTS]) -> Result<WristPose, ForwardError> {
         let mut pose = Isometry3::identity();
         for (i, &q) in q_rad.iter().enumerate() {

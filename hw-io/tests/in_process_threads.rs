@@ -1,5 +1,6 @@
 //! The in-process bus across threads: three virtual encoder nodes answer SYNCs from a
 //! controller thread, like the real bus; and a blocked receive does not burn CPU.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::time::{Duration, Instant};
 

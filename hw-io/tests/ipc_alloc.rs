@@ -4,6 +4,7 @@
 //!
 //! This binary's global allocator is `RtPoolAllocator`, exactly as fulcrumd declares it. Only one
 //! test here marks a thread real-time, so the process-wide real-time counters are its own.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber, HealthFlags, PublisherOptions};
 use hw_io::rt_alloc::{self, RtPoolAllocator};

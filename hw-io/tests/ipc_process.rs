@@ -5,6 +5,7 @@
 //! The children are this test binary itself, re-executed on the test `child_process_entry` with
 //! the role in the environment variable `COMANIP_IPC_TEST_CHILD`; without that variable that
 //! test returns at once.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::io::{BufRead, BufReader};
 use std::os::unix::process::ExitStatusExt;

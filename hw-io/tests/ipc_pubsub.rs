@@ -1,5 +1,6 @@
 //! The fulcrum output within one process: start order, blocking wait, continuity, version
 //! refusal, overflow, capacity limits, signal handlers. Every test uses its own service name.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::time::{Duration, Instant};
 
@@ -224,6 +225,7 @@ fn default_options_install_no_signal_handler() {
     for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGQUIT, libc::SIGUSR1] {
         // SAFETY: querying (not changing) the disposition into a zeroed struct.
         let mut action: libc::sigaction = unsafe { std::mem::zeroed() };
+        // SAFETY: a null new action only queries; `action` is valid and writable.
         assert_eq!(unsafe { libc::sigaction(signal, std::ptr::null(), &mut action) }, 0);
         assert_eq!(action.sa_sigaction, libc::SIG_DFL, "signal {signal} has a handler");
     }

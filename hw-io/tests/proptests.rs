@@ -1,4 +1,5 @@
 //! Property tests: nothing panics on any input, and every codec round-trips.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use hw_io::can::candump::{CandumpReader, CandumpWriter, parse_line};
 use hw_io::can::{

@@ -3,6 +3,7 @@
 //!
 //! Needs `python3` with python-can; the test installs it with pip if it is missing and
 //! FAILS (never skips) if that does not work.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -548,8 +548,9 @@ fn entry_direction(rng: &mut ChaCha8Rng) -> Vector3<f64> {
 
 /// Generates a scenario. Deterministic: the same config gives the same samples.
 ///
-/// Panics only on an empty trocar list or non-positive sample period (programming errors
-/// of the caller; use [`ScenarioConfig::check`] on user input first).
+/// Panics only on an empty trocar list, a non-positive sample period or a non-finite noise
+/// (programming errors of the caller; use [`ScenarioConfig::check`] on user input first).
+#[allow(clippy::expect_used, reason = "documented panic on a caller error that ScenarioConfig::check refuses")]
 pub fn generate(cfg: &ScenarioConfig) -> Scenario {
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let approach_m = 0.03;
@@ -633,6 +634,13 @@ impl ScenarioConfig {
         }
         if !(self.instrument_length_m > 0.1 && self.instrument_length_m < 1.0) {
             return Err(format!("scenario.instrument_length_m = {}: allowed (0.1, 1) m", self.instrument_length_m));
+        }
+        for (key, sigma) in
+            [("scenario.wrist_noise_m", self.wrist_noise_m), ("scenario.axis_noise_deg", self.axis_noise_deg)]
+        {
+            if !(sigma.is_finite() && sigma >= 0.0) {
+                return Err(format!("{key} = {sigma}: must be finite and >= 0"));
+            }
         }
         let st = &self.style;
         for (key, p) in [

@@ -1,5 +1,6 @@
 //! The `simrobot` binary: `generate` is deterministic and its bus.log holds exactly the frames
 //! of the twin; errors give the documented exit codes.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

@@ -1,6 +1,7 @@
 //! End to end: scenario → inverse kinematics on the true arm → virtual encoder nodes →
 //! CAN frames → decode and assemble (hw-io) → counts to radians → nominal forward
 //! kinematics (estimator) → the scenario's truth line, within quantisation.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::kinematics::{Achilles, AchillesConfig};
 use hw_io::can::{EncoderConfig, JointAssembler, Message, SyncSource};

@@ -1,6 +1,7 @@
 //! The simulated robot on the bus: what the controller decodes from its frames, its ground
 //! truth and events, endless mode, node faults from the config, and the statistics of the
 //! motion against the configuration.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::kinematics::Achilles;
 use hw_io::can::{JointAssembler, Message, NodeId, SyncSource, TimedFrame};

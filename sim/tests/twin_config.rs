@@ -1,5 +1,6 @@
 //! `configs/simrobot.toml` lists exactly the defaults of `TwinConfig`, and config files are
 //! checked strictly.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use hw_io::can::NmtState;
 use sim::twin::{SimRobot, TwinConfig};

@@ -1,5 +1,6 @@
 //! The ground-truth file: it round-trips, scoring from it equals scoring from the in-memory
 //! scenario, and malformed files give typed errors naming the line.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::trocar::{Detector, DetectorConfig, LineSample};
 use nalgebra::Vector3;

@@ -1,6 +1,7 @@
 //! The 1 kHz path allocates nothing: a counting global allocator watches `Detector::step`
 //! over 100 000 steps of a simulated surgeon (insertions, extractions, free motion, and bad
 //! samples), in both modes and with every fast-mode option on.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::kinematics::{Achilles, AchillesConfig};
 use estimator::trocar::{Detector, DetectorConfig, DetectorMode, FastConfig, LineSample};

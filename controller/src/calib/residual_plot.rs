@@ -49,7 +49,8 @@ const CLASSES: [(f64, &str, RGBColor, u32); 3] = [
     (f64::INFINITY, "> 6 robust SD (outlier?)", RGBColor(210, 30, 30), 2),
 ];
 
-/// Which class of [`CLASSES`] a residual falls in.
+/// Which class of the image panel a residual (pixels) falls in, given the robust scale
+/// `scale_px`: 0 up to 3 robust SD, 1 from 3 to 6, 2 beyond.
 pub fn residual_class(residual_px: f64, scale_px: f64) -> usize {
     let z = residual_px / scale_px;
     CLASSES.iter().position(|c| z <= c.0).unwrap_or(CLASSES.len() - 1)

@@ -605,3 +605,320 @@ impl FastDetector {
         est
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{UnitQuaternion, Vector3};
+    use std::vec::Vec;
+
+    use crate::trocar::test_support::{Phase, cone_axis, cone_swing, detector, ever_inside, line_through, scripted};
+    use crate::trocar::{Detector, DetectorConfig, DetectorMode, FastConfig, LineSample};
+
+    #[test]
+    fn nearly_parallel_lines_through_a_point_do_not_make_a_trocar_in_fast_mode() {
+        // Lines that do pass through one point but span only 0.3 degrees: the residual is tiny,
+        // yet the point is undetermined along the axis. The conditioning gate must refuse it.
+        let f = Vector3::new(0.4, 0.0, 0.0);
+        let mut d = detector(DetectorMode::Fast);
+        for k in 0..20_000 {
+            let t = k as f64 * 0.001;
+            let axis = cone_axis(0.1 + 0.0026 * (2.0 * t).sin(), 1.0);
+            // Move the wrist along the axis too so lines keep being included.
+            let e = d.step(&line_through(&f, &axis, 0.2 + 0.05 * (1.5 * t).sin()));
+            assert!(!e.state.is_inside(), "fast mode declared an undetermined trocar at {t} s");
+        }
+    }
+
+    /// Lines through `f` whose axes swing about one fixed axis only (a coplanar pencil): every
+    /// one-parameter motion has such a virtual pivot, so the fast mode must not call it a trocar;
+    /// the same point approached from a cone of directions is one.
+    #[test]
+    fn a_one_axis_swing_is_not_a_trocar_but_a_cone_through_the_same_point_is() {
+        let f = Vector3::new(0.32, -0.02, 0.0);
+        let run = |cone: bool| {
+            let mut d = detector(DetectorMode::Fast);
+            let mut inside = false;
+            for i in 0..3000 {
+                let t = i as f64 * 1e-3;
+                let pitch = 0.2 * (2.0 * core::f64::consts::PI * 0.4 * t).sin();
+                let yaw = if cone { 0.15 * (2.0 * core::f64::consts::PI * 0.3 * t).sin() } else { 0.0 };
+                let axis =
+                    (UnitQuaternion::from_euler_angles(pitch, yaw, 0.0) * Vector3::new(0.0, 0.0, -1.0)).normalize();
+                // The instrument slides through the point (±1 cm), as through a body wall.
+                let depth = 0.20 + 0.01 * (2.0 * core::f64::consts::PI * 0.25 * t).sin();
+                let e = d.step(&line_through(&f, &axis, depth));
+                inside |= e.state.is_inside();
+            }
+            inside
+        };
+        assert!(!run(false), "a coplanar pencil of lines was taken for a trocar");
+        assert!(run(true), "lines through one point from a cone of directions were not detected");
+    }
+
+    /// Outside, sliding the instrument along its own axis (entering a port) starts a new segment:
+    /// the lines of the approach before it no longer take part in the fit.
+    #[test]
+    fn an_axial_slide_restarts_the_segment_outside() {
+        let mut d = detector(DetectorMode::Fast);
+        // A wandering free motion: lines through no common point.
+        for i in 0..400 {
+            let t = i as f64 * 1e-3;
+            let axis = cone_axis(0.3 + 0.2 * t, 2.0 * t);
+            let wrist = Vector3::new(0.3 + 0.1 * t, 0.05 * t, 0.3);
+            d.step(&LineSample::new(wrist, axis));
+        }
+        let axis = cone_axis(0.38, 0.8);
+        let start = Vector3::new(0.34, 0.02, 0.3);
+        let before = d.step(&LineSample::new(start, axis));
+        assert!(before.window_fill > 1, "the free motion should have built a segment");
+        // Slide 3 cm along the axis, 0.1 mm per sample: no lateral motion, no rotation.
+        let mut e = before;
+        for k in 1..=300 {
+            e = d.step(&LineSample::new(start + axis * (k as f64 * 1e-4), axis));
+        }
+        assert_eq!(e.window_fill, 1, "the slide should have restarted the segment");
+        assert!(!e.state.is_inside());
+    }
+
+    /// Inside a trocar whose lines are quiet, the extraction gate adapts down from
+    /// `extract_gate_m` (8 mm) towards `extract_gate_min_m`: a line 4 mm off the fulcrum ends
+    /// the insertion, where the fixed 8 mm gate would not.
+    #[test]
+    fn the_adaptive_extraction_gate_sees_a_small_departure() {
+        let f = Vector3::new(0.3, 0.0, 0.0);
+        let run = |adaptive: bool| {
+            let mut cfg = DetectorConfig { mode: DetectorMode::Fast, ..Default::default() };
+            if !adaptive {
+                cfg.fast.extract_gate_min_m = cfg.fast.extract_gate_m;
+            }
+            let mut d = Detector::new(&cfg).unwrap();
+            let mut inside_at = None;
+            for i in 0..8000 {
+                let t = i as f64 * 1e-3;
+                let axis = cone_axis(0.2 + 0.1 * (1.3 * t).sin(), 1.7 * t);
+                // From 7 s on, the line passes 4 mm beside the fulcrum (the instrument has left).
+                let offset = if t >= 7.0 { axis.cross(&Vector3::x()).normalize() * 0.004 } else { Vector3::zeros() };
+                // The instrument slides in and out of the trocar (±1 cm), as in any manipulation.
+                let depth = 0.2 + 0.01 * (0.9 * t).sin();
+                let e = d.step(&line_through(&(f + offset), &axis, depth));
+                if t < 7.0 && e.state.is_inside() && inside_at.is_none() {
+                    inside_at = Some(t);
+                }
+                if t >= 7.0 && !e.state.is_inside() {
+                    return (inside_at, Some(t - 7.0));
+                }
+            }
+            (inside_at, None)
+        };
+        let (inside, out) = run(true);
+        assert!(inside.is_some(), "the trocar was not detected");
+        let out = out.expect("the adaptive gate did not see the 4 mm departure");
+        assert!(out < 0.05, "extraction took {out} s");
+        let (_, fixed) = run(false);
+        assert!(fixed.is_none(), "the fixed 8 mm gate should not see a 4 mm departure");
+    }
+
+    fn fast(cfg: FastConfig) -> Detector {
+        Detector::new(&DetectorConfig { mode: DetectorMode::Fast, fast: cfg, ..Default::default() }).unwrap()
+    }
+
+    #[test]
+    fn a_hand_pivot_about_a_point_of_the_shaft_is_not_a_trocar_but_a_slide_through_it_is() {
+        let f = Vector3::new(0.30, -0.02, 0.05);
+        // The hand swings the instrument about a point 12 cm in front of the wrist, for 3 s:
+        // consistent lines, a cone of directions, 12 cm deep, persistent, and no slide.
+        let pivot = cone_swing(&f, 3.0, |_| 0.12);
+        assert!(
+            !ever_inside(&mut fast(FastConfig::default()), &pivot),
+            "a virtual pivot of the hand was taken for a trocar"
+        );
+        // Without the slide evidence, the same motion is declared (the test is not vacuous).
+        let no_slide = FastConfig { insert_min_slide_m: 0.0, ..Default::default() };
+        assert!(ever_inside(&mut fast(no_slide), &pivot), "the motion should pass every other insertion test");
+        // The same swing while the instrument slides in and out of the point (±1 cm at 0.3 Hz).
+        let trocar = cone_swing(&f, 3.0, |t| 0.12 + 0.01 * (2.0 * core::f64::consts::PI * 0.3 * t).sin());
+        assert!(
+            ever_inside(&mut fast(FastConfig::default()), &trocar),
+            "a trocar with sliding motion was not detected"
+        );
+    }
+
+    #[test]
+    fn a_slide_before_the_pivot_is_not_a_slide_through_it() {
+        // A hovering approach: the instrument slides 8 mm along its axis (less than the
+        // segment-restart slide), then the hand pivots about the tip without sliding.
+        let f = Vector3::new(0.30, 0.02, 0.04);
+        let axis = Vector3::new(0.0, 0.0, -1.0);
+        let mut d = fast(FastConfig::default());
+        let mut inside = false;
+        for i in 0..400 {
+            // Tiny lateral jitter so that a few approach lines are included.
+            let jitter = Vector3::new(0.0015 * ((i / 100) % 2) as f64, 0.0, 0.0);
+            let l = line_through(&(f + jitter), &axis, 0.30 - 0.008 * i as f64 / 400.0);
+            inside |= d.step(&l).state.is_inside();
+        }
+        inside |= ever_inside(&mut d, &cone_swing(&f, 3.0, |_| 0.30));
+        assert!(!inside, "a pivot about the tip after a short slide was taken for a trocar");
+    }
+
+    #[test]
+    fn only_confirmed_insertions_enter_the_trocar_list_and_visits_merge() {
+        let t1 = Vector3::new(0.30, -0.05, 0.02);
+        let t2 = Vector3::new(0.32, 0.06, 0.01);
+        let sliding = |f: &Vector3<f64>, s: f64| {
+            cone_swing(f, s, |t| 0.15 + 0.01 * (2.0 * core::f64::consts::PI * 0.3 * t).sin())
+        };
+        let cfg = FastConfig { confirm_s: 1.5, ..Default::default() };
+        let mut d = fast(cfg);
+        // A short insertion at t1 (detected, left after well under 1.5 s): not listed.
+        let short = sliding(&t1, 1.2);
+        assert!(ever_inside(&mut d, &short));
+        // Leave by moving far away laterally (a jump the extraction test sees at once).
+        let away = LineSample::new(Vector3::new(0.0, 0.0, 0.6), Vector3::new(1.0, 0.0, 0.0));
+        for _ in 0..50 {
+            d.step(&away);
+        }
+        assert!(!d.step(&away).state.is_inside());
+        assert!(d.known_trocars().is_empty(), "an unconfirmed insertion entered the list: {:?}", d.known_trocars());
+        // A long insertion at t2: listed at its extraction.
+        assert!(ever_inside(&mut d, &sliding(&t2, 4.0)));
+        for _ in 0..50 {
+            d.step(&away);
+        }
+        let list = d.known_trocars();
+        assert_eq!(list.len(), 1, "{list:?}");
+        assert!((list[0].1 - t2).norm() < 2e-3, "listed fulcrum off: {}", list[0].1);
+        let id2 = list[0].0;
+        // A second long visit of t2 merges into the same entry and reports the same id.
+        let mut ids = Vec::new();
+        for l in sliding(&t2, 4.0) {
+            if let crate::trocar::TrocarState::Inside { id } = d.step(&l).state {
+                ids.push(id);
+            }
+        }
+        assert!(!ids.is_empty() && ids.iter().all(|&id| id == id2), "second visit ids {ids:?}, expected {id2}");
+        for _ in 0..50 {
+            d.step(&away);
+        }
+        assert_eq!(d.known_trocars().len(), 1, "a second visit made a second entry");
+    }
+
+    /// After a short gap in the input the first fresh line is checked at once: still through
+    /// the fulcrum, the trocar is kept; off it (the instrument left during the gap), the
+    /// insertion ends on that very sample, without the usual persistence. A gap longer than
+    /// `max_gap_s` resets.
+    #[test]
+    fn the_first_line_after_a_gap_is_checked_against_the_fulcrum() {
+        use crate::trocar::GapOutcome;
+        let f = Vector3::new(0.30, -0.02, 0.05);
+        let lines = cone_swing(&f, 3.0, |t| 0.12 + 0.01 * (2.0 * core::f64::consts::PI * 0.3 * t).sin());
+        let inside = |d: &mut Detector| {
+            for l in &lines {
+                d.step(l);
+            }
+            assert!(d.step(&lines[lines.len() - 1]).state.is_inside());
+        };
+        // Consistent after a 20 ms gap: stays inside.
+        let mut d = fast(FastConfig::default());
+        inside(&mut d);
+        assert_eq!(d.resume_after_gap(20), GapOutcome::Resumed);
+        assert!(d.step(&lines[lines.len() - 1]).state.is_inside());
+        // Moved 1 cm sideways during the gap: outside on the first sample.
+        let mut d = fast(FastConfig::default());
+        inside(&mut d);
+        let l = lines[lines.len() - 1];
+        let moved = LineSample::new(l.wrist_base_m + Vector3::new(0.01, 0.0, 0.0), l.axis_base);
+        // Without a gap, one such sample is not enough (extraction needs 10 ms of evidence) ...
+        let mut e = d.clone();
+        assert!(e.step(&moved).state.is_inside());
+        // ... after a gap it is.
+        assert_eq!(d.resume_after_gap(30), GapOutcome::Resumed);
+        assert!(!d.step(&moved).state.is_inside(), "the line left the fulcrum during the gap");
+        // Longer than max_gap_s (50 ms): reset.
+        let mut d = fast(FastConfig::default());
+        inside(&mut d);
+        assert_eq!(d.resume_after_gap(51), GapOutcome::Reset);
+        assert!(!d.step(&lines[lines.len() - 1]).state.is_inside());
+    }
+
+    #[test]
+    fn known_instrument_length_makes_axial_extraction_immediate() {
+        // Inside, then the surgeon pulls straight out along the axis: no lateral motion at all.
+        let f = Vector3::new(0.42, 0.0, 0.02);
+        let (mut lines, _, _) = scripted(&[f], 1, 0.0, 5.0);
+        let axis = lines.last().unwrap().axis_base;
+        let depth_at_end = (f - lines.last().unwrap().wrist_base_m).dot(&axis);
+        let length = 0.30; // tip 0.30 m from the wrist: beyond the fulcrum while depth < 0.30
+        let pull_start = lines.len();
+        for k in 1..=1500 {
+            lines.push(line_through(&f, &axis, depth_at_end + 0.0001 * k as f64)); // 0.1 m/s outwards
+        }
+        let tip_out_sample = pull_start + ((length - depth_at_end) / 0.0001).ceil() as usize - 1;
+        for (length_known, must_detect) in [(Some(length), true), (None, false)] {
+            let cfg = DetectorConfig {
+                fast: FastConfig { instrument_length_m: length_known, ..Default::default() },
+                ..Default::default()
+            };
+            let mut d = Detector::new(&cfg).unwrap();
+            let mut out_at = None;
+            for (i, l) in lines.iter().enumerate() {
+                let e = d.step(l);
+                if i >= pull_start && !e.state.is_inside() && out_at.is_none() {
+                    out_at = Some(i);
+                }
+                if i == pull_start - 1 {
+                    assert!(e.state.is_inside());
+                }
+            }
+            match (must_detect, out_at) {
+                (true, Some(i)) => {
+                    let delay_s = (i as f64 - tip_out_sample as f64) * 0.001;
+                    assert!((0.0..0.05).contains(&delay_s), "tip-over-fulcrum extraction delay {delay_s} s");
+                }
+                (false, None) => {} // without the length, an axial pull is invisible: no lines disagree
+                (m, o) => panic!("length {length_known:?}: expected detection {m}, got {o:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn trocar_memory_recognises_a_reinsertion_quickly() {
+        let trocars = [Vector3::new(0.42, -0.08, 0.02), Vector3::new(0.48, 0.06, 0.04)];
+        // Visit A, B, A, B: the second visits are re-insertions into known trocars.
+        let (lines, phases, _) = scripted(&trocars, 4, 3.0, 8.0);
+        let delays_for = |memory: bool| {
+            let cfg = DetectorConfig {
+                fast: FastConfig { trocar_memory: memory, instrument_length_m: Some(0.30), ..Default::default() },
+                ..Default::default()
+            };
+            let mut d = Detector::new(&cfg).unwrap();
+            let mut delays = vec![];
+            let mut start = 0;
+            let mut ids = vec![];
+            let mut waiting = false;
+            for (i, l) in lines.iter().enumerate() {
+                if i > 0 && phases[i] != phases[i - 1] && phases[i] == Phase::Inside {
+                    start = i;
+                    waiting = true;
+                }
+                let e = d.step(l);
+                if let (true, crate::trocar::TrocarState::Inside { id }) = (waiting, e.state) {
+                    delays.push((i - start) as f64 * 0.001);
+                    ids.push(id);
+                    waiting = false;
+                }
+            }
+            (delays, ids)
+        };
+        let (with, ids) = delays_for(true);
+        let (without, _) = delays_for(false);
+        assert_eq!(with.len(), 4);
+        assert_eq!(ids[0], ids[2], "re-insertion into A must get A's id");
+        assert_eq!(ids[1], ids[3], "re-insertion into B must get B's id");
+        assert_ne!(ids[0], ids[1]);
+        for k in 2..4 {
+            assert!(with[k] <= 0.1, "re-insertion {k} took {} s with memory", with[k]);
+            assert!(with[k] < without[k], "memory must speed re-insertion {k}: {} vs {}", with[k], without[k]);
+        }
+    }
+}

@@ -245,3 +245,94 @@ pub fn mean_distance<'a>(lines: impl Iterator<Item = &'a LineSample>, point: &Ve
     }
     if n == 0 { 0.0 } else { sum / n as f64 }
 }
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Vector3;
+    use proptest::prelude::*;
+    use std::vec::Vec;
+
+    use super::{NormalSums, SolveError};
+    use crate::trocar::LineSample;
+    use crate::trocar::test_support::{cone_axis, line_through};
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+
+        /// Lines through a point, with enough angular spread, give back that point.
+        #[test]
+        fn ls_recovers_the_common_point(
+            fx in -1.0..1.0f64, fy in -1.0..1.0f64, fz in -1.0..1.0f64,
+            dirs in proptest::collection::vec((0.05..1.2f64, 0.0..6.3f64, -0.5..0.5f64), 3..40),
+        ) {
+            let f = Vector3::new(fx, fy, fz);
+            let mut sums = NormalSums::new();
+            for (tilt, az, depth) in &dirs {
+                sums.add(&line_through(&f, &cone_axis(*tilt, *az), *depth));
+            }
+            match sums.solve(1e-6) {
+                Ok(fit) => {
+                    prop_assert!((fit.fulcrum_base_m - f).norm() < 1e-6 * (1.0 + fit.std_per_unit_noise));
+                    prop_assert!(fit.rms_m < 1e-6);
+                }
+                Err(SolveError::IllConditioned { .. }) => {} // too little spread: refusing is right
+                Err(e) => prop_assert!(false, "unexpected {e}"),
+            }
+        }
+
+        /// Whatever finite lines come in, the solver returns a finite point or a typed refusal,
+        /// and removing lines restores the sums.
+        #[test]
+        fn ls_is_total_and_removal_inverts_addition(
+            raw in proptest::collection::vec(((-2.0..2.0f64, -2.0..2.0f64, -2.0..2.0f64), (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64)), 0..30),
+        ) {
+            let lines: Vec<LineSample> = raw.iter().filter_map(|((px, py, pz), (zx, zy, zz))| {
+                let z = Vector3::new(*zx, *zy, *zz);
+                (z.norm() > 1e-3).then(|| LineSample::new(Vector3::new(*px, *py, *pz), z.normalize()))
+            }).collect();
+            let mut sums = NormalSums::new();
+            for l in &lines { sums.add(l); }
+            if let Ok(fit) = sums.solve(1e-9) {
+                prop_assert!(fit.fulcrum_base_m.iter().all(|v| v.is_finite()));
+                prop_assert!(fit.ssr_m2.is_finite() && fit.ssr_m2 >= 0.0);
+            }
+            let half = lines.len() / 2;
+            let mut expect = NormalSums::new();
+            for l in &lines[..half] { expect.add(l); }
+            for l in &lines[half..] { sums.remove(l); }
+            let (a, b) = (sums.solve(1e-9), expect.solve(1e-9));
+            match (a, b) {
+                (Ok(x), Ok(y)) => prop_assert!((x.fulcrum_base_m - y.fulcrum_base_m).norm() < 1e-6 * (1.0 + y.std_per_unit_noise * y.std_per_unit_noise)),
+                (Err(_), Err(_)) => {}
+                (x, y) => {
+                    // Only near the gate may the two disagree.
+                    let c = x.map(|f| f.conditioning).or(y.map(|f| f.conditioning)).unwrap();
+                    prop_assert!(c < 1e-6, "removal changed the verdict far from the gate: {c}");
+                }
+            }
+        }
+    }
+
+    /// Exponential forgetting: scaling every line's weight changes no solution; new lines then
+    /// dominate old ones.
+    #[test]
+    fn forgetting_sums_keep_the_solution_and_let_new_lines_dominate() {
+        let a = Vector3::new(0.3, 0.0, 0.0);
+        let b = Vector3::new(0.3, 0.01, 0.0);
+        let mut sums = NormalSums::new();
+        for k in 0..10 {
+            sums.add(&line_through(&a, &cone_axis(0.1 + 0.02 * k as f64, 0.9 * k as f64), 0.2));
+        }
+        let before = sums.solve(1e-9).unwrap();
+        sums.decay(0.5);
+        let after = sums.solve(1e-9).unwrap();
+        assert!((before.fulcrum_base_m - after.fulcrum_base_m).norm() < 1e-12);
+        assert!((after.weight - 5.0).abs() < 1e-12, "{}", after.weight);
+        for k in 0..400 {
+            sums.decay(0.99);
+            sums.add(&line_through(&b, &cone_axis(0.1 + 0.001 * k as f64, 0.05 * k as f64), 0.2));
+        }
+        let f = sums.solve(1e-9).unwrap().fulcrum_base_m;
+        assert!((f - b).norm() < 1e-4, "forgotten lines still pull the point: {} mm off", (f - b).norm() * 1e3);
+    }
+}

@@ -2,11 +2,11 @@
 //!
 //! | Paper | Here |
 //! |---|---|
-//! | Algorithm 1 (inclusion test, Eq. 9-10, against the last *included* sample) | [`PaperDetector::step`] → `include` via [`super::differs_enough`] |
+//! | Algorithm 1 (inclusion test, Eq. 9-10, against the last *included* sample) | [`PaperDetector::step`] → `include` via `differs_enough` |
 //! | circular lists `L_m`, `L_n` | `short`, `long` (fixed-capacity `heapless::Deque`) |
 //! | Eq. 7 (LS fulcrum) | [`super::lsq::NormalSums::solve`] over the window, rebuilt from the window's lines |
 //! | Eq. 8 (mean residual `e_q`) | [`super::lsq::mean_distance`] |
-//! | Algorithm 2 (insertion / extraction rules) | [`PaperDetector::decide`] |
+//! | Algorithm 2 (insertion / extraction rules) | `PaperDetector::decide` |
 //!
 //! Choices where the paper is silent (also in `docs/trocar-detection.md`):
 //! 1. `L_n` holds the lines of the current insertion: it is seeded with `L_m`'s lines when an
@@ -217,5 +217,16 @@ impl PaperDetector {
         };
         self.last = est;
         est
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::trocar::test_support::run_scripted;
+    use crate::trocar::{DetectorConfig, DetectorMode};
+
+    #[test]
+    fn paper_mode_follows_insertions_and_extractions() {
+        run_scripted(&DetectorConfig { mode: DetectorMode::Paper, ..Default::default() }, 3.0);
     }
 }

@@ -111,11 +111,15 @@ impl JointAssembler {
     }
 
     /// Forget the previous cycle; call right after sending (or seeing) a SYNC.
+    ///
+    /// **Real-time (1 kHz loop):** called once a cycle; allocation-free.
     pub fn start_cycle(&mut self) {
         self.received = 0;
     }
 
     /// Take one node's two joint readings, counts, into the current cycle.
+    ///
+    /// **Real-time (1 kHz loop):** called for every TPDO; allocation-free.
     pub fn accept_tpdo(&mut self, node: NodeId, counts: [i32; 2]) -> Result<(), AcceptError> {
         let slot = self.nodes.iter().position(|&n| n == node).ok_or(AcceptError::UnknownNode { node })?;
         let first = slot * JOINTS_PER_NODE;
@@ -127,6 +131,8 @@ impl JointAssembler {
     }
 
     /// Take a decoded message into the current cycle (TPDOs only).
+    ///
+    /// **Real-time (1 kHz loop):** called for every decoded message; allocation-free.
     pub fn accept(&mut self, msg: &Message) -> Result<(), AcceptError> {
         match *msg {
             Message::Tpdo { node, counts } => self.accept_tpdo(node, counts),
@@ -135,17 +141,23 @@ impl JointAssembler {
     }
 
     /// `true` once every node has answered in this cycle.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn is_complete(&self) -> bool {
         self.missing().is_empty()
     }
 
     /// The nodes that have not answered in this cycle.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn missing(&self) -> MissingNodes {
         let all = (1u8 << ENCODER_NODES) - 1;
         MissingNodes { nodes: self.nodes, mask: all & !self.received }
     }
 
     /// The six joint readings, counts, if every node answered in this cycle.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn counts(&self) -> Result<[i32; JOINTS], IncompleteCycle> {
         let missing = self.missing();
         if missing.is_empty() { Ok(self.counts) } else { Err(IncompleteCycle { missing }) }
@@ -153,6 +165,8 @@ impl JointAssembler {
 
     /// The six joint readings, counts, as far as they arrived: a joint whose node has not
     /// answered in this cycle keeps its last value from an earlier cycle (0 before any).
+    ///
+    /// **Real-time (1 kHz loop):** called at every cycle end; allocation-free.
     pub fn counts_partial(&self) -> ([i32; JOINTS], MissingNodes) {
         (self.counts, self.missing())
     }

@@ -46,14 +46,22 @@ pub enum RecvError {
 /// Like a real CAN socket, an endpoint does not receive its own frames back.
 pub trait CanBus {
     /// Queue one frame for transmission. Does not wait for the bus.
+    ///
+    /// **Real-time (1 kHz loop):** the loop sends its SYNC through this once a cycle;
+    /// implementations must not block on the bus nor allocate.
     fn send(&mut self, frame: &CanFrame) -> Result<(), SendError>;
 
     /// Wait at most `timeout` for the next frame; `Ok(None)` when the time ran out.
     /// A zero `timeout` polls without blocking. Never busy-polls.
+    ///
+    /// **Real-time (1 kHz loop):** the loop's only wait, bounded by `timeout`; implementations
+    /// must not allocate.
     fn recv_timeout(&mut self, timeout: Duration) -> Result<Option<TimedFrame>, RecvError>;
 
     /// Frames this endpoint lost because its receive queue was full, since it was opened
     /// (0 where the backend cannot tell).
+    ///
+    /// **Real-time (1 kHz loop):** read once a cycle; a counter, no system call.
     fn dropped_rx_frames(&self) -> u64 {
         0
     }

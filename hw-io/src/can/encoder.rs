@@ -85,6 +85,8 @@ impl JointEncoder {
     }
 
     /// Joint angle, radians, for an encoder reading in counts. Always finite.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn counts_to_rad(&self, counts: i32) -> f64 {
         let delta = i64::from(counts) - i64::from(self.zero_offset_counts);
         self.sign_f64() * delta as f64 * TAU / self.counts_per_rev_f64()
@@ -197,6 +199,8 @@ impl EncoderConfig {
     }
 
     /// Joint angles, radians, for the six encoder readings, counts.
+    ///
+    /// **Real-time (1 kHz loop):** called every cycle; allocation-free.
     pub fn counts_to_rad(&self, counts: &[i32; JOINTS]) -> [f64; JOINTS] {
         core::array::from_fn(|i| self.joints[i].counts_to_rad(counts[i]))
     }

@@ -200,6 +200,8 @@ pub enum DecodeError {
 
 impl Message {
     /// The COB-ID (11-bit identifier) this message is sent on.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn cob_id(&self) -> u16 {
         match *self {
             Message::Sync { .. } => SYNC_COB_ID,
@@ -210,6 +212,8 @@ impl Message {
     }
 
     /// The frame for this message. Allocation-free.
+    ///
+    /// **Real-time (1 kHz loop):** called for every frame sent (the SYNC); allocation-free.
     pub fn encode(&self) -> Result<CanFrame, EncodeError> {
         let mut data = [0u8; 8];
         let dlc = match *self {
@@ -241,6 +245,9 @@ impl Message {
     }
 
     /// The message in a frame, or why it is none. Allocation-free; never panics.
+    ///
+    /// **Real-time (1 kHz loop):** called for every frame received; allocation-free, never
+    /// panics.
     pub fn decode(frame: &CanFrame) -> Result<Self, DecodeError> {
         let id = match frame.id() {
             CanId::Extended(id) => {

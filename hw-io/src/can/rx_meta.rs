@@ -37,6 +37,8 @@ impl RxDropCounter {
 
     /// Takes the kernel's value attached to a received datagram; returns the datagrams
     /// dropped since the previous value (wrapping difference, frames).
+    ///
+    /// **Real-time (1 kHz loop):** called for every received frame; allocation-free.
     pub fn observe(&mut self, kernel_count: u32) -> u32 {
         let new = kernel_count.wrapping_sub(self.last);
         self.last = kernel_count;
@@ -87,6 +89,8 @@ impl MsgReceiver {
 
     /// Turns on, for `fd`, the kernel's arrival timestamps (`SO_TIMESTAMPNS`) and drop counter
     /// (`SO_RXQ_OVFL`) on every received datagram.
+    ///
+    /// **Not for the real-time loop:** socket options, set once when the socket opens.
     pub fn enable(fd: BorrowedFd<'_>) -> io::Result<()> {
         setsockopt(&fd, sockopt::ReceiveTimestampns, &true).map_err(io::Error::from)?;
         setsockopt(&fd, sockopt::RxqOvfl, &1).map_err(io::Error::from)?;
@@ -95,6 +99,9 @@ impl MsgReceiver {
 
     /// Receives one datagram into `buf` (blocking unless the socket is non-blocking; errors as
     /// `recvmsg(2)` gives them). Does not allocate.
+    ///
+    /// **Real-time (1 kHz loop):** called by `SocketCanBus::recv_timeout` for every frame; one
+    /// `recvmsg(2)`, no allocation.
     pub fn recv(&mut self, fd: impl AsFd, buf: &mut [u8]) -> io::Result<Received> {
         let fd = fd.as_fd();
         let mut iov = [IoSliceMut::new(buf)];

@@ -80,6 +80,9 @@ pub struct SocketCanBus {
 impl SocketCanBus {
     /// Open `interface` and enable kernel receive timestamps (`SO_TIMESTAMPNS`) and the
     /// receive-queue drop counter (`SO_RXQ_OVFL`).
+    ///
+    /// **Not for the real-time loop:** opens and configures a socket (system calls,
+    /// allocation); call it at start-up.
     pub fn open(interface: &str) -> Result<Self, OpenError> {
         let socket =
             socketcan::CanSocket::open(interface).map_err(|e| classify_open_error(interface, e, kernel_lacks_can))?;
@@ -106,6 +109,8 @@ impl SocketCanBus {
     /// `net.core.rmem_max`) and returns the size the kernel granted, bytes. The kernel counts
     /// its bookkeeping in it (about 1 KiB per classic CAN frame) and doubles the request. A
     /// frame arriving at a full queue is dropped by the kernel.
+    ///
+    /// **Not for the real-time loop:** a socket option, set once at start-up.
     pub fn set_receive_buffer(&mut self, bytes: usize) -> io::Result<usize> {
         use nix::sys::socket::{getsockopt, setsockopt, sockopt};
         let fd = self.socket.as_fd();

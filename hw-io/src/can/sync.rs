@@ -37,12 +37,16 @@ impl SyncSource {
     }
 
     /// The next counter, 1..=240.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn next_counter(&mut self) -> u8 {
         self.last = next_sync_counter(self.last);
         self.last
     }
 
     /// The next SYNC frame (COB-ID 0x080, DLC 1). Allocation-free.
+    ///
+    /// **Real-time (1 kHz loop):** called once a cycle, before the SYNC is sent.
     pub fn next_frame(&mut self) -> CanFrame {
         let counter = self.next_counter();
         let mut data = [0u8; 8];
@@ -51,6 +55,8 @@ impl SyncSource {
     }
 
     /// The next SYNC as a [`Message`].
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free.
     pub fn next_message(&mut self) -> Message {
         Message::Sync { counter: self.next_counter() }
     }
@@ -123,6 +129,8 @@ impl SyncCounter {
 
     /// Check one counter. On a gap, the tracker re-synchronises on `got`, so one lost SYNC
     /// gives exactly one error. An out-of-range counter leaves the tracker unchanged.
+    ///
+    /// **Real-time (1 kHz loop):** called for every SYNC seen; allocation-free.
     pub fn observe(&mut self, got: u8) -> Result<(), CounterError> {
         if !(1..=SYNC_COUNTER_MAX).contains(&got) {
             return Err(CounterError::OutOfRange { got });

@@ -1,7 +1,8 @@
 //! Median time of one `Detector::step` in each mode, over a simulated surgeon (insertions,
 //! pivoting, extractions, free motion), and of the forward kinematics.
 //!
-//! `cargo bench -p estimator --bench detector_step`
+//! `cargo bench -p integration-tests --bench detector_step`
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "bench set-up: a panic aborts the bench")]
 
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
 use estimator::kinematics::{Achilles, AchillesConfig};

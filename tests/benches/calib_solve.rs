@@ -5,7 +5,8 @@
 //! combinations, σ = 0.01), the first 729 kept. `ours` runs with the dataset's noise model
 //! (whitened, two passes, both ambiguity candidates), as `comanip-calib calibrate` does.
 //!
-//! `cargo bench -p estimator --bench calib_solve`
+//! `cargo bench -p integration-tests --bench calib_solve`
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "bench set-up: a panic aborts the bench")]
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use estimator::calib::ours::{OursConfig, solve_ours};

@@ -1,6 +1,7 @@
 //! A flight recording written by an older fulcrumd (`tests/fixtures/cycle-v1/`, see its README)
 //! still reads and replays bit for bit: the postcard encoding of `CycleRecord` (and so of
 //! `CycleOutput`'s state and health) must not change under a refactoring of the types.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

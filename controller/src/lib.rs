@@ -9,11 +9,12 @@
 //! - [`config`]: the TOML configuration, validated at load with messages that name the key.
 //! - [`demo`]: the detector over an in-memory simulated scenario (no bus), for quick scoring.
 //! - [`timing`]: allocation-free latency histograms.
-//! - `comanip-calib` ([`calib`]): dual RCM-arm calibration (simulate, calibrate, sweep).
+//!
+//! The offline tools live in their own packages beside this one, so that fulcrumd links no
+//! plotting or parallel-iteration crate: `controller/bench` (`comanip-bench`) and
+//! `controller/calib` (`comanip-calib`).
 #![warn(missing_docs)]
 
-pub mod bench;
-pub mod calib;
 pub mod config;
 pub mod cycle;
 pub mod daemon;

@@ -1,9 +1,9 @@
 //! The detection benchmark end to end on a small run: twin traces decoded as the daemon does,
 //! the four settings scored on the same lines, the motion-only bound, the report and figures.
 
-use controller::bench::plots;
-use controller::bench::report::{DetectionOptions, run_detection};
-use controller::bench::trace::PLACEMENTS;
+use comanip_bench::plots;
+use comanip_bench::report::{DetectionOptions, run_detection};
+use comanip_bench::trace::PLACEMENTS;
 use hw_io::rt_alloc::{RtPoolAllocator, count_thread_allocs};
 
 #[global_allocator]

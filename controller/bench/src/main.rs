@@ -13,11 +13,11 @@ use std::process::ExitCode;
 use std::sync::atomic::AtomicBool;
 
 use clap::{Parser, Subcommand};
-use controller::bench::bus_loss::{LossReport, run_bus_loss};
-use controller::bench::families::{FAMILIES, FamilyOptions, FamilyReport, REPORT_SEEDS, TUNING_SEEDS, run_families};
-use controller::bench::ipc::{self, IpcReport};
-use controller::bench::plots;
-use controller::bench::report::{DetectionOptions, DetectionReport, run_detection};
+use comanip_bench::bus_loss::{LossReport, run_bus_loss};
+use comanip_bench::families::{FAMILIES, FamilyOptions, FamilyReport, REPORT_SEEDS, TUNING_SEEDS, run_families};
+use comanip_bench::ipc::{self, IpcReport};
+use comanip_bench::plots;
+use comanip_bench::report::{DetectionOptions, DetectionReport, run_detection};
 use controller::config::Config;
 use controller::daemon::{self, RunOptions, RunSummary};
 use hw_io::rt_alloc::RtPoolAllocator;
@@ -210,7 +210,7 @@ fn families(a: &FamiliesArgs) -> Result<FamilyReport, String> {
 }
 
 fn bus_loss(a: &BusLossArgs) -> Result<LossReport, String> {
-    let n = (a.loss_seeds.len() * controller::bench::bus_loss::CONDITIONS.len()) as u64;
+    let n = (a.loss_seeds.len() * comanip_bench::bus_loss::CONDITIONS.len()) as u64;
     let bar = if std::io::stderr().is_terminal() {
         let b = indicatif::ProgressBar::new(n);
         b.set_message("runs");

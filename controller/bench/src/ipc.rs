@@ -16,8 +16,8 @@ use hw_io::ipc::{Continuity, FulcrumPublisher, FulcrumSample, FulcrumSubscriber,
 use hw_io::rt_alloc;
 use serde::{Deserialize, Serialize};
 
-use crate::rt::monotonic_now_ns;
-use crate::timing::Histogram;
+use controller::rt::monotonic_now_ns;
+use controller::timing::Histogram;
 
 /// Environment variable that makes the executable act as the subscriber.
 pub const ROLE_ENV: &str = "COMANIP_BENCH_IPC_SUBSCRIBER";

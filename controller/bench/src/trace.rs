@@ -3,7 +3,7 @@
 //! A [`Trace`] is one simulated session on the Achilles-type arm: the twin
 //! ([`sim::twin::SimRobot`]) answers a SYNC per millisecond with quantised encoder TPDOs of
 //! the *true* arm (nominal DH table plus a calibration error), and the controller's own
-//! acquisition ([`crate::cycle::Acquisition`]), counts-to-radians conversion and *nominal*
+//! acquisition ([`controller::cycle::Acquisition`]), counts-to-radians conversion and *nominal*
 //! forward kinematics turn them into one instrument line per sample. Every detector of the
 //! benchmark consumes the same lines. The ground truth (true state, true pivot, true
 //! events) comes from the twin.
@@ -17,8 +17,8 @@ use sim::scenario::{StyleConfig, TrueEvent, TruthState};
 use sim::score::GroundTruth;
 use sim::twin::{DEFAULT_TROCARS_BASE_M, SimRobot, TwinConfig};
 
-use crate::cycle::Acquisition;
-use crate::health::HealthConfig;
+use controller::cycle::Acquisition;
+use controller::health::HealthConfig;
 
 /// A placement of the trocar set relative to the robot base: the four default trocars
 /// rotated about the vertical axis through their centroid by `yaw_deg` and shifted by
@@ -214,7 +214,7 @@ pub fn twin_events(twin: &SimRobot) -> impl Iterator<Item = TrueEvent> + '_ {
     })
 }
 
-fn acq_complete(input: &crate::cycle::CycleInput) -> bool {
+fn acq_complete(input: &controller::cycle::CycleInput) -> bool {
     input.received_mask == (1 << hw_io::can::ENCODER_NODES) - 1
         && !input.flags.intersects(hw_io::ipc::HealthFlags::INVALIDATING)
 }

@@ -1,4 +1,4 @@
-//! Bus loss and gaps: the daemon's own stale-data policy (`crate::cycle::Estimation`) under
+//! Bus loss and gaps: the daemon's own stale-data policy (`controller::cycle::Estimation`) under
 //! random TPDO loss and bursts of missing TPDOs, on the benchmark's traces
 //! (`docs/BENCHMARKS.md`, "Bus loss and gaps").
 //!
@@ -29,8 +29,8 @@ use hw_io::ipc::{HealthFlags, OutputState};
 use super::detection::{Setting, settings};
 use super::report::BenchError;
 use super::trace::{PLACEMENTS, Trace, TraceError, TraceSpec, drive, twin_config, twin_events};
-use crate::cycle::{Acquisition, Estimation};
-use crate::health::HealthConfig;
+use controller::cycle::{Acquisition, Estimation};
+use controller::health::HealthConfig;
 
 /// An extraction declared at most this long before the tip truly crossed out is early, not
 /// spurious, seconds (as in the family benchmark).

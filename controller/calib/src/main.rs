@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
-use controller::calib::run::{Pipeline, calibrate, default_protocol, generate};
-use controller::calib::sweep::{SweepOptions, run_sweep};
+use comanip_calib::run::{Pipeline, calibrate, default_protocol, generate};
+use comanip_calib::sweep::{SweepOptions, run_sweep};
 use sim::calib::NoiseUnits;
 
 #[derive(Parser)]

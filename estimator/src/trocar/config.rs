@@ -446,7 +446,7 @@ mod tests {
             let mut c = DetectorConfig::default();
             edit(&mut c);
             let err = c.validate().expect_err(key);
-            let msg = format!("{err}");
+            let msg = std::format!("{err}");
             assert_eq!(key_of(err), *key, "{msg}");
             assert!(msg.contains(key), "message must name the key: {msg}");
         }

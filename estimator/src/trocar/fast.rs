@@ -892,9 +892,9 @@ mod tests {
                 ..Default::default()
             };
             let mut d = Detector::new(&cfg).unwrap();
-            let mut delays = vec![];
+            let mut delays = Vec::new();
             let mut start = 0;
-            let mut ids = vec![];
+            let mut ids = Vec::new();
             let mut waiting = false;
             for (i, l) in lines.iter().enumerate() {
                 if i > 0 && phases[i] != phases[i - 1] && phases[i] == Phase::Inside {

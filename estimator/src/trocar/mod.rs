@@ -454,7 +454,7 @@ mod tests {
         let fast = run_scripted(&DetectorConfig { mode: DetectorMode::Fast, ..Default::default() }, 3.0);
         let (pi, fi) = (mean(&paper.insertion_s), mean(&fast.insertion_s));
         let (pe, fe) = (mean(&paper.extraction_s), mean(&fast.extraction_s));
-        eprintln!("insertion: paper {pi:.3} s, fast {fi:.3} s; extraction: paper {pe:.3} s, fast {fe:.3} s");
+        std::eprintln!("insertion: paper {pi:.3} s, fast {fi:.3} s; extraction: paper {pe:.3} s, fast {fe:.3} s");
         assert!(fi < pi, "fast insertion {fi} s not below paper {pi} s");
         assert!(fe < pe, "fast extraction {fe} s not below paper {pe} s");
     }

@@ -7,7 +7,6 @@
 //!   systemd notifications ([`watchdog`]), the flight recorder ([`recorder`]), `replay`
 //!   ([`replay`], [`scoring`]) and the built-in simulated robot ([`sim_robot`]).
 //! - [`config`]: the TOML configuration, validated at load with messages that name the key.
-//! - [`demo`]: the detector over an in-memory simulated scenario (no bus), for quick scoring.
 //! - [`timing`]: allocation-free latency histograms.
 //!
 //! The offline tools live in their own packages beside this one, so that fulcrumd links no
@@ -18,7 +17,6 @@
 pub mod config;
 pub mod cycle;
 pub mod daemon;
-pub mod demo;
 pub mod health;
 pub mod health_log;
 pub mod monitor;

@@ -7,8 +7,10 @@ use serde::Serialize;
 use sim::score::{self, Detected, Score};
 use sim::truth_file::{At, ScoreInputError, TruthFile, TruthReadError, score_detections};
 
-use crate::demo::WRONG_TROCAR_M;
 use crate::replay::LogReplay;
+
+/// A fulcrum farther than this from the true trocar (metres) is a wrong-trocar detection.
+pub const WRONG_TROCAR_M: f64 = 0.03;
 
 /// Why a replay could not be scored.
 #[derive(Debug, thiserror::Error)]

@@ -1,7 +1,7 @@
 //! The calibration paper's simulation protocol (Wang et al. 2017, Sec. IV) with ground truth.
 //!
 //! An ECM-like robot 1 holds the camera, a PSM-like robot 2 the tool
-//! ([`estimator::calib::kinematics`]). Joint grids: `n_e` values of each of the ECM's four
+//! ([`estimator::calib::rcm_arms`]). Joint grids: `n_e` values of each of the ECM's four
 //! joints (`n_e⁴` poses) × `n_t` values of the PSM's yaw and pitch (`n_t²` poses) at a fixed
 //! insertion; every combination is one observation. The camera and tool are placed with the
 //! *actual* (perturbed) kinematics, the dataset records the *nominal* joints: each of the ECM
@@ -16,7 +16,7 @@
 //!
 //! Deterministic: the same protocol and seed give the same dataset (ChaCha8).
 
-use estimator::calib::kinematics::{ecm_frames, psm_frames, se3_exp};
+use estimator::calib::rcm_arms::{ecm_frames, psm_frames, se3_exp};
 use estimator::calib::{Intrinsics, KinematicNoise, Observation, Setup};
 use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 use rand::{Rng, SeedableRng};

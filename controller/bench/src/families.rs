@@ -393,7 +393,7 @@ impl FamilyReport {
         if !skipped.is_empty() {
             let _ = writeln!(
                 s,
-                "\nTraces the twin could not run (its inverse kinematics did not converge on a pose near the passive wrist's singularity), not counted:"
+                "\nTraces the twin could not run (a line of the planned motion lies beyond the reach of the miscalibrated true arm, which the nominal arm the surgeon was planned on reaches: the twin's inverse kinematics stops micrometres short and the trace ends), not counted:"
             );
             for r in skipped {
                 let _ = writeln!(s, "- {r}");
@@ -404,6 +404,10 @@ impl FamilyReport {
 }
 
 fn row(name: &str, c: &Cell, has_list: bool) -> String {
+    // A family whose every trace was skipped has no delays: say so, never print NaN.
+    if c.traces == 0 {
+        return format!("| {name} | 0 | no trace ran | | | | | | | | |");
+    }
     format!(
         "| {} | {} | {}/{} | {} | {} | {} | {} ({}) | {:.0} | {:.2} | {:.0} | {} |",
         name,

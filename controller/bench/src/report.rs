@@ -460,7 +460,7 @@ impl DetectionReport {
         let _ = writeln!(s);
         let _ = writeln!(
             s,
-            "Motion-only bound (`controller/src/bench/bound.rs`): insertion mean {} ms (p50 {}, p95 {}; {} cycles \
+            "Motion-only bound (`controller/bench/src/bound.rs`): insertion mean {} ms (p50 {}, p95 {}; {} cycles \
              where the motion never located the fulcrum within 5 mm of the cycle's own least-squares point), extraction (geometry only) mean {} ms (p50 \
              {}, p95 {}; {} without one).\n",
             ms(bi.mean),

@@ -247,8 +247,8 @@ fn predicted_observation(
     truth: &Isometry3<f64>,
 ) -> Option<Observation> {
     use nalgebra::{Point3, Vector2};
-    let cam = super::kinematics::camera_pose(ecm_joints, &setup.hand_eye);
-    let m = truth.rotation * super::kinematics::psm_axis(psm_joints);
+    let cam = super::rcm_arms::camera_pose(ecm_joints, &setup.hand_eye);
+    let m = truth.rotation * super::rcm_arms::psm_axis(psm_joints);
     let tip_e = truth.translation.vector + m * psm_joints[2];
     let inv = cam.inverse();
     let p = inv * Point3::from(tip_e);

@@ -15,7 +15,7 @@
 //!   the top-left pixel, u right, v down, OpenCV convention).
 //!
 //! ## Layers
-//! - [`kinematics`]: RCM-arm forward kinematics (ECM: yaw, pitch, insertion, roll; PSM: yaw,
+//! - [`rcm_arms`]: RCM-arm forward kinematics (ECM: yaw, pitch, insertion, roll; PSM: yaw,
 //!   pitch, insertion) and the SE(3) exponential used for noise.
 //! - [`camera`]: pinhole intrinsics with plumb-bob distortion, the image line → plane normal
 //!   step (Eq. 1) and the projection of a 3-D line.
@@ -36,7 +36,7 @@
 
 pub mod camera;
 pub mod crb;
-pub mod kinematics;
+pub mod rcm_arms;
 pub mod ours;
 pub mod paper;
 pub mod prepare;

@@ -9,7 +9,7 @@ use std::vec::Vec;
 use nalgebra::{Isometry3, Matrix3, Matrix6, Vector2, Vector3};
 
 use super::camera::{IntrinsicsError, LineError, plane_normal};
-use super::kinematics::{ecm_frames, psm_axis, psm_frames};
+use super::rcm_arms::{ecm_frames, psm_axis, psm_frames};
 use super::{Observation, Setup};
 
 /// Camera centres closer than this (metres) are the same view of robot 1.
@@ -184,7 +184,7 @@ pub fn inverse_adjoint(t: &Isometry3<f64>) -> Matrix6<f64> {
     let rx = xi.rotation.to_rotation_matrix().into_inner();
     let mut ad = Matrix6::zeros();
     ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&rx);
-    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(super::kinematics::skew(&xi.translation.vector) * rx));
+    ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(super::rcm_arms::skew(&xi.translation.vector) * rx));
     ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
     ad
 }

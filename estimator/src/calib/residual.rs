@@ -10,7 +10,7 @@
 use nalgebra::{Matrix2, Matrix3, Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
 use super::KinematicNoise;
-use super::kinematics::skew;
+use super::rcm_arms::skew;
 use super::prepare::{Prepared, PreparedSet};
 
 /// 2×6 Jacobian of one observation's residual pair w.r.t. `(t, δφ)`.

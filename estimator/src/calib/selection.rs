@@ -39,7 +39,7 @@ use nalgebra::{
 };
 
 use super::KinematicNoise;
-use super::kinematics::skew;
+use super::rcm_arms::skew;
 use super::prepare::{Prepared, PreparedSet};
 use super::residual::{Jac6, damped_step, noise_jacobian, residual_and_jacobian, residual_covariance};
 

@@ -30,7 +30,7 @@ use hw_io::can::{
 use hw_io::outln;
 use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 use sim::endoscope::config::ConfigError as EndoscopeConfigError;
-use sim::endoscope::output::{OutputError, render_sequence, write_samples};
+use sim::endoscope::output::{OutputError, Sequence, render_sequence, write_samples};
 use sim::endoscope::{DemoMotion, EndoscopeConfig, InstrumentMesh, ObjError};
 use sim::truth_file::{DEFAULT_STATE_EVERY, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
 use sim::twin::{SYNC_PERIOD_US, SimRobot, TwinConfig, TwinConfigError, TwinError, TwinEvent};
@@ -487,9 +487,8 @@ fn render(args: &RenderArgs) -> Result<(), RenderCmdError> {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
     let motion = DemoMotion { speed: args.speed, ..Default::default() };
-    let summary = render_sequence(&cfg, mesh, &motion, args.frames, args.t0_ns, &args.out, !args.no_masks, |n| {
-        bar.set_position(n)
-    })?;
+    let seq = Sequence { frames: args.frames, t0_ns: args.t0_ns, masks: !args.no_masks };
+    let summary = render_sequence(&cfg, mesh, &motion, &seq, &args.out, |n| bar.set_position(n))?;
     bar.finish_and_clear();
     let k = &cfg.camera.intrinsics;
     outln!(

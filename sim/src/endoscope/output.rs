@@ -103,6 +103,17 @@ struct EndLine {
     frames: u64,
 }
 
+/// Which frames [`render_sequence`] writes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sequence {
+    /// Number of stereo frames.
+    pub frames: u64,
+    /// Mid time of the first frame's exposure, nanoseconds.
+    pub t0_ns: u64,
+    /// Also write the label masks.
+    pub masks: bool,
+}
+
 /// What [`render_sequence`] did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SequenceSummary {
@@ -118,19 +129,18 @@ fn create(path: &Path) -> Result<BufWriter<File>, OutputError> {
     File::create(path).map(BufWriter::new).map_err(|source| OutputError::Io { path: path.to_owned(), source })
 }
 
-/// Renders `frames` stereo frames of `motion` at the configured frame rate from `t0_ns`,
+/// Renders `seq.frames` stereo frames of `motion` at the configured frame rate from `seq.t0_ns`,
 /// writing `DIR/frame_NNNNNN_{left,right}.png`, with `masks` also
 /// `DIR/frame_NNNNNN_{left,right}_mask.png`, and `DIR/truth.jsonl`.
 pub fn render_sequence(
     cfg: &EndoscopeConfig,
     mesh: InstrumentMesh,
     motion: &DemoMotion,
-    frames: u64,
-    t0_ns: u64,
+    seq: &Sequence,
     dir: &Path,
-    masks: bool,
     mut progress: impl FnMut(u64),
 ) -> Result<SequenceSummary, OutputError> {
+    let Sequence { frames, t0_ns, masks } = *seq;
     let started = std::time::Instant::now();
     std::fs::create_dir_all(dir).map_err(|source| OutputError::Io { path: dir.to_owned(), source })?;
     let mut renderer = StereoRenderer::new(cfg.clone(), mesh)?;

@@ -178,7 +178,7 @@ fn raster<const N: usize>(
     let mut a1 = tri[1].a;
     let mut a2 = tri[2].a;
     let mut area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0);
-    if !(area.abs() > 1e-12) {
+    if area.is_nan() || area.abs() <= 1e-12 {
         return; // degenerate or not finite
     }
     if area < 0.0 {
@@ -230,7 +230,7 @@ fn raster<const N: usize>(
                 hi = -1.0;
             }
         }
-        if !(lo <= hi) {
+        if lo.is_nan() || hi.is_nan() || lo > hi {
             continue;
         }
         let (xs, xe) = ((lo.ceil() as usize).max(bx0), (hi.floor() as usize).min(bx1));

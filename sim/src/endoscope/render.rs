@@ -255,9 +255,10 @@ struct Lighting {
 }
 
 impl Lighting {
-    /// Blinn-Phong at camera-frame point `p` with unit normal `n`.
+    /// Blinn-Phong factors at camera-frame point `p` with unit normal `n`: the diffuse
+    /// factor (ambient plus irradiance × cos) and the specular factor (irradiance × lobe).
     #[inline]
-    fn shade(&self, p: [f32; 3], n: [f32; 3], albedo: [f32; 3], spec: [f32; 3], shin: f32) -> [f32; 3] {
+    fn terms(&self, p: [f32; 3], n: [f32; 3], shin: f32) -> (f32, f32) {
         let ip = 1.0 / dot(p, p).sqrt();
         let v = [-p[0] * ip, -p[1] * ip, -p[2] * ip];
         let mut n = n;
@@ -272,15 +273,35 @@ impl Lighting {
         let ndl = dot(n, l).max(0.0);
         let h = normalize([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
         let s = if ndl > 0.0 { spec_pow(dot(n, h).max(0.0), shin) * e } else { 0.0 };
-        let d = self.ambient + e * ndl;
-        let mut c = [albedo[0] * d + spec[0] * s, albedo[1] * d + spec[1] * s, albedo[2] * d + spec[2] * s];
-        if let Some((density, haze)) = self.smoke {
-            let t = (-density * p[2]).exp();
-            for k in 0..3 {
-                c[k] = c[k] * t + haze[k] * (1.0 - t);
-            }
+        (self.ambient + e * ndl, s)
+    }
+
+    /// Smoke transmittance at depth `z` (1 without smoke).
+    #[inline]
+    fn transmittance(&self, z: f32) -> f32 {
+        match self.smoke {
+            Some((density, _)) => (-density * z).exp(),
+            None => 1.0,
         }
-        c
+    }
+
+    /// Adds the smoke's haze to a colour seen through transmittance `t`.
+    #[inline]
+    fn haze(&self, c: [f32; 3], t: f32) -> [f32; 3] {
+        match self.smoke {
+            Some((_, haze)) => {
+                [c[0] * t + haze[0] * (1.0 - t), c[1] * t + haze[1] * (1.0 - t), c[2] * t + haze[2] * (1.0 - t)]
+            }
+            None => c,
+        }
+    }
+
+    /// Blinn-Phong at camera-frame point `p` with unit normal `n`, through the smoke.
+    #[inline]
+    fn shade(&self, p: [f32; 3], n: [f32; 3], albedo: [f32; 3], spec: [f32; 3], shin: f32) -> [f32; 3] {
+        let (d, s) = self.terms(p, n, shin);
+        let c = [albedo[0] * d + spec[0] * s, albedo[1] * d + spec[1] * s, albedo[2] * d + spec[2] * s];
+        self.haze(c, self.transmittance(p[2]))
     }
 }
 
@@ -416,7 +437,10 @@ fn eye_poses(hand_eye: &Isometry3<f64>, baseline_m: f64, q: &[f64; 4]) -> [Isome
 
 /// The canvas (undistorted image covering every ideal pixel the image sees) and, with
 /// distortion, the canvas coordinates of every image pixel.
-fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Option<Vec<[f32; 2]>>), ConfigError> {
+/// Canvas coordinates of every image pixel, row-major (`None`: no distortion).
+type Remap = Option<Vec<[f32; 2]>>;
+
+fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
     let (w, h) = (k.width as usize, k.height as usize);
     let base = |ox: f32, oy: f32, cw: usize, ch: usize| Canvas {
         w: cw,
@@ -532,28 +556,28 @@ fn render_eye(
     wk.depth_t.fill(f32::INFINITY);
     let bg = smoke.map(|(_, haze)| haze).unwrap_or([0.0; 3]);
     wk.colour.fill(bg);
+    // Tissue lighting per vertex (Gouraud: the grid is finer than the light's variation),
+    // interpolated with the texture coordinates; the texture is sampled per pixel.
     let rot = t_c_e.rotation;
+    let wet = cfg.tissue.wet_specular as f32;
     wk.verts.clear();
     for ((p, n), uv) in sh.tissue.positions.iter().zip(&sh.tissue.normals).zip(&sh.tissue.uv) {
         let pc = t_c_e * Point3::from(*p);
         let nc3 = rot * n;
-        wk.verts.push(Vtx {
-            p: [pc.x as f32, pc.y as f32, pc.z as f32],
-            a: [uv[0], uv[1], nc3.x as f32, nc3.y as f32, nc3.z as f32],
-        });
+        let p32 = [pc.x as f32, pc.y as f32, pc.z as f32];
+        let (d, s) =
+            if pc.z > 0.0 { lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], 20.0) } else { (0.0, 0.0) };
+        wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
     }
-    let wet = cfg.tissue.wet_specular as f32;
-    let wet_spec = [wet; 3];
     {
         let tissue = &sh.tissue;
         let colour = &mut wk.colour;
         let mut b = Bounds::EMPTY;
         let verts = &wk.verts;
-        let mut frag = |idx: usize, x: usize, y: usize, z: f32, a: &[f32; 5]| {
-            let (xn, yn) = c.ray(x as f32, y as f32);
-            let albedo = tissue.albedo(a[0], a[1]);
-            let n = normalize([a[2], a[3], a[4]]);
-            colour[idx] = lighting.shade([xn * z, yn * z, z], n, albedo, wet_spec, 20.0);
+        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
+            let al = tissue.albedo(a[0], a[1]);
+            let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+            colour[idx] = lighting.haze(c, a[4]);
         };
         for t in &tissue.triangles {
             let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
@@ -699,7 +723,7 @@ fn render_eye(
 
     // 5. Vignetting, noise, sRGB.
     let noise =
-        r.noise.enabled.then(|| (r.noise.full_well_e as f32, (r.noise.read_noise_e * r.noise.read_noise_e) as f32));
+        r.noise.enabled.then_some((r.noise.full_well_e as f32, (r.noise.read_noise_e * r.noise.read_noise_e) as f32));
     let eye_key = match eye {
         Eye::Left => 0x4C45_4654u64,
         Eye::Right => 0x5249_4748u64,
@@ -720,8 +744,8 @@ fn render_eye(
                     *c += (e + read2).sqrt() / fw * n;
                 }
             }
-            for k in 0..3 {
-                img.rgb[3 * i + k] = sh.srgb[(v[k].clamp(0.0, 1.0) * lut_max + 0.5) as usize];
+            for (k, c) in v.iter().enumerate() {
+                img.rgb[3 * i + k] = sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
             }
         }
     }

@@ -131,14 +131,15 @@ fn check_contours(r: &StereoRenderer, f: &StereoFrame, eye: usize) -> usize {
     let radius = g.shaft_radius_m();
     let img = &f.images[eye];
     let (w, h) = (img.width as i64, img.height as i64);
-    // Far enough from the distal end that neither wrist nor jaws can be at the contour.
-    let margin = g.wrist_length_m + g.jaw_length_m + 2.0 * radius;
+    // Far enough from the distal end that neither wrist nor jaws reach the contour in the
+    // image (the demo motion keeps the wrist within ±0.45 rad, the jaws within 0.5 rad).
+    let margin = 4.0 * radius;
     let mut checked = 0;
     for (ci, c) in contours.iter().enumerate() {
         let n = Vector3::from(c.plane_normal);
         let other = &contours[1 - ci].line_ideal;
-        for i in 0..80 {
-            let s = -margin - (g.shaft_length_m - margin) * i as f64 / 79.0;
+        for i in 0..200 {
+            let s = -margin - 0.5e-3 * i as f64;
             let p = a - n * radius + d * s;
             if p.z < 0.01 {
                 continue;
@@ -196,7 +197,7 @@ fn analytic_contours_lie_within_a_pixel_of_the_mask_boundary() {
                 checked += check_contours(&r, &f, eye);
             }
         }
-        assert!(checked > 300, "distorted {distorted}: only {checked} contour points checked");
+        assert!(checked > 150, "distorted {distorted}: only {checked} contour points checked");
     }
 }
 

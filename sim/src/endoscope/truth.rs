@@ -103,7 +103,7 @@ impl EyeProjection {
     /// Distorted pixel of a camera-frame point, `None` when behind the camera, outside the
     /// valid region or outside the image.
     pub fn project_in_image(&self, p: &Vector3<f64>) -> Option<Vector2<f64>> {
-        if !(p.z > 1e-6) || !p.iter().all(|v| v.is_finite()) {
+        if !p.iter().all(|v| v.is_finite()) || p.z <= 1e-6 {
             return None;
         }
         let ideal = self.k.k() * (p / p.z);
@@ -157,7 +157,7 @@ fn image_line(
         segment_px: None,
         polyline_px: Vec::new(),
     };
-    if !(a < b) {
+    if a.is_nan() || b.is_nan() || a >= b {
         return out;
     }
     // Sample, keep the visible range, refine both ends by bisection.

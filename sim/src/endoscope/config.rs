@@ -204,7 +204,7 @@ impl Default for TissueConfig {
             grid: 72,
             texture_px: 1024,
             fold_amplitude_m: 0.012,
-            wet_specular: 0.25,
+            wet_specular: 0.12,
         }
     }
 }

@@ -178,6 +178,9 @@ pub struct StereoRenderer {
 }
 
 const SRGB_LUT: usize = 8192;
+/// Blinn-Phong exponent of the wet tissue: a broad lobe, which per-vertex lighting renders
+/// without visible grid artefacts.
+const TISSUE_SHININESS: f32 = 6.0;
 const GAUSS_LUT: usize = 4096;
 
 fn splitmix(mut z: u64) -> u64 {
@@ -565,8 +568,11 @@ fn render_eye(
         let pc = t_c_e * Point3::from(*p);
         let nc3 = rot * n;
         let p32 = [pc.x as f32, pc.y as f32, pc.z as f32];
-        let (d, s) =
-            if pc.z > 0.0 { lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], 20.0) } else { (0.0, 0.0) };
+        let (d, s) = if pc.z > 0.0 {
+            lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], TISSUE_SHININESS)
+        } else {
+            (0.0, 0.0)
+        };
         wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
     }
     {

@@ -94,6 +94,8 @@ pub struct Tissue {
     pub texture_px: usize,
     /// Linear albedo per texel (RGB ×255, A unused), row-major, `v` down the rows.
     pub texture: Vec<[u8; 4]>,
+    /// The same texels packed little-endian into `u32` (R in the low byte).
+    packed: Vec<u32>,
 }
 
 impl Tissue {
@@ -136,35 +138,41 @@ impl Tissue {
             let c = FLAT_ALBEDO.map(|c| (c * 255.0).round() as u8);
             vec![[c[0], c[1], c[2], 255]]
         };
-        Self { positions, normals, uv, triangles, texture_px, texture }
+        let packed = texture.iter().map(|t| u32::from_le_bytes(*t)).collect();
+        Self { positions, normals, uv, triangles, texture_px, texture, packed }
     }
 
-    /// Bilinear albedo (linear RGB) at texture coordinates `(s, t)` (clamped to the edge).
+    /// Bilinear albedo (linear RGB) at texture coordinates `(s, t)` (clamped to the edge);
+    /// 8-bit weights, two channels per integer operation.
     #[inline]
     pub fn albedo(&self, s: f32, t: f32) -> [f32; 3] {
         let n = self.texture_px;
-        if n == 1 {
-            let p = self.texture[0];
-            return [p[0] as f32 / 255.0, p[1] as f32 / 255.0, p[2] as f32 / 255.0];
-        }
-        let x = (s * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
-        let y = (t * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
-        let (ix, iy) = (x as usize, y as usize);
-        let (fx, fy) = (x - ix as f32, y - iy as f32);
-        let ix1 = (ix + 1).min(n - 1);
-        let iy1 = (iy + 1).min(n - 1);
-        let t00 = self.texture[iy * n + ix];
-        let t10 = self.texture[iy * n + ix1];
-        let t01 = self.texture[iy1 * n + ix];
-        let t11 = self.texture[iy1 * n + ix1];
-        let mut out = [0.0f32; 3];
-        for (k, o) in out.iter_mut().enumerate() {
-            let a = t00[k] as f32 + (t10[k] as f32 - t00[k] as f32) * fx;
-            let b = t01[k] as f32 + (t11[k] as f32 - t01[k] as f32) * fx;
-            *o = (a + (b - a) * fy) * (1.0 / 255.0);
-        }
-        out
+        let c = if n == 1 {
+            self.packed[0]
+        } else {
+            let x = (s * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
+            let y = (t * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
+            let (ix, iy) = (x as usize, y as usize);
+            let (wx, wy) = (((x - ix as f32) * 256.0) as u32, ((y - iy as f32) * 256.0) as u32);
+            let ix1 = (ix + 1).min(n - 1);
+            let iy1 = (iy + 1).min(n - 1);
+            let p = &self.packed;
+            let top = lerp_packed(p[iy * n + ix], p[iy * n + ix1], wx);
+            let bot = lerp_packed(p[iy1 * n + ix], p[iy1 * n + ix1], wx);
+            lerp_packed(top, bot, wy)
+        };
+        const K: f32 = 1.0 / 255.0;
+        [(c & 0xFF) as f32 * K, ((c >> 8) & 0xFF) as f32 * K, ((c >> 16) & 0xFF) as f32 * K]
     }
+}
+
+/// `a + (b − a)·w/256` on the four bytes of packed RGBA texels.
+#[inline]
+fn lerp_packed(a: u32, b: u32, w: u32) -> u32 {
+    let iw = 256 - w;
+    let rb = (((a & 0x00FF_00FF) * iw + (b & 0x00FF_00FF) * w) >> 8) & 0x00FF_00FF;
+    let ag = (((a >> 8) & 0x00FF_00FF) * iw + ((b >> 8) & 0x00FF_00FF) * w) & 0xFF00_FF00;
+    rb | ag
 }
 
 fn lerp3(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
@@ -271,5 +279,17 @@ mod tests {
         let mean =
             a.texture.iter().fold([0u64; 3], |m, t| [m[0] + t[0] as u64, m[1] + t[1] as u64, m[2] + t[2] as u64]);
         assert!(mean[0] > 2 * mean[1] && mean[0] > 2 * mean[2], "{mean:?}");
+        // The packed bilinear lookup reproduces the texels at their centres and blends between.
+        let n = cfg.texture_px;
+        for (i, j) in [(0usize, 0usize), (5, 9), (127, 64)] {
+            let got = a.albedo((i as f32 + 0.5) / n as f32, (j as f32 + 0.5) / n as f32);
+            let want = a.texture[j * n + i];
+            for k in 0..3 {
+                assert!((got[k] * 255.0 - want[k] as f32).abs() < 1.01, "{got:?} vs {want:?}");
+            }
+        }
+        let mid = a.albedo(6.0 / n as f32, 9.5 / n as f32);
+        let (l, r) = (a.texture[9 * n + 5], a.texture[9 * n + 6]);
+        assert!((mid[0] * 255.0 - (l[0] as f32 + r[0] as f32) / 2.0).abs() < 1.01);
     }
 }

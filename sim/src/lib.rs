@@ -11,7 +11,9 @@
 //!   ([`twin::SimRobot`]);
 //! - [`truth_file`]: the ground-truth file of a run (JSON Lines) and scoring against it;
 //! - [`score`]: scoring a detector against ground truth;
-//! - [`calib`]: the dual RCM-arm calibration paper's simulation protocol (Sec. IV).
+//! - [`calib`]: the dual RCM-arm calibration paper's simulation protocol (Sec. IV);
+//! - [`endoscope`]: the simulated stereo endoscope: rendered frames of tissue and
+//!   instruments with their ground truth (`docs/vision.md`).
 //!
 //! The `simrobot` binary writes a run to a candump log plus its ground truth, or plays the
 //! robot live on a SocketCAN interface; see `docs/simulator.md`.
@@ -19,6 +21,7 @@
 
 pub mod calib;
 pub mod encoders;
+pub mod endoscope;
 pub mod robot;
 pub mod scenario;
 pub mod score;

@@ -5,6 +5,9 @@
 //!   truth). Deterministic: the same configuration and seed give the same bytes.
 //! - `simrobot live --iface vcan0`: answers the controller's SYNCs on a SocketCAN interface
 //!   and prints the true insertions and extractions as they happen.
+//! - `simrobot render --out DIR`: renders stereo endoscope frames of a moving instrument
+//!   (`DIR/frame_NNNNNN_{left,right}.png`, masks) and their ground truth (`DIR/truth.jsonl`);
+//!   `--samples` writes one image per realism option instead (`docs/vision.md`).
 //!
 //! Exit codes: 0 success; 1 run-time error; 2 bad command line or configuration; 3 the CAN
 //! interface cannot be opened (no CAN in the kernel, no such interface); 141 the standard
@@ -26,6 +29,9 @@ use hw_io::can::{
 };
 use hw_io::outln;
 use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
+use sim::endoscope::config::ConfigError as EndoscopeConfigError;
+use sim::endoscope::output::{OutputError, Sequence, render_sequence, write_samples};
+use sim::endoscope::{DemoMotion, EndoscopeConfig, InstrumentMesh, ObjError};
 use sim::truth_file::{DEFAULT_STATE_EVERY, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
 use sim::twin::{SYNC_PERIOD_US, SimRobot, TwinConfig, TwinConfigError, TwinError, TwinEvent};
 
@@ -45,6 +51,46 @@ enum Command {
     Generate(GenerateArgs),
     /// Answer the controller's SYNCs on a SocketCAN interface.
     Live(LiveArgs),
+    /// Render stereo endoscope frames and their ground truth (docs/vision.md).
+    Render(RenderArgs),
+}
+
+#[derive(Args, Debug)]
+struct RenderArgs {
+    /// Output directory (created if needed).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Renderer configuration (TOML, every key optional; see docs/vision.md). Defaults when absent.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Seed of the tissue texture and the noise (overrides seed).
+    #[arg(long, value_name = "S")]
+    seed: Option<u64>,
+    /// Number of stereo frames.
+    #[arg(long, value_name = "N", default_value_t = 30)]
+    frames: u64,
+    /// Speed factor of the demo motion (1: calm; 4: quick moves).
+    #[arg(long, value_name = "X", default_value_t = 1.0)]
+    speed: f64,
+    /// Mid time of the first frame's exposure, nanoseconds.
+    #[arg(long, value_name = "NS", default_value_t = 1_000_000_000)]
+    t0_ns: u64,
+    /// The instrument mesh from this OBJ (metres, instrument frame; docs/vision.md) instead
+    /// of the parametric one.
+    #[arg(long, value_name = "FILE")]
+    obj: Option<PathBuf>,
+    /// Also write the parametric instrument mesh to DIR/instrument.obj.
+    #[arg(long)]
+    write_obj: bool,
+    /// Do not write the label masks.
+    #[arg(long)]
+    no_masks: bool,
+    /// Write one sample image per realism option into DIR instead of a sequence.
+    #[arg(long)]
+    samples: bool,
+    /// Print the configuration in use as TOML and exit.
+    #[arg(long)]
+    print_config: bool,
 }
 
 #[derive(Args, Debug)]
@@ -143,6 +189,27 @@ enum GenerateError {
     Stdout(io::Error),
 }
 
+/// Why `render` failed.
+#[derive(Debug, thiserror::Error)]
+enum RenderCmdError {
+    #[error("cannot read {path}: {source}")]
+    Read { path: PathBuf, source: io::Error },
+    #[error("{path}: {source}")]
+    Parse { path: PathBuf, source: toml::de::Error },
+    #[error("--speed {0}: must be a finite positive number")]
+    Speed(f64),
+    #[error("{path}: {source}")]
+    Obj { path: PathBuf, source: ObjError },
+    #[error("configuration: {0}")]
+    Config(#[from] EndoscopeConfigError),
+    #[error(transparent)]
+    Output(#[from] OutputError),
+    #[error("printing the configuration: {0}")]
+    Toml(#[from] toml::ser::Error),
+    #[error("writing to standard output: {0}")]
+    Stdout(io::Error),
+}
+
 /// Why `live` failed.
 #[derive(Debug, thiserror::Error)]
 enum LiveError {
@@ -191,6 +258,22 @@ fn main() -> ExitCode {
             Err(e) => {
                 eprintln!("simrobot generate: error: {e}");
                 ExitCode::from(if matches!(e, GenerateError::Config(_) | GenerateError::Iface(_)) { 2 } else { 1 })
+            }
+        },
+        Command::Render(args) => match render(&args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(RenderCmdError::Stdout(e)) if is_broken_pipe(&e) => ExitCode::from(BROKEN_PIPE_EXIT),
+            Err(e) => {
+                eprintln!("simrobot render: error: {e}");
+                let usage = matches!(
+                    e,
+                    RenderCmdError::Read { .. }
+                        | RenderCmdError::Parse { .. }
+                        | RenderCmdError::Speed(_)
+                        | RenderCmdError::Obj { .. }
+                        | RenderCmdError::Config(_)
+                );
+                ExitCode::from(if usage { 2 } else { 1 })
             }
         },
         Command::Live(args) => match live(&args) {
@@ -353,6 +436,72 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
         elapsed - twin_s
     )
     .map_err(GenerateError::Stdout)
+}
+
+// ----------------------------------------------------------------------------------------
+// render
+
+fn render(args: &RenderArgs) -> Result<(), RenderCmdError> {
+    let mut cfg: EndoscopeConfig = match &args.config {
+        Some(path) => {
+            let text =
+                std::fs::read_to_string(path).map_err(|source| RenderCmdError::Read { path: path.clone(), source })?;
+            toml::from_str(&text).map_err(|source| RenderCmdError::Parse { path: path.clone(), source })?
+        }
+        None => EndoscopeConfig::default(),
+    };
+    if let Some(seed) = args.seed {
+        cfg.seed = seed;
+    }
+    if !(args.speed.is_finite() && args.speed > 0.0) {
+        return Err(RenderCmdError::Speed(args.speed));
+    }
+    if args.print_config {
+        let text = toml::to_string(&cfg)?;
+        return outln!("{text}").map_err(RenderCmdError::Stdout);
+    }
+    cfg.validate()?;
+    if args.samples {
+        let written = write_samples(&cfg, &args.out, args.t0_ns, args.speed)?;
+        for p in written {
+            outln!("{}", p.display()).map_err(RenderCmdError::Stdout)?;
+        }
+        return Ok(());
+    }
+    let mesh = match &args.obj {
+        Some(path) => {
+            InstrumentMesh::load_obj(path).map_err(|source| RenderCmdError::Obj { path: path.clone(), source })?
+        }
+        None => cfg.instrument.mesh().map_err(EndoscopeConfigError::from)?,
+    };
+    if args.write_obj {
+        std::fs::create_dir_all(&args.out).map_err(|source| OutputError::Io { path: args.out.clone(), source })?;
+        let path = args.out.join("instrument.obj");
+        let io = |source| OutputError::Io { path: path.clone(), source };
+        let mut w = BufWriter::new(File::create(&path).map_err(io)?);
+        mesh.write_obj(&mut w).map_err(io)?;
+        w.flush().map_err(io)?;
+    }
+    let bar = indicatif::ProgressBar::new(args.frames);
+    if !io::stderr().is_terminal() {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let motion = DemoMotion { speed: args.speed, ..Default::default() };
+    let seq = Sequence { frames: args.frames, t0_ns: args.t0_ns, masks: !args.no_masks };
+    let summary = render_sequence(&cfg, mesh, &motion, &seq, &args.out, |n| bar.set_position(n))?;
+    bar.finish_and_clear();
+    let k = &cfg.camera.intrinsics;
+    outln!(
+        "simrobot render: {} stereo frames {}x{} per eye into {} (truth.jsonl); rendering {:.1} ms per stereo frame ({:.1} frames/s), {:.2} s in all with PNG encoding",
+        summary.frames,
+        k.width,
+        k.height,
+        args.out.display(),
+        if summary.frames > 0 { summary.render_s * 1e3 / summary.frames as f64 } else { 0.0 },
+        if summary.render_s > 0.0 { summary.frames as f64 / summary.render_s } else { 0.0 },
+        summary.total_s
+    )
+    .map_err(RenderCmdError::Stdout)
 }
 
 // ----------------------------------------------------------------------------------------

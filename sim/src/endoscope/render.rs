@@ -1,0 +1,889 @@
+//! The stereo renderer: per eye, tissue and instruments are rasterised onto the undistorted
+//! canvas with forward Blinn-Phong shading (light at the endoscope tip, inverse-square
+//! falloff, optional smoke), the instruments once per motion-blur instant and averaged; the
+//! canvas is then warped through the lens distortion onto the image grid, defocused by depth,
+//! vignetted, given sensor noise and encoded to 8-bit sRGB.
+//!
+//! The two eyes are rendered in parallel (rayon), each on its own buffers: the result does
+//! not depend on the scheduling. Noise is drawn from ChaCha8 streams keyed by the seed, the
+//! frame's mid time, the eye and the row: the same seed and times give the same bytes.
+//! Nothing is allocated per frame once the first frame has sized the buffers (the ground
+//! truth's small vectors aside).
+
+use estimator::calib::Intrinsics;
+use estimator::calib::kinematics::camera_pose;
+use nalgebra::{Isometry3, Point3, Translation3, Vector2, Vector3};
+use rand::{RngCore, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::config::{ConfigError, EndoscopeConfig, Material};
+use super::mesh::{InstrumentMesh, Part};
+use super::raster::{Bounds, Canvas, Vtx, draw_triangle};
+use super::scene::{InstrumentState, SceneState};
+use super::tissue::Tissue;
+use super::truth::{EyeProjection, InstrumentTruth, PoseTruth, instrument_truth};
+
+/// Which eye.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Eye {
+    /// The left eye: the endoscope camera frame `{c}`.
+    Left,
+    /// The right eye: `{c}` shifted by the baseline along its `x`.
+    Right,
+}
+
+impl Eye {
+    /// Both eyes, left first.
+    pub const BOTH: [Eye; 2] = [Eye::Left, Eye::Right];
+
+    /// Short name (`left` / `right`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Eye::Left => "left",
+            Eye::Right => "right",
+        }
+    }
+}
+
+/// Mask labels (one byte per pixel).
+pub mod label {
+    /// Tissue or nothing.
+    pub const BACKGROUND: u8 = 0;
+    /// The instrument.
+    pub const INSTRUMENT: u8 = 1;
+    /// The second instrument.
+    pub const SECOND: u8 = 2;
+}
+
+/// Ground truth of one eye at the exposure's mid time.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EyeTruth {
+    /// Which eye.
+    pub eye: Eye,
+    /// `T_e_c`: this eye's camera frame in the world `{e}`, metres.
+    pub camera_in_world: PoseTruth,
+    /// The instruments drawn (label 1 first, then label 2 when the second is on).
+    pub instruments: Vec<InstrumentTruth>,
+}
+
+/// One eye's image.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EyeImage {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// 8-bit sRGB, row-major, 3 bytes per pixel.
+    pub rgb: Vec<u8>,
+    /// Visible instrument at the mid time per pixel ([`label`]), row-major.
+    pub labels: Vec<u8>,
+}
+
+/// A stereo frame with its ground truth.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoFrame {
+    /// Mid time of the exposure, nanoseconds on the caller's clock.
+    pub t_mid_ns: u64,
+    /// Endoscope arm joints at the mid time `[yaw rad, pitch rad, insertion m, roll rad]`.
+    pub ecm_joints: [f64; 4],
+    /// Left and right images.
+    pub images: [EyeImage; 2],
+    /// Left and right ground truth.
+    pub truth: [EyeTruth; 2],
+}
+
+impl Default for StereoFrame {
+    fn default() -> Self {
+        let empty =
+            |eye| EyeTruth { eye, camera_in_world: PoseTruth::from(&Isometry3::identity()), instruments: vec![] };
+        Self {
+            t_mid_ns: 0,
+            ecm_joints: [0.0; 4],
+            images: [EyeImage::default(), EyeImage::default()],
+            truth: [empty(Eye::Left), empty(Eye::Right)],
+        }
+    }
+}
+
+/// Mid time of frame `n`: `t0_ns + round(n · 10⁹ / fps)` nanoseconds.
+pub fn frame_mid_time_ns(t0_ns: u64, fps: f64, n: u64) -> u64 {
+    t0_ns.saturating_add((n as f64 * 1e9 / fps).round() as u64)
+}
+
+/// Why a renderer cannot be built.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NewRendererError {
+    /// The configuration is invalid.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The instrument mesh has no triangle or a non-finite vertex.
+    #[error("the instrument mesh is empty or has a non-finite vertex")]
+    Mesh,
+}
+
+/// Why a frame cannot be rendered.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RenderError {
+    /// A pose or joint of the scene is NaN or infinite.
+    #[error("the scene at t = {t_ns} ns has a non-finite {what}")]
+    NotFinite {
+        /// Time of the offending state, nanoseconds.
+        t_ns: u64,
+        /// What is not finite.
+        what: &'static str,
+    },
+}
+
+/// Per-eye work buffers (canvas-sized and image-sized).
+#[derive(Default)]
+struct EyeWork {
+    depth_t: Vec<f32>,
+    colour: Vec<[f32; 3]>,
+    depth_w: Vec<f32>,
+    s_col: Vec<[f32; 3]>,
+    s_lab: Vec<u8>,
+    acc: Vec<[f32; 3]>,
+    cnt: Vec<u8>,
+    lab_mid: Vec<u8>,
+    depth_mid: Vec<f32>,
+    out_lin: Vec<[f32; 3]>,
+    out_depth: Vec<f32>,
+    levels: [Vec<[f32; 3]>; 3],
+    tmp: Vec<[f32; 3]>,
+    verts: Vec<Vtx<5>>,
+    ivert: Vec<Vtx<3>>,
+}
+
+/// What both eyes share (read-only during a frame).
+struct Shared {
+    cfg: EndoscopeConfig,
+    mesh: InstrumentMesh,
+    tissue: Tissue,
+    hand_eye: Isometry3<f64>,
+    canvas: Canvas,
+    proj: EyeProjection,
+    /// Canvas coordinates of every image pixel (`None`: no distortion, canvas = image).
+    remap: Option<Vec<[f32; 2]>>,
+    vignette: Vec<f32>,
+    gauss: Vec<f32>,
+    srgb: Vec<u8>,
+}
+
+/// The simulated stereo endoscope.
+pub struct StereoRenderer {
+    shared: Shared,
+    work: [EyeWork; 2],
+}
+
+const SRGB_LUT: usize = 8192;
+/// Blinn-Phong exponent of the wet tissue: a broad lobe, which per-vertex lighting renders
+/// without visible grid artefacts.
+const TISSUE_SHININESS: f32 = 6.0;
+const GAUSS_LUT: usize = 4096;
+
+fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Inverse standard normal CDF at the centres of `n` equal-probability bins (the CDF is
+/// integrated numerically on a fine grid and inverted by interpolation).
+fn gauss_table(n: usize) -> Vec<f32> {
+    const STEPS: usize = 200_000;
+    let (lo, hi) = (-8.0f64, 8.0f64);
+    let h = (hi - lo) / STEPS as f64;
+    let pdf = |x: f64| (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt();
+    let mut cdf = Vec::with_capacity(STEPS + 1);
+    let mut acc = 0.0;
+    cdf.push(0.0);
+    for i in 0..STEPS {
+        let x = lo + i as f64 * h;
+        acc += h * (pdf(x) + 4.0 * pdf(x + h / 2.0) + pdf(x + h)) / 6.0;
+        cdf.push(acc);
+    }
+    let mut out = Vec::with_capacity(n);
+    let mut j = 0;
+    for i in 0..n {
+        let p = (i as f64 + 0.5) / n as f64;
+        while j + 1 < STEPS && cdf[j + 1] < p {
+            j += 1;
+        }
+        let t = (p - cdf[j]) / (cdf[j + 1] - cdf[j]).max(1e-300);
+        out.push((lo + (j as f64 + t) * h) as f32);
+    }
+    // Exact unit variance of the table (the binning trims the tails a little).
+    let var: f64 = out.iter().map(|&v| (v as f64).powi(2)).sum::<f64>() / n as f64;
+    let s = 1.0 / var.sqrt();
+    out.into_iter().map(|v| (v as f64 * s) as f32).collect()
+}
+
+fn srgb_table(n: usize) -> Vec<u8> {
+    (0..n)
+        .map(|i| {
+            let x = i as f64 / (n - 1) as f64;
+            let y = if x <= 0.003_130_8 { 12.92 * x } else { 1.055 * x.powf(1.0 / 2.4) - 0.055 };
+            (y * 255.0).round().clamp(0.0, 255.0) as u8
+        })
+        .collect()
+}
+
+/// Schlick's rational approximation of `x^n` for the specular lobe.
+#[inline]
+fn spec_pow(x: f32, n: f32) -> f32 {
+    x / (n - n * x + x)
+}
+
+#[inline]
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+fn normalize(a: [f32; 3]) -> [f32; 3] {
+    let l = dot(a, a).sqrt();
+    if l > 0.0 { [a[0] / l, a[1] / l, a[2] / l] } else { a }
+}
+
+/// Per-eye shading constants.
+#[derive(Clone, Copy)]
+struct Lighting {
+    light: [f32; 3],
+    e_ref: f32,
+    ambient: f32,
+    smoke: Option<(f32, [f32; 3])>,
+}
+
+impl Lighting {
+    /// Blinn-Phong factors at camera-frame point `p` with unit normal `n`: the diffuse
+    /// factor (ambient plus irradiance × cos) and the specular factor (irradiance × lobe).
+    #[inline]
+    fn terms(&self, p: [f32; 3], n: [f32; 3], shin: f32) -> (f32, f32) {
+        let ip = 1.0 / dot(p, p).sqrt();
+        let v = [-p[0] * ip, -p[1] * ip, -p[2] * ip];
+        let mut n = n;
+        if dot(n, v) < 0.0 {
+            n = [-n[0], -n[1], -n[2]];
+        }
+        let l = [self.light[0] - p[0], self.light[1] - p[1], self.light[2] - p[2]];
+        let d2 = dot(l, l);
+        let il = 1.0 / d2.sqrt();
+        let l = [l[0] * il, l[1] * il, l[2] * il];
+        let e = self.e_ref / d2;
+        let ndl = dot(n, l).max(0.0);
+        let h = normalize([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
+        let s = if ndl > 0.0 { spec_pow(dot(n, h).max(0.0), shin) * e } else { 0.0 };
+        (self.ambient + e * ndl, s)
+    }
+
+    /// Smoke transmittance at depth `z` (1 without smoke).
+    #[inline]
+    fn transmittance(&self, z: f32) -> f32 {
+        match self.smoke {
+            Some((density, _)) => (-density * z).exp(),
+            None => 1.0,
+        }
+    }
+
+    /// Adds the smoke's haze to a colour seen through transmittance `t`.
+    #[inline]
+    fn haze(&self, c: [f32; 3], t: f32) -> [f32; 3] {
+        match self.smoke {
+            Some((_, haze)) => {
+                [c[0] * t + haze[0] * (1.0 - t), c[1] * t + haze[1] * (1.0 - t), c[2] * t + haze[2] * (1.0 - t)]
+            }
+            None => c,
+        }
+    }
+
+    /// Blinn-Phong at camera-frame point `p` with unit normal `n`, through the smoke.
+    #[inline]
+    fn shade(&self, p: [f32; 3], n: [f32; 3], albedo: [f32; 3], spec: [f32; 3], shin: f32) -> [f32; 3] {
+        let (d, s) = self.terms(p, n, shin);
+        let c = [albedo[0] * d + spec[0] * s, albedo[1] * d + spec[1] * s, albedo[2] * d + spec[2] * s];
+        self.haze(c, self.transmittance(p[2]))
+    }
+}
+
+fn mat_f32(m: &Material, specular_on: bool) -> ([f32; 3], [f32; 3], f32) {
+    let spec = if specular_on { m.specular.map(|v| v as f32) } else { [0.0; 3] };
+    (m.diffuse.map(|v| v as f32), spec, m.shininess as f32)
+}
+
+impl StereoRenderer {
+    /// Builds the renderer: validates the configuration, precomputes the tissue (mesh and
+    /// texture), the distortion warp, the vignetting and the lookup tables.
+    pub fn new(cfg: EndoscopeConfig, mesh: InstrumentMesh) -> Result<Self, NewRendererError> {
+        cfg.validate()?;
+        if mesh.triangle_count() == 0
+            || !mesh.parts.iter().all(|(_, m)| m.positions.iter().flatten().all(|v| v.is_finite()))
+        {
+            return Err(NewRendererError::Mesh);
+        }
+        let Some(hand_eye) = cfg.camera.hand_eye.isometry() else {
+            return Err(ConfigError::Range { key: "camera.hand_eye", why: "finite, non-zero quaternion" }.into());
+        };
+        let k = cfg.camera.intrinsics;
+        let (w, h) = (k.width as usize, k.height as usize);
+        let (canvas, remap) = canvas_and_remap(&k)?;
+        let proj = EyeProjection {
+            k,
+            ideal_bounds: [
+                canvas.ox as f64,
+                canvas.oy as f64,
+                (canvas.ox + canvas.w as f32 - 1.0) as f64,
+                (canvas.oy + canvas.h as f32 - 1.0) as f64,
+            ],
+        };
+        let s = if cfg.realism.vignetting.enabled { cfg.realism.vignetting.strength as f32 } else { 0.0 };
+        let mut vignette = Vec::with_capacity(w * h);
+        for y in 0..h {
+            for x in 0..w {
+                let ideal = k.undistort_px(&Vector2::new(x as f64, y as f64));
+                let (xn, yn) = canvas.ray(ideal.x as f32 - canvas.ox, ideal.y as f32 - canvas.oy);
+                let c2 = 1.0 / (1.0 + xn * xn + yn * yn);
+                vignette.push(1.0 - s * (1.0 - c2 * c2));
+            }
+        }
+        let tissue = Tissue::new(&cfg.tissue, cfg.seed, cfg.realism.tissue_texture);
+        let shared = Shared {
+            cfg,
+            mesh,
+            tissue,
+            hand_eye,
+            canvas,
+            proj,
+            remap,
+            vignette,
+            gauss: gauss_table(GAUSS_LUT),
+            srgb: srgb_table(SRGB_LUT),
+        };
+        Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()] })
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &EndoscopeConfig {
+        &self.shared.cfg
+    }
+
+    /// Camera poses `T_e_c` of both eyes (metres) for endoscope arm joints `q`.
+    pub fn eye_poses(&self, ecm_joints: &[f64; 4]) -> [Isometry3<f64>; 2] {
+        eye_poses(&self.shared.hand_eye, self.shared.cfg.camera.baseline_m, ecm_joints)
+    }
+
+    /// Distorted pixel of world point `p_e` (metres, `{e}`) in one eye, `None` when behind the
+    /// camera or outside the image.
+    pub fn project_world(&self, eye_pose: &Isometry3<f64>, p_e: &Vector3<f64>) -> Option<Vector2<f64>> {
+        let p_c = eye_pose.inverse() * Point3::from(*p_e);
+        self.shared.proj.project_in_image(&p_c.coords)
+    }
+
+    /// Renders the stereo frame whose exposure is centred on `t_mid_ns`; `scene` gives the
+    /// scene at any time (it is called at the motion-blur instants).
+    pub fn render(&mut self, t_mid_ns: u64, scene: &dyn Fn(u64) -> SceneState) -> Result<StereoFrame, RenderError> {
+        let mut f = StereoFrame::default();
+        self.render_into(t_mid_ns, scene, &mut f)?;
+        Ok(f)
+    }
+
+    /// As [`StereoRenderer::render`], into `out` (its buffers are reused).
+    pub fn render_into(
+        &mut self,
+        t_mid_ns: u64,
+        scene: &dyn Fn(u64) -> SceneState,
+        out: &mut StereoFrame,
+    ) -> Result<(), RenderError> {
+        let sh = &self.shared;
+        let r = &sh.cfg.realism;
+        let k_samples = if r.motion_blur.enabled { r.motion_blur.samples } else { 1 };
+        let exposure_ns = sh.cfg.timing.exposure_s * 1e9;
+        let mut states: Vec<(u64, SceneState)> = Vec::with_capacity(k_samples);
+        for s in 0..k_samples {
+            let dt = exposure_ns * ((s as f64 + 0.5) / k_samples as f64 - 0.5);
+            let t = if k_samples == 1 { t_mid_ns } else { (t_mid_ns as f64 + dt).round().max(0.0) as u64 };
+            let st = scene(t);
+            if !st.ecm_joints.iter().all(|v| v.is_finite()) {
+                return Err(RenderError::NotFinite { t_ns: t, what: "endoscope joint" });
+            }
+            if !st.instrument.is_finite() {
+                return Err(RenderError::NotFinite { t_ns: t, what: "instrument pose or joint" });
+            }
+            if r.second_instrument && st.second.is_some_and(|s| !s.is_finite()) {
+                return Err(RenderError::NotFinite { t_ns: t, what: "second instrument pose or joint" });
+            }
+            states.push((t, st));
+        }
+        let mid = states[k_samples / 2].1;
+        let poses = eye_poses(&sh.hand_eye, sh.cfg.camera.baseline_m, &mid.ecm_joints);
+        let light_world = Point3::from((poses[0].translation.vector + poses[1].translation.vector) / 2.0);
+        let [w0, w1] = &mut self.work;
+        let [i0, i1] = &mut out.images;
+        let [t0, t1] = &mut out.truth;
+        let seed = sh.cfg.seed;
+        rayon::join(
+            || render_eye(sh, w0, Eye::Left, &poses[0], &light_world, &states, seed, t_mid_ns, i0, t0),
+            || render_eye(sh, w1, Eye::Right, &poses[1], &light_world, &states, seed, t_mid_ns, i1, t1),
+        );
+        out.t_mid_ns = t_mid_ns;
+        out.ecm_joints = mid.ecm_joints;
+        Ok(())
+    }
+}
+
+fn eye_poses(hand_eye: &Isometry3<f64>, baseline_m: f64, q: &[f64; 4]) -> [Isometry3<f64>; 2] {
+    let left = camera_pose(q, hand_eye);
+    [left, left * Translation3::new(baseline_m, 0.0, 0.0)]
+}
+
+/// The canvas (undistorted image covering every ideal pixel the image sees) and, with
+/// distortion, the canvas coordinates of every image pixel.
+/// Canvas coordinates of every image pixel, row-major (`None`: no distortion).
+type Remap = Option<Vec<[f32; 2]>>;
+
+fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
+    let (w, h) = (k.width as usize, k.height as usize);
+    let base = |ox: f32, oy: f32, cw: usize, ch: usize| Canvas {
+        w: cw,
+        h: ch,
+        ox,
+        oy,
+        fx: k.fx as f32,
+        fy: k.fy as f32,
+        skew: k.skew as f32,
+        cx: k.cx as f32,
+        cy: k.cy as f32,
+    };
+    if k.is_undistorted() {
+        return Ok((base(0.0, 0.0, w, h), None));
+    }
+    // Undistort the border; check the round trip (a distortion that folds over fails it).
+    let mut border = Vec::new();
+    for x in 0..w {
+        border.push((x as f64, 0.0));
+        border.push((x as f64, (h - 1) as f64));
+    }
+    for y in 0..h {
+        border.push((0.0, y as f64));
+        border.push(((w - 1) as f64, y as f64));
+    }
+    let (mut u0, mut v0, mut u1, mut v1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for (x, y) in border {
+        let px = Vector2::new(x, y);
+        let ideal = k.undistort_px(&px);
+        let p = k.k_inv() * Vector3::new(ideal.x, ideal.y, 1.0);
+        let back = k.project(&p);
+        if !(ideal.x.is_finite() && ideal.y.is_finite()) || (back - px).norm() > 0.01 {
+            return Err(ConfigError::Distortion);
+        }
+        u0 = u0.min(ideal.x);
+        v0 = v0.min(ideal.y);
+        u1 = u1.max(ideal.x);
+        v1 = v1.max(ideal.y);
+    }
+    let (ox, oy) = ((u0 - 2.0).floor(), (v0 - 2.0).floor());
+    let (cw, ch) = ((u1 + 2.0).ceil() - ox + 1.0, (v1 + 2.0).ceil() - oy + 1.0);
+    if !(cw > 1.0 && ch > 1.0 && cw <= 3.0 * w as f64 + 8.0 && ch <= 3.0 * h as f64 + 8.0) {
+        return Err(ConfigError::Distortion);
+    }
+    let canvas = base(ox as f32, oy as f32, cw as usize, ch as usize);
+    let mut remap = Vec::with_capacity(w * h);
+    for y in 0..h {
+        for x in 0..w {
+            let ideal = k.undistort_px(&Vector2::new(x as f64, y as f64));
+            remap.push([(ideal.x - ox) as f32, (ideal.y - oy) as f32]);
+        }
+    }
+    Ok((canvas, Some(remap)))
+}
+
+fn resize<T: Clone>(v: &mut Vec<T>, n: usize, fill: T) {
+    if v.len() != n {
+        v.clear();
+        v.resize(n, fill);
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn render_eye(
+    sh: &Shared,
+    wk: &mut EyeWork,
+    eye: Eye,
+    t_e_c: &Isometry3<f64>,
+    light_world: &Point3<f64>,
+    states: &[(u64, SceneState)],
+    seed: u64,
+    t_mid_ns: u64,
+    img: &mut EyeImage,
+    truth: &mut EyeTruth,
+) {
+    let cfg = &sh.cfg;
+    let r = &cfg.realism;
+    let c = sh.canvas;
+    let nc = c.w * c.h;
+    let (w, h) = (cfg.camera.intrinsics.width as usize, cfg.camera.intrinsics.height as usize);
+    let no = w * h;
+    resize(&mut wk.depth_t, nc, f32::INFINITY);
+    resize(&mut wk.colour, nc, [0.0; 3]);
+    resize(&mut wk.depth_w, nc, f32::INFINITY);
+    resize(&mut wk.s_col, nc, [0.0; 3]);
+    resize(&mut wk.s_lab, nc, 0);
+    resize(&mut wk.acc, nc, [0.0; 3]);
+    resize(&mut wk.cnt, nc, 0);
+    resize(&mut wk.lab_mid, nc, 0);
+    resize(&mut wk.depth_mid, nc, f32::INFINITY);
+    resize(&mut wk.out_lin, no, [0.0; 3]);
+    resize(&mut wk.out_depth, no, f32::INFINITY);
+    resize(&mut img.rgb, no * 3, 0);
+    resize(&mut img.labels, no, 0);
+    img.width = w as u32;
+    img.height = h as u32;
+
+    let t_c_e = t_e_c.inverse();
+    let light_c = t_c_e * light_world;
+    let lo = cfg.light;
+    let smoke = r.smoke.enabled.then(|| {
+        let e = lo.intensity as f32;
+        (r.smoke.density_per_m as f32, r.smoke.colour.map(|v| v as f32 * e))
+    });
+    let lighting = Lighting {
+        light: [light_c.x as f32, light_c.y as f32, light_c.z as f32],
+        e_ref: (lo.intensity * lo.reference_distance_m * lo.reference_distance_m) as f32,
+        ambient: lo.ambient as f32,
+        smoke,
+    };
+
+    // 1. Tissue.
+    wk.depth_t.fill(f32::INFINITY);
+    let bg = smoke.map(|(_, haze)| haze).unwrap_or([0.0; 3]);
+    wk.colour.fill(bg);
+    // Tissue lighting per vertex (Gouraud: the grid is finer than the light's variation),
+    // interpolated with the texture coordinates; the texture is sampled per pixel.
+    let rot = t_c_e.rotation;
+    let wet = cfg.tissue.wet_specular as f32;
+    wk.verts.clear();
+    for ((p, n), uv) in sh.tissue.positions.iter().zip(&sh.tissue.normals).zip(&sh.tissue.uv) {
+        let pc = t_c_e * Point3::from(*p);
+        let nc3 = rot * n;
+        let p32 = [pc.x as f32, pc.y as f32, pc.z as f32];
+        let (d, s) = if pc.z > 0.0 {
+            lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], TISSUE_SHININESS)
+        } else {
+            (0.0, 0.0)
+        };
+        wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
+    }
+    {
+        let tissue = &sh.tissue;
+        let colour = &mut wk.colour;
+        let mut b = Bounds::EMPTY;
+        let verts = &wk.verts;
+        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
+            let al = tissue.albedo(a[0], a[1]);
+            let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+            colour[idx] = lighting.haze(c, a[4]);
+        };
+        for t in &tissue.triangles {
+            let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+            draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+        }
+    }
+
+    // 2. Instruments, once per motion-blur instant.
+    let k_samples = states.len();
+    let mid = k_samples / 2;
+    wk.lab_mid.fill(0);
+    wk.depth_mid.copy_from_slice(&wk.depth_t);
+    let mut union = Bounds::EMPTY;
+    let geometry = &cfg.instrument;
+    // The working depth equals the tissue's outside what the last instant drew.
+    wk.depth_w.copy_from_slice(&wk.depth_t);
+    for (s, (_, st)) in states.iter().enumerate() {
+        let mut instruments: [Option<(u8, &InstrumentState)>; 2] = [Some((label::INSTRUMENT, &st.instrument)), None];
+        if r.second_instrument {
+            instruments[1] = st.second.as_ref().map(|s| (label::SECOND, s));
+        }
+        // Posed vertices of every part of every instrument.
+        wk.ivert.clear();
+        let mut ranges: Vec<(usize, usize, Material, u8)> = Vec::with_capacity(8);
+        for (lab, inst) in instruments.iter().flatten() {
+            let poses = geometry.part_poses(inst.wrist_rad, inst.jaw_rad);
+            for (pi, (part, m)) in sh.mesh.parts.iter().enumerate() {
+                let jp = match part {
+                    Part::Shaft => poses[0],
+                    Part::Wrist => poses[1],
+                    Part::Jaw1 => poses[2],
+                    Part::Jaw2 => poses[3],
+                };
+                let t = t_c_e * inst.pose_world * jp;
+                let (t32, r32) =
+                    (t.translation.vector.cast::<f32>(), t.rotation.to_rotation_matrix().matrix().cast::<f32>());
+                let start = wk.ivert.len();
+                for (p, n) in m.positions.iter().zip(&m.normals) {
+                    let pc = r32 * Vector3::from(*p) + t32;
+                    let nn = r32 * Vector3::from(*n);
+                    wk.ivert.push(Vtx { p: [pc.x, pc.y, pc.z], a: [nn.x, nn.y, nn.z] });
+                }
+                let mat = match (part, *lab) {
+                    (Part::Shaft, label::SECOND) => cfg.materials.second_shaft,
+                    (Part::Shaft, _) => cfg.materials.shaft,
+                    _ => cfg.materials.tip,
+                };
+                ranges.push((start, pi, mat, *lab));
+            }
+        }
+        let mut drawn = Bounds::EMPTY;
+        for &(start, pi, mat, lab) in &ranges {
+            let m = &sh.mesh.parts[pi].1;
+            let (albedo, spec, shin) = mat_f32(&mat, r.specular);
+            let verts = &wk.ivert[start..start + m.positions.len()];
+            let (s_col, s_lab) = (&mut wk.s_col, &mut wk.s_lab);
+            let mut frag = |idx: usize, x: usize, y: usize, z: f32, a: &[f32; 3]| {
+                let (xn, yn) = c.ray(x as f32, y as f32);
+                s_col[idx] = lighting.shade([xn * z, yn * z, z], normalize(*a), albedo, spec, shin);
+                s_lab[idx] = lab;
+            };
+            for t in &m.triangles {
+                let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+                draw_triangle(&c, &mut wk.depth_w, &tri, true, &mut drawn, &mut frag);
+            }
+        }
+        if drawn.is_empty() {
+            continue;
+        }
+        union = union.union(&drawn);
+        for y in drawn.y0..=drawn.y1 {
+            for i in y * c.w + drawn.x0..=y * c.w + drawn.x1 {
+                let l = wk.s_lab[i];
+                if l != 0 {
+                    let sc = wk.s_col[i];
+                    let a = &mut wk.acc[i];
+                    a[0] += sc[0];
+                    a[1] += sc[1];
+                    a[2] += sc[2];
+                    wk.cnt[i] += 1;
+                    if s == mid {
+                        wk.lab_mid[i] = l;
+                        wk.depth_mid[i] = wk.depth_w[i];
+                    }
+                    wk.s_lab[i] = 0;
+                }
+            }
+            let row = y * c.w;
+            wk.depth_w[row + drawn.x0..=row + drawn.x1].copy_from_slice(&wk.depth_t[row + drawn.x0..=row + drawn.x1]);
+        }
+    }
+    // Composite: each instant covers a pixel with the instrument or leaves the tissue.
+    if !union.is_empty() {
+        let inv_k = 1.0 / k_samples as f32;
+        for y in union.y0..=union.y1 {
+            for i in y * c.w + union.x0..=y * c.w + union.x1 {
+                let n = wk.cnt[i];
+                if n != 0 {
+                    let rest = (k_samples - n as usize) as f32;
+                    let (t, a) = (wk.colour[i], wk.acc[i]);
+                    wk.colour[i] =
+                        [(t[0] * rest + a[0]) * inv_k, (t[1] * rest + a[1]) * inv_k, (t[2] * rest + a[2]) * inv_k];
+                    wk.acc[i] = [0.0; 3];
+                    wk.cnt[i] = 0;
+                }
+            }
+        }
+    }
+
+    // 3. Lens distortion: canvas → image.
+    match &sh.remap {
+        None => {
+            wk.out_lin.copy_from_slice(&wk.colour);
+            wk.out_depth.copy_from_slice(&wk.depth_mid);
+            img.labels.copy_from_slice(&wk.lab_mid);
+        }
+        Some(map) => {
+            for (i, m) in map.iter().enumerate() {
+                let (x, y) = (m[0].clamp(0.0, (c.w - 1) as f32), m[1].clamp(0.0, (c.h - 1) as f32));
+                let (ix, iy) = ((x as usize).min(c.w - 2), (y as usize).min(c.h - 2));
+                let (fx, fy) = (x - ix as f32, y - iy as f32);
+                let j = iy * c.w + ix;
+                let (a, b, cc, d) = (wk.colour[j], wk.colour[j + 1], wk.colour[j + c.w], wk.colour[j + c.w + 1]);
+                let mut o = [0.0f32; 3];
+                for k in 0..3 {
+                    let top = a[k] + (b[k] - a[k]) * fx;
+                    let bot = cc[k] + (d[k] - cc[k]) * fx;
+                    o[k] = top + (bot - top) * fy;
+                }
+                wk.out_lin[i] = o;
+                let nearest = (y + 0.5) as usize * c.w + (x + 0.5) as usize;
+                let nearest = nearest.min(nc - 1);
+                wk.out_depth[i] = wk.depth_mid[nearest];
+                img.labels[i] = wk.lab_mid[nearest];
+            }
+        }
+    }
+
+    // 4. Defocus.
+    if r.defocus.enabled && r.defocus.aperture_m > 0.0 && r.defocus.max_coc_px > 0.0 {
+        defocus(wk, w, h, cfg.camera.intrinsics.fx as f32, &r.defocus);
+    }
+
+    // 5. Vignetting, noise, sRGB.
+    let noise =
+        r.noise.enabled.then_some((r.noise.full_well_e as f32, (r.noise.read_noise_e * r.noise.read_noise_e) as f32));
+    let eye_key = match eye {
+        Eye::Left => 0x4C45_4654u64,
+        Eye::Right => 0x5249_4748u64,
+    };
+    let lut_max = (SRGB_LUT - 1) as f32;
+    for y in 0..h {
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(splitmix(seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32)))));
+        for x in 0..w {
+            let i = y * w + x;
+            let g = sh.vignette[i];
+            let mut v = wk.out_lin[i].map(|c| c * g);
+            if let Some((fw, read2)) = noise {
+                let bits = rng.next_u64();
+                for (k, c) in v.iter_mut().enumerate() {
+                    let n = sh.gauss[((bits >> (16 * k + 4)) & 0xFFF) as usize];
+                    let e = c.max(0.0) * fw;
+                    *c += (e + read2).sqrt() / fw * n;
+                }
+            }
+            for (k, c) in v.iter().enumerate() {
+                img.rgb[3 * i + k] = sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
+            }
+        }
+    }
+
+    // Ground truth.
+    truth.eye = eye;
+    truth.camera_in_world = PoseTruth::from(t_e_c);
+    truth.instruments.clear();
+    let st = &states[mid].1;
+    truth.instruments.push(instrument_truth(label::INSTRUMENT, &st.instrument, geometry, &t_c_e, &sh.proj));
+    if r.second_instrument
+        && let Some(s2) = &st.second
+    {
+        truth.instruments.push(instrument_truth(label::SECOND, s2, geometry, &t_c_e, &sh.proj));
+    }
+}
+
+/// 2×2 box down-sampling then a [1 2 1]/4 blur in both directions.
+fn down_blur(
+    src: &[[f32; 3]],
+    sw: usize,
+    sh: usize,
+    dst: &mut Vec<[f32; 3]>,
+    tmp: &mut Vec<[f32; 3]>,
+) -> (usize, usize) {
+    let (dw, dh) = (sw.div_ceil(2), sh.div_ceil(2));
+    resize(dst, dw * dh, [0.0; 3]);
+    resize(tmp, dw * dh, [0.0; 3]);
+    for y in 0..dh {
+        let (y0, y1) = (2 * y, (2 * y + 1).min(sh - 1));
+        for x in 0..dw {
+            let (x0, x1) = (2 * x, (2 * x + 1).min(sw - 1));
+            let (a, b, c, d) = (src[y0 * sw + x0], src[y0 * sw + x1], src[y1 * sw + x0], src[y1 * sw + x1]);
+            tmp[y * dw + x] = [
+                0.25 * (a[0] + b[0] + c[0] + d[0]),
+                0.25 * (a[1] + b[1] + c[1] + d[1]),
+                0.25 * (a[2] + b[2] + c[2] + d[2]),
+            ];
+        }
+    }
+    // Horizontal [1 2 1] into dst, vertical back into tmp, swap.
+    for y in 0..dh {
+        let row = y * dw;
+        for x in 0..dw {
+            let (l, m, r) = (tmp[row + x.saturating_sub(1)], tmp[row + x], tmp[row + (x + 1).min(dw - 1)]);
+            dst[row + x] = [
+                0.25 * (l[0] + 2.0 * m[0] + r[0]),
+                0.25 * (l[1] + 2.0 * m[1] + r[1]),
+                0.25 * (l[2] + 2.0 * m[2] + r[2]),
+            ];
+        }
+    }
+    for y in 0..dh {
+        let (up, dn) = (y.saturating_sub(1) * dw, (y + 1).min(dh - 1) * dw);
+        let row = y * dw;
+        for x in 0..dw {
+            let (u, m, d) = (dst[up + x], dst[row + x], dst[dn + x]);
+            tmp[row + x] = [
+                0.25 * (u[0] + 2.0 * m[0] + d[0]),
+                0.25 * (u[1] + 2.0 * m[1] + d[1]),
+                0.25 * (u[2] + 2.0 * m[2] + d[2]),
+            ];
+        }
+    }
+    std::mem::swap(dst, tmp);
+    (dw, dh)
+}
+
+#[inline]
+fn sample_level(l: &[[f32; 3]], lw: usize, lh: usize, scale: f32, x: usize, y: usize) -> [f32; 3] {
+    let fx = ((x as f32 + 0.5) / scale - 0.5).clamp(0.0, (lw - 1) as f32);
+    let fy = ((y as f32 + 0.5) / scale - 0.5).clamp(0.0, (lh - 1) as f32);
+    let (ix, iy) = (fx as usize, fy as usize);
+    let (ix1, iy1) = ((ix + 1).min(lw - 1), (iy + 1).min(lh - 1));
+    let (tx, ty) = (fx - ix as f32, fy - iy as f32);
+    let (a, b, c, d) = (l[iy * lw + ix], l[iy * lw + ix1], l[iy1 * lw + ix], l[iy1 * lw + ix1]);
+    let mut o = [0.0; 3];
+    for k in 0..3 {
+        let top = a[k] + (b[k] - a[k]) * tx;
+        let bot = c[k] + (d[k] - c[k]) * tx;
+        o[k] = top + (bot - top) * ty;
+    }
+    o
+}
+
+/// Depth-dependent defocus: a pyramid of blurred levels (radius ≈ 1, 2, 4 px), each pixel
+/// interpolating between the two levels around its circle of confusion (a gather blur:
+/// a pixel's blur follows its own depth, so a blurred edge does not spread onto a sharp
+/// background).
+fn defocus(wk: &mut EyeWork, w: usize, h: usize, fx: f32, d: &super::config::DefocusConfig) {
+    let k = (d.aperture_m as f32) * fx * 0.5; // radius, pixels, per unit |1/z − 1/zf|
+    let izf = 1.0 / d.focus_distance_m as f32;
+    let rmax = 0.5 * d.max_coc_px as f32;
+    let radius = |z: f32| if z.is_finite() { (k * (1.0 / z - izf).abs()).min(rmax) } else { rmax };
+    if !wk.out_depth.iter().any(|&z| radius(z) > 0.35) {
+        return;
+    }
+    let [l1, l2, l3] = &mut wk.levels;
+    let (w1, h1) = down_blur(&wk.out_lin, w, h, l1, &mut wk.tmp);
+    let (w2, h2) = down_blur(l1, w1, h1, l2, &mut wk.tmp);
+    let (w3, h3) = down_blur(l2, w2, h2, l3, &mut wk.tmp);
+    const R: [f32; 4] = [0.0, 1.0, 2.0, 4.0];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let rr = radius(wk.out_depth[i]);
+            if rr <= 0.35 {
+                continue;
+            }
+            let lvl = |n: usize, out: &[[f32; 3]]| match n {
+                0 => out[i],
+                1 => sample_level(l1, w1, h1, 2.0, x, y),
+                2 => sample_level(l2, w2, h2, 4.0, x, y),
+                _ => sample_level(l3, w3, h3, 8.0, x, y),
+            };
+            let n = if rr < R[1] {
+                0
+            } else if rr < R[2] {
+                1
+            } else if rr < R[3] {
+                2
+            } else {
+                3
+            };
+            let v = if n == 3 {
+                lvl(3, &wk.out_lin)
+            } else {
+                let t = (rr - R[n]) / (R[n + 1] - R[n]);
+                let (a, b) = (lvl(n, &wk.out_lin), lvl(n + 1, &wk.out_lin));
+                [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
+            };
+            wk.out_lin[i] = v;
+        }
+    }
+}

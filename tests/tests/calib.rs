@@ -3,12 +3,12 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::crb::cramer_rao_bound;
-use estimator::calib::rcm_arms::se3_exp;
 use estimator::calib::ours::{OursConfig, OursError, solve_ours, solve_ours_prepared};
 use estimator::calib::paper::{
     PaperConfig, PaperError, eq10_w, kronecker_row, project_to_so3, refine_quaternion, solve_paper, wxyz,
 };
 use estimator::calib::prepare::{PrepareError, Prepared, PreparedSet, prepare};
+use estimator::calib::rcm_arms::se3_exp;
 use estimator::calib::residual::{noise_jacobian, residual_and_jacobian};
 use estimator::calib::{KinematicNoise, Observation, pose_errors};
 use nalgebra::{

@@ -36,10 +36,10 @@
 
 pub mod camera;
 pub mod crb;
-pub mod rcm_arms;
 pub mod ours;
 pub mod paper;
 pub mod prepare;
+pub mod rcm_arms;
 pub mod residual;
 pub mod selection;
 

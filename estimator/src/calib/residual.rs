@@ -10,8 +10,8 @@
 use nalgebra::{Matrix2, Matrix3, Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
 use super::KinematicNoise;
-use super::rcm_arms::skew;
 use super::prepare::{Prepared, PreparedSet};
+use super::rcm_arms::skew;
 
 /// 2×6 Jacobian of one observation's residual pair w.r.t. `(t, δφ)`.
 pub type Jac6 = SMatrix<f64, 2, 6>;

@@ -39,8 +39,8 @@ use nalgebra::{
 };
 
 use super::KinematicNoise;
-use super::rcm_arms::skew;
 use super::prepare::{Prepared, PreparedSet};
+use super::rcm_arms::skew;
 use super::residual::{Jac6, damped_step, noise_jacobian, residual_and_jacobian, residual_covariance};
 
 /// The predicted tool tip of an observation, seen by its camera.

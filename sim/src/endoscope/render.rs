@@ -11,7 +11,7 @@
 //! truth's small vectors aside).
 
 use estimator::calib::Intrinsics;
-use estimator::calib::kinematics::camera_pose;
+use estimator::calib::rcm_arms::camera_pose;
 use nalgebra::{Isometry3, Point3, Translation3, Vector2, Vector3};
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -6,9 +6,9 @@
 //! World frame: `{e}`, the endoscope arm's remote centre of motion (`docs/calibration.md`),
 //! metres. The instruments move like the calibration's PSM-like arm about their own trocar
 //! (RCM): `T_e_i = T_e_t · F3(yaw, pitch, insertion) · Rz(roll)`
-//! ([`estimator::calib::kinematics::psm_frames`]).
+//! ([`estimator::calib::rcm_arms::psm_frames`]).
 
-use estimator::calib::kinematics::psm_frames;
+use estimator::calib::rcm_arms::psm_frames;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 

@@ -474,29 +474,24 @@ mod tests {
     fn generated_mesh_is_closed_and_outward() {
         // Each part: the signed volume (divergence theorem) is positive: faces point outward.
         let mesh = InstrumentGeometry::default().mesh().unwrap();
-        for (part, m) in &mesh.parts {
-            let vol: f64 = m
-                .triangle_soup()
+        // Signed volume of a closed triangle soup (divergence theorem), cubic metres.
+        let volume = |m: &TriMesh| -> f64 {
+            m.triangle_soup()
                 .iter()
                 .map(|t| {
                     let [a, b, c] = t.map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64));
                     a.dot(&b.cross(&c)) / 6.0
                 })
-                .sum();
+                .sum()
+        };
+        for (part, m) in &mesh.parts {
+            let vol = volume(m);
             assert!(vol > 0.0, "{part:?} has signed volume {vol}");
         }
         let g = InstrumentGeometry::default();
         let r = g.shaft_radius_m();
         let expected = std::f64::consts::PI * r * r * g.shaft_length_m;
-        let shaft_vol: f64 = mesh.parts[0]
-            .1
-            .triangle_soup()
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64));
-                a.dot(&b.cross(&c)) / 6.0
-            })
-            .sum();
+        let shaft_vol = volume(&mesh.parts[0].1);
         assert!((shaft_vol / expected - 1.0).abs() < 0.01, "{shaft_vol} vs {expected}");
     }
 }

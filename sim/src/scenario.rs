@@ -623,34 +623,69 @@ pub fn generate(cfg: &ScenarioConfig) -> Scenario {
     b.out
 }
 
+/// Why a scenario configuration was refused; each variant names the key.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ScenarioConfigError {
+    /// `trocars_base_m` is empty.
+    #[error("scenario.trocars_base_m: at least one trocar is needed")]
+    NoTrocar,
+    /// A trocar position (metres, robot base frame) has a NaN or infinite coordinate.
+    #[error("scenario.trocars_base_m: {0:?} is not finite")]
+    TrocarNotFinite([f64; 3]),
+    /// A number outside its allowed range (the unit is the key's: `_s` seconds, `_m` metres,
+    /// `_deg` degrees, `_hz` hertz, probabilities dimensionless).
+    #[error("scenario.{key} = {value}: allowed {allowed}")]
+    OutOfRange {
+        /// The key below `scenario.`.
+        key: &'static str,
+        /// The value given.
+        value: f64,
+        /// The allowed range, for people.
+        allowed: &'static str,
+    },
+    /// A `[min, max]` pair that is not `0 < min <= max <= limit`.
+    #[error("scenario.{key} = {value:?}: must be [min, max] with 0 < min <= max <= {limit}")]
+    BadInterval {
+        /// The key below `scenario.`.
+        key: &'static str,
+        /// The pair given.
+        value: [f64; 2],
+        /// The largest allowed value (the key's unit).
+        limit: f64,
+    },
+}
+
 impl ScenarioConfig {
     /// Checks user-supplied parameters.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), ScenarioConfigError> {
+        use ScenarioConfigError::OutOfRange;
         if self.trocars_base_m.is_empty() {
-            return Err("scenario.trocars_base_m: at least one trocar is needed".into());
+            return Err(ScenarioConfigError::NoTrocar);
         }
         if !(self.sample_period_s > 0.0 && self.sample_period_s <= 0.1) {
-            return Err(format!("scenario.sample_period_s = {}: allowed (0, 0.1] s", self.sample_period_s));
+            return Err(OutOfRange { key: "sample_period_s", value: self.sample_period_s, allowed: "(0, 0.1] s" });
         }
         if !(self.instrument_length_m > 0.1 && self.instrument_length_m < 1.0) {
-            return Err(format!("scenario.instrument_length_m = {}: allowed (0.1, 1) m", self.instrument_length_m));
+            return Err(OutOfRange {
+                key: "instrument_length_m",
+                value: self.instrument_length_m,
+                allowed: "(0.1, 1) m",
+            });
         }
-        for (key, sigma) in
-            [("scenario.wrist_noise_m", self.wrist_noise_m), ("scenario.axis_noise_deg", self.axis_noise_deg)]
-        {
+        for (key, sigma) in [("wrist_noise_m", self.wrist_noise_m), ("axis_noise_deg", self.axis_noise_deg)] {
             if !(sigma.is_finite() && sigma >= 0.0) {
-                return Err(format!("{key} = {sigma}: must be finite and >= 0"));
+                return Err(OutOfRange { key, value: sigma, allowed: "finite and >= 0" });
             }
         }
         let st = &self.style;
         for (key, p) in [
-            ("scenario.style.shaft_pivot_probability", st.shaft_pivot_probability),
-            ("scenario.style.hover_probability", st.hover_probability),
-            ("scenario.style.aim_probability", st.aim_probability),
-            ("scenario.style.reinsert_probability", st.reinsert_probability),
+            ("style.shaft_pivot_probability", st.shaft_pivot_probability),
+            ("style.hover_probability", st.hover_probability),
+            ("style.aim_probability", st.aim_probability),
+            ("style.reinsert_probability", st.reinsert_probability),
         ] {
             if !(0.0..=1.0).contains(&p) {
-                return Err(format!("{key} = {p}: allowed [0, 1]"));
+                return Err(OutOfRange { key, value: p, allowed: "[0, 1]" });
             }
         }
         Ok(())
@@ -786,7 +821,7 @@ mod tests {
             style: StyleConfig { hover_probability: 1.5, ..Default::default() },
             ..Default::default()
         };
-        assert!(cfg.check().unwrap_err().contains("scenario.style.hover_probability"));
+        assert!(cfg.check().unwrap_err().to_string().contains("scenario.style.hover_probability"));
     }
 
     #[test]

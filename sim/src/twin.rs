@@ -54,7 +54,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::encoders::{NodeOptions, SyncFrames, VirtualNodes, VirtualNodesError};
 use crate::robot::{IkError, IkTracker, ModelError, SimulatedArm};
-use crate::scenario::{Scenario, ScenarioConfig, Truth, TruthState, generate};
+use crate::scenario::{Scenario, ScenarioConfig, ScenarioConfigError, Truth, TruthState, generate};
 
 /// The SYNC period of the encoder bus, microseconds: one sample of the twin per SYNC.
 pub const SYNC_PERIOD_US: u64 = 1000;
@@ -185,8 +185,8 @@ impl Default for TwinConfig {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TwinConfigError {
     /// A scenario parameter is out of range.
-    #[error("{0}")]
-    Scenario(String),
+    #[error(transparent)]
+    Scenario(#[from] ScenarioConfigError),
     /// The nominal or the true DH table is invalid.
     #[error("kinematics (nominal, or nominal plus model_error): {0}")]
     Kinematics(#[from] KinematicsConfigError),
@@ -281,40 +281,42 @@ pub struct SimRobot {
 /// Checks the scenario parameters a twin relies on (beyond [`ScenarioConfig::check`]), so
 /// that generation cannot panic on user input.
 fn check_scenario(s: &ScenarioConfig) -> Result<(), TwinConfigError> {
-    s.check().map_err(TwinConfigError::Scenario)?;
-    let err = |m: String| Err(TwinConfigError::Scenario(m));
+    use ScenarioConfigError::{BadInterval, OutOfRange, TrocarNotFinite};
+    s.check()?;
     if (s.sample_period_s * 1e6 - SYNC_PERIOD_US as f64).abs() > 1e-6 {
-        return err(format!(
-            "scenario.sample_period_s = {}: the twin answers one sample per 1 ms SYNC, it must be 0.001",
-            s.sample_period_s
-        ));
+        return Err(OutOfRange {
+            key: "sample_period_s",
+            value: s.sample_period_s,
+            allowed: "0.001 s only (the twin answers one sample per 1 ms SYNC)",
+        }
+        .into());
     }
-    for (key, r, max) in [
+    for (key, r, limit) in [
         ("inside_s", s.inside_s, 3600.0),
         ("outside_s", s.outside_s, 3600.0),
         ("pivot_frequency_hz", s.pivot_frequency_hz, 50.0),
     ] {
-        if !(r.iter().all(|v| v.is_finite() && *v > 0.0 && *v <= max) && r[0] <= r[1]) {
-            return err(format!("scenario.{key} = {r:?}: must be [min, max] with 0 < min <= max <= {max}"));
+        if !(r.iter().all(|v| v.is_finite() && *v > 0.0 && *v <= limit) && r[0] <= r[1]) {
+            return Err(BadInterval { key, value: r, limit }.into());
         }
     }
-    for (key, v, max) in [
-        ("pivot_amplitude_deg", s.pivot_amplitude_deg, 60.0),
-        ("compliance_m", s.compliance_m, 0.05),
-        ("breathing_m", s.breathing_m, 0.05),
-        ("wrist_rotation_probability", s.wrist_rotation_probability, 1.0),
-        ("wrist_noise_m", s.wrist_noise_m, 0.01),
-        ("axis_noise_deg", s.axis_noise_deg, 10.0),
+    for (key, v, allowed, max) in [
+        ("pivot_amplitude_deg", s.pivot_amplitude_deg, "0 ..= 60", 60.0),
+        ("compliance_m", s.compliance_m, "0 ..= 0.05", 0.05),
+        ("breathing_m", s.breathing_m, "0 ..= 0.05", 0.05),
+        ("wrist_rotation_probability", s.wrist_rotation_probability, "0 ..= 1", 1.0),
+        ("wrist_noise_m", s.wrist_noise_m, "0 ..= 0.01", 0.01),
+        ("axis_noise_deg", s.axis_noise_deg, "0 ..= 10", 10.0),
     ] {
         if !(v.is_finite() && (0.0..=max).contains(&v)) {
-            return err(format!("scenario.{key} = {v}: allowed 0 ..= {max}"));
+            return Err(OutOfRange { key, value: v, allowed }.into());
         }
     }
     if s.breathing_m > 0.0 && !(s.breathing_period_s.is_finite() && s.breathing_period_s > 0.0) {
-        return err(format!("scenario.breathing_period_s = {}: must be positive", s.breathing_period_s));
+        return Err(OutOfRange { key: "breathing_period_s", value: s.breathing_period_s, allowed: "> 0" }.into());
     }
     if let Some(t) = s.trocars_base_m.iter().find(|t| t.iter().any(|v| !v.is_finite())) {
-        return err(format!("scenario.trocars_base_m: {t:?} is not finite"));
+        return Err(TrocarNotFinite(*t).into());
     }
     Ok(())
 }

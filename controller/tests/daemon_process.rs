@@ -243,8 +243,9 @@ fn the_demo_runs_as_an_ordinary_user_and_records_to_the_user_state_dir() {
         return;
     }
     let script = format!(
-        "set -e; mount -t tmpfs tmpfs /tmp; mount -t tmpfs tmpfs /dev/shm; mkdir -p /tmp/h /tmp/bin; \
-         cp {BIN} /tmp/bin/fulcrumd; chown -R 65534:65534 /tmp/h; chmod 0755 /tmp/bin /tmp/bin/fulcrumd; \
+        // The binary is opened before /tmp is covered: the target directory may be under /tmp.
+        "set -e; exec 3< {BIN}; mount -t tmpfs tmpfs /tmp; mount -t tmpfs tmpfs /dev/shm; mkdir -p /tmp/h /tmp/bin; \
+         cat <&3 > /tmp/bin/fulcrumd; chown -R 65534:65534 /tmp/h; chmod 0755 /tmp/bin /tmp/bin/fulcrumd; \
          setpriv --reuid=65534 --regid=65534 --clear-groups env HOME=/tmp/h /tmp/bin/fulcrumd --cycles 3000 2>&1; \
          ls /tmp/h/.local/state/comanip/recordings"
     );

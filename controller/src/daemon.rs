@@ -23,17 +23,17 @@ use serde::Serialize;
 use tracing::{info, warn};
 
 use crate::config::Config;
-use crate::cycle::{Acquisition, AcquisitionStats, Estimation};
+use crate::cycle::{Acquisition, AcquisitionError, AcquisitionStats, Estimation, EstimationError};
 use crate::health_log::HealthLog;
+use crate::process::{self, RtJoinError, RtSpawnError, RtThread};
 use crate::recorder::{self, RecorderProducer, RecorderStatsSnapshot, RunInfo};
 use crate::recording_dir;
-use crate::rt::{self, RealtimeReport};
 use crate::rt_loop::{
-    CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopParams, LoopTiming, RECORD_KIND, RtLoop,
+    CycleRecord, CycleSink, LogEvent, LogQueue, LoopCounters, LoopError, LoopParams, LoopTiming, RECORD_KIND, RtLoop,
     TimingSummary,
 };
-use crate::sim_robot::{self, SimRobotThread};
-use crate::watchdog::{self, LoopProgress, Watchdog};
+use crate::sim_robot::{self, SimRobotThread, SimStartError};
+use crate::watchdog::{LoopProgress, WatchdogHandle};
 
 /// Receive queue asked for on a SocketCAN interface by default, bytes (the kernel doubles it:
 /// about 4000 classic frames, half a second of a saturated 1 Mbit/s bus); the configuration's
@@ -56,18 +56,7 @@ pub struct RunOptions {
     pub sim_seed: u64,
 }
 
-/// Allocation figures of the real-time thread over its loop.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
-pub struct AllocSummary {
-    /// System-allocator calls made by the real-time thread during the loop (target: 0).
-    pub rt_thread_system_allocs: u64,
-    /// Small blocks the pool served (iceoryx2's per-sample block, freed in the same cycle).
-    pub pool_allocs: u64,
-    /// Pool exhaustion fallbacks to the system allocator.
-    pub pool_fallbacks: u64,
-    /// Most pool blocks in use at once.
-    pub pool_high_water: usize,
-}
+pub use crate::process::AllocSummary;
 
 /// What a run did; printed at exit and optionally written as JSON.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -114,12 +103,28 @@ pub struct RunSummary {
     pub timing_histograms: Option<LoopTiming>,
 }
 
-/// Why the daemon could not run.
+/// Why the daemon could not be configured ([`Configured::new`]): nothing was started.
 #[derive(Debug, thiserror::Error)]
-pub enum DaemonError {
-    /// The configuration cannot build the pipeline.
+pub enum ConfigureError {
+    /// The encoder or health configuration cannot build acquisition.
     #[error("configuration: {0}")]
-    Config(String),
+    Acquisition(#[from] AcquisitionError),
+    /// The encoder, kinematic or detector configuration cannot build estimation.
+    #[error("configuration: {0}")]
+    Estimation(#[from] EstimationError),
+    /// No recording directory could be chosen (the packaged default is not writable and the
+    /// user has no state directory).
+    #[error(transparent)]
+    RecordingDir(#[from] crate::recording_dir::RecordingDirError),
+}
+
+/// Why the daemon could not start ([`Configured::start`]). What had started is stopped
+/// (the stop flag is set).
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// The flight recorder could not start.
+    #[error("flight recorder: {0}")]
+    Recorder(#[from] recorder::StartError),
     /// The CAN interface could not be opened.
     #[error("CAN interface {iface}: {source}")]
     Bus {
@@ -128,25 +133,49 @@ pub enum DaemonError {
         /// Why.
         source: hw_io::can::OpenError,
     },
+    /// The in-process bus of the built-in simulated robot has no free endpoint.
+    #[error("simulated robot: {0}")]
+    SimBus(#[from] hw_io::can::EndpointError),
+    /// The built-in simulated robot could not start.
+    #[error("simulated robot: {0}")]
+    Sim(#[from] SimStartError),
+    /// The real-time thread could not be set up (real-time set-up with `realtime.require =
+    /// true`, the iceoryx2 publisher, the thread itself).
+    #[error(transparent)]
+    Rt(#[from] RtSpawnError<RtSetupError>),
+}
+
+/// Why the real-time thread's own set-up failed (inside [`Configured::start`]).
+#[derive(Debug, thiserror::Error)]
+pub enum RtSetupError {
     /// The iceoryx2 publisher could not be created.
     #[error("output service: {0}")]
     Publisher(#[from] hw_io::ipc::CreateError),
-    /// The flight recorder could not start.
-    #[error("flight recorder: {0}")]
-    Recorder(#[from] recorder::StartError),
-    /// No recording directory could be chosen (the packaged default is not writable and the
-    /// user has no state directory).
+}
+
+/// Why a run ended in error ([`Running::shutdown`]).
+#[derive(Debug, thiserror::Error)]
+pub enum ShutdownError {
+    /// The real-time thread panicked or gave no result.
     #[error(transparent)]
-    RecordingDir(#[from] crate::recording_dir::RecordingDirError),
-    /// Real-time set-up failed with `realtime.require = true`.
-    #[error("real-time set-up: {0}")]
-    Realtime(#[from] rt::RealtimeError),
-    /// The built-in simulated robot could not start.
-    #[error("simulated robot: {0}")]
-    Sim(String),
-    /// A thread could not be spawned or died.
-    #[error("thread: {0}")]
-    Thread(String),
+    Rt(#[from] RtJoinError),
+    /// The loop stopped on its own (the monotonic clock failed).
+    #[error("thread: the loop stopped: {0}")]
+    Loop(#[from] LoopError),
+}
+
+/// Why the daemon could not run ([`run`]): the error of the phase that failed.
+#[derive(Debug, thiserror::Error)]
+pub enum DaemonError {
+    /// Configuring failed.
+    #[error(transparent)]
+    Configure(#[from] ConfigureError),
+    /// Starting failed.
+    #[error(transparent)]
+    Start(#[from] StartError),
+    /// The run ended in error.
+    #[error(transparent)]
+    Shutdown(#[from] ShutdownError),
 }
 
 struct DaemonSink {
@@ -170,14 +199,13 @@ impl CycleSink for DaemonSink {
     }
 }
 
-/// What the real-time thread returns.
+/// What the real-time thread returns (its allocations are counted by [`process::spawn_realtime`]).
 struct RtResult {
-    error: Option<String>,
+    result: Result<(), LoopError>,
     cycles: u64,
     acquisition: AcquisitionStats,
     timing: TimingSummary,
     histograms: LoopTiming,
-    alloc: AllocSummary,
     bus_dropped: u64,
 }
 
@@ -238,264 +266,333 @@ pub fn drops_line(period: &str, new: u64, total: u64) -> String {
     )
 }
 
-/// Runs the daemon until `stop` is set (or `max_cycles`). Returns the summary.
-pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, DaemonError> {
-    let cfg = &opts.config;
-    let acquisition = Acquisition::new(&cfg.bus.encoder, cfg.health).map_err(|e| DaemonError::Config(e.to_string()))?;
-    let estimation = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector)
-        .map_err(|e| DaemonError::Config(e.to_string()))?;
-    let run_info = RunInfo::new(RECORD_KIND, opts.config_toml.clone());
-    let run_id = run_info.run_id;
-    let mut params = LoopParams {
-        period_ns: u64::from(cfg.cycle.period_us) * 1000,
-        frame_deadline_ns: u64::from(cfg.cycle.frame_deadline_us) * 1000,
-        run_id,
-        max_cycles: opts.max_cycles,
-        cut_by_bus_time: false,
-    };
-    let period_s = f64::from(cfg.cycle.period_us) * 1e-6;
+/// Phase 1, configured: the pipeline built and the recording directory chosen from a validated
+/// configuration; no thread, no bus, no file yet (ros2_control's "unconfigured → inactive",
+/// copper's `new`).
+pub struct Configured {
+    opts: RunOptions,
+    acquisition: Acquisition,
+    estimation: Estimation,
+    run_info: RunInfo,
+    params: LoopParams,
+    /// The recorder's configuration with the chosen directory; `None` when recording is off.
+    recorder: Option<recorder::RecorderConfig>,
+}
 
-    // Flight recorder.
-    let (rec_producer, rec_handle) = if cfg.recorder.enabled {
-        // The packaged default directory, unwritable for an ordinary user: the user's state
-        // directory instead, with a warning (recording_dir).
-        let chosen = recording_dir::choose(
-            &cfg.recorder.dir,
-            std::path::Path::new(recording_dir::PACKAGED_DIR),
-            std::env::var_os("XDG_STATE_HOME"),
-            std::env::var_os("HOME"),
-        )?;
-        if let Some(w) = &chosen.warning {
-            warn!("{w}");
-        }
-        let rec_cfg = recorder::RecorderConfig { dir: chosen.dir, ..cfg.recorder.clone() };
-        let (p, h) = recorder::start::<CycleRecord, RECORDER_QUEUE>(&rec_cfg, run_info)?;
-        info!("flight recorder: {}", h.first_file().display());
-        (Some(p), Some(h))
-    } else {
-        info!("flight recorder: off");
-        (None, None)
-    };
-    let recording = rec_handle.as_ref().map(|h| h.first_file().to_path_buf());
-
-    // Log hand-off: one queue for the run, leaked (a few tens of KiB once per process run).
-    let queue: &'static mut LogQueue = Box::leak(Box::new(LogQueue::new()));
-    let (log_tx, mut log_rx) = queue.split();
-
-    let counters = Arc::new(LoopCounters::default());
-    let progress = LoopProgress::new();
-    let watchdog = match Watchdog::spawn(progress.clone(), watchdog::default_status) {
-        Ok(w) => Some(w),
-        Err(e) => {
-            warn!("systemd watchdog supervisor: {e}; running without it");
+impl Configured {
+    /// Builds acquisition and estimation from `opts.config` and chooses the recording
+    /// directory (the packaged default, unwritable for an ordinary user, falls back to the
+    /// user's state directory with a warning: [`recording_dir::choose`]).
+    ///
+    /// **Not for the real-time loop:** allocates, reads the environment.
+    pub fn new(opts: RunOptions) -> Result<Self, ConfigureError> {
+        let cfg = &opts.config;
+        let acquisition = Acquisition::new(&cfg.bus.encoder, cfg.health)?;
+        let estimation = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector)?;
+        let run_info = RunInfo::new(RECORD_KIND, opts.config_toml.clone());
+        let params = LoopParams {
+            period_ns: u64::from(cfg.cycle.period_us) * 1000,
+            frame_deadline_ns: u64::from(cfg.cycle.frame_deadline_us) * 1000,
+            run_id: run_info.run_id,
+            max_cycles: opts.max_cycles,
+            cut_by_bus_time: false,
+        };
+        let recorder = if cfg.recorder.enabled {
+            let chosen = recording_dir::choose(
+                &cfg.recorder.dir,
+                std::path::Path::new(recording_dir::PACKAGED_DIR),
+                std::env::var_os("XDG_STATE_HOME"),
+                std::env::var_os("HOME"),
+            )?;
+            if let Some(w) = &chosen.warning {
+                warn!("{w}");
+            }
+            Some(recorder::RecorderConfig { dir: chosen.dir, ..cfg.recorder.clone() })
+        } else {
             None
-        }
-    };
+        };
+        Ok(Self { opts, acquisition, estimation, run_info, params, recorder })
+    }
 
-    // The bus, and the simulated robot when there is no interface.
-    let mut sim: Option<SimRobotThread> = None;
-    let (bus, bus_name): (Box<dyn CanBus + Send>, String) = if cfg.bus.iface.is_empty() {
-        let bus = InProcessBus::new();
-        let endpoint = bus.endpoint().map_err(|e| DaemonError::Sim(e.to_string()))?;
-        let controller = bus.endpoint().map_err(|e| DaemonError::Sim(e.to_string()))?;
-        let thread = sim_robot::spawn(endpoint, cfg, opts.sim_seed, stop, period_s)
-            .map_err(|e| DaemonError::Sim(e.to_string()))?;
-        info!("simulated robot: {}", thread.priority_note);
-        sim = Some(thread);
-        (Box::new(controller), "in-process simulated robot".to_string())
-    } else {
-        let mut b = SocketCanBus::open(&cfg.bus.iface)
-            .map_err(|source| DaemonError::Bus { iface: cfg.bus.iface.clone(), source })?;
-        // The SYNC's own echo is the time reference of the collection window (docs/daemon.md).
-        b.receive_own_frames(true).map_err(|e| DaemonError::Bus {
-            iface: cfg.bus.iface.clone(),
-            source: hw_io::can::OpenError::Io { interface: cfg.bus.iface.clone(), source: e },
-        })?;
-        params.cut_by_bus_time = true;
-        // A receive queue for bursts: with the default (about 200 frames) a 2 kHz flood of
-        // junk frames overflowed it during a 67 ms stall of the loop (docs/hil.md), and the
-        // kernel drops what does not fit, EMCY frames included.
-        match b.set_receive_buffer(cfg.bus.receive_buffer_bytes) {
-            Ok(n) => info!("CAN receive queue: {n} bytes (kernel drops counted: SO_RXQ_OVFL)"),
-            Err(e) => warn!("CAN receive queue: cannot enlarge it ({e}); frames may be dropped in bursts"),
-        }
-        (Box::new(b), cfg.bus.iface.clone())
-    };
-    info!(
-        "fulcrumd: run {run_id:016x}, bus {bus_name}, {} Hz, detector {:?}, output service {:?}",
-        1_000_000 / cfg.cycle.period_us,
-        cfg.detector.mode,
-        cfg.output.service
-    );
+    /// Identifier of the run to be (in every published sample and recording file).
+    pub fn run_id(&self) -> u64 {
+        self.run_info.run_id
+    }
 
-    // The real-time thread.
-    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<Vec<String>, DaemonError>>();
-    let rt_cfg = cfg.realtime.clone();
-    let service = cfg.output.service.clone();
-    let publisher_options =
-        PublisherOptions { subscriber_buffer: cfg.output.subscriber_buffer, ..PublisherOptions::default() };
-    let rt_counters = counters.clone();
-    let rt_progress = progress.clone();
-    let handle = std::thread::Builder::new()
-        .name("fulcrumd-rt".into())
-        .stack_size(8 << 20)
-        .spawn(move || -> Option<RtResult> {
-            let report: RealtimeReport = match rt::apply_to_current_thread(&rt_cfg) {
-                Ok(r) => r,
-                Err(e) => {
-                    let _ = ready_tx.send(Err(e.into()));
-                    return None;
-                }
-            };
-            let publisher = match FulcrumPublisher::create(&service, &publisher_options) {
-                Ok(p) => p,
-                Err(e) => {
-                    let _ = ready_tx.send(Err(e.into()));
-                    return None;
-                }
-            };
-            let mut sink = DaemonSink { publisher, recorder: rec_producer, log: log_tx };
-            let mut lp = RtLoop::new(bus, acquisition, estimation, params, rt_counters, rt_progress);
-            hw_io::rt_alloc::prefault_pool();
-            let lines = report.steps().iter().map(|(step, outcome)| format!("{step}: {outcome}")).collect();
-            let _ = ready_tx.send(Ok(lines));
-            drop(ready_tx);
-            hw_io::rt_alloc::enter_realtime();
-            let before = hw_io::rt_alloc::thread_system_allocs();
-            let pool_before = hw_io::rt_alloc::stats();
-            let result = lp.run(&mut sink, || stop.load(Ordering::Relaxed));
-            let allocs = hw_io::rt_alloc::thread_system_allocs() - before;
-            hw_io::rt_alloc::leave_realtime();
-            let pool = hw_io::rt_alloc::stats();
-            Some(RtResult {
-                error: result.err().map(|e| e.to_string()),
-                cycles: lp.cycles(),
-                acquisition: *lp.acquisition_stats(),
-                timing: lp.timing().summary(),
-                histograms: lp.timing().clone(),
-                alloc: AllocSummary {
-                    rt_thread_system_allocs: allocs,
-                    pool_allocs: pool.pool_allocs - pool_before.pool_allocs,
-                    pool_fallbacks: pool.pool_fallbacks - pool_before.pool_fallbacks,
-                    pool_high_water: pool.pool_high_water,
-                },
-                bus_dropped: lp.bus_dropped_rx_frames(),
-            })
+    /// Starts the run: the flight recorder's writer thread, the systemd supervisor, the bus
+    /// (the CAN interface, or the in-process bus and the simulated robot's thread), then the
+    /// real-time thread, returning once its set-up is done ([`process::spawn_realtime`]). On an
+    /// error `stop` is set, so that what had started stops.
+    ///
+    /// **Not for the real-time loop:** spawns threads, opens the bus and files.
+    pub fn start(self, stop: &'static AtomicBool) -> Result<Running, StartError> {
+        let result = self.start_inner(stop);
+        if result.is_err() {
+            stop.store(true, Ordering::Relaxed);
+        }
+        result
+    }
+
+    fn start_inner(self, stop: &'static AtomicBool) -> Result<Running, StartError> {
+        let Self { opts, acquisition, estimation, run_info, mut params, recorder: rec_cfg } = self;
+        let cfg = &opts.config;
+        let run_id = run_info.run_id;
+        let period_s = f64::from(cfg.cycle.period_us) * 1e-6;
+
+        // Flight recorder.
+        let (rec_producer, rec_handle) = match &rec_cfg {
+            Some(rec_cfg) => {
+                let (p, h) = recorder::start::<CycleRecord, RECORDER_QUEUE>(rec_cfg, run_info)?;
+                info!("flight recorder: {}", h.first_file().display());
+                (Some(p), Some(h))
+            }
+            None => {
+                info!("flight recorder: off");
+                (None, None)
+            }
+        };
+        let recording = rec_handle.as_ref().map(|h| h.first_file().to_path_buf());
+
+        // Log hand-off: one queue for the run, leaked (a few tens of KiB once per process run).
+        let queue: &'static mut LogQueue = Box::leak(Box::new(LogQueue::new()));
+        let (log_tx, log_rx) = queue.split();
+
+        let counters = Arc::new(LoopCounters::default());
+        let progress = LoopProgress::new();
+        let watchdog = process::start_watchdog(progress.clone());
+
+        // The bus, and the simulated robot when there is no interface.
+        let mut sim: Option<SimRobotThread> = None;
+        let (bus, bus_name): (Box<dyn CanBus + Send>, String) = if cfg.bus.iface.is_empty() {
+            let bus = InProcessBus::new();
+            let endpoint = bus.endpoint()?;
+            let controller = bus.endpoint()?;
+            let thread = sim_robot::spawn(endpoint, cfg, opts.sim_seed, stop, period_s)?;
+            info!("simulated robot: {}", thread.priority_note);
+            sim = Some(thread);
+            (Box::new(controller), "in-process simulated robot".to_string())
+        } else {
+            let mut b = SocketCanBus::open(&cfg.bus.iface)
+                .map_err(|source| StartError::Bus { iface: cfg.bus.iface.clone(), source })?;
+            // The SYNC's own echo is the time reference of the collection window (docs/daemon.md).
+            b.receive_own_frames(true).map_err(|e| StartError::Bus {
+                iface: cfg.bus.iface.clone(),
+                source: hw_io::can::OpenError::Io { interface: cfg.bus.iface.clone(), source: e },
+            })?;
+            params.cut_by_bus_time = true;
+            // A receive queue for bursts: with the default (about 200 frames) a 2 kHz flood of
+            // junk frames overflowed it during a 67 ms stall of the loop (docs/hil.md), and the
+            // kernel drops what does not fit, EMCY frames included.
+            match b.set_receive_buffer(cfg.bus.receive_buffer_bytes) {
+                Ok(n) => info!("CAN receive queue: {n} bytes (kernel drops counted: SO_RXQ_OVFL)"),
+                Err(e) => warn!("CAN receive queue: cannot enlarge it ({e}); frames may be dropped in bursts"),
+            }
+            (Box::new(b), cfg.bus.iface.clone())
+        };
+        info!(
+            "fulcrumd: run {run_id:016x}, bus {bus_name}, {} Hz, detector {:?}, output service {:?}",
+            1_000_000 / cfg.cycle.period_us,
+            cfg.detector.mode,
+            cfg.output.service
+        );
+
+        // The real-time thread: the publisher and the loop are built on it (set-up), then it loops.
+        let service = cfg.output.service.clone();
+        let publisher_options =
+            PublisherOptions { subscriber_buffer: cfg.output.subscriber_buffer, ..PublisherOptions::default() };
+        let rt_counters = counters.clone();
+        let rt_progress = progress.clone();
+        let setup = move || -> Result<_, RtSetupError> {
+            let publisher = FulcrumPublisher::create(&service, &publisher_options)?;
+            let sink = DaemonSink { publisher, recorder: rec_producer, log: log_tx };
+            let lp = RtLoop::new(bus, acquisition, estimation, params, rt_counters, rt_progress);
+            Ok((sink, lp))
+        };
+        let body = move |(sink, lp): &mut (DaemonSink, RtLoop<Box<dyn CanBus + Send>>)| {
+            lp.run(sink, || stop.load(Ordering::Relaxed))
+        };
+        // After the counted real-time section: the summaries allocate.
+        let finish = |(_sink, lp): (DaemonSink, RtLoop<Box<dyn CanBus + Send>>), result| RtResult {
+            result,
+            cycles: lp.cycles(),
+            acquisition: *lp.acquisition_stats(),
+            timing: lp.timing().summary(),
+            histograms: lp.timing().clone(),
+            bus_dropped: lp.bus_dropped_rx_frames(),
+        };
+        let rt = process::spawn_realtime("fulcrumd-rt", 8 << 20, cfg.realtime.clone(), setup, body, finish)?;
+        // Refused steps were already warned about (with what would permit them) by rt.
+        for line in rt.realtime_report().iter().filter(|l| !l.contains("refused")) {
+            info!("real-time: {line}");
+        }
+        Ok(Running {
+            period_us: cfg.cycle.period_us,
+            period_s,
+            run_id,
+            bus_name,
+            recording,
+            rec_handle,
+            watchdog,
+            sim,
+            rt,
+            counters,
+            progress,
+            log_rx,
+            stop,
+            health_log: HealthLog::new(),
+            reported: (0, 0),
+            reported_drops: 0,
         })
-        .map_err(|e| DaemonError::Thread(e.to_string()))?;
-    let realtime = match ready_rx.recv() {
-        Ok(Ok(lines)) => lines,
-        Ok(Err(e)) => {
-            stop.store(true, Ordering::Relaxed);
-            let _ = handle.join();
-            return Err(e);
+    }
+}
+
+/// Phase 2, running: the real-time thread loops; the main thread supervises
+/// ([`Running::supervise`]) and then shuts down ([`Running::shutdown`]) (ros2_control's
+/// "active", copper's `start` … `stop`).
+pub struct Running {
+    period_us: u32,
+    period_s: f64,
+    run_id: u64,
+    bus_name: String,
+    recording: Option<PathBuf>,
+    rec_handle: Option<recorder::RecorderHandle>,
+    watchdog: Option<WatchdogHandle>,
+    sim: Option<SimRobotThread>,
+    rt: RtThread<RtResult>,
+    counters: Arc<LoopCounters>,
+    progress: LoopProgress,
+    log_rx: heapless::spsc::Consumer<'static, LogEvent>,
+    stop: &'static AtomicBool,
+    health_log: HealthLog,
+    /// Incomplete cycles and overruns as of the last 10 s report.
+    reported: (u64, u64),
+    /// Frames the bus dropped as of the last report.
+    reported_drops: u64,
+}
+
+impl Running {
+    /// The supervision on the calling (main) thread until the loop ends (the stop flag or
+    /// `max_cycles`): every 10 ms the log events the loop handed over become `tracing` lines
+    /// (with the simulated truth beside them); every 10 s a warning on the per-cycle
+    /// conditions (incomplete cycles, overruns) if any occurred, one on the frames the bus
+    /// dropped (receive queue full) if any were, and the health flaps.
+    ///
+    /// **Not for the real-time loop:** logs.
+    pub fn supervise(&mut self) {
+        let mut last_report = std::time::Instant::now();
+        while !self.rt.is_finished() {
+            std::thread::sleep(Duration::from_millis(10));
+            if last_report.elapsed() >= Duration::from_secs(10) {
+                last_report = std::time::Instant::now();
+                self.report_counts();
+            }
+            let now_s = self.progress.snapshot().cycles as f64 * self.period_s;
+            for line in self.health_log.tick(now_s) {
+                warn!("{line}");
+            }
+            self.drain_log();
+            if let Some(s) = &self.sim {
+                s.drain_truth(|line| info!("{line}"));
+            }
         }
-        Err(_) => {
-            stop.store(true, Ordering::Relaxed);
-            let _ = handle.join();
-            return Err(DaemonError::Thread("the real-time thread died during set-up".into()));
-        }
-    };
-    // Refused steps were already warned about (with what would permit them) by rt.
-    for line in realtime.iter().filter(|l| !l.contains("refused")) {
-        info!("real-time: {line}");
     }
 
-    // Main thread: log hand-off and the simulated truth, until the loop ends; every 10 s a
-    // line on the per-cycle conditions (incomplete cycles, overruns) if any occurred, and one
-    // on the frames the bus dropped (receive queue full) if any were.
-    let mut last_report = std::time::Instant::now();
-    let mut health_log = HealthLog::new();
-    let mut reported = (0u64, 0u64);
-    let mut reported_drops = 0u64;
-    while !handle.is_finished() {
-        std::thread::sleep(Duration::from_millis(10));
-        if last_report.elapsed() >= Duration::from_secs(10) {
-            last_report = std::time::Instant::now();
-            let now = (counters.incomplete_cycles.load(Ordering::Relaxed), counters.overruns.load(Ordering::Relaxed));
-            if now != reported {
-                warn!(
-                    "last 10 s: {} incomplete cycles (a TPDO missed its deadline; data not used), {} overruns",
-                    now.0 - reported.0,
-                    now.1 - reported.1
-                );
-                reported = now;
+    /// The 10 s report: incomplete cycles and overruns, frames the bus dropped, health flaps.
+    fn report_counts(&mut self) {
+        let c = &self.counters;
+        let now = (c.incomplete_cycles.load(Ordering::Relaxed), c.overruns.load(Ordering::Relaxed));
+        if now != self.reported {
+            warn!(
+                "last 10 s: {} incomplete cycles (a TPDO missed its deadline; data not used), {} overruns",
+                now.0 - self.reported.0,
+                now.1 - self.reported.1
+            );
+            self.reported = now;
+        }
+        let drops = c.bus_dropped_rx_frames.load(Ordering::Relaxed);
+        if drops != self.reported_drops {
+            warn!("{}", drops_line("last 10 s", drops - self.reported_drops, drops));
+            self.reported_drops = drops;
+        }
+        if let Some(line) = self.health_log.flaps() {
+            warn!("last 10 s: {line}");
+        }
+    }
+
+    /// The log events the loop handed over, as `tracing` lines.
+    fn drain_log(&mut self) {
+        while let Some(e) = self.log_rx.dequeue() {
+            log_event(&e, self.period_s, self.sim.as_ref(), &mut self.health_log);
+        }
+    }
+
+    /// Stops the run and collects its summary: sets the stop flag, joins the real-time thread,
+    /// logs what remains (the last drop count, log events, the simulated truth), joins the
+    /// simulated robot, stops the systemd supervisor and the flight recorder (warning if they
+    /// fail), and fails if the loop stopped on its own or its thread panicked.
+    ///
+    /// **Not for the real-time loop:** joins threads, flushes files.
+    pub fn shutdown(mut self) -> Result<RunSummary, ShutdownError> {
+        self.stop.store(true, Ordering::Relaxed);
+        let realtime = self.rt.realtime_report().to_vec();
+        let (rt, alloc) = self.rt.join()?;
+        let drops = self.counters.bus_dropped_rx_frames.load(Ordering::Relaxed);
+        if drops != self.reported_drops {
+            warn!("{}", drops_line("since the last report", drops - self.reported_drops, drops));
+        }
+        while let Some(e) = self.log_rx.dequeue() {
+            log_event(&e, self.period_s, self.sim.as_ref(), &mut self.health_log);
+        }
+        let sim_syncs_answered = match self.sim {
+            Some(s) => {
+                s.drain_truth(|line| info!("{line}"));
+                s.join()
             }
-            let drops = counters.bus_dropped_rx_frames.load(Ordering::Relaxed);
-            if drops != reported_drops {
-                warn!("{}", drops_line("last 10 s", drops - reported_drops, drops));
-                reported_drops = drops;
-            }
-            if let Some(line) = health_log.flaps() {
-                warn!("last 10 s: {line}");
-            }
-        }
-        let now_s = progress.snapshot().cycles as f64 * period_s;
-        for line in health_log.tick(now_s) {
-            warn!("{line}");
-        }
-        while let Some(e) = log_rx.dequeue() {
-            log_event(&e, period_s, sim.as_ref(), &mut health_log);
-        }
-        if let Some(s) = &sim {
-            s.drain_truth(|line| info!("{line}"));
-        }
+            None => 0,
+        };
+        process::stop_watchdog(self.watchdog);
+        let recorder = match self.rec_handle {
+            Some(h) => match h.shutdown() {
+                Ok(s) => Some(s),
+                Err(e) => {
+                    warn!("flight recorder shutdown: {e}");
+                    None
+                }
+            },
+            None => None,
+        };
+        rt.result?;
+        let p = &self.counters;
+        Ok(RunSummary {
+            bus: self.bus_name,
+            run_id: self.run_id,
+            period_us: self.period_us,
+            cycles: rt.cycles,
+            valid_cycles: p.valid_cycles.load(Ordering::Relaxed),
+            published: p.published.load(Ordering::Relaxed),
+            publish_errors: p.publish_errors.load(Ordering::Relaxed),
+            overruns: p.overruns.load(Ordering::Relaxed),
+            log_drops: p.log_drops.load(Ordering::Relaxed),
+            recorder_queue_drops: p.recorder_drops.load(Ordering::Relaxed),
+            recorder,
+            recording: self.recording,
+            bus_dropped_rx_frames: rt.bus_dropped,
+            acquisition: rt.acquisition,
+            timing: rt.timing,
+            alloc,
+            realtime,
+            sim_syncs_answered,
+            timing_histograms: Some(rt.histograms),
+        })
     }
-    stop.store(true, Ordering::Relaxed);
-    let rt = handle.join().map_err(|_| DaemonError::Thread("the real-time thread panicked".into()))?;
-    let drops = counters.bus_dropped_rx_frames.load(Ordering::Relaxed);
-    if drops != reported_drops {
-        warn!("{}", drops_line("since the last report", drops - reported_drops, drops));
-    }
-    while let Some(e) = log_rx.dequeue() {
-        log_event(&e, period_s, sim.as_ref(), &mut health_log);
-    }
-    let sim_syncs_answered = match sim {
-        Some(s) => {
-            s.drain_truth(|line| info!("{line}"));
-            s.join()
-        }
-        None => 0,
-    };
-    if let Some(w) = watchdog
-        && let Err(e) = w.shutdown()
-    {
-        warn!("{e}");
-    }
-    let recorder = match rec_handle {
-        Some(h) => match h.shutdown() {
-            Ok(s) => Some(s),
-            Err(e) => {
-                warn!("flight recorder shutdown: {e}");
-                None
-            }
-        },
-        None => None,
-    };
-    let rt = rt.ok_or_else(|| DaemonError::Thread("the real-time thread returned no result".into()))?;
-    if let Some(e) = &rt.error {
-        return Err(DaemonError::Thread(format!("the loop stopped: {e}")));
-    }
-    let p = &counters;
-    Ok(RunSummary {
-        bus: bus_name,
-        run_id,
-        period_us: cfg.cycle.period_us,
-        cycles: rt.cycles,
-        valid_cycles: p.valid_cycles.load(Ordering::Relaxed),
-        published: p.published.load(Ordering::Relaxed),
-        publish_errors: p.publish_errors.load(Ordering::Relaxed),
-        overruns: p.overruns.load(Ordering::Relaxed),
-        log_drops: p.log_drops.load(Ordering::Relaxed),
-        recorder_queue_drops: p.recorder_drops.load(Ordering::Relaxed),
-        recorder,
-        recording,
-        bus_dropped_rx_frames: rt.bus_dropped,
-        acquisition: rt.acquisition,
-        timing: rt.timing,
-        alloc: rt.alloc,
-        realtime,
-        sim_syncs_answered,
-        timing_histograms: Some(rt.histograms),
-    })
+}
+
+/// Runs the daemon until `stop` is set (or `max_cycles`): [`Configured::new`] →
+/// [`Configured::start`] → [`Running::supervise`] → [`Running::shutdown`]. Returns the summary.
+///
+/// **Not for the real-time loop:** the whole process's lifetime.
+pub fn run(opts: RunOptions, stop: &'static AtomicBool) -> Result<RunSummary, DaemonError> {
+    let mut running = Configured::new(opts)?.start(stop)?;
+    running.supervise();
+    Ok(running.shutdown()?)
 }

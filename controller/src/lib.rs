@@ -6,6 +6,9 @@
 //!   estimate per cycle over iceoryx2 (`hw_io::ipc`). Around it: real-time set-up ([`rt`]),
 //!   systemd notifications ([`watchdog`]), the flight recorder ([`recorder`]), `replay`
 //!   ([`replay`], [`scoring`]) and the built-in simulated robot ([`sim_robot`]).
+//! - [`process`]: the skeleton every comanip process reuses (logging, stop signals, a
+//!   real-time thread with its handshake, systemd, the JSON summary); fulcrumd's phases
+//!   ([`daemon::Configured`] → [`daemon::Running`]) show how.
 //! - [`config`]: the TOML configuration, validated at load with messages that name the key.
 //! - [`timing`]: allocation-free latency histograms.
 //!
@@ -20,6 +23,7 @@ pub mod daemon;
 pub mod health;
 pub mod health_log;
 pub mod monitor;
+pub mod process;
 pub mod recorder;
 pub mod recording_dir;
 pub mod replay;

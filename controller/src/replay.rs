@@ -22,7 +22,9 @@ use hw_io::ipc::HealthFlags;
 use serde::Serialize;
 
 use crate::config::{Config, LoadError};
-use crate::cycle::{Acquisition, AcquisitionStats, CycleInput, CycleOutput, Estimation};
+use crate::cycle::{
+    Acquisition, AcquisitionError, AcquisitionStats, CycleInput, CycleOutput, Estimation, EstimationError,
+};
 use crate::recorder::{ReadError, RecordingReader, parse_file_name};
 use crate::rt_loop::{CycleRecord, RECORD_KIND};
 
@@ -46,9 +48,12 @@ pub enum ReplayError {
     /// The configuration stored in the recording (or given) is invalid.
     #[error("configuration: {0}")]
     Config(#[from] LoadError),
-    /// The configuration cannot build the pipeline.
+    /// The configuration cannot build acquisition (encoders, health).
     #[error("configuration: {0}")]
-    Pipeline(String),
+    Acquisition(#[from] AcquisitionError),
+    /// The configuration cannot build estimation (encoders, kinematics, detector).
+    #[error("configuration: {0}")]
+    Estimation(#[from] EstimationError),
     /// The candump log could not be opened.
     #[error("cannot open {path}: {source}")]
     Open {
@@ -122,7 +127,7 @@ pub fn load_recording(path: &Path) -> Result<(Config, u64, Vec<CycleRecord>, Vec
 }
 
 fn estimation(cfg: &Config) -> Result<Estimation, ReplayError> {
-    Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector).map_err(|e| ReplayError::Pipeline(e.to_string()))
+    Ok(Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector)?)
 }
 
 /// Replays a flight recording and checks every output bit for bit.
@@ -185,7 +190,7 @@ pub fn replay_candump(path: &Path, cfg: &Config) -> Result<LogReplay, ReplayErro
 
 /// [`replay_candump`] on any reader.
 pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogReplay, ReplayError> {
-    let mut acq = Acquisition::new(&cfg.bus.encoder, cfg.health).map_err(|e| ReplayError::Pipeline(e.to_string()))?;
+    let mut acq = Acquisition::new(&cfg.bus.encoder, cfg.health)?;
     let mut est = estimation(cfg)?;
     let deadline_us = u64::from(cfg.cycle.frame_deadline_us);
     let mut reader = CandumpReader::new(reader);

@@ -448,7 +448,9 @@ fn touch_stack(bytes: usize) {
 // ---------------------------------------------------------------------------------------------
 // Clock
 
-/// `CLOCK_MONOTONIC` now, nanoseconds since an arbitrary origin (boot). Allocation-free (vDSO).
+/// `CLOCK_MONOTONIC` now, nanoseconds since an arbitrary origin (boot).
+///
+/// **Real-time (1 kHz loop):** called several times a cycle; allocation-free, no system call (vDSO).
 pub fn monotonic_now_ns() -> u64 {
     let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
     // SAFETY: `ts` is a valid timespec to write. With CLOCK_MONOTONIC and a valid pointer,
@@ -536,7 +538,10 @@ impl Periodic {
 
     /// Sleeps to the next deadline. If it (and perhaps more) has already passed, the passed
     /// deadlines are skipped, not caught up with a burst: the thread sleeps to the first future
-    /// deadline and `overruns` counts the skipped ones. Allocation-free.
+    /// deadline and `overruns` counts the skipped ones.
+    ///
+    /// **Real-time (1 kHz loop):** called once a cycle; allocation-free, sleeps with
+    /// `clock_nanosleep(TIMER_ABSTIME)` until the deadline, never longer.
     pub fn wait(&mut self) -> Result<Tick, ClockError> {
         let now = monotonic_now_ns();
         let mut deadline = self.next_deadline_ns;

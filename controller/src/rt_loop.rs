@@ -271,17 +271,25 @@ impl<B: CanBus> RtLoop<B> {
     }
 
     /// Cycles run so far.
+    ///
+    /// **Real-time (1 kHz loop):** a field read.
     pub fn cycles(&self) -> u64 {
         self.sequence
     }
 
     /// Frames dropped by the bus's receive queue.
+    ///
+    /// **Real-time (1 kHz loop):** called every cycle (by the accounting); allocation-free.
     pub fn bus_dropped_rx_frames(&self) -> u64 {
         self.bus.dropped_rx_frames()
     }
 
     /// Runs cycles until `stop()` returns true (checked once per cycle) or `max_cycles`.
-    /// Allocation-free. Fails only if the monotonic clock fails.
+    /// Fails only if the monotonic clock fails.
+    ///
+    /// **Real-time (1 kHz loop):** this is the loop. Allocation-free (with a `stop` that does not
+    /// allocate), sleeps until each absolute deadline, waits only in the bus's bounded receive,
+    /// no file I/O, no logging.
     pub fn run(&mut self, sink: &mut impl CycleSink, mut stop: impl FnMut() -> bool) -> Result<(), LoopError> {
         let period = self.params.period_ns;
         let mut periodic = Periodic::starting_at(monotonic_now_ns() + period, period)?;
@@ -399,9 +407,24 @@ impl<B: CanBus> RtLoop<B> {
     }
 
     /// One cycle, woken at `woke_ns` (`late_ns` after its deadline, `skipped` periods
-    /// skipped before it).
+    /// skipped before it): [`Self::collect`] → [`Self::process`] → [`Self::account`], as copper
+    /// splits a task into preprocess / process / postprocess.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free; blocks only in the bus's bounded receive.
     fn cycle(&mut self, woke_ns: u64, late_ns: u64, skipped: u64, sink: &mut impl CycleSink) {
-        let seq = self.sequence;
+        let collected = self.collect();
+        let processed = self.process(&collected, late_ns, skipped, sink);
+        self.account(&collected, &processed, woke_ns, late_ns, skipped, sink);
+        self.sequence += 1;
+    }
+
+    /// Steps 2 and 3 of the cycle: drains the frames that arrived since the previous
+    /// collection ended (late TPDOs, status), sends SYNC and collects this cycle's TPDOs until
+    /// all are in or the frame deadline (bus time on SocketCAN, monotonic clock otherwise).
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free; waits only in the bus's receive, bounded by
+    /// the frame deadline (by [`ECHO_WAIT_NS`] for the SYNC's echo); no I/O besides the bus.
+    fn collect(&mut self) -> Collected {
         // 2. Frames since the last collection ended are late (TPDOs) or status.
         while let Some(f) = self.pending.pop_front() {
             self.acquisition.on_frame_between_cycles(&f.frame, monotonic_now_ns());
@@ -429,22 +452,50 @@ impl<B: CanBus> RtLoop<B> {
         } else {
             self.collect_until(sync_ns, deadline);
         }
+        Collected { sync_ns, sync_failed, collected_ns: monotonic_now_ns() }
+    }
 
-        let collected_ns = monotonic_now_ns();
-        let mut input = self.acquisition.end_cycle(collected_ns, sync_failed);
+    /// Step 4 of the cycle, the time-critical part: [`Acquisition::end_cycle`] →
+    /// [`Estimation::process`] (deterministic: what `replay` reruns bit for bit) → one
+    /// [`FulcrumSample`] published through `sink`.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free (the publisher's per-sample block comes from
+    /// the pool allocator), never blocks, no I/O besides the publication.
+    fn process(&mut self, c: &Collected, late_ns: u64, skipped: u64, sink: &mut impl CycleSink) -> Processed {
+        let mut input = self.acquisition.end_cycle(c.collected_ns, c.sync_failed);
         if skipped > 0 {
             input.flags |= Flags::OVERRUN;
         }
         // 4. Estimate and publish.
         let output = self.estimation.process(&input);
         let mut sample = output.to_sample();
-        sample.sequence = seq;
+        sample.sequence = self.sequence;
         sample.run_id = self.params.run_id;
-        sample.timestamp_ns = sync_ns;
-        sample.wake_late_ns = late_ns.min(u64::from(u32::MAX)) as u32;
+        sample.timestamp_ns = c.sync_ns;
+        sample.wake_late_ns = saturate_u32(late_ns);
         sample.prev_cycle_compute_ns = self.prev_cycle_ns;
         let published = sink.publish(&sample);
-        let done_ns = monotonic_now_ns();
+        Processed { input, output, published, done_ns: monotonic_now_ns() }
+    }
+
+    /// Step 5 of the cycle, best-effort and not time-critical (after the publication): timing
+    /// histograms, counters, the [`CycleRecord`] for the flight recorder, state and health
+    /// changes and overruns for the log hand-off, the watchdog's progress. A full queue is
+    /// counted, never waited on.
+    ///
+    /// **Real-time (1 kHz loop):** allocation-free, never blocks (lock-free SPSC queues and
+    /// relaxed atomics), no I/O, no logging itself.
+    fn account(
+        &mut self,
+        c: &Collected,
+        r: &Processed,
+        woke_ns: u64,
+        late_ns: u64,
+        skipped: u64,
+        sink: &mut impl CycleSink,
+    ) {
+        let seq = self.sequence;
+        let Processed { input, output, published, done_ns } = *r;
         // 5. Account.
         let p = &self.counters;
         if published {
@@ -455,19 +506,19 @@ impl<B: CanBus> RtLoop<B> {
                 p.log_drops.fetch_add(1, Ordering::Relaxed);
             }
         }
-        let compute_ns = done_ns.saturating_sub(collected_ns);
+        let compute_ns = done_ns.saturating_sub(c.collected_ns);
         let cycle_ns = done_ns.saturating_sub(woke_ns);
         self.timing.wake_late.record(late_ns);
         self.timing.compute.record(compute_ns);
         self.timing.cycle.record(cycle_ns);
-        self.prev_cycle_ns = cycle_ns.min(u64::from(u32::MAX)) as u32;
+        self.prev_cycle_ns = saturate_u32(cycle_ns);
         let record = CycleRecord {
             sequence: seq,
-            sync_ns,
+            sync_ns: c.sync_ns,
             input,
             output,
-            wake_late_ns: sample.wake_late_ns,
-            compute_ns: compute_ns.min(u64::from(u32::MAX)) as u32,
+            wake_late_ns: saturate_u32(late_ns),
+            compute_ns: saturate_u32(compute_ns),
             cycle_ns: self.prev_cycle_ns,
         };
         if !sink.record(&record) {
@@ -510,6 +561,34 @@ impl<B: CanBus> RtLoop<B> {
         p.bus_dropped_rx_frames.store(self.bus.dropped_rx_frames(), Ordering::Relaxed);
         // The watchdog stores them in atomics: their wire `u32`s.
         self.progress.record_cycle(valid, output.state.into(), output.health.bits());
-        self.sequence += 1;
     }
+}
+
+/// What [`RtLoop::collect`] hands to the rest of the cycle (nanoseconds of `CLOCK_MONOTONIC`).
+#[derive(Clone, Copy, Debug)]
+struct Collected {
+    /// Instant the SYNC was sent.
+    sync_ns: u64,
+    /// The SYNC could not be sent (the cycle is flagged, nothing was collected on SocketCAN).
+    sync_failed: bool,
+    /// Instant the collection ended.
+    collected_ns: u64,
+}
+
+/// What [`RtLoop::process`] hands to [`RtLoop::account`].
+#[derive(Clone, Copy, Debug)]
+struct Processed {
+    /// What acquisition delivered.
+    input: CycleInput,
+    /// What was published.
+    output: CycleOutput,
+    /// The publication succeeded.
+    published: bool,
+    /// Instant the publication returned, nanoseconds of `CLOCK_MONOTONIC`.
+    done_ns: u64,
+}
+
+/// A duration in nanoseconds as the `u32` of a record or sample, saturated (4.29 s).
+fn saturate_u32(ns: u64) -> u32 {
+    ns.min(u64::from(u32::MAX)) as u32
 }

@@ -70,7 +70,9 @@ impl LoopProgress {
     }
 
     /// Called by the real-time loop once a cycle: stores `state` and `health`, marks the first
-    /// valid cycle when `valid`, then increments the cycle counter. Atomics only.
+    /// valid cycle when `valid`, then increments the cycle counter.
+    ///
+    /// **Real-time (1 kHz loop):** called once a cycle; relaxed atomic stores only.
     #[inline]
     pub fn record_cycle(&self, valid: bool, state: u32, health: u32) {
         let p = &*self.inner;

@@ -9,15 +9,16 @@
 //! closed by its reader (`fulcrumd monitor | head`: no message; `monitor` still writes its
 //! samples and summary files).
 
-use std::io::{IsTerminal, Write};
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use clap::{Args, Parser, Subcommand};
 use controller::config::Config;
 use controller::daemon::{self, RunOptions};
+use controller::process;
 use controller::replay;
 use estimator::trocar::DetectorMode;
 use hw_io::ipc::{Continuity, FulcrumSubscriber, HealthFlags, OutputState, UnknownState};
@@ -26,12 +27,6 @@ use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 
 #[global_allocator]
 static ALLOC: hw_io::rt_alloc::RtPoolAllocator = hw_io::rt_alloc::RtPoolAllocator::new();
-
-static STOP: AtomicBool = AtomicBool::new(false);
-
-extern "C" fn on_signal(_: libc::c_int) {
-    STOP.store(true, Ordering::Relaxed);
-}
 
 /// Command line of fulcrumd.
 #[derive(Parser, Debug)]
@@ -145,33 +140,6 @@ fn parse_mode(s: &str) -> Result<DetectorMode, String> {
     }
 }
 
-fn init_logging() {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let terminal = std::io::stderr().is_terminal();
-    // journald adds its own timestamps: none when not on a terminal, and never ANSI colours.
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(terminal);
-    if terminal {
-        builder.init();
-    } else {
-        builder.without_time().init();
-    }
-    // iceoryx2's own messages join the same stream (and its "no config file" notice, expected
-    // here, goes to debug).
-    hw_io::ipc::route_iceoryx2_logs_to_tracing();
-}
-
-fn install_signal_handlers() {
-    use nix::sys::signal::{SaFlags, SigAction, SigHandler, SigSet, Signal, sigaction};
-    let action = SigAction::new(SigHandler::Handler(on_signal), SaFlags::SA_RESTART, SigSet::empty());
-    for sig in [Signal::SIGINT, Signal::SIGTERM] {
-        // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
-        if let Err(e) = unsafe { sigaction(sig, &action) } {
-            tracing::warn!("cannot install the {sig} handler: {e}");
-        }
-    }
-}
-
 fn load_config(path: &Option<PathBuf>) -> Result<(Config, String), String> {
     match path {
         Some(p) => {
@@ -206,12 +174,9 @@ impl From<std::io::Error> for CliError {
     }
 }
 
+/// Writes `value` as JSON to `path` if given ([`process::write_json`]).
 fn write_json(path: &Option<PathBuf>, value: &impl serde::Serialize) -> Result<(), String> {
-    if let Some(p) = path {
-        let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
-        std::fs::write(p, text).map_err(|e| format!("cannot write {}: {e}", p.display()))?;
-    }
-    Ok(())
+    process::write_json(path.as_deref(), value).map_err(|e| e.to_string())
 }
 
 fn run(args: RunArgs) -> Result<(), String> {
@@ -234,10 +199,12 @@ fn run(args: RunArgs) -> Result<(), String> {
     // Re-validate the overridden configuration; record the effective one.
     let config_toml = toml::to_string(&cfg).map_err(|e| format!("cannot serialise the configuration: {e}"))?;
     let cfg = Config::from_toml(&config_toml, std::path::Path::new("<command line>")).map_err(|e| e.to_string())?;
-    install_signal_handlers();
-    let summary =
-        daemon::run(RunOptions { config: cfg, config_toml, max_cycles: args.cycles, sim_seed: args.seed }, &STOP)
-            .map_err(|e| e.to_string())?;
+    process::install_stop_handlers();
+    let summary = daemon::run(
+        RunOptions { config: cfg, config_toml, max_cycles: args.cycles, sim_seed: args.seed },
+        &process::STOP,
+    )
+    .map_err(|e| e.to_string())?;
     let t = &summary.timing;
     tracing::info!(
         "stopped after {} cycles ({} valid, {} published, {} publish errors, {} overruns); \
@@ -295,7 +262,7 @@ struct MonitorSummary {
 }
 
 fn monitor(args: MonitorArgs) -> Result<(), CliError> {
-    install_signal_handlers();
+    process::install_stop_handlers();
     let opts = hw_io::ipc::PublisherOptions { subscriber_buffer: args.buffer as usize, ..Default::default() };
     let mut sub = FulcrumSubscriber::connect_with(&args.service, &opts).map_err(|e| e.to_string())?;
     let mut samples_out = match &args.samples_out {
@@ -314,7 +281,7 @@ fn monitor(args: MonitorArgs) -> Result<(), CliError> {
     // The first failed write to the standard output ends the loop; the files are still written.
     let mut printed: Result<(), std::io::Error> = Ok(());
     while printed.is_ok()
-        && !STOP.load(Ordering::Relaxed)
+        && !process::STOP.load(Ordering::Relaxed)
         && args.count.is_none_or(|c| s.received < c)
         && args.duration_s.is_none_or(|d| start.elapsed().as_secs_f64() < d)
     {
@@ -477,7 +444,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<bool, CliError> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    init_logging();
+    process::init_logging();
     let result = match cli.command {
         None => run(cli.run).map(|()| true).map_err(CliError::from),
         Some(Command::Run(a)) => run(a).map(|()| true).map_err(CliError::from),

@@ -159,6 +159,8 @@ impl Acquisition {
 
     /// A frame received outside any cycle's collection window (before this cycle's SYNC):
     /// EMCY and heartbeats count; a TPDO is late and not used.
+    ///
+    /// **Real-time (1 kHz loop):** called for every frame drained before the SYNC; allocation-free, no I/O.
     pub fn on_frame_between_cycles(&mut self, frame: &CanFrame, now_ns: u64) {
         let Some(msg) = self.decode(frame) else { return };
         match msg {
@@ -180,6 +182,8 @@ impl Acquisition {
     }
 
     /// A frame received during the cycle's collection window.
+    ///
+    /// **Real-time (1 kHz loop):** called for every frame until the deadline; allocation-free, no I/O.
     pub fn on_frame(&mut self, frame: &CanFrame, now_ns: u64) {
         let Some(msg) = self.decode(frame) else { return };
         match msg {
@@ -204,6 +208,8 @@ impl Acquisition {
     }
 
     /// Closes the cycle at `now_ns`. `sync_failed`: this cycle's SYNC could not be sent.
+    ///
+    /// **Real-time (1 kHz loop):** called once per cycle at its deadline; allocation-free, no I/O.
     pub fn end_cycle(&mut self, now_ns: u64, sync_failed: bool) -> CycleInput {
         let (counts, missing) = self.assembler.counts_partial();
         let nodes = self.assembler.nodes();
@@ -366,6 +372,8 @@ impl Estimation {
     }
 
     /// Processes one cycle's input.
+    ///
+    /// **Real-time (1 kHz loop):** called once per cycle (and by `replay`, bit for bit); allocation-free, no I/O, no clock.
     pub fn process(&mut self, input: &CycleInput) -> CycleOutput {
         let mut out = CycleOutput { state: OutputState::Invalid, health: input.flags, ..Default::default() };
         if input.flags.intersects(RESET_FLAGS) {

@@ -257,6 +257,35 @@ fn log_event(e: &LogEvent, period_s: f64, sim: Option<&SimRobotThread>, health: 
     }
 }
 
+/// The periodic report (`period`: "last 10 s", or "since the last report" at shutdown):
+/// incomplete cycles and overruns, frames the bus dropped, health flaps, each since the
+/// counts in `reported` / `reported_drops` (updated).
+fn report_counts(
+    c: &LoopCounters,
+    reported: &mut (u64, u64),
+    reported_drops: &mut u64,
+    health_log: &mut HealthLog,
+    period: &str,
+) {
+    let now = (c.incomplete_cycles.load(Ordering::Relaxed), c.overruns.load(Ordering::Relaxed));
+    if now != *reported {
+        warn!(
+            "{period}: {} incomplete cycles (a TPDO missed its deadline; data not used), {} overruns",
+            now.0 - reported.0,
+            now.1 - reported.1
+        );
+        *reported = now;
+    }
+    let drops = c.bus_dropped_rx_frames.load(Ordering::Relaxed);
+    if drops != *reported_drops {
+        warn!("{}", drops_line(period, drops - *reported_drops, drops));
+        *reported_drops = drops;
+    }
+    if let Some(line) = health_log.flaps() {
+        warn!("{period}: {line}");
+    }
+}
+
 /// The warning about frames the bus dropped: `new` over `period` ("last 10 s", ...), `total`
 /// since start-up (frames).
 pub fn drops_line(period: &str, new: u64, total: u64) -> String {
@@ -484,7 +513,13 @@ impl Running {
             std::thread::sleep(Duration::from_millis(10));
             if last_report.elapsed() >= Duration::from_secs(10) {
                 last_report = std::time::Instant::now();
-                self.report_counts();
+                report_counts(
+                    &self.counters,
+                    &mut self.reported,
+                    &mut self.reported_drops,
+                    &mut self.health_log,
+                    "last 10 s",
+                );
             }
             let now_s = self.progress.snapshot().cycles as f64 * self.period_s;
             for line in self.health_log.tick(now_s) {
@@ -494,28 +529,6 @@ impl Running {
             if let Some(s) = &self.sim {
                 s.drain_truth(|line| info!("{line}"));
             }
-        }
-    }
-
-    /// The 10 s report: incomplete cycles and overruns, frames the bus dropped, health flaps.
-    fn report_counts(&mut self) {
-        let c = &self.counters;
-        let now = (c.incomplete_cycles.load(Ordering::Relaxed), c.overruns.load(Ordering::Relaxed));
-        if now != self.reported {
-            warn!(
-                "last 10 s: {} incomplete cycles (a TPDO missed its deadline; data not used), {} overruns",
-                now.0 - self.reported.0,
-                now.1 - self.reported.1
-            );
-            self.reported = now;
-        }
-        let drops = c.bus_dropped_rx_frames.load(Ordering::Relaxed);
-        if drops != self.reported_drops {
-            warn!("{}", drops_line("last 10 s", drops - self.reported_drops, drops));
-            self.reported_drops = drops;
-        }
-        if let Some(line) = self.health_log.flaps() {
-            warn!("last 10 s: {line}");
         }
     }
 
@@ -536,13 +549,19 @@ impl Running {
         self.stop.store(true, Ordering::Relaxed);
         let realtime = self.rt.realtime_report().to_vec();
         let (rt, alloc) = self.rt.join()?;
-        let drops = self.counters.bus_dropped_rx_frames.load(Ordering::Relaxed);
-        if drops != self.reported_drops {
-            warn!("{}", drops_line("since the last report", drops - self.reported_drops, drops));
-        }
         while let Some(e) = self.log_rx.dequeue() {
             log_event(&e, self.period_s, self.sim.as_ref(), &mut self.health_log);
         }
+        // What happened since the last 10 s report (short health conditions, incomplete
+        // cycles, dropped frames) is told too: a run that ends within 10 s of a burst would
+        // otherwise never say so.
+        report_counts(
+            &self.counters,
+            &mut self.reported,
+            &mut self.reported_drops,
+            &mut self.health_log,
+            "since the last report",
+        );
         let sim_syncs_answered = match self.sim {
             Some(s) => {
                 s.drain_truth(|line| info!("{line}"));

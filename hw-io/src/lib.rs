@@ -21,6 +21,9 @@
 //! - [`calib_files`] (feature `calib-files`: estimator, serde_json, serde_yaml_ng): the dual
 //!   RCM-arm calibration's files: camera intrinsics (OpenCV / ROS YAML), dataset, ground truth
 //!   and result (JSON), see `docs/calibration.md`.
+//! - [`frame`] (always): camera frames as they cross a boundary: pixel formats, image layouts
+//!   and the metadata of one (stereo) frame, shared by the camera sources and the frame
+//!   transport (`docs/vision.md`).
 //! - [`stdout`] (always): the command-line tools' standard output, quiet on a closed pipe
 //!   ([`outln!`]).
 //! - [`rt_alloc`] (always): a global allocator that serves the small allocations of real-time
@@ -35,6 +38,7 @@
 pub mod calib_files;
 #[cfg(feature = "can")]
 pub mod can;
+pub mod frame;
 #[cfg(feature = "ipc")]
 pub mod ipc;
 pub mod rt_alloc;

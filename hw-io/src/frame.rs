@@ -1,0 +1,213 @@
+//! Camera frames as they cross a boundary: pixel formats, image layouts and the metadata of one
+//! (stereo) frame. No dependency, always built: the camera sources (V4L2, image-sequence
+//! directories, the simulator), the shared-memory frame transport and the processes that read
+//! frames all speak these types.
+//!
+//! A frame is one exposure of a rig of `eyes` cameras (1: mono, 2: stereo, left first), all of
+//! the same [`ImageLayout`]; its pixels are the eyes' images one after the other, each
+//! `stride × height` bytes, rows top to bottom.
+//!
+//! Units: pixels; bytes; times in nanoseconds of `CLOCK_MONOTONIC` (the bus clock: the CAN
+//! receive timestamps of fulcrumd are on the same clock).
+
+use core::fmt;
+
+/// Largest width or height accepted, pixels (a corrupt header must not make a reader allocate
+/// gigabytes).
+pub const MAX_DIMENSION: u32 = 8192;
+
+/// Largest size of one eye's image, bytes (64 MiB).
+pub const MAX_EYE_BYTES: usize = 64 << 20;
+
+/// How the bytes of one pixel are laid out. On the wire (frame headers) it is the `u32` of the
+/// variant.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u32)]
+pub enum PixelFormat {
+    /// 8-bit grey, 1 byte per pixel. Wire value 1.
+    Gray8 = 1,
+    /// 8-bit sRGB, bytes R, G, B, 3 bytes per pixel. Wire value 2.
+    Rgb8 = 2,
+    /// YUV 4:2:2 as V4L2's `YUYV` (Y0 U Y1 V per two pixels), 2 bytes per pixel; the width is
+    /// even. Wire value 3.
+    Yuyv = 3,
+}
+
+/// A pixel-format code that is not a [`PixelFormat`] (a newer or corrupt writer).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown pixel format {0} (known: 1 gray8, 2 rgb8, 3 yuyv)")]
+pub struct UnknownPixelFormat(pub u32);
+
+impl PixelFormat {
+    /// Bytes per pixel.
+    pub const fn bytes_per_pixel(self) -> u32 {
+        match self {
+            Self::Gray8 => 1,
+            Self::Rgb8 => 3,
+            Self::Yuyv => 2,
+        }
+    }
+
+    /// The wire code.
+    pub const fn code(self) -> u32 {
+        self as u32
+    }
+
+    /// The format of a wire code.
+    pub const fn from_code(code: u32) -> Result<Self, UnknownPixelFormat> {
+        match code {
+            1 => Ok(Self::Gray8),
+            2 => Ok(Self::Rgb8),
+            3 => Ok(Self::Yuyv),
+            other => Err(UnknownPixelFormat(other)),
+        }
+    }
+
+    /// Lower-case name (`gray8`, `rgb8`, `yuyv`).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Gray8 => "gray8",
+            Self::Rgb8 => "rgb8",
+            Self::Yuyv => "yuyv",
+        }
+    }
+}
+
+impl fmt::Display for PixelFormat {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Why an [`ImageLayout`] is not usable.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum LayoutError {
+    /// Width or height is zero or above [`MAX_DIMENSION`].
+    #[error("image size {width}×{height} pixels outside 1..={MAX_DIMENSION}")]
+    Size {
+        /// Width, pixels.
+        width: u32,
+        /// Height, pixels.
+        height: u32,
+    },
+    /// The row stride is shorter than a row's pixels.
+    #[error("row stride {stride} bytes is shorter than a row ({min} bytes)")]
+    Stride {
+        /// Stride, bytes.
+        stride: u32,
+        /// Bytes of one row's pixels.
+        min: u32,
+    },
+    /// `YUYV` needs an even width.
+    #[error("YUYV needs an even width, got {0} pixels")]
+    OddYuyvWidth(u32),
+    /// One eye's image is above [`MAX_EYE_BYTES`].
+    #[error("one image is {0} bytes, above the {MAX_EYE_BYTES}-byte limit")]
+    TooLarge(usize),
+}
+
+/// The layout of one eye's image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ImageLayout {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// Bytes from one row's start to the next's (≥ `width × bytes_per_pixel`).
+    pub stride: u32,
+    /// Pixel format.
+    pub format: PixelFormat,
+}
+
+impl ImageLayout {
+    /// A layout without row padding (`stride = width × bytes_per_pixel`), checked.
+    pub fn packed(width: u32, height: u32, format: PixelFormat) -> Result<Self, LayoutError> {
+        let stride = width.saturating_mul(format.bytes_per_pixel());
+        let layout = Self { width, height, stride, format };
+        layout.validate()?;
+        Ok(layout)
+    }
+
+    /// Checks the size limits, the stride and the format's constraints.
+    pub fn validate(&self) -> Result<(), LayoutError> {
+        if self.width == 0 || self.height == 0 || self.width > MAX_DIMENSION || self.height > MAX_DIMENSION {
+            return Err(LayoutError::Size { width: self.width, height: self.height });
+        }
+        let min = self.width * self.format.bytes_per_pixel();
+        if self.stride < min {
+            return Err(LayoutError::Stride { stride: self.stride, min });
+        }
+        if self.format == PixelFormat::Yuyv && !self.width.is_multiple_of(2) {
+            return Err(LayoutError::OddYuyvWidth(self.width));
+        }
+        let bytes = self.eye_bytes();
+        if bytes > MAX_EYE_BYTES {
+            return Err(LayoutError::TooLarge(bytes));
+        }
+        Ok(())
+    }
+
+    /// Bytes of one row's pixels (without padding).
+    pub const fn row_bytes(&self) -> usize {
+        self.width as usize * self.format.bytes_per_pixel() as usize
+    }
+
+    /// Bytes of one eye's image: `stride × height`.
+    pub const fn eye_bytes(&self) -> usize {
+        self.stride as usize * self.height as usize
+    }
+}
+
+/// The metadata of one frame (one exposure of every eye of the rig).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FrameMeta {
+    /// 0 for a source's first frame, +1 per frame it delivers (a gap means frames were lost
+    /// before this point and are counted by the source).
+    pub sequence: u64,
+    /// Which camera rig (configured; 0 for the first endoscope).
+    pub camera_id: u32,
+    /// Mid time of the exposure, nanoseconds of `CLOCK_MONOTONIC` (the bus clock).
+    pub timestamp_ns: u64,
+    /// Exposure time, nanoseconds (0 when unknown).
+    pub exposure_ns: u32,
+    /// Number of eyes, 1 (mono) or 2 (stereo, left first).
+    pub eyes: u32,
+    /// Each eye's image layout.
+    pub layout: ImageLayout,
+}
+
+impl FrameMeta {
+    /// Bytes of the frame's pixels: `eyes × stride × height`.
+    pub const fn payload_bytes(&self) -> usize {
+        self.eyes as usize * self.layout.eye_bytes()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixel_format_codes_round_trip_and_unknown_codes_are_refused() {
+        for f in [PixelFormat::Gray8, PixelFormat::Rgb8, PixelFormat::Yuyv] {
+            assert_eq!(PixelFormat::from_code(f.code()), Ok(f));
+        }
+        assert_eq!(PixelFormat::from_code(0), Err(UnknownPixelFormat(0)));
+        assert_eq!(PixelFormat::from_code(4), Err(UnknownPixelFormat(4)));
+    }
+
+    #[test]
+    fn layouts_are_checked() {
+        let l = ImageLayout::packed(640, 480, PixelFormat::Rgb8).unwrap();
+        assert_eq!((l.stride, l.eye_bytes(), l.row_bytes()), (1920, 921_600, 1920));
+        assert!(matches!(ImageLayout::packed(0, 480, PixelFormat::Rgb8), Err(LayoutError::Size { .. })));
+        assert!(matches!(ImageLayout::packed(9000, 480, PixelFormat::Gray8), Err(LayoutError::Size { .. })));
+        assert_eq!(ImageLayout::packed(641, 480, PixelFormat::Yuyv), Err(LayoutError::OddYuyvWidth(641)));
+        let short = ImageLayout { width: 640, height: 480, stride: 1000, format: PixelFormat::Rgb8 };
+        assert_eq!(short.validate(), Err(LayoutError::Stride { stride: 1000, min: 1920 }));
+        let huge = ImageLayout { width: 8192, height: 8192, stride: 8192 * 3, format: PixelFormat::Rgb8 };
+        assert!(matches!(huge.validate(), Err(LayoutError::TooLarge(_))));
+        let meta = FrameMeta { sequence: 0, camera_id: 0, timestamp_ns: 1, exposure_ns: 0, eyes: 2, layout: l };
+        assert_eq!(meta.payload_bytes(), 2 * 921_600);
+    }
+}

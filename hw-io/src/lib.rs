@@ -21,6 +21,9 @@
 //! - [`calib_files`] (feature `calib-files`: estimator, serde_json, serde_yaml_ng): the dual
 //!   RCM-arm calibration's files: camera intrinsics (OpenCV / ROS YAML), dataset, ground truth
 //!   and result (JSON), see `docs/calibration.md`.
+//! - `camera` (feature `camera`): camera sources behind one trait, `camera::CameraSource`
+//!   (image-sequence directories, Video4Linux2 devices), writing each frame into a buffer the
+//!   caller owns (a loaned shared-memory slot of the frame transport).
 //! - [`frame`] (always): camera frames as they cross a boundary: pixel formats, image layouts
 //!   and the metadata of one (stereo) frame, shared by the camera sources and the frame
 //!   transport (`docs/vision.md`).
@@ -36,6 +39,8 @@
 
 #[cfg(feature = "calib-files")]
 pub mod calib_files;
+#[cfg(feature = "camera")]
+pub mod camera;
 #[cfg(feature = "can")]
 pub mod can;
 pub mod frame;

@@ -158,6 +158,50 @@ impl ImageLayout {
     }
 }
 
+/// What a camera rig delivers, fixed for a source's life: the number of eyes and each eye's
+/// layout.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct FrameFormat {
+    /// 1 (mono) or 2 (stereo, left first).
+    pub eyes: u32,
+    /// Each eye's image layout.
+    pub layout: ImageLayout,
+}
+
+/// Why a [`FrameFormat`] is not usable.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum FormatError {
+    /// Not 1 or 2 eyes.
+    #[error("{0} eyes: a rig has 1 (mono) or 2 (stereo)")]
+    Eyes(u32),
+    /// The layout of each eye.
+    #[error(transparent)]
+    Layout(#[from] LayoutError),
+}
+
+impl FrameFormat {
+    /// A checked format.
+    pub fn new(eyes: u32, layout: ImageLayout) -> Result<Self, FormatError> {
+        let format = Self { eyes, layout };
+        format.validate()?;
+        Ok(format)
+    }
+
+    /// Checks the number of eyes and the layout.
+    pub fn validate(&self) -> Result<(), FormatError> {
+        if !(1..=2).contains(&self.eyes) {
+            return Err(FormatError::Eyes(self.eyes));
+        }
+        self.layout.validate()?;
+        Ok(())
+    }
+
+    /// Bytes of one frame's pixels: `eyes × stride × height`.
+    pub const fn payload_bytes(&self) -> usize {
+        self.eyes as usize * self.layout.eye_bytes()
+    }
+}
+
 /// The metadata of one frame (one exposure of every eye of the rig).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameMeta {
@@ -177,6 +221,11 @@ pub struct FrameMeta {
 }
 
 impl FrameMeta {
+    /// The frame's format (eyes and layout).
+    pub const fn format(&self) -> FrameFormat {
+        FrameFormat { eyes: self.eyes, layout: self.layout }
+    }
+
     /// Bytes of the frame's pixels: `eyes × stride × height`.
     pub const fn payload_bytes(&self) -> usize {
         self.eyes as usize * self.layout.eye_bytes()
@@ -209,5 +258,9 @@ mod tests {
         assert!(matches!(huge.validate(), Err(LayoutError::TooLarge(_))));
         let meta = FrameMeta { sequence: 0, camera_id: 0, timestamp_ns: 1, exposure_ns: 0, eyes: 2, layout: l };
         assert_eq!(meta.payload_bytes(), 2 * 921_600);
+        assert_eq!(meta.format().payload_bytes(), 2 * 921_600);
+        assert_eq!(FrameFormat::new(3, l), Err(FormatError::Eyes(3)));
+        assert_eq!(FrameFormat::new(0, l), Err(FormatError::Eyes(0)));
+        assert!(matches!(FrameFormat::new(2, short), Err(FormatError::Layout(LayoutError::Stride { .. }))));
     }
 }

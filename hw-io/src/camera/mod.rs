@@ -13,25 +13,8 @@
 
 use core::time::Duration;
 
-use crate::frame::{FrameMeta, ImageLayout};
-
-
-
-/// What a source delivers, fixed for its life: the number of eyes and each eye's layout.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct FrameFormat {
-    /// 1 (mono) or 2 (stereo, left first).
-    pub eyes: u32,
-    /// Each eye's image layout.
-    pub layout: ImageLayout,
-}
-
-impl FrameFormat {
-    /// Bytes of one frame's pixels: `eyes × stride × height`.
-    pub const fn payload_bytes(&self) -> usize {
-        self.eyes as usize * self.layout.eye_bytes()
-    }
-}
+pub use crate::frame::FrameFormat;
+use crate::frame::FrameMeta;
 
 /// What [`CameraSource::next_into`] found.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

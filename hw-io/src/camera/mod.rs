@@ -13,6 +13,8 @@
 
 use core::time::Duration;
 
+pub mod image_sequence;
+
 pub use crate::frame::FrameFormat;
 use crate::frame::FrameMeta;
 

@@ -435,6 +435,12 @@ impl FrameSlot<'_> {
         self.sample.payload_mut()
     }
 
+    /// Sets the cumulative count of frames the source lost ([`FrameHeader::source_dropped`] of
+    /// this and the following frames).
+    pub fn set_source_dropped(&mut self, dropped: u64) {
+        self.publisher.source_dropped = dropped;
+    }
+
     /// Sends the frame with its mid-exposure time and exposure (nanoseconds, `CLOCK_MONOTONIC`)
     /// to every subscriber, then wakes them; returns the header sent.
     pub fn send(mut self, timestamp_ns: u64, exposure_ns: u32) -> Result<FrameHeader, PublishError> {

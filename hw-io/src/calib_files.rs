@@ -577,7 +577,7 @@ pub fn parse_stereo_camera_info(left: &str, right: &str) -> Result<StereoCalibra
         if rt_r_err > 1e-6 || (det - 1.0).abs() > 1e-6 {
             return Err(StereoFileError::Field { eye, field: "R", problem: "not a rotation matrix".into() });
         }
-        if !(p12[0] > 0.0) {
+        if p12[0] <= 0.0 {
             return Err(StereoFileError::Field { eye, field: "P", problem: "P[0][0] (fx') must be positive".into() });
         }
         Ok((intrinsics, r9, p12))

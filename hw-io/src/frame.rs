@@ -7,8 +7,13 @@
 //! the same [`ImageLayout`]; its pixels are the eyes' images one after the other, each
 //! `stride × height` bytes, rows top to bottom.
 //!
-//! Units: pixels; bytes; times in nanoseconds of `CLOCK_MONOTONIC` (the bus clock: the CAN
-//! receive timestamps of fulcrumd are on the same clock).
+//! Units: pixels; bytes; times in nanoseconds of `CLOCK_MONOTONIC`, the clock V4L2 drivers
+//! stamp frames with and the daemons' cycle clock. The CAN receive timestamps
+//! (`hw_io::can::TimedFrame::unix_time_us`, the kernel's `SO_TIMESTAMPNS`) are on
+//! `CLOCK_REALTIME` instead: pair a frame with encoder readings through
+//! [`realtime_minus_monotonic_ns`], sampled near the frame's time (the two clocks differ by a
+//! constant unless the wall clock is stepped or slewed, which a robot PC should not do while it
+//! runs).
 
 use core::fmt;
 
@@ -210,7 +215,7 @@ pub struct FrameMeta {
     pub sequence: u64,
     /// Which camera rig (configured; 0 for the first endoscope).
     pub camera_id: u32,
-    /// Mid time of the exposure, nanoseconds of `CLOCK_MONOTONIC` (the bus clock).
+    /// Mid time of the exposure, nanoseconds of `CLOCK_MONOTONIC`.
     pub timestamp_ns: u64,
     /// Exposure time, nanoseconds (0 when unknown).
     pub exposure_ns: u32,
@@ -232,9 +237,38 @@ impl FrameMeta {
     }
 }
 
+/// `CLOCK_REALTIME − CLOCK_MONOTONIC` now, nanoseconds: add it to a frame's `CLOCK_MONOTONIC`
+/// timestamp to compare it with CAN receive timestamps (Unix time). Read as the middle of two
+/// `CLOCK_MONOTONIC` reads around one `CLOCK_REALTIME` read (error below a microsecond).
+pub fn realtime_minus_monotonic_ns() -> i128 {
+    let a = i128::from(monotonic_now_ns());
+    let real = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as i128);
+    let b = i128::from(monotonic_now_ns());
+    real - (a + b) / 2
+}
+
+/// Nanoseconds of `CLOCK_MONOTONIC` now.
+pub fn monotonic_now_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    (ts.tv_sec.max(0) as u64).saturating_mul(1_000_000_000).saturating_add(ts.tv_nsec.max(0) as u64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_clock_offset_matches_the_two_clocks_read_directly() {
+        let off = realtime_minus_monotonic_ns();
+        let mono = i128::from(monotonic_now_ns());
+        let real = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as i128;
+        // Read a few microseconds apart: within 50 ms even on a loaded machine.
+        assert!((real - mono - off).abs() < 50_000_000, "{off}");
+        // Unix time is decades past the boot time.
+        assert!(off > 1_500_000_000 * 1_000_000_000i128);
+    }
 
     #[test]
     fn pixel_format_codes_round_trip_and_unknown_codes_are_refused() {

@@ -4,7 +4,7 @@
 //!
 //! Two timings ([`SimTiming`]): `Free` renders frame `n` at `t0 + n/fps` as fast as asked (an
 //! offline sequence); `Clock` delivers frame `n` only once its exposure has ended on
-//! `CLOCK_MONOTONIC` (the bus clock), as a real camera would, so that a scene fed live by the
+//! `CLOCK_MONOTONIC` , as a real camera would, so that a scene fed live by the
 //! simulated arms (`simrobot live --camera`) has the states the exposure needs. Frames the
 //! renderer cannot keep up with are skipped (counted as dropped), so the timestamps stay on
 //! the frame-rate grid.
@@ -14,7 +14,7 @@
 use std::time::Duration;
 
 use hw_io::camera::{CameraSource, FrameFormat, Next, SourceCounters};
-use hw_io::frame::{FormatError, FrameMeta, ImageLayout, PixelFormat};
+use hw_io::frame::{FormatError, FrameMeta, ImageLayout, PixelFormat, monotonic_now_ns};
 
 use crate::endoscope::{RenderError, SceneState, StereoFrame, StereoRenderer, frame_mid_time_ns};
 
@@ -196,12 +196,6 @@ impl<F: Fn(u64) -> SceneState> CameraSource for SimCamera<F> {
     fn counters(&self) -> SourceCounters {
         self.counters
     }
-}
-
-/// Nanoseconds of `CLOCK_MONOTONIC` (the bus clock).
-pub fn monotonic_now_ns() -> u64 {
-    let ts = nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC);
-    ts.map_or(0, |t| (t.tv_sec() as u64).saturating_mul(1_000_000_000).saturating_add(t.tv_nsec() as u64))
 }
 
 #[cfg(test)]

@@ -9,11 +9,11 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use clap::{Parser, Subcommand};
-use comanip_camera::{Monitor, monotonic_now_ns, pump};
+use comanip_camera::{Monitor, pump};
 use controller::process::{STOP, init_logging, install_stop_handlers, write_json};
 use hw_io::camera::CameraSource;
 use hw_io::camera::image_sequence::{ImageSequence, ImageSequenceConfig, Timing};
-use hw_io::frame::PixelFormat;
+use hw_io::frame::{PixelFormat, monotonic_now_ns};
 use hw_io::ipc::{DEFAULT_FRAME_SERVICE, FramePublisher, FrameSubscriber, PublisherOptions, ReceivedFrame};
 use std::sync::atomic::Ordering;
 use tracing::{error, info, warn};

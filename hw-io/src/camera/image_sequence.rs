@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use super::{CameraSource, FrameFormat, Next, SourceCounters};
-use crate::frame::{FormatError, FrameMeta, ImageLayout, LayoutError, PixelFormat};
+use crate::frame::{FormatError, FrameMeta, ImageLayout, LayoutError, PixelFormat, monotonic_now_ns};
 
 /// The index file's default name in the directory.
 pub const DEFAULT_INDEX: &str = "frames.txt";
@@ -305,14 +305,6 @@ impl CameraSource for ImageSequence {
     fn counters(&self) -> SourceCounters {
         self.counters
     }
-}
-
-/// Nanoseconds of `CLOCK_MONOTONIC`.
-pub(crate) fn monotonic_now_ns() -> u64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    (ts.tv_sec as u64).saturating_mul(1_000_000_000).saturating_add(ts.tv_nsec as u64)
 }
 
 fn parse_index(text: &str, path: &Path) -> Result<Vec<Entry>, ImageSequenceOpenError> {

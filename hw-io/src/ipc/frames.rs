@@ -11,8 +11,8 @@
 //! source writes the pixels straight into it ([`crate::camera::CameraSource::next_into`]), and
 //! every subscriber reads them in place ([`ReceivedFrame::pixels`]) until it drops the frame.
 //!
-//! Times are nanoseconds of `CLOCK_MONOTONIC`, the clock of fulcrumd's CAN receive timestamps
-//! (the bus clock); sizes are pixels and bytes.
+//! Times are nanoseconds of `CLOCK_MONOTONIC` (see [`crate::frame`] for pairing them with
+//! the CAN receive timestamps, which are Unix time); sizes are pixels and bytes.
 
 use std::time::{Duration, Instant};
 
@@ -55,7 +55,7 @@ pub struct FrameHeader {
     pub sequence: u64,
     /// Random per publisher start. Offset 16.
     pub run_id: u64,
-    /// Mid time of the exposure, nanoseconds of `CLOCK_MONOTONIC` (the bus clock). Offset 24.
+    /// Mid time of the exposure, nanoseconds of `CLOCK_MONOTONIC`. Offset 24.
     pub timestamp_ns: u64,
     /// Exposure time, nanoseconds (0 when unknown). Offset 32.
     pub exposure_ns: u32,

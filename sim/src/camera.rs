@@ -4,7 +4,7 @@
 //!
 //! Two timings ([`SimTiming`]): `Free` renders frame `n` at `t0 + n/fps` as fast as asked (an
 //! offline sequence); `Clock` delivers frame `n` only once its exposure has ended on
-//! `CLOCK_MONOTONIC` , as a real camera would, so that a scene fed live by the
+//! `CLOCK_MONOTONIC`, as a real camera would, so that a scene fed live by the
 //! simulated arms (`simrobot live --camera`) has the states the exposure needs. Frames the
 //! renderer cannot keep up with are skipped (counted as dropped), so the timestamps stay on
 //! the frame-rate grid.

@@ -14,6 +14,11 @@
 use core::time::Duration;
 
 pub mod image_sequence;
+#[cfg(feature = "ipc")]
+mod pump;
+
+#[cfg(feature = "ipc")]
+pub use pump::{PumpError, PumpSummary, REPORT_PERIOD, pump};
 
 pub use crate::frame::FrameFormat;
 use crate::frame::FrameMeta;

@@ -22,12 +22,19 @@
 //! the Unix epoch) times 1000.
 
 use std::collections::VecDeque;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::Path;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use serde::Serialize;
 
 use crate::endoscope::config::EndoscopeConfig;
+use crate::endoscope::output::{OutputError, write_mask_png, write_png};
 use crate::endoscope::render::{StereoFrame, label};
-use crate::endoscope::{InstrumentGeometry, InstrumentState, SceneState};
+use crate::endoscope::{
+    InstrumentGeometry, InstrumentMesh, InstrumentState, SceneState, StereoRenderer, frame_mid_time_ns,
+};
 use crate::endoscope_arm::ECM_JOINTS;
 use crate::twin::{SimRobot, TwinConfig};
 
@@ -203,4 +210,210 @@ pub fn default_endoscope_config() -> EndoscopeConfig {
 /// frame.
 pub fn instrument_pixels(frame: &StereoFrame, eye: usize) -> u64 {
     frame.images.get(eye).map_or(0, |img| img.labels.iter().filter(|&&l| l == label::INSTRUMENT).count() as u64)
+}
+
+/// Value of the `format` field of the frames' ground-truth header.
+pub const FRAMES_FORMAT: &str = "comanip-world-frames";
+
+/// Version of the frames' ground-truth format.
+pub const FRAMES_VERSION: u32 = 1;
+
+/// Why frames could not be rendered or written.
+#[derive(Debug, thiserror::Error)]
+pub enum FramesError {
+    /// Rendering, PNG encoding or file output failed.
+    #[error(transparent)]
+    Output(#[from] OutputError),
+    /// The world has no sample yet.
+    #[error("no sample of the world recorded yet")]
+    NoSample,
+}
+
+#[derive(Serialize)]
+struct FramesHeader<'a> {
+    #[serde(rename = "type")]
+    kind: &'static str,
+    format: &'static str,
+    version: u32,
+    /// Mid time of frame 0, nanoseconds on the bus clock.
+    t0_ns: u64,
+    fps: f64,
+    rcm_in_tool_base: &'a crate::endoscope::config::PoseConfig,
+    config: &'a EndoscopeConfig,
+}
+
+#[derive(Serialize)]
+struct FramesLine<'a> {
+    #[serde(rename = "type")]
+    kind: &'static str,
+    index: u64,
+    t_mid_ns: u64,
+    unix_time_us: u64,
+    sample: u64,
+    ecm_joints: [f64; ECM_JOINTS],
+    tool_joints: [f64; 6],
+    instrument_px: [u64; 2],
+    files: [&'a str; 4],
+    left: &'a crate::endoscope::EyeTruth,
+    right: &'a crate::endoscope::EyeTruth,
+}
+
+#[derive(Serialize)]
+struct FramesEnd {
+    #[serde(rename = "type")]
+    kind: &'static str,
+    frames: u64,
+    frames_with_instrument: u64,
+}
+
+/// One frame written by [`FrameWriter::write_next`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameInfo {
+    /// Frame index from 0.
+    pub index: u64,
+    /// Exposure's mid time, nanoseconds on the bus clock.
+    pub t_mid_ns: u64,
+    /// Instrument pixels visible in the left and right masks.
+    pub instrument_px: [u64; 2],
+}
+
+/// Smallest number of instrument pixels in the left image for a frame to count as showing
+/// the instrument (in [`FrameWriter::frames_with_instrument`]).
+pub const VISIBLE_MIN_PX: u64 = 20;
+
+/// Renders stereo frames of a [`World`] at a fixed rate and writes them with their ground
+/// truth: `DIR/frame_NNNNNN_{left,right}.png`, `DIR/frame_NNNNNN_{left,right}_mask.png` and
+/// `DIR/truth.jsonl` (`header`, one `frame` line per frame with the bus time, both arms'
+/// joints, the visible instrument pixels and each eye's [`crate::endoscope::EyeTruth`];
+/// `end`). Frame `n`'s exposure is centred on `t0_ns + round(n·10⁹/fps)` (bus clock,
+/// nanoseconds).
+pub struct FrameWriter {
+    dir: std::path::PathBuf,
+    renderer: StereoRenderer,
+    frame: StereoFrame,
+    truth: BufWriter<File>,
+    truth_path: std::path::PathBuf,
+    t0_ns: u64,
+    fps: f64,
+    half_exposure_ns: u64,
+    next: u64,
+    with_instrument: u64,
+}
+
+impl FrameWriter {
+    /// Creates `dir` and its `truth.jsonl` (header written) for frames from `t0_ns` (bus
+    /// clock, nanoseconds) at `cfg.timing.fps`, the endoscope arm's RCM at `rcm_in_tool_base`.
+    pub fn new(
+        dir: &Path,
+        cfg: &EndoscopeConfig,
+        mesh: InstrumentMesh,
+        t0_ns: u64,
+        rcm_in_tool_base: &crate::endoscope::config::PoseConfig,
+    ) -> Result<Self, FramesError> {
+        std::fs::create_dir_all(dir).map_err(|source| OutputError::Io { path: dir.to_owned(), source })?;
+        let renderer = StereoRenderer::new(cfg.clone(), mesh).map_err(OutputError::from)?;
+        let truth_path = dir.join("truth.jsonl");
+        let io = |source| OutputError::Io { path: truth_path.clone(), source };
+        let mut truth = BufWriter::new(File::create(&truth_path).map_err(io)?);
+        let header = FramesHeader {
+            kind: "header",
+            format: FRAMES_FORMAT,
+            version: FRAMES_VERSION,
+            t0_ns,
+            fps: cfg.timing.fps,
+            rcm_in_tool_base,
+            config: cfg,
+        };
+        serde_json::to_writer(&mut truth, &header)
+            .map_err(|source| OutputError::Json { path: truth_path.clone(), source })?;
+        truth.write_all(b"\n").map_err(io)?;
+        Ok(Self {
+            dir: dir.to_owned(),
+            renderer,
+            frame: StereoFrame::default(),
+            truth,
+            truth_path,
+            t0_ns,
+            fps: cfg.timing.fps,
+            half_exposure_ns: (cfg.timing.exposure_s * 0.5e9).round() as u64,
+            next: 0,
+            with_instrument: 0,
+        })
+    }
+
+    /// Mid time of the next frame's exposure, nanoseconds on the bus clock.
+    pub fn next_mid_ns(&self) -> u64 {
+        frame_mid_time_ns(self.t0_ns, self.fps, self.next)
+    }
+
+    /// `true` when `world` has recorded samples up to the end of the next frame's exposure.
+    pub fn ready(&self, world: &World) -> bool {
+        world.history.back().is_some_and(|s| s.t_ns >= self.next_mid_ns().saturating_add(self.half_exposure_ns))
+    }
+
+    /// Frames written so far.
+    pub fn frames(&self) -> u64 {
+        self.next
+    }
+
+    /// Frames so far with at least [`VISIBLE_MIN_PX`] instrument pixels in the left image.
+    pub fn frames_with_instrument(&self) -> u64 {
+        self.with_instrument
+    }
+
+    /// Renders and writes the next frame from `world` (call when [`FrameWriter::ready`]).
+    pub fn write_next(&mut self, world: &World) -> Result<FrameInfo, FramesError> {
+        let t = self.next_mid_ns();
+        let mid = world.scene_at(t).ok_or(FramesError::NoSample)?;
+        let sample = *world.sample_at(t).ok_or(FramesError::NoSample)?;
+        let scene = |at: u64| world.scene_at(at).unwrap_or(mid);
+        self.renderer.render_into(t, &scene, &mut self.frame).map_err(OutputError::from)?;
+        let n = self.next;
+        let names = [
+            format!("frame_{n:06}_left.png"),
+            format!("frame_{n:06}_right.png"),
+            format!("frame_{n:06}_left_mask.png"),
+            format!("frame_{n:06}_right_mask.png"),
+        ];
+        for eye in 0..2 {
+            write_png(&self.dir.join(&names[eye]), &self.frame.images[eye])?;
+            write_mask_png(&self.dir.join(&names[2 + eye]), &self.frame.images[eye])?;
+        }
+        let px = [instrument_pixels(&self.frame, 0), instrument_pixels(&self.frame, 1)];
+        let line = FramesLine {
+            kind: "frame",
+            index: n,
+            t_mid_ns: t,
+            unix_time_us: t / 1000,
+            sample: sample.sample,
+            ecm_joints: mid.ecm_joints,
+            tool_joints: sample.tool_joints,
+            instrument_px: px,
+            files: [&names[0], &names[1], &names[2], &names[3]],
+            left: &self.frame.truth[0],
+            right: &self.frame.truth[1],
+        };
+        let json = |source| OutputError::Json { path: self.truth_path.clone(), source };
+        let io = |source| OutputError::Io { path: self.truth_path.clone(), source };
+        serde_json::to_writer(&mut self.truth, &line).map_err(json)?;
+        self.truth.write_all(b"\n").map_err(io)?;
+        self.next += 1;
+        self.with_instrument += u64::from(px[0] >= VISIBLE_MIN_PX);
+        Ok(FrameInfo { index: n, t_mid_ns: t, instrument_px: px })
+    }
+
+    fn line(&mut self, value: &impl Serialize) -> Result<(), FramesError> {
+        serde_json::to_writer(&mut self.truth, value)
+            .map_err(|source| OutputError::Json { path: self.truth_path.clone(), source })?;
+        self.truth.write_all(b"\n").map_err(|source| OutputError::Io { path: self.truth_path.clone(), source })?;
+        Ok(())
+    }
+
+    /// Writes the `end` line and flushes the ground truth.
+    pub fn finish(mut self) -> Result<(), FramesError> {
+        let end = FramesEnd { kind: "end", frames: self.next, frames_with_instrument: self.with_instrument };
+        self.line(&end)?;
+        self.truth.flush().map_err(|source| OutputError::Io { path: self.truth_path.clone(), source })?;
+        Ok(())
+    }
 }

@@ -197,9 +197,12 @@ impl World {
 /// The renderer configuration `simrobot generate --frames` uses by default: the renderer's
 /// defaults, with the tissue 27 cm from the endoscope's RCM along its axis (11 cm below the
 /// tool arm's default trocars, beyond the deepest instrument tips of the default twin), a
-/// 40 cm square of it, and without the second instrument.
+/// 40 cm square of it, the light's reference distance 18 cm (the tissue is 21 cm from the
+/// camera at the default insertion, twice the renderer's default working distance), and
+/// without the second instrument.
 pub fn default_endoscope_config() -> EndoscopeConfig {
     let mut c = EndoscopeConfig::default();
+    c.light.reference_distance_m = 0.18;
     c.tissue.plane_z_m = 0.27;
     c.tissue.extent_m = 0.40;
     c.realism.second_instrument = false;

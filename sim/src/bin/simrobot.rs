@@ -654,6 +654,8 @@ struct LiveCounts {
     sync_gaps: u64,
     error_frames: u64,
     events: u64,
+    /// SYNCs answered by the endoscope arm's nodes (two TPDOs each; every 10th SYNC).
+    endoscope_tpdo_syncs: u64,
     /// Frames the kernel dropped because this socket's receive queue was full (`SO_RXQ_OVFL`).
     dropped_rx_frames: u64,
 }
@@ -682,8 +684,16 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     };
     let mut truth_file = truth_file;
     let mut truth: Option<(PathBuf, TruthWriter<BufWriter<File>>)> = None;
+    let endoscope = if config.endoscope_arm.enabled {
+        format!(
+            " and endoscope arm nodes {:?} (every {}th SYNC)",
+            config.endoscope_arm.node_ids, config.endoscope_arm.transmission_type
+        )
+    } else {
+        String::new()
+    };
     outln!(
-        "simrobot live: {} answering SYNC (0x080) as nodes {:?}, seed {}, {} cycles{}",
+        "simrobot live: {} answering SYNC (0x080) as nodes {:?}{endoscope}, seed {}, {} cycles{}",
         args.iface,
         config.encoder.node_ids,
         config.scenario.seed,
@@ -792,6 +802,15 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
             && let Err(source) = w.sample(t_us, robot.truth(), robot.events())
         {
             break Err(LiveError::Truth { path: path.clone(), source });
+        }
+        if robot.endoscope_tpdos_sent() {
+            counts.endoscope_tpdo_syncs += 1;
+            if let (Some((path, w)), Some(joints), Some(sample)) =
+                (truth.as_mut(), robot.endoscope_joints(), robot.sample())
+                && let Err(source) = w.endoscope(&EndoscopeRecord { sample, unix_time_us: t_us, joints })
+            {
+                break Err(LiveError::Truth { path: path.clone(), source });
+            }
         }
         counts.events += robot.events().len() as u64;
         if let Err(e) = robot.events().iter().try_for_each(print_event) {

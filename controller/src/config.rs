@@ -154,7 +154,9 @@ pub enum DaemonConfigError {
     #[error("bus.{0}")]
     Encoders(EncoderConfigError),
     /// `bus.other_node_ids` has a node ID outside 1..=127, twice, or one of the encoder nodes.
-    #[error("bus.other_node_ids[{index}] = {value}: must be a node ID 1..=127, listed once, not one of bus.encoder.node_ids")]
+    #[error(
+        "bus.other_node_ids[{index}] = {value}: must be a node ID 1..=127, listed once, not one of bus.encoder.node_ids"
+    )]
     OtherNode {
         /// Index into the list.
         index: usize,
@@ -194,7 +196,9 @@ impl Config {
         self.bus.encoder.validate().map_err(DaemonConfigError::Encoders)?;
         let others = &self.bus.other_node_ids;
         for (index, &value) in others.iter().enumerate() {
-            if !(1..=127).contains(&value) || others[..index].contains(&value) || self.bus.encoder.node_ids.contains(&value)
+            if !(1..=127).contains(&value)
+                || others[..index].contains(&value)
+                || self.bus.encoder.node_ids.contains(&value)
             {
                 return Err(DaemonConfigError::OtherNode { index, value });
             }

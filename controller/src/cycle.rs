@@ -530,10 +530,13 @@ mod tests {
             for t in 0..400u64 {
                 let ns = t * 1_000_000;
                 if with_others {
-                    a.on_frame_between_cycles(&frame(Message::Heartbeat { node: n(4), state: NmtState::Operational }), ns);
+                    a.on_frame_between_cycles(
+                        &frame(Message::Heartbeat { node: n(4), state: NmtState::Operational }),
+                        ns,
+                    );
                 }
                 a.start_cycle();
-                if with_others && t % 10 == 0 {
+                if with_others && t.is_multiple_of(10) {
                     a.on_frame(&frame(Message::Tpdo { node: n(4), counts: [7, 8] }), ns);
                     a.on_frame(&frame(Message::Tpdo { node: n(5), counts: [9, 10] }), ns);
                     let emcy = Message::Emcy { node: n(5), code: 0x7305, register: 1, vendor: [0; 5] };
@@ -542,7 +545,7 @@ mod tests {
                 for k in 1..=3u8 {
                     a.on_frame(&frame(Message::Tpdo { node: n(k), counts: [t as i32, i32::from(k)] }), ns);
                 }
-                if t % 100 == 0 {
+                if t.is_multiple_of(100) {
                     for k in 1..=3 {
                         a.on_frame(&frame(Message::Heartbeat { node: n(k), state: NmtState::Operational }), ns);
                     }

@@ -968,7 +968,7 @@ fn hil_clean_insert_extract_cycles() {
     // raised no flag for them (check_run).
     for id in [0x184, 0x185] {
         let sent = tpdo_sent_per_sync(&a, id);
-        let tenth: Vec<bool> = (1..=sent.len()).map(|k| k % 10 == 0).collect();
+        let tenth: Vec<bool> = (1..=sent.len()).map(|k| k.is_multiple_of(10)).collect();
         assert!(sent == tenth, "node {:#x}: TPDOs not exactly at every 10th SYNC", id - 0x180);
     }
     let ecm_on_bus: u64 = [0x184, 0x185, 0x704, 0x705].iter().map(|&id| bus.count(id)).sum();

@@ -178,16 +178,25 @@ impl EndoscopeArmConfig {
         for j in 0..ECM_JOINTS {
             let (h, r) = (self.home_joints[j], self.range[j]);
             if !(h.is_finite() && h.abs() <= LIMIT[j]) {
-                return Err(E::OutOfRange { key: HOME[j], value: h, allowed: "finite, |yaw|, |pitch| <= 1.5, |insertion| <= 0.5, |roll| <= 2 pi" });
+                return Err(E::OutOfRange {
+                    key: HOME[j],
+                    value: h,
+                    allowed: "finite, |yaw|, |pitch| <= 1.5, |insertion| <= 0.5, |roll| <= 2 pi",
+                });
             }
             if !(r.is_finite() && (0.0..=LIMIT[j]).contains(&r)) {
-                return Err(E::OutOfRange { key: RANGE[j], value: r, allowed: "0 ..= 1.5 (yaw, pitch), 0.5 (insertion), 2 pi (roll)" });
+                return Err(E::OutOfRange {
+                    key: RANGE[j],
+                    value: r,
+                    allowed: "0 ..= 1.5 (yaw, pitch), 0.5 (insertion), 2 pi (roll)",
+                });
             }
         }
         for (key, r, min, max) in [("hold_s", self.hold_s, 1e-3, 3600.0), ("move_s", self.move_s, 0.05, 60.0)] {
             for (k, v) in r.iter().enumerate() {
                 if !(v.is_finite() && *v >= min && *v <= max) || r[0] > r[1] {
-                    let key = if key == "hold_s" { ["hold_s[0]", "hold_s[1]"][k] } else { ["move_s[0]", "move_s[1]"][k] };
+                    let key =
+                        if key == "hold_s" { ["hold_s[0]", "hold_s[1]"][k] } else { ["move_s[0]", "move_s[1]"][k] };
                     return Err(E::OutOfRange {
                         key,
                         value: *v,
@@ -351,7 +360,7 @@ impl EcmNodes {
 
     /// `true` when the nodes send their TPDOs in answer to the SYNC with `counter`.
     pub fn answers(&self, counter: u8) -> bool {
-        counter % self.cfg.transmission_type.max(1) == 0
+        counter.is_multiple_of(self.cfg.transmission_type.max(1))
     }
 
     /// TPDOs sent so far (both nodes).
@@ -371,7 +380,8 @@ impl EcmNodes {
         let tt = self.cfg.transmission_type.max(1);
         if self.answers(counter) {
             for (k, node) in self.ids.iter().enumerate() {
-                if let Ok(frame) = (Message::Tpdo { node: *node, counts: [counts[2 * k], counts[2 * k + 1]] }).encode() {
+                if let Ok(frame) = (Message::Tpdo { node: *node, counts: [counts[2 * k], counts[2 * k + 1]] }).encode()
+                {
                     let _ = out.push(TimedFrame { frame, unix_time_us: send_us });
                     self.tpdos_sent += 1;
                 }

@@ -486,8 +486,8 @@ impl SimRobot {
         let mut frames = TwinFrames::new();
         for f in tool_frames.iter().chain(ecm_frames.iter()) {
             // Capacity: MAX_TWIN_FRAMES_PER_SYNC covers both arms.
-            let _ = frames
-                .push(hw_io::can::TimedFrame { frame: f.frame, unix_time_us: f.unix_time_us.saturating_add(t0) });
+            let _ =
+                frames.push(hw_io::can::TimedFrame { frame: f.frame, unix_time_us: f.unix_time_us.saturating_add(t0) });
         }
         frames.sort_unstable_by_key(|f| (f.unix_time_us, f.frame.id().raw()));
         self.endoscope_sent = self.endoscope.as_ref().is_some_and(|(_, n)| n.answers(counter));

@@ -120,8 +120,9 @@ fn frames_are_on_the_bus_clock_deterministic_and_show_the_instrument() {
         let ecm: Vec<f64> = f["ecm_joints"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
         let rec = truth.endoscope().iter().min_by_key(|r| r.sample.abs_diff(k as u64)).unwrap();
         assert!(rec.sample.abs_diff(k as u64) <= 9);
-        for j in 0..4 {
-            assert!((ecm[j] - rec.joints[j]).abs() < 0.02, "frame {n} joint {j}: {} vs {}", ecm[j], rec.joints[j]);
+        assert_eq!(ecm.len(), 4);
+        for (j, (q, truth_q)) in ecm.iter().zip(rec.joints).enumerate() {
+            assert!((q - truth_q).abs() < 0.02, "frame {n} joint {j}: {q} vs {truth_q}");
         }
         assert_eq!(f["tool_joints"].as_array().unwrap().len(), 6);
         for name in f["files"].as_array().unwrap() {
@@ -153,6 +154,7 @@ fn frames_need_the_endoscope_arm() {
         .unwrap();
     assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--no-endoscope"));
-    let o = Command::new(EXE).args(["generate", "--frames", "--fps", "0", "--out"]).arg(dir.path("y")).output().unwrap();
+    let o =
+        Command::new(EXE).args(["generate", "--frames", "--fps", "0", "--out"]).arg(dir.path("y")).output().unwrap();
     assert_eq!(o.status.code(), Some(2));
 }

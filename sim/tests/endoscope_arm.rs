@@ -56,7 +56,7 @@ fn nodes_answer_exactly_every_tenth_sync_with_the_joints() {
             }
             assert!(f.unix_time_us >= t_us, "stamped after its SYNC");
         }
-        assert_eq!(robot.endoscope_tpdos_sent(), counter % 10 == 0);
+        assert_eq!(robot.endoscope_tpdos_sent(), counter.is_multiple_of(10));
         match counts {
             [Some(a), Some(b)] => {
                 assert_eq!(counter % 10, 0, "TPDOs at counter {counter}");
@@ -152,7 +152,7 @@ fn tip_in_view_share(seed: u64) -> (f64, f64) {
     run(&mut robot, u64::MAX, |robot, _, t_us, _| {
         let s = world.record(t_us * 1000, robot).unwrap();
         let s = &s;
-        if s.sample % 33 != 0 {
+        if !s.sample.is_multiple_of(33) {
             return;
         }
         let eye = renderer.eye_poses(&s.ecm_joints)[0];
@@ -171,8 +171,11 @@ fn tip_in_view_share(seed: u64) -> (f64, f64) {
 fn the_default_placement_keeps_the_tip_in_view_most_of_the_time() {
     for seed in 1..=3 {
         let (all, inside) = tip_in_view_share(seed);
-        eprintln!("seed {seed}: tip in the left image in {:.1} % of the samples, {:.1} % of those inside a trocar", all * 100.0, inside * 100.0);
+        eprintln!(
+            "seed {seed}: tip in the left image in {:.1} % of the samples, {:.1} % of those inside a trocar",
+            all * 100.0,
+            inside * 100.0
+        );
         assert!(all > 0.7 && inside > 0.9, "seed {seed}: {all}");
     }
 }
-

@@ -114,7 +114,8 @@ fn a_finite_scenario_ends_and_its_events_are_reported_once_at_their_sample() {
     let mut events: Vec<TwinEvent> = Vec::new();
     let mut states = Vec::new();
     let n = run(&mut robot, u64::MAX, |r, t_us, frames| {
-        let tool_tpdo = |f: &&TimedFrame| matches!(Message::decode(&f.frame), Ok(Message::Tpdo { node, .. }) if node.get() <= 3);
+        let tool_tpdo =
+            |f: &&TimedFrame| matches!(Message::decode(&f.frame), Ok(Message::Tpdo { node, .. }) if node.get() <= 3);
         assert_eq!(frames.iter().filter(tool_tpdo).count(), 3);
         assert!(frames.iter().all(|f| f.unix_time_us == t_us + 100), "frames stamped SYNC + 100 us latency");
         for e in r.events() {

@@ -76,7 +76,8 @@ pub fn mixed_bus_worst_case_bits_per_period(nodes: u32, slow_nodes: u32, slow_ev
 /// [`mixed_bus_worst_case_bits_per_period`] as a fraction of `bitrate_bit_per_s` (0.500 25
 /// for the tool arm's 3 nodes and the endoscope arm's 2 at type 10, at 1 Mbit/s).
 pub fn mixed_bus_worst_case_load(nodes: u32, slow_nodes: u32, slow_every: u32, bitrate_bit_per_s: u32) -> f64 {
-    let bits_per_s = mixed_bus_worst_case_bits_per_period(nodes, slow_nodes, slow_every) * 1e6 / f64::from(SYNC_PERIOD_US);
+    let bits_per_s =
+        mixed_bus_worst_case_bits_per_period(nodes, slow_nodes, slow_every) * 1e6 / f64::from(SYNC_PERIOD_US);
     bits_per_s / f64::from(bitrate_bit_per_s.max(1))
 }
 
@@ -111,7 +112,9 @@ mod tests {
     #[test]
     fn numbers_with_the_endoscope_arm() {
         // Without slow nodes the mixed formula is the encoder bus's.
-        assert!((mixed_bus_worst_case_bits_per_period(3, 0, 10) - encoder_bus_worst_case_bits_per_period(3)).abs() < 1e-9);
+        assert!(
+            (mixed_bus_worst_case_bits_per_period(3, 0, 10) - encoder_bus_worst_case_bits_per_period(3)).abs() < 1e-9
+        );
         // 470 + 2 × 135 / 10 = 497 bit/ms cyclic, 5 × 65 / 100 = 3.25 bit/ms of heartbeats.
         assert!((mixed_bus_worst_case_bits_per_period(3, 2, 10) - 500.25).abs() < 1e-9);
         let load = mixed_bus_worst_case_load(3, 2, 10, BITRATE_BIT_PER_S);

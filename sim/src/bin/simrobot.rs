@@ -32,11 +32,9 @@ use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 use sim::endoscope::config::ConfigError as EndoscopeConfigError;
 use sim::endoscope::output::{OutputError, Sequence, render_sequence, write_samples};
 use sim::endoscope::{DemoMotion, EndoscopeConfig, InstrumentMesh, ObjError};
-use sim::truth_file::{
-    DEFAULT_STATE_EVERY, EndoscopeRecord, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter,
-};
-use sim::world::{DEFAULT_KEEP_NS, FrameWriter, FramesError, World, WorldError};
+use sim::truth_file::{DEFAULT_STATE_EVERY, EndoscopeRecord, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
 use sim::twin::{SYNC_PERIOD_US, SimRobot, TwinConfig, TwinConfigError, TwinError, TwinEvent};
+use sim::world::{DEFAULT_KEEP_NS, FrameWriter, FramesError, World, WorldError};
 
 /// Default epoch of `generate`: Unix time of the first SYNC, seconds (2023-11-14).
 const DEFAULT_EPOCH_S: u64 = 1_700_000_000;
@@ -134,7 +132,7 @@ struct GenerateArgs {
     #[arg(long, value_name = "NAME", default_value = "vcan0")]
     iface: String,
     /// Also render the stereo endoscope on the endoscope arm looking at the instrument:
-    /// DIR/frames/frame_NNNNNN_{left,right}[_mask].png and DIR/frames/truth.jsonl, each frame
+    /// DIR/frames/frame_NNNNNN_{left,right}.png (and _mask.png) and DIR/frames/truth.jsonl, each frame
     /// stamped with its exposure's mid time on the bus clock.
     #[arg(long)]
     frames: bool,

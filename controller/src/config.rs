@@ -70,7 +70,16 @@ pub struct BusConfig {
     pub receive_buffer_bytes: usize,
     /// Encoder nodes and counts-to-radians conversion.
     pub encoder: EncoderConfig,
+    /// Node IDs of other nodes expected on the same bus whose frames fulcrumd ignores (the
+    /// endoscope-holder arm's encoder nodes: TPDOs every 10th SYNC and heartbeats;
+    /// `docs/can-protocol.md`): counted as `other_node_frames`, never a health flag, never in
+    /// the estimate. 1..=127, distinct, none of `encoder.node_ids`, at most 125. Default
+    /// [`DEFAULT_OTHER_NODE_IDS`]. A node on the bus that is neither is counted as foreign.
+    pub other_node_ids: Vec<u8>,
 }
+
+/// Default of `bus.other_node_ids`: the endoscope-holder arm's two encoder nodes.
+pub const DEFAULT_OTHER_NODE_IDS: [u8; 2] = [4, 5];
 
 /// Default of `bus.receive_buffer_bytes`, bytes: 2 MiB asked, 4 MiB granted by the kernel,
 /// about 4000 classic frames (half a second of a saturated 1 Mbit/s bus).
@@ -86,6 +95,7 @@ impl Default for BusConfig {
             iface: String::new(),
             receive_buffer_bytes: DEFAULT_RECEIVE_BUFFER_BYTES,
             encoder: EncoderConfig::default(),
+            other_node_ids: DEFAULT_OTHER_NODE_IDS.to_vec(),
         }
     }
 }
@@ -143,6 +153,16 @@ pub enum DaemonConfigError {
     /// `bus.encoder` is invalid.
     #[error("bus.{0}")]
     Encoders(EncoderConfigError),
+    /// `bus.other_node_ids` has a node ID outside 1..=127, twice, or one of the encoder nodes.
+    #[error(
+        "bus.other_node_ids[{index}] = {value}: must be a node ID 1..=127, listed once, not one of bus.encoder.node_ids"
+    )]
+    OtherNode {
+        /// Index into the list.
+        index: usize,
+        /// The value given.
+        value: u8,
+    },
     /// `output.service` is not a valid service name.
     #[error("output.service = {0:?}: must have 1 to 200 printable ASCII characters")]
     Service(String),
@@ -174,6 +194,15 @@ impl Config {
             return Err(DaemonConfigError::ReceiveBuffer(self.bus.receive_buffer_bytes));
         }
         self.bus.encoder.validate().map_err(DaemonConfigError::Encoders)?;
+        let others = &self.bus.other_node_ids;
+        for (index, &value) in others.iter().enumerate() {
+            if !(1..=127).contains(&value)
+                || others[..index].contains(&value)
+                || self.bus.encoder.node_ids.contains(&value)
+            {
+                return Err(DaemonConfigError::OtherNode { index, value });
+            }
+        }
         let svc = &self.output.service;
         if svc.is_empty() || svc.len() > 200 || !svc.chars().all(|c| c.is_ascii_graphic()) {
             return Err(DaemonConfigError::Service(svc.clone()));

@@ -79,8 +79,13 @@ pub struct AcquisitionStats {
     pub wrong_dlc_frames: u64,
     /// Frames that are otherwise malformed (SYNC counter out of range, unknown NMT state).
     pub malformed_frames: u64,
-    /// Well-formed messages from nodes that are not ours.
+    /// Well-formed messages from nodes that are neither ours nor listed in
+    /// `bus.other_node_ids`.
     pub foreign_node_frames: u64,
+    /// Well-formed TPDOs, heartbeats and EMCYs of the other nodes expected on the bus
+    /// (`bus.other_node_ids`: the endoscope arm's); ignored, never a health flag.
+    #[serde(default)]
+    pub other_node_frames: u64,
     /// Second TPDO of a node within one cycle (the newer replaces the older).
     pub duplicate_tpdos: u64,
     /// SYNC frames seen from another master on the bus.
@@ -98,6 +103,8 @@ pub struct Acquisition {
     health: HealthMonitor,
     stats: AcquisitionStats,
     bus_error: bool,
+    /// Bit `k` set: node `k` is another arm's node on the same bus (ignored).
+    other_nodes: u128,
 }
 
 /// Why acquisition could not be set up.
@@ -113,7 +120,31 @@ impl Acquisition {
     pub fn new(encoders: &EncoderConfig, health: HealthConfig) -> Result<Self, AcquisitionError> {
         let assembler = JointAssembler::from_config(encoders)?;
         let health = HealthMonitor::new(health, assembler.nodes());
-        Ok(Self { assembler, health, stats: AcquisitionStats::default(), bus_error: false })
+        Ok(Self { assembler, health, stats: AcquisitionStats::default(), bus_error: false, other_nodes: 0 })
+    }
+
+    /// The same, with the node IDs of other nodes expected on the bus (`bus.other_node_ids`):
+    /// their TPDOs, heartbeats and EMCYs are counted as `other_node_frames` and otherwise
+    /// ignored. IDs of our own encoder nodes, and IDs outside 1..=127, are left out.
+    pub fn with_other_nodes(mut self, node_ids: &[u8]) -> Self {
+        let ours = self.assembler.nodes();
+        for &id in node_ids {
+            if (1..=127).contains(&id) && !ours.iter().any(|n| n.get() == id) {
+                self.other_nodes |= 1u128 << id;
+            }
+        }
+        self
+    }
+
+    /// `true` (and counted) when `msg` comes from one of the other nodes expected on the bus.
+    fn is_other_node(&mut self, msg: &Message) -> bool {
+        let node = match msg {
+            Message::Tpdo { node, .. } | Message::Heartbeat { node, .. } | Message::Emcy { node, .. } => node.get(),
+            Message::Sync { .. } => return false,
+        };
+        let other = self.other_nodes & (1u128 << node) != 0;
+        self.stats.other_node_frames += u64::from(other);
+        other
     }
 
     /// Counters since start-up.
@@ -163,6 +194,9 @@ impl Acquisition {
     /// **Real-time (1 kHz loop):** called for every frame drained before the SYNC; allocation-free, no I/O.
     pub fn on_frame_between_cycles(&mut self, frame: &CanFrame, now_ns: u64) {
         let Some(msg) = self.decode(frame) else { return };
+        if self.is_other_node(&msg) {
+            return;
+        }
         match msg {
             Message::Tpdo { node, .. } => {
                 if self.assembler.nodes().contains(&node) {
@@ -186,6 +220,9 @@ impl Acquisition {
     /// **Real-time (1 kHz loop):** called for every frame until the deadline; allocation-free, no I/O.
     pub fn on_frame(&mut self, frame: &CanFrame, now_ns: u64) {
         let Some(msg) = self.decode(frame) else { return };
+        if self.is_other_node(&msg) {
+            return;
+        }
         match msg {
             Message::Tpdo { .. } => match self.assembler.accept(&msg) {
                 Ok(()) => self.stats.tpdos += 1,
@@ -481,6 +518,54 @@ mod tests {
         assert_eq!(input.counts[0], 1);
         let s = a.stats();
         assert_eq!((s.wrong_dlc_frames, s.unknown_id_frames, s.foreign_node_frames, s.tpdos), (1, 1, 1, 3));
+    }
+
+    #[test]
+    fn other_nodes_are_counted_and_change_nothing() {
+        // The same cycles with and without the endoscope arm's frames (nodes 4 and 5: TPDOs,
+        // heartbeats, even an EMCY, in and between cycles) give the same inputs.
+        let run = |with_others: bool| {
+            let mut a = acquisition().with_other_nodes(&[4, 5, 2]); // 2 is ours: left out
+            let mut inputs = Vec::new();
+            for t in 0..400u64 {
+                let ns = t * 1_000_000;
+                if with_others {
+                    a.on_frame_between_cycles(
+                        &frame(Message::Heartbeat { node: n(4), state: NmtState::Operational }),
+                        ns,
+                    );
+                }
+                a.start_cycle();
+                if with_others && t.is_multiple_of(10) {
+                    a.on_frame(&frame(Message::Tpdo { node: n(4), counts: [7, 8] }), ns);
+                    a.on_frame(&frame(Message::Tpdo { node: n(5), counts: [9, 10] }), ns);
+                    let emcy = Message::Emcy { node: n(5), code: 0x7305, register: 1, vendor: [0; 5] };
+                    a.on_frame(&frame(emcy), ns);
+                }
+                for k in 1..=3u8 {
+                    a.on_frame(&frame(Message::Tpdo { node: n(k), counts: [t as i32, i32::from(k)] }), ns);
+                }
+                if t.is_multiple_of(100) {
+                    for k in 1..=3 {
+                        a.on_frame(&frame(Message::Heartbeat { node: n(k), state: NmtState::Operational }), ns);
+                    }
+                }
+                inputs.push(a.end_cycle(ns, false));
+            }
+            (inputs, *a.stats())
+        };
+        let (with, s) = run(true);
+        let (without, s0) = run(false);
+        assert_eq!(with, without);
+        assert!(with.iter().all(|i| i.flags.is_empty()), "no health flag");
+        assert_eq!(s.other_node_frames, 400 + 40 * 3);
+        assert_eq!((s.foreign_node_frames, s.unknown_id_frames, s.emcy_frames, s.duplicate_tpdos), (0, 0, 0, 0));
+        assert_eq!(s.frames, s0.frames + 520);
+        assert_eq!(AcquisitionStats { frames: s0.frames, other_node_frames: 0, ..s }, s0);
+        // Without the list they are foreign (still no flag).
+        let mut a = acquisition();
+        a.on_frame(&frame(Message::Tpdo { node: n(4), counts: [0, 0] }), 0);
+        assert_eq!((a.stats().foreign_node_frames, a.stats().other_node_frames), (1, 0));
     }
 
     #[test]

@@ -316,7 +316,7 @@ impl Configured {
     /// **Not for the real-time loop:** allocates, reads the environment.
     pub fn new(opts: RunOptions) -> Result<Self, ConfigureError> {
         let cfg = &opts.config;
-        let acquisition = Acquisition::new(&cfg.bus.encoder, cfg.health)?;
+        let acquisition = Acquisition::new(&cfg.bus.encoder, cfg.health)?.with_other_nodes(&cfg.bus.other_node_ids);
         let estimation = Estimation::new(&cfg.bus.encoder, &cfg.kinematics, &cfg.detector)?;
         let run_info = RunInfo::new(RECORD_KIND, opts.config_toml.clone());
         let params = LoopParams {

@@ -190,7 +190,7 @@ pub fn replay_candump(path: &Path, cfg: &Config) -> Result<LogReplay, ReplayErro
 
 /// [`replay_candump`] on any reader.
 pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogReplay, ReplayError> {
-    let mut acq = Acquisition::new(&cfg.bus.encoder, cfg.health)?;
+    let mut acq = Acquisition::new(&cfg.bus.encoder, cfg.health)?.with_other_nodes(&cfg.bus.other_node_ids);
     let mut est = estimation(cfg)?;
     let deadline_us = u64::from(cfg.cycle.frame_deadline_us);
     let mut reader = CandumpReader::new(reader);

@@ -962,6 +962,20 @@ fn hil_clean_insert_extract_cycles() {
     for id in 0x181..=0x183 {
         assert!(tpdo_sent_per_sync(&a, id).iter().all(|&sent| sent), "node {:#x} skipped a SYNC", id);
     }
+    // The endoscope arm's nodes 4 and 5 on the same bus (simrobot's default): their TPDOs
+    // answered exactly every 10th SYNC (counter 10, 20, ..., 240), and the daemon counted
+    // each of their frames it received as another node's, none as bad or foreign (above), and
+    // raised no flag for them (check_run).
+    for id in [0x184, 0x185] {
+        let sent = tpdo_sent_per_sync(&a, id);
+        let tenth: Vec<bool> = (1..=sent.len()).map(|k| k.is_multiple_of(10)).collect();
+        assert!(sent == tenth, "node {:#x}: TPDOs not exactly at every 10th SYNC", id - 0x180);
+    }
+    let ecm_on_bus: u64 = [0x184, 0x185, 0x704, 0x705].iter().map(|&id| bus.count(id)).sum();
+    assert!(bus.count(0x184) >= bus.syncs() / 10 && bus.count(0x704) > 0, "the endoscope arm was on the bus");
+    let other = u(&acq["other_node_frames"]);
+    assert!(other <= ecm_on_bus && other + bus.after_last_sync >= ecm_on_bus, "{acq}: {ecm_on_bus} on the bus");
+    eprintln!("endoscope arm: {ecm_on_bus} frames on the bus, {other} counted by the daemon as other nodes'");
     let incomplete = u(&acq["incomplete_cycles"]);
     check_candump_replay(&a, &run);
 

@@ -7,11 +7,15 @@
 //! - [`robot`]: the simulated arm (nominal DH table plus a calibration error) and its
 //!   inverse kinematics;
 //! - [`encoders`]: the three virtual encoder nodes on the CAN bus;
+//! - [`endoscope_arm`]: the endoscope-holder arm on the same bus (its motion and its two
+//!   nodes, every 10th SYNC);
 //! - [`twin`]: all of it together, the simulated robot answering the controller's SYNCs
 //!   ([`twin::SimRobot`]);
 //! - [`truth_file`]: the ground-truth file of a run (JSON Lines) and scoring against it;
 //! - [`score`]: scoring a detector against ground truth;
 //! - [`calib`]: the dual RCM-arm calibration paper's simulation protocol (Sec. IV);
+//! - [`world`]: both arms in one world: the renderer's scene at a bus time, with the
+//!   endoscope on the endoscope arm looking at the tool arm's instrument;
 //! - [`endoscope`]: the simulated stereo endoscope: rendered frames of tissue and
 //!   instruments with their ground truth (`docs/vision.md`);
 //! - [`camera`]: the simulated endoscope as a camera source of the frame transport
@@ -25,8 +29,10 @@ pub mod calib;
 pub mod camera;
 pub mod encoders;
 pub mod endoscope;
+pub mod endoscope_arm;
 pub mod robot;
 pub mod scenario;
 pub mod score;
 pub mod truth_file;
 pub mod twin;
+pub mod world;

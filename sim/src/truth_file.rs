@@ -13,6 +13,8 @@
 //!   last sample of every stretch of constant state (so every state change is between two
 //!   adjacent state lines);
 //! - `scenario`: a scenario starts (endless mode: seed and the run sample of its sample 0);
+//! - `endoscope`: the endoscope-holder arm's true joints at a sample where its nodes sent
+//!   their TPDOs (every 10th SYNC by default; [`EndoscopeRecord`]);
 //! - `end` (always last): number of samples and events, so a truncated file is detected.
 //!
 //! Lines are in the order they happen. The state is piecewise constant between events, so
@@ -102,6 +104,18 @@ pub struct TruthRecord {
     pub line: LineSample,
 }
 
+/// The endoscope-holder arm's true joints at one sample, as in an `endoscope` line.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EndoscopeRecord {
+    /// Sample index from the start of the run.
+    pub sample: u64,
+    /// Time of the sample's SYNC, microseconds since the Unix epoch (the CAN log's clock).
+    pub unix_time_us: u64,
+    /// `[yaw rad, pitch rad, insertion m, roll rad]` (ECM model, `docs/calibration.md`).
+    pub joints: [f64; 4],
+}
+
 /// A scenario start (endless mode), as in a `scenario` line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -165,6 +179,7 @@ enum Line {
     Event(EventLine),
     State(StateLine),
     Scenario(ScenarioStart),
+    Endoscope(EndoscopeRecord),
     End(EndLine),
 }
 
@@ -315,6 +330,15 @@ impl<W: Write> TruthWriter<W> {
         self.prev = Some((rec, write_now));
         self.samples += 1;
         Ok(())
+    }
+
+    /// Writes an `endoscope` line: the endoscope arm's true joints at `record.sample` (a
+    /// sample already given to [`TruthWriter::sample`]).
+    pub fn endoscope(&mut self, record: &EndoscopeRecord) -> Result<(), TruthWriteError> {
+        if !record.joints.iter().all(|v| v.is_finite()) {
+            return Err(TruthWriteError::NonFinite { sample: record.sample });
+        }
+        self.write_line(&Line::Endoscope(*record))
     }
 
     /// Writes the last sample's state line (if not yet written) and the end line, flushes,
@@ -473,6 +497,7 @@ pub struct TruthFile {
     events: Vec<TwinEvent>,
     states: Vec<TruthRecord>,
     scenarios: Vec<ScenarioStart>,
+    endoscope: Vec<EndoscopeRecord>,
     samples: u64,
 }
 
@@ -482,6 +507,7 @@ struct Parser {
     file: Vec<TruthRecord>,
     events: Vec<TwinEvent>,
     scenarios: Vec<ScenarioStart>,
+    endoscope: Vec<EndoscopeRecord>,
     /// State after every event read so far.
     state: TruthState,
     /// Sample of the last event not yet followed by its state line.
@@ -611,6 +637,12 @@ impl Parser {
                 }
                 self.scenarios.push(start);
             }
+            Line::Endoscope(e) => {
+                if self.endoscope.last().is_some_and(|p| p.sample >= e.sample) {
+                    return Err(TruthLineError::Order("endoscope lines go backwards"));
+                }
+                self.endoscope.push(e);
+            }
             Line::End(end) => {
                 if self.pending_event.is_some() {
                     return Err(TruthLineError::Inconsistent("an event has no state line at its sample"));
@@ -641,6 +673,7 @@ impl TruthFile {
             file: Vec::new(),
             events: Vec::new(),
             scenarios: Vec::new(),
+            endoscope: Vec::new(),
             state: TruthState::Outside,
             pending_event: None,
             last_time_us: 0,
@@ -668,7 +701,14 @@ impl TruthFile {
         let Some(end) = p.end else {
             return Err(TruthReadError::MissingEnd { last_line: line_no });
         };
-        Ok(Self { header, events: p.events, states: p.file, scenarios: p.scenarios, samples: end.samples })
+        Ok(Self {
+            header,
+            events: p.events,
+            states: p.file,
+            scenarios: p.scenarios,
+            endoscope: p.endoscope,
+            samples: end.samples,
+        })
     }
 
     /// Opens and reads the truth file at `path`.
@@ -694,6 +734,11 @@ impl TruthFile {
     /// The scenario starts.
     pub fn scenarios(&self) -> &[ScenarioStart] {
         &self.scenarios
+    }
+
+    /// The endoscope arm's true joints, in sample order (empty when the arm was off).
+    pub fn endoscope(&self) -> &[EndoscopeRecord] {
+        &self.endoscope
     }
 
     /// Number of samples of the run.

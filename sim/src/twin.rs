@@ -52,7 +52,10 @@ use hw_io::can::{ENCODER_NODES, EncoderConfig, JointToCountsError};
 use nalgebra::{Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::encoders::{NodeOptions, SyncFrames, VirtualNodes, VirtualNodesError};
+use crate::encoders::{MAX_FRAMES_PER_SYNC, NodeOptions, VirtualNodes, VirtualNodesError};
+use crate::endoscope_arm::{
+    ECM_JOINTS, ECM_MAX_FRAMES_PER_SYNC, EcmNodes, EndoscopeArmConfig, EndoscopeArmConfigError, EndoscopeMotion,
+};
 use crate::robot::{IkError, IkTracker, ModelError, SimulatedArm};
 use crate::scenario::{Scenario, ScenarioConfig, ScenarioConfigError, Truth, TruthState, generate};
 
@@ -67,6 +70,14 @@ pub const SYNC_PERIOD_US: u64 = 1000;
 /// 0.582 m (20 seeds of 99 cycles), and the wrist stays at least 4 cm from the base axis.
 pub const DEFAULT_TROCARS_BASE_M: [[f64; 3]; 4] =
     [[0.30, -0.09, 0.0], [0.34, -0.02, 0.02], [0.31, 0.07, 0.01], [0.26, 0.01, -0.01]];
+
+/// Most frames [`SimRobot::on_sync`] returns for one SYNC: the tool arm's nodes and the
+/// endoscope arm's.
+pub const MAX_TWIN_FRAMES_PER_SYNC: usize = MAX_FRAMES_PER_SYNC + ECM_MAX_FRAMES_PER_SYNC;
+
+/// The frames of one SYNC (both arms' nodes), in bus order; microseconds in the caller's time
+/// base.
+pub type TwinFrames = heapless::Vec<hw_io::can::TimedFrame, MAX_TWIN_FRAMES_PER_SYNC>;
 
 /// Most true events one sample can cross (an insertion and an extraction need at least one
 /// sample between them, so one is the practical maximum).
@@ -144,6 +155,9 @@ pub struct TwinConfig {
     pub measurement_noise: bool,
     /// When the scenario is over, go on with the next one (seed + 1) instead of stopping.
     pub endless: bool,
+    /// The endoscope-holder arm on the same bus (`[endoscope_arm]`; on by default; see
+    /// [`crate::endoscope_arm`]).
+    pub endoscope_arm: EndoscopeArmConfig,
 }
 
 /// The twin's default scenario.
@@ -177,6 +191,7 @@ impl Default for TwinConfig {
             roll_rad: 0.0,
             measurement_noise: false,
             endless: false,
+            endoscope_arm: EndoscopeArmConfig::default(),
         }
     }
 }
@@ -206,6 +221,9 @@ pub enum TwinConfigError {
     /// The roll angle is not finite.
     #[error("roll_rad = {0}: must be finite")]
     Roll(f64),
+    /// The endoscope arm's configuration is invalid.
+    #[error(transparent)]
+    EndoscopeArm(#[from] EndoscopeArmConfigError),
 }
 
 /// A true insertion or extraction as the twin crosses it.
@@ -237,6 +255,12 @@ pub enum TwinError {
         sample: u64,
         /// The solver's error.
         source: IkError,
+    },
+    /// An endoscope-arm joint has no encoder count (out of the `i32` range).
+    #[error("sample {sample}: an endoscope-arm joint is outside the i32 count range")]
+    EndoscopeCounts {
+        /// Sample index over the whole run.
+        sample: u64,
     },
     /// A joint angle has no encoder count (out of the `i32` range).
     #[error("sample {sample}: {source}")]
@@ -276,7 +300,14 @@ pub struct SimRobot {
     t0_us: Option<u64>,
     truth: Truth,
     events: heapless::Vec<TwinEvent, MAX_EVENTS_PER_SAMPLE>,
+    endoscope: Option<(EndoscopeMotion, EcmNodes)>,
+    endoscope_joints: Option<[f64; ECM_JOINTS]>,
+    endoscope_sent: bool,
 }
+
+/// Seconds of endoscope motion generated beyond a scenario's end (so that a caller rendering
+/// a little past it still sees the schedule).
+const ENDOSCOPE_MARGIN_S: f64 = 60.0;
 
 /// Checks the scenario parameters a twin relies on (beyond [`ScenarioConfig::check`]), so
 /// that generation cannot panic on user input.
@@ -368,6 +399,16 @@ impl SimRobot {
         let options: [NodeOptions; ENCODER_NODES] = core::array::from_fn(|k| config.nodes[k].clone());
         let nodes = VirtualNodes::new(&config.encoder, options, config.nodes_seed)?;
         let scenario = generate(&config.scenario);
+        let endoscope = if config.endoscope_arm.enabled {
+            let e = &config.endoscope_arm;
+            e.validate(&config.encoder.node_ids)?;
+            let nodes = EcmNodes::new(e).ok_or(EndoscopeArmConfigError::NodeClash(e.node_ids[0], e.node_ids[1]))?;
+            let mut motion = EndoscopeMotion::new(e);
+            motion.extend_to(scenario.truth.len() as f64 * config.scenario.sample_period_s + ENDOSCOPE_MARGIN_S);
+            Some((motion, nodes))
+        } else {
+            None
+        };
         let truth = scenario.truth.first().copied().unwrap_or(Truth {
             t_s: 0.0,
             state: TruthState::Outside,
@@ -389,6 +430,9 @@ impl SimRobot {
             t0_us: None,
             truth,
             events: heapless::Vec::new(),
+            endoscope,
+            endoscope_joints: None,
+            endoscope_sent: false,
         })
     }
 
@@ -397,7 +441,7 @@ impl SimRobot {
     /// true arm and returns the nodes' frames stamped in the same time base, in bus order.
     /// `Ok(None)` once a finite scenario is over (nothing is sent any more). On error nothing
     /// advances. Allocation-free, except when endless mode starts the next scenario.
-    pub fn on_sync(&mut self, counter: u8, t_us: u64) -> Result<Option<SyncFrames>, TwinError> {
+    pub fn on_sync(&mut self, counter: u8, t_us: u64) -> Result<Option<TwinFrames>, TwinError> {
         if self.next == Next::Done {
             return Ok(None);
         }
@@ -428,11 +472,26 @@ impl SimRobot {
         let q = self.tracker.solve(&line, self.config.roll_rad).map_err(|source| TwinError::Ik { sample, source })?;
         let t0 = *self.t0_us.get_or_insert(t_us);
         let t_rel = t_us.saturating_sub(t0);
-        let mut frames =
-            self.nodes.on_sync(counter, t_rel, &q).map_err(|source| TwinError::Counts { sample, source })?;
-        for f in frames.iter_mut() {
-            f.unix_time_us = f.unix_time_us.saturating_add(t0);
+        // Checked before any node changes state: on error nothing advances.
+        let ecm_q = self.endoscope.as_ref().map(|(motion, _)| motion.joints_at(t_s));
+        if ecm_q.is_some_and(|q| self.config.endoscope_arm.joints_to_counts(&q).is_none()) {
+            return Err(TwinError::EndoscopeCounts { sample });
         }
+        let tool_frames =
+            self.nodes.on_sync(counter, t_rel, &q).map_err(|source| TwinError::Counts { sample, source })?;
+        let ecm_frames = match (self.endoscope.as_mut(), ecm_q) {
+            (Some((_, nodes)), Some(q)) => nodes.on_sync(counter, t_rel, &q).unwrap_or_default(),
+            _ => Default::default(),
+        };
+        let mut frames = TwinFrames::new();
+        for f in tool_frames.iter().chain(ecm_frames.iter()) {
+            // Capacity: MAX_TWIN_FRAMES_PER_SYNC covers both arms.
+            let _ =
+                frames.push(hw_io::can::TimedFrame { frame: f.frame, unix_time_us: f.unix_time_us.saturating_add(t0) });
+        }
+        frames.sort_unstable_by_key(|f| (f.unix_time_us, f.frame.id().raw()));
+        self.endoscope_sent = self.endoscope.as_ref().is_some_and(|(_, n)| n.answers(counter));
+        self.endoscope_joints = ecm_q;
         // Commit.
         self.events.clear();
         self.next = match self.next {
@@ -479,6 +538,33 @@ impl SimRobot {
                 self.next = Next::Scenario(0);
             }
         }
+        if let Some((motion, _)) = self.endoscope.as_mut() {
+            let end = self.scenario_start_sample + self.scenario.truth.len() as u64;
+            motion.extend_to(end as f64 * cfg.sample_period_s + ENDOSCOPE_MARGIN_S);
+        }
+    }
+
+    /// Joints of the endoscope arm at the sample answered by the last [`SimRobot::on_sync`],
+    /// `[yaw rad, pitch rad, insertion m, roll rad]`; `None` before the first sample or when
+    /// the arm is off.
+    pub fn endoscope_joints(&self) -> Option<[f64; ECM_JOINTS]> {
+        self.endoscope_joints
+    }
+
+    /// `true` when the endoscope arm's nodes sent their TPDOs in answer to the last SYNC.
+    pub fn endoscope_tpdos_sent(&self) -> bool {
+        self.endoscope_sent
+    }
+
+    /// The endoscope arm's motion (a pure function of the twin's time), `None` when the arm
+    /// is off.
+    pub fn endoscope_motion(&self) -> Option<&EndoscopeMotion> {
+        self.endoscope.as_ref().map(|(m, _)| m)
+    }
+
+    /// The endoscope arm's nodes (their TPDO counter), `None` when the arm is off.
+    pub fn endoscope_nodes(&self) -> Option<&EcmNodes> {
+        self.endoscope.as_ref().map(|(_, n)| n)
     }
 
     /// Ground truth of the sample answered by the last successful [`SimRobot::on_sync`]

@@ -12,6 +12,9 @@
 //! assert_eq!(bus_load::worst_case_frame_bits(1), 65);
 //! let load = bus_load::encoder_bus_worst_case_load(3, 1_000_000);
 //! assert!(load <= bus_load::MAX_LOAD); // 47.2 % <= 60 %
+//! // With the endoscope arm's two nodes answering every 10th SYNC (transmission type 10):
+//! let load = bus_load::mixed_bus_worst_case_load(3, 2, 10, 1_000_000);
+//! assert!((load - 0.500_25).abs() < 1e-9); // 50.0 %
 //! ```
 
 use super::protocol::{HEARTBEAT_DLC, SYNC_DLC, TPDO_DLC};
@@ -59,6 +62,32 @@ pub fn encoder_bus_worst_case_load(nodes: u32, bitrate_bit_per_s: u32) -> f64 {
     bits_per_s / f64::from(bitrate_bit_per_s.max(1))
 }
 
+/// Worst-case bits per SYNC period (1 ms) of a bus with `nodes` answering every SYNC and
+/// `slow_nodes` answering every `slow_every`-th SYNC (CANopen transmission type
+/// `slow_every`, e.g. the endoscope arm's nodes at 10), one TPDO1 each, every node with a
+/// heartbeat every 100 ms, averaged. `slow_every` 0 counts as 1.
+pub fn mixed_bus_worst_case_bits_per_period(nodes: u32, slow_nodes: u32, slow_every: u32) -> f64 {
+    let slow = f64::from(slow_nodes * worst_case_frame_bits(TPDO_DLC)) / f64::from(slow_every.max(1));
+    let heartbeats = f64::from((nodes + slow_nodes) * worst_case_frame_bits(HEARTBEAT_DLC)) * f64::from(SYNC_PERIOD_US)
+        / f64::from(HEARTBEAT_PERIOD_US);
+    f64::from(worst_case_frame_bits(SYNC_DLC) + nodes * worst_case_frame_bits(TPDO_DLC)) + slow + heartbeats
+}
+
+/// [`mixed_bus_worst_case_bits_per_period`] as a fraction of `bitrate_bit_per_s` (0.500 25
+/// for the tool arm's 3 nodes and the endoscope arm's 2 at type 10, at 1 Mbit/s).
+pub fn mixed_bus_worst_case_load(nodes: u32, slow_nodes: u32, slow_every: u32, bitrate_bit_per_s: u32) -> f64 {
+    let bits_per_s =
+        mixed_bus_worst_case_bits_per_period(nodes, slow_nodes, slow_every) * 1e6 / f64::from(SYNC_PERIOD_US);
+    bits_per_s / f64::from(bitrate_bit_per_s.max(1))
+}
+
+/// Worst-case bits of the busiest SYNC period, heartbeats aside: the SYNC and the TPDO1 of
+/// every node, `nodes` every-SYNC nodes and `slow_nodes` nodes of a slower transmission type
+/// whose turn it is (740 bits, 74 % of a 1 ms period at 1 Mbit/s, for 3 + 2).
+pub const fn worst_case_peak_bits_per_period(nodes: u32, slow_nodes: u32) -> u32 {
+    worst_case_frame_bits(SYNC_DLC) + (nodes + slow_nodes) * worst_case_frame_bits(TPDO_DLC)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -77,6 +106,27 @@ mod tests {
         let load = encoder_bus_worst_case_load(3, BITRATE_BIT_PER_S);
         assert!((load - 0.47195).abs() < 1e-9);
         assert!(load <= MAX_LOAD);
+    }
+
+    /// The numbers of docs/can-protocol.md with the endoscope arm's two nodes at type 10.
+    #[test]
+    fn numbers_with_the_endoscope_arm() {
+        // Without slow nodes the mixed formula is the encoder bus's.
+        assert!(
+            (mixed_bus_worst_case_bits_per_period(3, 0, 10) - encoder_bus_worst_case_bits_per_period(3)).abs() < 1e-9
+        );
+        // 470 + 2 × 135 / 10 = 497 bit/ms cyclic, 5 × 65 / 100 = 3.25 bit/ms of heartbeats.
+        assert!((mixed_bus_worst_case_bits_per_period(3, 2, 10) - 500.25).abs() < 1e-9);
+        let load = mixed_bus_worst_case_load(3, 2, 10, BITRATE_BIT_PER_S);
+        assert!((load - 0.50025).abs() < 1e-9);
+        assert!(load <= MAX_LOAD);
+        // At every SYNC instead, the two nodes would break the budget (a fifth TPDO per ms).
+        assert!(mixed_bus_worst_case_load(3, 2, 1, BITRATE_BIT_PER_S) > MAX_LOAD);
+        // The busiest millisecond: SYNC and five TPDOs, 740 bits; with the tool nodes'
+        // heartbeats in it too, 935 bits: still within the 1000-bit period.
+        assert_eq!(worst_case_peak_bits_per_period(3, 2), 740);
+        assert_eq!(worst_case_peak_bits_per_period(3, 2) + 3 * worst_case_frame_bits(HEARTBEAT_DLC), 935);
+        assert_eq!(worst_case_peak_bits_per_period(3, 0), 470);
     }
 
     #[test]

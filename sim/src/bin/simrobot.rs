@@ -32,8 +32,9 @@ use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 use sim::endoscope::config::ConfigError as EndoscopeConfigError;
 use sim::endoscope::output::{OutputError, Sequence, render_sequence, write_samples};
 use sim::endoscope::{DemoMotion, EndoscopeConfig, InstrumentMesh, ObjError};
-use sim::truth_file::{DEFAULT_STATE_EVERY, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
+use sim::truth_file::{DEFAULT_STATE_EVERY, EndoscopeRecord, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
 use sim::twin::{SYNC_PERIOD_US, SimRobot, TwinConfig, TwinConfigError, TwinError, TwinEvent};
+use sim::world::{DEFAULT_KEEP_NS, FrameWriter, FramesError, World, WorldError};
 
 /// Default epoch of `generate`: Unix time of the first SYNC, seconds (2023-11-14).
 const DEFAULT_EPOCH_S: u64 = 1_700_000_000;
@@ -104,6 +105,10 @@ struct Common {
     /// Insert/extract cycles (overrides scenario.cycles).
     #[arg(long, value_name = "N")]
     cycles: Option<usize>,
+    /// Leave the endoscope-holder arm's nodes off the bus (overrides endoscope_arm.enabled):
+    /// the tool arm's three nodes only, the bus as before the endoscope arm.
+    #[arg(long)]
+    no_endoscope: bool,
 }
 
 #[derive(Args, Debug)]
@@ -126,6 +131,18 @@ struct GenerateArgs {
     /// Interface name written in bus.log.
     #[arg(long, value_name = "NAME", default_value = "vcan0")]
     iface: String,
+    /// Also render the stereo endoscope on the endoscope arm looking at the instrument:
+    /// DIR/frames/frame_NNNNNN_{left,right}.png (and _mask.png) and DIR/frames/truth.jsonl, each frame
+    /// stamped with its exposure's mid time on the bus clock.
+    #[arg(long)]
+    frames: bool,
+    /// With --frames: frames per second (overrides the renderer's timing.fps).
+    #[arg(long, value_name = "FPS")]
+    fps: Option<f64>,
+    /// With --frames: the renderer's configuration (TOML, docs/vision.md); default: the
+    /// renderer's defaults with the tissue placed for the twin (docs/simulator.md).
+    #[arg(long, value_name = "FILE")]
+    endoscope_config: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -166,6 +183,16 @@ enum ConfigError {
     Minutes(f64),
     #[error("--state-every must be at least 1")]
     StateEvery,
+    #[error("--frames needs the endoscope arm (remove --no-endoscope, or set endoscope_arm.enabled = true)")]
+    FramesWithoutEndoscope,
+    #[error("--fps {0}: must be a finite number of frames per second in (0, 1000]")]
+    Fps(f64),
+    #[error("{path}: {source}")]
+    EndoscopeParse { path: PathBuf, source: toml::de::Error },
+    #[error("renderer configuration: {0}")]
+    Endoscope(#[from] EndoscopeConfigError),
+    #[error("the world of the two arms: {0}")]
+    World(#[from] WorldError),
     #[error(transparent)]
     Twin(#[from] TwinConfigError),
 }
@@ -185,6 +212,10 @@ enum GenerateError {
     Truth { path: PathBuf, source: TruthWriteError },
     #[error("simulated robot: {0}")]
     Twin(#[from] TwinError),
+    #[error("frames: {0}")]
+    Frames(#[from] FramesError),
+    #[error("frames: {0}")]
+    World(#[from] WorldError),
     #[error("writing to standard output: {0}")]
     Stdout(io::Error),
 }
@@ -245,6 +276,9 @@ fn load_config(common: &Common) -> Result<TwinConfig, ConfigError> {
     }
     if let Some(cycles) = common.cycles {
         config.scenario.cycles = cycles;
+    }
+    if common.no_endoscope {
+        config.endoscope_arm.enabled = false;
     }
     Ok(config)
 }
@@ -367,6 +401,11 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
         config.scenario.cycles = ((minutes * 60.0 / mean_cycle_s.max(1e-3)).round() as usize).max(1);
     }
     let mut robot = SimRobot::new(&config).map_err(ConfigError::from)?;
+    let t0_us = args.epoch_s.saturating_mul(1_000_000);
+    let mut frames_out = match args.frames {
+        true => Some(frames_setup(args, &config, t0_us)?),
+        false => None,
+    };
     std::fs::create_dir_all(&args.out).map_err(|source| GenerateError::Create { path: args.out.clone(), source })?;
     let bus_path = args.out.join("bus.log");
     let truth_path = args.out.join("truth.jsonl");
@@ -375,7 +414,6 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
     let mut bus = BusLog { writer, pending: Vec::with_capacity(64), frames: 0 };
     let bus_err = |source| GenerateError::Write { path: bus_path.clone(), source };
     let truth_err = |source| GenerateError::Truth { path: truth_path.clone(), source };
-    let t0_us = args.epoch_s.saturating_mul(1_000_000);
     let mut header = TruthHeader::new(&config.scenario, t0_us, args.state_every);
     header.twin = Some(config.clone());
     let mut truth =
@@ -399,6 +437,15 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
         bus.write(TimedFrame { frame: sync_frame, unix_time_us: t_us }).map_err(bus_err)?;
         bus.queue(&frames);
         truth.sample(t_us, robot.truth(), robot.events()).map_err(truth_err)?;
+        if let (true, Some(joints)) = (robot.endoscope_tpdos_sent(), robot.endoscope_joints()) {
+            truth.endoscope(&EndoscopeRecord { sample: i, unix_time_us: t_us, joints }).map_err(truth_err)?;
+        }
+        if let Some((world, writer)) = frames_out.as_mut() {
+            world.record(t_us.saturating_mul(1000), &robot)?;
+            while writer.ready(world) {
+                writer.write_next(world)?;
+            }
+        }
         events += robot.events().len() as u64;
         i += 1;
         if i.is_multiple_of(4096) {
@@ -409,6 +456,14 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
     bus.writer.flush().map_err(bus_err)?;
     truth.finish().map_err(truth_err)?;
     bar.finish_and_clear();
+    let frames_summary = match frames_out {
+        Some((_, writer)) => {
+            let (n, with) = (writer.frames(), writer.frames_with_instrument());
+            writer.finish()?;
+            Some((n, with))
+        }
+        None => None,
+    };
 
     let elapsed = started.elapsed().as_secs_f64();
     let size = |p: &Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
@@ -428,6 +483,16 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
     outln!("  {}: {} frames, {:.1} MiB", bus_path.display(), bus.frames, mib(size(&bus_path)))
         .map_err(GenerateError::Stdout)?;
     outln!("  {}: {:.1} MiB", truth_path.display(), mib(size(&truth_path))).map_err(GenerateError::Stdout)?;
+    if let Some((n, with)) = frames_summary {
+        outln!(
+            "  {}: {n} stereo frames at {} fps, the instrument visible (>= {} px, left eye) in {with} ({:.1} %)",
+            args.out.join("frames").display(),
+            args.fps.unwrap_or(frames_fps(args)),
+            sim::world::VISIBLE_MIN_PX,
+            if n > 0 { with as f64 * 100.0 / n as f64 } else { 0.0 }
+        )
+        .map_err(GenerateError::Stdout)?;
+    }
     outln!(
         "  took {:.2} s: twin (inverse kinematics + nodes) {:.2} s = {:.2} us/sample, scenario generation and writing {:.2} s",
         elapsed,
@@ -436,6 +501,52 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
         elapsed - twin_s
     )
     .map_err(GenerateError::Stdout)
+}
+
+/// The renderer configuration of `generate --frames` (before `--fps`).
+fn frames_config(args: &GenerateArgs) -> Result<EndoscopeConfig, ConfigError> {
+    let mut cfg = match &args.endoscope_config {
+        Some(path) => {
+            let text =
+                std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.clone(), source })?;
+            toml::from_str(&text).map_err(|source| ConfigError::EndoscopeParse { path: path.clone(), source })?
+        }
+        None => sim::world::default_endoscope_config(),
+    };
+    if let Some(fps) = args.fps {
+        if !(fps.is_finite() && fps > 0.0 && fps <= 1000.0) {
+            return Err(ConfigError::Fps(fps));
+        }
+        cfg.timing.fps = fps;
+        // The exposure cannot exceed the frame period.
+        cfg.timing.exposure_s = cfg.timing.exposure_s.min(1.0 / fps);
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+/// Frames per second of `generate --frames` (for the summary).
+fn frames_fps(args: &GenerateArgs) -> f64 {
+    frames_config(args).map_or(0.0, |c| c.timing.fps)
+}
+
+/// The world and the frame writer of `generate --frames`: frames from the first SYNC
+/// (`t0_us`) into `DIR/frames`.
+fn frames_setup(args: &GenerateArgs, config: &TwinConfig, t0_us: u64) -> Result<(World, FrameWriter), GenerateError> {
+    if !config.endoscope_arm.enabled {
+        return Err(ConfigError::FramesWithoutEndoscope.into());
+    }
+    let cfg = frames_config(args)?;
+    let mesh = cfg.instrument.mesh().map_err(|e| ConfigError::Endoscope(e.into()))?;
+    let world = World::new(config, &cfg.instrument, DEFAULT_KEEP_NS).map_err(ConfigError::from)?;
+    let writer = FrameWriter::new(
+        &args.out.join("frames"),
+        &cfg,
+        mesh,
+        t0_us.saturating_mul(1000),
+        &config.endoscope_arm.rcm_in_tool_base,
+    )?;
+    Ok((world, writer))
 }
 
 // ----------------------------------------------------------------------------------------
@@ -541,6 +652,8 @@ struct LiveCounts {
     sync_gaps: u64,
     error_frames: u64,
     events: u64,
+    /// SYNCs answered by the endoscope arm's nodes (two TPDOs each; every 10th SYNC).
+    endoscope_tpdo_syncs: u64,
     /// Frames the kernel dropped because this socket's receive queue was full (`SO_RXQ_OVFL`).
     dropped_rx_frames: u64,
 }
@@ -569,8 +682,16 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
     };
     let mut truth_file = truth_file;
     let mut truth: Option<(PathBuf, TruthWriter<BufWriter<File>>)> = None;
+    let endoscope = if config.endoscope_arm.enabled {
+        format!(
+            " and endoscope arm nodes {:?} (every {}th SYNC)",
+            config.endoscope_arm.node_ids, config.endoscope_arm.transmission_type
+        )
+    } else {
+        String::new()
+    };
     outln!(
-        "simrobot live: {} answering SYNC (0x080) as nodes {:?}, seed {}, {} cycles{}",
+        "simrobot live: {} answering SYNC (0x080) as nodes {:?}{endoscope}, seed {}, {} cycles{}",
         args.iface,
         config.encoder.node_ids,
         config.scenario.seed,
@@ -679,6 +800,15 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
             && let Err(source) = w.sample(t_us, robot.truth(), robot.events())
         {
             break Err(LiveError::Truth { path: path.clone(), source });
+        }
+        if robot.endoscope_tpdos_sent() {
+            counts.endoscope_tpdo_syncs += 1;
+            if let (Some((path, w)), Some(joints), Some(sample)) =
+                (truth.as_mut(), robot.endoscope_joints(), robot.sample())
+                && let Err(source) = w.endoscope(&EndoscopeRecord { sample, unix_time_us: t_us, joints })
+            {
+                break Err(LiveError::Truth { path: path.clone(), source });
+            }
         }
         counts.events += robot.events().len() as u64;
         if let Err(e) = robot.events().iter().try_for_each(print_event) {

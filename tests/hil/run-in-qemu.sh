@@ -126,17 +126,14 @@ apt_install() {
 ensure_tools() {
     local pkgs=()
     command -v qemu-system-x86_64 > /dev/null || pkgs+=(qemu-system-x86)
-    [[ -x /bin/busybox ]] && /bin/busybox --list 2>/dev/null | grep -qx insmod || pkgs+=(busybox-static)
+    # The busybox in the initramfs must be static (it runs before any library is reachable): the
+    # `busybox` package's /bin/busybox is dynamic, `busybox-static` replaces it.
+    dpkg-query -W -f='${Status}' busybox-static 2>/dev/null | grep -q 'ok installed' || pkgs+=(busybox-static)
     command -v cpio > /dev/null || pkgs+=(cpio)
     command -v depmod > /dev/null && command -v modprobe > /dev/null || pkgs+=(kmod)
     command -v xz > /dev/null || pkgs+=(xz-utils)
     command -v timeout > /dev/null || pkgs+=(coreutils)
     ((${#pkgs[@]} == 0)) || apt_install "${pkgs[@]}"
-    # The busybox in the initramfs must be static: it runs before any library is reachable.
-    if ! LC_ALL=C file -L /bin/busybox 2>/dev/null | grep -q 'statically linked' &&
-        ldd /bin/busybox > /dev/null 2>&1; then
-        apt_install busybox-static
-    fi
 }
 
 # ---------------------------------------------------------------------------------------------------

@@ -15,6 +15,9 @@ use core::time::Duration;
 
 use crate::frame::{FrameMeta, ImageLayout};
 
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
+
 
 
 /// What a source delivers, fixed for its life: the number of eyes and each eye's layout.

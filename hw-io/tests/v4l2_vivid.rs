@@ -21,7 +21,7 @@ use hw_io::frame::{FrameMeta, PixelFormat};
 /// Set in the guest: the vivid device node to test.
 const DEVICE_ENV: &str = "V4L2_VIVID_DEVICE";
 /// How many `guest_` tests there are (the host checks that all of them ran and passed).
-const GUEST_TESTS: usize = 5;
+const GUEST_TESTS: usize = 6;
 /// Frames captured per stream.
 const FRAMES: usize = 12;
 
@@ -173,6 +173,33 @@ fn guest_side_by_side_eyes_are_the_two_halves() {
         differ += usize::from(full[..half] != full[half..]);
     }
     assert!(differ > 0, "the two halves were identical: the split would not be seen");
+}
+
+/// A reader that stalls: with two buffers at 25 Hz, half a second without dequeuing leaves the
+/// driver no buffer for about ten frames; it skips them, its sequence numbers jump, and the source
+/// counts the jump as dropped frames.
+#[test]
+#[ignore = "runs in the qemu guest (vivid_in_qemu_guest)"]
+fn guest_sequence_gaps_are_counted_as_dropped() {
+    let mut src =
+        V4l2Source::open(&V4l2Config { buffers: 2, ..config(CaptureFormat::Grey, 320, 180, Stereo::Mono) }).unwrap();
+    let opened_ns = monotonic_ns();
+    let first = capture(&mut src, 1, opened_ns);
+    let before = src.counters().dropped;
+    std::thread::sleep(Duration::from_millis(500));
+    let mut buf = vec![0u8; src.format().payload_bytes()];
+    let mut last = first[0].0;
+    for _ in 0..4 {
+        let Next::Frame(meta) = src.next_into(&mut buf, Duration::from_secs(10)).unwrap() else {
+            panic!("no frame within 10 s from vivid");
+        };
+        assert!(meta.sequence > last.sequence);
+        last = meta;
+    }
+    let c = src.counters();
+    assert!(c.dropped > before, "no frame counted as dropped after a 500 ms stall with 2 buffers: {c:?}");
+    assert_eq!(last.sequence + 1, c.delivered + c.dropped, "positions = delivered + dropped ({c:?})");
+    eprintln!("stall: {} frames dropped, last position {}", c.dropped - before, last.sequence);
 }
 
 #[test]

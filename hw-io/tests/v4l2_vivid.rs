@@ -156,7 +156,8 @@ fn guest_side_by_side_eyes_are_the_two_halves() {
         capture(&mut src, 3, monotonic_ns())
     };
     let (a, b) = (&mono[1].1, &mono[2].1);
-    let still: Vec<usize> = (0..h as usize).filter(|r| a[r * row..(r + 1) * row] == b[r * row..(r + 1) * row]).collect();
+    let still: Vec<usize> =
+        (0..h as usize).filter(|r| a[r * row..(r + 1) * row] == b[r * row..(r + 1) * row]).collect();
     assert!(still.len() > h as usize / 2, "only {} of {h} rows are the same in two frames", still.len());
 
     let mut src = V4l2Source::open(&config(CaptureFormat::Rgb24, w, h, Stereo::SideBySide)).unwrap();
@@ -249,7 +250,9 @@ fn vivid_in_qemu_guest() {
     );
     match out.status.code() {
         Some(0) => {}
-        Some(125) => panic!("the qemu harness failed (exit 125: no kernel, the VM did not start or vivid did not load); see above"),
+        Some(125) => panic!(
+            "the qemu harness failed (exit 125: no kernel, the VM did not start or vivid did not load); see above"
+        ),
         Some(124) => panic!("the guest tests timed out (exit 124)"),
         code => panic!("the guest tests failed (exit {code:?}); see above"),
     }

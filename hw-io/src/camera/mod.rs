@@ -18,8 +18,6 @@ use crate::frame::{FrameMeta, ImageLayout};
 #[cfg(feature = "v4l2")]
 pub mod v4l2;
 
-
-
 /// What a source delivers, fixed for its life: the number of eyes and each eye's layout.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameFormat {

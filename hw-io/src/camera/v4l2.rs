@@ -18,7 +18,7 @@
 //!   left first, one after the other in the caller's buffer.
 //! - **Timestamps.** The driver stamps each buffer on `CLOCK_MONOTONIC`
 //!   (`V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC`, required: any other clock is
-//!   [`CaptureError::ClockNotMonotonic`]) at the start of exposure (`TSTAMP_SRC_SOE`) or, most
+//!   [`TimestampError::ClockNotMonotonic`]) at the start of exposure (`TSTAMP_SRC_SOE`) or, most
 //!   often, at the end of the frame (`TSTAMP_SRC_EOF`). The delivered
 //!   [`FrameMeta::timestamp_ns`] is the exposure's mid time: `SOE + exposure/2` or
 //!   `EOF − exposure/2`. The exposure is [`V4l2Config::exposure_ns`] when given, else the
@@ -48,8 +48,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use super::{CameraSource, FrameFormat, Next, SourceCounters};
-use sys::Pod as _;
 use crate::frame::{FrameMeta, ImageLayout, LayoutError, PixelFormat};
+use sys::Pod as _;
 
 #[cfg(not(all(target_os = "linux", target_pointer_width = "64")))]
 compile_error!("hw-io's `v4l2` feature supports 64-bit Linux only (the V4L2 structures below are that ABI's)");
@@ -345,7 +345,9 @@ pub enum CaptureError {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum TimestampError {
     /// The driver's clock is not `CLOCK_MONOTONIC` (`V4L2_BUF_FLAG_TIMESTAMP_*` bits given).
-    #[error("the driver's timestamps are not on CLOCK_MONOTONIC (buffer flags {0:#x}): frames cannot be put on the bus clock")]
+    #[error(
+        "the driver's timestamps are not on CLOCK_MONOTONIC (buffer flags {0:#x}): frames cannot be put on the bus clock"
+    )]
     ClockNotMonotonic(u32),
     /// The timestamp is negative or its microseconds are out of range.
     #[error("invalid buffer timestamp {sec} s {usec} µs")]
@@ -482,7 +484,12 @@ pub fn copy_eyes(src: &[u8], src_stride: usize, eye: &ImageLayout, eyes: u32, ds
 /// The eye layout of a captured `width_px × height_px` frame of `format`: the whole frame for
 /// [`Stereo::Mono`], its half width for [`Stereo::SideBySide`] (the width must split evenly, and
 /// each half of a YUYV frame must be of even width).
-pub fn eye_layout(width_px: u32, height_px: u32, format: PixelFormat, stereo: Stereo) -> Result<ImageLayout, LayoutError> {
+pub fn eye_layout(
+    width_px: u32,
+    height_px: u32,
+    format: PixelFormat,
+    stereo: Stereo,
+) -> Result<ImageLayout, LayoutError> {
     let eye_width = match stereo {
         Stereo::Mono => width_px,
         Stereo::SideBySide if width_px.is_multiple_of(2) => width_px / 2,
@@ -973,7 +980,8 @@ impl V4l2Source {
 
     fn requeue(&self, index: u32) -> Result<(), CaptureError> {
         let mut buf = capture_buffer(index);
-        sys::ioctl(self.fd.as_raw_fd(), sys::QBUF, &mut buf).map_err(|source| CaptureError::Ioctl { op: "VIDIOC_QBUF", source })
+        sys::ioctl(self.fd.as_raw_fd(), sys::QBUF, &mut buf)
+            .map_err(|source| CaptureError::Ioctl { op: "VIDIOC_QBUF", source })
     }
 }
 
@@ -1248,7 +1256,10 @@ mod tests {
         assert!(matches!(copy_eyes(&[], 8, &eye, 1, &mut dst), Err(CopyError::Short { .. })));
         // A stride shorter than a row (a lying driver).
         assert!(matches!(copy_eyes(&[1; 100], 2, &eye, 1, &mut dst), Err(CopyError::Short { .. })));
-        assert_eq!(copy_eyes(&[1; 20], 8, &eye, 1, &mut [0; 11]), Err(CopyError::Destination { expected: 12, got: 11 }));
+        assert_eq!(
+            copy_eyes(&[1; 20], 8, &eye, 1, &mut [0; 11]),
+            Err(CopyError::Destination { expected: 12, got: 11 })
+        );
         // Every length of source from 0 to full: no panic, Ok only when complete.
         let eye2 = eye_layout(4, 3, PixelFormat::Gray8, Stereo::SideBySide).unwrap();
         let mut dst2 = vec![0; 12];

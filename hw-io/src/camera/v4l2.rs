@@ -1087,6 +1087,14 @@ impl CameraSource for V4l2Source {
             match sys::ioctl(fd, sys::DQBUF, &mut buf) {
                 Ok(()) => {}
                 Err(e) if e.raw_os_error() == Some(libc::EAGAIN) => {
+                    // Readable but nothing to dequeue: an error condition (streaming stopped by
+                    // the driver) would make poll return at once forever; do not spin on it.
+                    if pfd.revents & (libc::POLLERR | libc::POLLHUP | libc::POLLNVAL) != 0 {
+                        return Err(CaptureError::Ioctl {
+                            op: "poll",
+                            source: io::Error::from_raw_os_error(libc::EIO),
+                        });
+                    }
                     if left.is_zero() {
                         return Ok(Next::Timeout);
                     }
@@ -1118,7 +1126,14 @@ impl CameraSource for V4l2Source {
                 self.counters.dropped += 1;
                 continue;
             }
-            let timestamp_ns = stamp?;
+            let timestamp_ns = match stamp {
+                Ok(t) => t,
+                Err(e) => {
+                    // The frame's position is used up: keep positions = delivered + dropped.
+                    self.counters.dropped += 1;
+                    return Err(e.into());
+                }
+            };
             self.counters.delivered += 1;
             return Ok(Next::Frame(FrameMeta {
                 sequence: position,

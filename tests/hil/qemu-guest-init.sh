@@ -37,11 +37,22 @@ source "$G/params.sh" || fatal "cannot read $G/params.sh"
 mkdir -p /dev/pts /dev/shm
 mount -t devpts -o gid=5,mode=620,ptmxmode=666 devpts /dev/pts 2>/dev/null
 mount -t tmpfs -o mode=1777,nosuid,nodev shm /dev/shm || fatal "tmpfs on /dev/shm"
-mount -t tmpfs -o mode=1777 tmpfs /tmp || fatal "tmpfs on /tmp"
-mount -t tmpfs -o mode=1777 tmpfs /var/tmp || fatal "tmpfs on /var/tmp"
+# /tmp and /var/tmp: overlays whose lower layer is the host dir (host-built files there stay
+# visible, e.g. a CARGO_TARGET_DIR under /tmp) and whose upper layer is a tmpfs (writes stay in
+# the guest), as in the UML guest; an empty tmpfs when overlayfs is not available.
+modprobe -q -d "$HIL_KMOD_ROOT" -S "$HIL_KVER" overlay 2>/dev/null
+n=0
+for d in /tmp /var/tmp; do
+    n=$((n + 1))
+    mkdir -p "/run/hil-ovl/$n/upper" "/run/hil-ovl/$n/work"
+    chmod 1777 "/run/hil-ovl/$n/upper"
+    mount -t overlay overlay -o "lowerdir=$d,upperdir=/run/hil-ovl/$n/upper,workdir=/run/hil-ovl/$n/work" "$d" 2>/dev/null ||
+        mount -t tmpfs -o mode=1777 tmpfs "$d" || fatal "tmpfs on $d"
+done
 [[ -e /dev/fd ]] || ln -s /proc/self/fd /dev/fd
 n=0
 for d in "${HIL_RW_DIRS[@]}"; do
+    mkdir -p "$d" 2>/dev/null   # a --rw dir under /tmp: its mount point in the empty tmpfs
     mount -t 9p -o trans=virtio,version=9p2000.L,msize=262144 "hilrw$n" "$d" 2> /run/hil-mount.err ||
         fatal "9p mount of --rw $d: $(< /run/hil-mount.err)"
     n=$((n + 1))

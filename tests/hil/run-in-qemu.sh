@@ -54,7 +54,8 @@ Usage: run-in-qemu.sh [--modprobe 'NAME [PARAM=VALUE...]']... [--timeout SECS] [
                    before the command (repeatable), e.g. --modprobe 'vivid n_devs=1 node_types=1'
   --timeout SECS   kill the command after SECS seconds, exit code 124 (default: 600; 0 = none)
   --rw DIR         share host directory DIR read-write at the same path in the guest (repeatable);
-                   everything else of the host root is read-only; /tmp, /var/tmp, /run are empty tmpfs.
+                   everything else of the host root is read-only; /tmp and /var/tmp are private
+                   overlays on the host's (writes stay in the guest); /run and /dev/shm are empty tmpfs.
 
 Exit code: the command's; 124 on timeout; 125 on a harness failure. See docs/hil.md.
 EOF
@@ -309,14 +310,20 @@ qemu_fail() {
     exit "$HARNESS_FAIL"
 }
 
+# The guest mounts empty tmpfs on these: a module tree or a working dir there would be hidden.
+# (/tmp and /var/tmp are overlays on the host dirs: visible.)
+hidden_in_guest() { [[ $1 == /run || $1 == /run/* || $1 == /dev/shm || $1 == /dev/shm/* ]]; }
 ensure_tools
 pkg=$(kernel_pkg_name)
-prepare_kernel "$pkg"
 kdir=$cache_root/$pkg
-kver=$(< "$kdir/kver")
 plain_path "$kdir" || die "kernel cache path $kdir: use a path of [A-Za-z0-9_./+@-] only (HIL_QEMU_CACHE)"
+hidden_in_guest "$kdir" &&
+    die "kernel cache $kdir is under a dir the guest replaces with an empty tmpfs (/run, /dev/shm); set HIL_QEMU_CACHE elsewhere"
+prepare_kernel "$pkg"
+kver=$(< "$kdir/kver")
 
 cwd=$(pwd -P)
+hidden_in_guest "$cwd" && die "the working dir $cwd is hidden in the guest (empty tmpfs on /run, /dev/shm): run from elsewhere"
 parent=$(realpath -e -- "${HIL_RESULTS_PARENT:-${TMPDIR:-/tmp}}") || die "results parent does not exist"
 trap cleanup EXIT
 trap 'exit 130' INT

@@ -271,7 +271,7 @@ EOF
 # ---------------------------------------------------------------------------------------------------
 R='' qemu_pid='' tail_pids=() keep=0
 
-# shellcheck disable=SC2329  # invoked by `trap cleanup EXIT`
+# shellcheck disable=SC2317,SC2329  # invoked by `trap cleanup EXIT`
 cleanup() {
     local p
     if [[ -n $qemu_pid ]] && kill -0 "$qemu_pid" 2>/dev/null; then kill -KILL "$qemu_pid" 2>/dev/null || true; fi

@@ -231,6 +231,12 @@ prepare_kernel() {
     echo "$kver" > "$tmp/kver"
     rm -rf "$dir"
     mv "$tmp" "$dir" || die "cannot move $tmp to $dir"
+    # One kernel is enough (each unpacked tree is about 440 MB): drop those of older packages.
+    for old in "$cache_root"/linux-image-*; do
+        [[ -d $old && $old != "$dir" ]] || continue
+        log "removing the older cached kernel $old"
+        rm -rf -- "$old"
+    done
     exec 8>&-
 }
 

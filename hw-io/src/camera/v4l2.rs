@@ -1066,11 +1066,16 @@ impl CameraSource for V4l2Source {
             return Err(CaptureError::Destination { expected, got: dst.len() });
         }
         let fd = self.fd.as_raw_fd();
-        let deadline = Instant::now() + timeout;
+        // A timeout too long for the clock (Duration::MAX) waits without end.
+        let deadline = Instant::now().checked_add(timeout);
         loop {
-            let left = deadline.saturating_duration_since(Instant::now());
+            let left = deadline.map_or(Duration::MAX, |d| d.saturating_duration_since(Instant::now()));
             let mut pfd = libc::pollfd { fd, events: libc::POLLIN, revents: 0 };
-            let ms = i32::try_from(left.as_nanos().div_ceil(1_000_000)).unwrap_or(i32::MAX);
+            let ms = if deadline.is_none() {
+                -1
+            } else {
+                i32::try_from(left.as_nanos().div_ceil(1_000_000)).unwrap_or(i32::MAX)
+            };
             // SAFETY: one valid pollfd, count 1.
             let n = unsafe { libc::poll(&mut pfd, 1, ms) };
             if n < 0 {

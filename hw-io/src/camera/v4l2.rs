@@ -9,8 +9,10 @@
 //! frame's metadata.
 //!
 //! - **Formats.** `YUYV`, `RGB3` (RGB24) and `GREY` are delivered as they are, as
-//!   [`PixelFormat::Yuyv`], [`PixelFormat::Rgb8`] and [`PixelFormat::Gray8`]; `MJPG` is refused
-//!   with [`OpenError::MjpegNotSupported`] (no decoder yet). Rows are repacked: the device's row
+//!   [`PixelFormat::Yuyv`], [`PixelFormat::Rgb8`] and [`PixelFormat::Gray8`]; `MJPG` (motion
+//!   JPEG, what most USB cameras send at high resolutions) is decoded to [`PixelFormat::Rgb8`]
+//!   with `zune-jpeg`, including the streams of UVC cameras that leave out the Huffman tables
+//!   ([`decode_mjpeg`]; a frame that does not decode is a counted drop). Rows are repacked: the device's row
 //!   padding (`bytesperline`) is dropped, so each eye's stride is `width × bytes per pixel`.
 //! - **Stereo.** [`Stereo::SideBySide`]: the device delivers both eyes in one frame, the left
 //!   eye in the left half of each row and the right eye in the right half (how stereo endoscopes
@@ -104,8 +106,8 @@ pub enum CaptureFormat {
     Rgb24,
     /// `GREY`, delivered as [`PixelFormat::Gray8`].
     Grey,
-    /// `MJPG`: refused by [`V4l2Source::open`] with [`OpenError::MjpegNotSupported`] when the
-    /// device offers it (no decoder yet).
+    /// `MJPG` (motion JPEG), decoded and delivered as [`PixelFormat::Rgb8`]. Decoding allocates
+    /// (the decoder's tables and rows) and costs CPU time per frame (not measured yet).
     Mjpeg,
 }
 
@@ -120,13 +122,12 @@ impl CaptureFormat {
         }
     }
 
-    /// The pixel format delivered, `None` for compressed formats.
-    pub const fn pixel_format(self) -> Option<PixelFormat> {
+    /// The pixel format delivered (MJPEG is decoded to RGB).
+    pub const fn pixel_format(self) -> PixelFormat {
         match self {
-            Self::Yuyv => Some(PixelFormat::Yuyv),
-            Self::Rgb24 => Some(PixelFormat::Rgb8),
-            Self::Grey => Some(PixelFormat::Gray8),
-            Self::Mjpeg => None,
+            Self::Yuyv => PixelFormat::Yuyv,
+            Self::Rgb24 | Self::Mjpeg => PixelFormat::Rgb8,
+            Self::Grey => PixelFormat::Gray8,
         }
     }
 }
@@ -241,9 +242,6 @@ pub enum OpenError {
         /// What the device offers (`VIDIOC_ENUM_FMT`).
         offered: Vec<FourCc>,
     },
-    /// The device offers MJPEG and it was asked for, but frames cannot be decoded yet.
-    #[error("{0}: MJPEG not supported yet (ask for YUYV, RGB24 or GREY)")]
-    MjpegNotSupported(PathBuf),
     /// The device set another size than the one asked for.
     #[error("{path}: asked for {width_px}×{height_px} pixels, the device set {got_width_px}×{got_height_px}")]
     SizeNotApplied {
@@ -497,6 +495,82 @@ pub fn eye_layout(
         Stereo::SideBySide => return Err(LayoutError::Size { width: width_px, height: height_px }),
     };
     ImageLayout::packed(eye_width, height_px, format)
+}
+
+/// An APP0 segment saying "AVI1" (AVI motion JPEG): frames without Huffman tables use the
+/// standard ones (ITU T.81 Annex K.3).
+const AVI1_APP0: [u8; 16] = [0xFF, 0xE0, 0x00, 0x0E, b'A', b'V', b'I', b'1', 0, 0, 0, 0, 0, 0, 0, 0];
+
+/// Whether a JPEG starts well (SOI) and reaches its first scan (SOS) without a DHT segment.
+fn lacks_huffman_tables(jpeg: &[u8]) -> bool {
+    if jpeg.get(..2) != Some(&[0xFF, 0xD8][..]) {
+        return false;
+    }
+    let mut i = 2;
+    while let Some(&[0xFF, marker, hi, lo]) = jpeg.get(i..i + 4) {
+        match marker {
+            0xC4 => return false,
+            0xDA => return true,
+            0xFF => i += 1, // fill byte
+            _ => i += 2 + usize::from(u16::from_be_bytes([hi, lo])),
+        }
+    }
+    false
+}
+
+/// Why an MJPEG frame did not decode (it is then counted as dropped).
+#[derive(Debug, thiserror::Error)]
+pub enum MjpegError {
+    /// The JPEG data is invalid or truncated.
+    #[error("MJPEG frame does not decode: {0}")]
+    Decode(#[source] zune_jpeg::errors::DecodeErrors),
+    /// The frame's size is not the negotiated one.
+    #[error("MJPEG frame of {width}×{height} pixels, the stream is {expected_width}×{expected_height}")]
+    Size {
+        /// Frame width, pixels.
+        width: usize,
+        /// Frame height, pixels.
+        height: usize,
+        /// Negotiated width, pixels.
+        expected_width: u32,
+        /// Negotiated height, pixels.
+        expected_height: u32,
+    },
+    /// The decoder panicked on this frame (caught: a device's bytes must not stop the source).
+    #[error("the JPEG decoder panicked on this frame")]
+    Panicked,
+}
+
+/// Decodes one MJPEG frame (`src`, a JPEG image; UVC cameras' frames without Huffman tables
+/// get the standard ones) of `width_px × height_px` pixels into `rgb`, packed 8-bit RGB rows
+/// (`width_px × 3` bytes each; `rgb.len()` must be `width_px × height_px × 3`).
+///
+/// **Not for the real-time loop:** allocates the decoder's state.
+pub fn decode_mjpeg(src: &[u8], width_px: u32, height_px: u32, rgb: &mut [u8]) -> Result<(), MjpegError> {
+    use zune_jpeg::zune_core::{bytestream::ZCursor, colorspace::ColorSpace, options::DecoderOptions};
+    // UVC cameras leave the (standard) Huffman tables out of their frames. zune-jpeg fills in
+    // the standard ones for frames marked as AVI MJPEG (an `AVI1` APP0 segment): mark such
+    // frames (a copy: this allocates, once per frame).
+    let patched;
+    let data = if lacks_huffman_tables(src) {
+        patched = [&src[..2], &AVI1_APP0[..], &src[2..]].concat();
+        &patched[..]
+    } else {
+        src
+    };
+    let run = || {
+        let options = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::RGB);
+        let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(data), options);
+        decoder.decode_headers().map_err(MjpegError::Decode)?;
+        let (width, height) = decoder.dimensions().unwrap_or((0, 0));
+        let size_error = MjpegError::Size { width, height, expected_width: width_px, expected_height: height_px };
+        if (width, height) != (width_px as usize, height_px as usize) || decoder.output_buffer_size() != Some(rgb.len())
+        {
+            return Err(size_error);
+        }
+        decoder.decode_into(rgb).map_err(MjpegError::Decode)
+    };
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(run)).unwrap_or(Err(MjpegError::Panicked))
 }
 
 // -------------------------------------------------------------------------------------------------
@@ -791,6 +865,10 @@ pub struct V4l2Source {
     path: PathBuf,
     format: FrameFormat,
     device: DeviceFormat,
+    /// Bytes between rows of the image copied out (the device's, or the decoded RGB's).
+    src_stride: usize,
+    /// MJPEG: the decoded full frame (both eyes), `height × width × 3` bytes.
+    mjpeg_scratch: Option<Vec<u8>>,
     camera_id: u32,
     exposure_ns: Option<u32>,
     frame_interval_ns: u64,
@@ -856,9 +934,8 @@ impl V4l2Source {
         if !offered.contains(&requested) {
             return Err(OpenError::FormatNotOffered { path, requested, offered });
         }
-        let Some(pixel_format) = config.format.pixel_format() else {
-            return Err(OpenError::MjpegNotSupported(path));
-        };
+        let pixel_format = config.format.pixel_format();
+        let mjpeg = config.format == CaptureFormat::Mjpeg;
         if config.stereo == Stereo::SideBySide && !config.width_px.is_multiple_of(2) {
             return Err(OpenError::Config("side-by-side stereo needs an even width_px (two equal halves)"));
         }
@@ -889,8 +966,11 @@ impl V4l2Source {
             });
         }
         let min_bytes = config.width_px.saturating_mul(pixel_format.bytes_per_pixel());
-        let bytes_per_line = if fmt.pix.bytesperline == 0 { min_bytes } else { fmt.pix.bytesperline };
-        if bytes_per_line < min_bytes {
+        // MJPEG: the rows are those of the decoded RGB image; the device's line length means
+        // nothing for a compressed frame.
+        let bytes_per_line =
+            if fmt.pix.bytesperline == 0 || mjpeg { min_bytes.max(fmt.pix.bytesperline) } else { fmt.pix.bytesperline };
+        if bytes_per_line < min_bytes && !mjpeg {
             return Err(OpenError::BadStride { path, bytes_per_line, min_bytes });
         }
         let device = DeviceFormat {
@@ -900,7 +980,10 @@ impl V4l2Source {
             bytes_per_line,
             size_image_bytes: fmt.pix.sizeimage,
         };
-        let needed = (config.height_px as usize - 1) * bytes_per_line as usize + min_bytes as usize;
+        let src_stride = if mjpeg { min_bytes as usize } else { bytes_per_line as usize };
+        // A compressed frame has no fixed size: any buffer can hold one (a short one is a drop).
+        let needed = if mjpeg { 1 } else { (config.height_px as usize - 1) * src_stride + min_bytes as usize };
+        let mjpeg_scratch = mjpeg.then(|| vec![0u8; config.height_px as usize * min_bytes as usize]);
 
         // Frame rate.
         let frame_interval_ns = set_frame_rate(raw, config.frame_rate_hz).map_err(ioctl_err("VIDIOC_S_PARM"))?;
@@ -949,6 +1032,8 @@ impl V4l2Source {
             path,
             format: FrameFormat { eyes, layout },
             device,
+            src_stride,
+            mjpeg_scratch,
             camera_id: config.camera_id,
             exposure_ns,
             frame_interval_ns,
@@ -1113,11 +1198,14 @@ impl CameraSource for V4l2Source {
             let (position, gap) = self.tracker.next(buf.sequence);
             self.counters.dropped += gap;
             let used = (buf.bytesused as usize).min(map.len);
+            let src = map.bytes().get(..used).unwrap_or_default();
             let copied = if buf.flags & BUF_FLAG_ERROR != 0 {
-                Err(CopyError::Short { needed: expected, got: 0 })
+                false
+            } else if let Some(scratch) = self.mjpeg_scratch.as_mut() {
+                decode_mjpeg(src, self.device.width_px, self.device.height_px, scratch).is_ok()
+                    && copy_eyes(scratch, self.src_stride, &self.format.layout, self.format.eyes, dst).is_ok()
             } else {
-                let src = map.bytes().get(..used).unwrap_or_default();
-                copy_eyes(src, self.device.bytes_per_line as usize, &self.format.layout, self.format.eyes, dst)
+                copy_eyes(src, self.src_stride, &self.format.layout, self.format.eyes, dst).is_ok()
             };
             let stamp = mid_exposure_ns(
                 buf.timestamp.sec,
@@ -1127,7 +1215,7 @@ impl CameraSource for V4l2Source {
                 self.frame_interval_ns,
             );
             self.requeue(buf.index)?;
-            if copied.is_err() {
+            if !copied {
                 self.counters.dropped += 1;
                 continue;
             }
@@ -1170,8 +1258,8 @@ mod tests {
         assert_eq!(FourCc(0x0000_4142).to_string(), "BA??");
         assert_eq!(list_fourccs(&[FourCc::YUYV, FourCc::GREY]), "YUYV, GREY");
         assert_eq!(list_fourccs(&[]), "nothing");
-        assert_eq!(CaptureFormat::Mjpeg.pixel_format(), None);
-        assert_eq!(CaptureFormat::Grey.pixel_format(), Some(PixelFormat::Gray8));
+        assert_eq!(CaptureFormat::Mjpeg.pixel_format(), PixelFormat::Rgb8);
+        assert_eq!(CaptureFormat::Grey.pixel_format(), PixelFormat::Gray8);
     }
 
     #[test]
@@ -1286,6 +1374,94 @@ mod tests {
         for len in 0..=40 {
             let r = copy_eyes(&vec![7; len], 10, &eye2, 2, &mut dst2);
             assert_eq!(r.is_ok(), len >= 24, "len {len}");
+        }
+    }
+
+    /// A `w × h` RGB image: the left half red, the right half blue (JPEG blocks of 8 pixels
+    /// never straddle the boundary when `w / 2` is a multiple of 16).
+    fn red_blue(w: usize, h: usize) -> Vec<u8> {
+        let mut v = Vec::with_capacity(w * h * 3);
+        for _ in 0..h {
+            for x in 0..w {
+                v.extend_from_slice(if x < w / 2 { &[220, 20, 30] } else { &[20, 30, 220] });
+            }
+        }
+        v
+    }
+
+    fn jpeg(rgb: &[u8], w: u16, h: u16) -> Vec<u8> {
+        let mut out = Vec::new();
+        jpeg_encoder::Encoder::new(&mut out, 95).encode(rgb, w, h, jpeg_encoder::ColorType::Rgb).unwrap();
+        out
+    }
+
+    /// The JPEG without its DHT (Huffman table) segments, as UVC cameras send MJPEG.
+    fn without_dht(jpeg: &[u8]) -> Vec<u8> {
+        let mut out = jpeg[..2].to_vec();
+        let mut i = 2;
+        while i + 4 <= jpeg.len() && jpeg[i] == 0xFF {
+            let marker = jpeg[i + 1];
+            if marker == 0xDA {
+                break; // start of scan: the entropy-coded data follows
+            }
+            let len = usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
+            if marker != 0xC4 {
+                out.extend_from_slice(&jpeg[i..i + 2 + len]);
+            }
+            i += 2 + len;
+        }
+        out.extend_from_slice(&jpeg[i..]);
+        out
+    }
+
+    fn near(px: &[u8], want: [u8; 3]) -> bool {
+        px.iter().zip(want).all(|(&a, b)| a.abs_diff(b) <= 12)
+    }
+
+    #[test]
+    fn mjpeg_frames_decode_to_rgb_and_split_side_by_side() {
+        let (w, h) = (64u32, 16u32);
+        let data = jpeg(&red_blue(64, 16), 64, 16);
+        let mut rgb = vec![0; (w * h * 3) as usize];
+        decode_mjpeg(&data, w, h, &mut rgb).unwrap();
+        assert!(near(&rgb[..3], [220, 20, 30]) && near(&rgb[rgb.len() - 3..], [20, 30, 220]));
+        // Side by side: each eye is one colour.
+        let eye = eye_layout(w, h, PixelFormat::Rgb8, Stereo::SideBySide).unwrap();
+        let mut eyes = vec![0; 2 * eye.eye_bytes()];
+        copy_eyes(&rgb, (w * 3) as usize, &eye, 2, &mut eyes).unwrap();
+        let (left, right) = eyes.split_at(eye.eye_bytes());
+        assert!(left.chunks_exact(3).all(|p| near(p, [220, 20, 30])));
+        assert!(right.chunks_exact(3).all(|p| near(p, [20, 30, 220])));
+    }
+
+    #[test]
+    fn mjpeg_without_huffman_tables_decodes_like_the_full_jpeg() {
+        let data = jpeg(&red_blue(32, 8), 32, 8);
+        let bare = without_dht(&data);
+        assert!(bare.len() < data.len() - 100, "the DHT segments were removed");
+        let (mut a, mut b) = (vec![0; 32 * 8 * 3], vec![0; 32 * 8 * 3]);
+        decode_mjpeg(&data, 32, 8, &mut a).unwrap();
+        decode_mjpeg(&bare, 32, 8, &mut b).unwrap();
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn bad_mjpeg_frames_are_errors_not_panics() {
+        let data = jpeg(&red_blue(32, 8), 32, 8);
+        let mut rgb = vec![0; 32 * 8 * 3];
+        // Another size than negotiated.
+        assert!(matches!(
+            decode_mjpeg(&data, 16, 8, &mut vec![0; 16 * 8 * 3]),
+            Err(MjpegError::Size { width: 32, .. })
+        ));
+        // A wrong output buffer.
+        assert!(matches!(decode_mjpeg(&data, 32, 8, &mut [0; 10]), Err(MjpegError::Size { .. })));
+        // Garbage and every truncation of the headers: an error, never a frame.
+        assert!(decode_mjpeg(&[0xAB; 500], 32, 8, &mut rgb).is_err());
+        assert!(decode_mjpeg(&[], 32, 8, &mut rgb).is_err());
+        let scan = data.windows(2).position(|m| m == [0xFF, 0xDA]).unwrap();
+        for len in 0..scan {
+            assert!(decode_mjpeg(&data[..len], 32, 8, &mut rgb).is_err(), "prefix of {len} bytes");
         }
     }
 

@@ -12,8 +12,8 @@
 //!   [`PixelFormat::Yuyv`], [`PixelFormat::Rgb8`] and [`PixelFormat::Gray8`]; `MJPG` (motion
 //!   JPEG, what most USB cameras send at high resolutions) is decoded to [`PixelFormat::Rgb8`]
 //!   with `zune-jpeg`, including the streams of UVC cameras that leave out the Huffman tables
-//!   ([`decode_mjpeg`]; a frame that does not decode is a counted drop). Rows are repacked: the device's row
-//!   padding (`bytesperline`) is dropped, so each eye's stride is `width × bytes per pixel`.
+//!   ([`decode_mjpeg`]). Rows are repacked: the device's row padding (`bytesperline`) is
+//!   dropped, so each eye's stride is `width × bytes per pixel`.
 //! - **Stereo.** [`Stereo::SideBySide`]: the device delivers both eyes in one frame, the left
 //!   eye in the left half of each row and the right eye in the right half (how stereo endoscopes
 //!   usually arrive on one capture card). Each frame is split into two eyes of half the width,
@@ -30,8 +30,9 @@
 //!   the sensor's read-out time for EOF stamps (which mark the end of the read-out, not of the
 //!   exposure). See [`mid_exposure_ns`].
 //! - **Dropped frames.** Gaps in the driver's sequence numbers, buffers the driver flags as
-//!   erroneous (`V4L2_BUF_FLAG_ERROR`) and buffers shorter than the negotiated image are counted
-//!   in [`SourceCounters::dropped`]; [`FrameMeta::sequence`] jumps by as many.
+//!   erroneous (`V4L2_BUF_FLAG_ERROR`), buffers shorter than the negotiated image and MJPEG
+//!   frames that do not decode are counted in [`SourceCounters::dropped`];
+//!   [`FrameMeta::sequence`] jumps by as many.
 //!
 //! Nothing a device delivers makes this panic: sizes, indices and stamps from the driver are
 //! checked, and bad ones are a typed error or a counted drop.
@@ -851,7 +852,8 @@ pub struct DeviceFormat {
     pub width_px: u32,
     /// Captured height, pixels.
     pub height_px: u32,
-    /// Bytes from one captured row's start to the next's (`bytesperline`).
+    /// Bytes from one captured row's start to the next's (`bytesperline` as the driver reports
+    /// it: 0 may mean packed rows; meaningless for MJPEG).
     pub bytes_per_line: u32,
     /// Bytes of one captured image (`sizeimage`).
     pub size_image_bytes: u32,
@@ -966,10 +968,9 @@ impl V4l2Source {
             });
         }
         let min_bytes = config.width_px.saturating_mul(pixel_format.bytes_per_pixel());
-        // MJPEG: the rows are those of the decoded RGB image; the device's line length means
-        // nothing for a compressed frame.
-        let bytes_per_line =
-            if fmt.pix.bytesperline == 0 || mjpeg { min_bytes.max(fmt.pix.bytesperline) } else { fmt.pix.bytesperline };
+        // The rows copied out: the device's (0 means packed), or, for MJPEG, the decoded RGB
+        // image's (a compressed frame has no line length).
+        let bytes_per_line = if fmt.pix.bytesperline == 0 { min_bytes } else { fmt.pix.bytesperline };
         if bytes_per_line < min_bytes && !mjpeg {
             return Err(OpenError::BadStride { path, bytes_per_line, min_bytes });
         }
@@ -977,7 +978,7 @@ impl V4l2Source {
             fourcc: requested,
             width_px: fmt.pix.width,
             height_px: fmt.pix.height,
-            bytes_per_line,
+            bytes_per_line: fmt.pix.bytesperline,
             size_image_bytes: fmt.pix.sizeimage,
         };
         let src_stride = if mjpeg { min_bytes as usize } else { bytes_per_line as usize };
@@ -1144,7 +1145,8 @@ impl CameraSource for V4l2Source {
     /// and queues the buffer again. Buffers the driver flags as erroneous or that are shorter
     /// than the image are counted as dropped and skipped (the wait goes on until `timeout`).
     ///
-    /// **Not for the real-time loop:** blocks up to `timeout`; allocation-free.
+    /// **Not for the real-time loop:** blocks up to `timeout`; allocation-free, except for
+    /// MJPEG (the decoder allocates per frame).
     fn next_into(&mut self, dst: &mut [u8], timeout: Duration) -> Result<Next, CaptureError> {
         let expected = self.format.payload_bytes();
         if dst.len() != expected {

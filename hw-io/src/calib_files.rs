@@ -478,6 +478,167 @@ pub fn to_json<T: Serialize>(value: &T) -> String {
     serde_json::to_string_pretty(value).unwrap_or_default()
 }
 
+/// A calibrated stereo rig: each eye's intrinsics and the right eye's pose relative to the left.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StereoCalibration {
+    /// The left eye (pixels).
+    pub left: CameraIntrinsics,
+    /// The right eye (pixels).
+    pub right: CameraIntrinsics,
+    /// Rotation taking a vector from the left eye's camera frame to the right eye's, row-major.
+    pub rotation_right_left: [[f64; 3]; 3],
+    /// The left eye's optical centre in the right eye's camera frame, metres: a point `X_l` (left
+    /// camera frame) is `R·X_l + t` in the right camera frame.
+    pub translation_right_left_m: [f64; 3],
+}
+
+impl StereoCalibration {
+    /// The baseline (distance between the optical centres), metres.
+    pub fn baseline_m(&self) -> f64 {
+        let t = self.translation_right_left_m;
+        (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt()
+    }
+}
+
+/// Why a pair of ROS `camera_info` files was refused as a stereo calibration.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StereoFileError {
+    /// One eye's intrinsics.
+    #[error("{eye} camera_info: {source}")]
+    Intrinsics {
+        /// `left` or `right`.
+        eye: &'static str,
+        /// The reason.
+        source: IntrinsicsFileError,
+    },
+    /// A matrix (R, P) missing or malformed.
+    #[error("{eye} camera_info: field `{field}`: {problem}")]
+    Field {
+        /// `left` or `right`.
+        eye: &'static str,
+        /// The field.
+        field: &'static str,
+        /// What is wrong.
+        problem: String,
+    },
+}
+
+/// Parses a stereo calibration from the left and right eyes' ROS `camera_info` YAML (as written
+/// by ROS `camera_calibration` or a `CameraInfo` message): `K`/`D` of each eye, and the
+/// rectification `R` and projection `P` that tie them together (ROS convention: the right
+/// eye's `P[0][3] = Tx = −fx'·B` with `B` the baseline in metres, the rectified frames share
+/// their orientation). The right-from-left transform is `R_r^T·R_l` and `−R_r^T·(B, 0, 0)`.
+pub fn parse_stereo_camera_info(left: &str, right: &str) -> Result<StereoCalibration, StereoFileError> {
+    let parse = |eye: &'static str, text: &str| -> Result<(CameraIntrinsics, [f64; 9], [f64; 12]), StereoFileError> {
+        let intrinsics = parse_intrinsics_yaml(text).map_err(|source| StereoFileError::Intrinsics { eye, source })?;
+        let cleaned: String =
+            text.lines()
+                .map(|l| {
+                    if l.trim_start().starts_with("%YAML") { "#".to_string() } else { l.replace("!!opencv-matrix", "") }
+                })
+                .collect::<Vec<_>>()
+                .join("\n");
+        let doc: serde_yaml_ng::Value = serde_yaml_ng::from_str(&cleaned).map_err(|e| StereoFileError::Intrinsics {
+            eye,
+            source: IntrinsicsFileError::Yaml { line: 0, column: 0, message: e.to_string() },
+        })?;
+        let matrix = |keys: &[&'static str], n: usize| -> Result<Vec<f64>, StereoFileError> {
+            let (field, v) = first(&doc, keys).ok_or(StereoFileError::Field {
+                eye,
+                field: keys[0],
+                problem: "missing (a stereo camera_info carries R and P)".into(),
+            })?;
+            let x = numbers(field, v).map_err(|source| StereoFileError::Intrinsics { eye, source })?;
+            if x.len() != n {
+                return Err(StereoFileError::Field {
+                    eye,
+                    field,
+                    problem: format!("expected {n} numbers, got {}", x.len()),
+                });
+            }
+            Ok(x)
+        };
+        let r = matrix(&["rectification_matrix", "R", "r"], 9)?;
+        let p = matrix(&["projection_matrix", "P", "p"], 12)?;
+        let mut r9 = [0.0; 9];
+        r9.copy_from_slice(&r);
+        let mut p12 = [0.0; 12];
+        p12.copy_from_slice(&p);
+        // R must be a rotation (orthonormal, det +1) to 1e-6.
+        let rt_r_err = (0..3)
+            .flat_map(|i| (0..3).map(move |j| (i, j)))
+            .map(|(i, j)| {
+                let dot: f64 = (0..3).map(|k| r9[3 * k + i] * r9[3 * k + j]).sum();
+                (dot - if i == j { 1.0 } else { 0.0 }).abs()
+            })
+            .fold(0.0, f64::max);
+        let det = r9[0] * (r9[4] * r9[8] - r9[5] * r9[7]) - r9[1] * (r9[3] * r9[8] - r9[5] * r9[6])
+            + r9[2] * (r9[3] * r9[7] - r9[4] * r9[6]);
+        if rt_r_err > 1e-6 || (det - 1.0).abs() > 1e-6 {
+            return Err(StereoFileError::Field { eye, field: "R", problem: "not a rotation matrix".into() });
+        }
+        if p12[0] <= 0.0 {
+            return Err(StereoFileError::Field { eye, field: "P", problem: "P[0][0] (fx') must be positive".into() });
+        }
+        Ok((intrinsics, r9, p12))
+    };
+    let (left_k, r_l, p_l) = parse("left", left)?;
+    let (right_k, r_r, p_r) = parse("right", right)?;
+    if p_l[3] != 0.0 {
+        return Err(StereoFileError::Field {
+            eye: "left",
+            field: "P",
+            problem: "the left eye's P[0][3] must be 0 (it is the reference)".into(),
+        });
+    }
+    let baseline_m = -p_r[3] / p_r[0];
+    if !(baseline_m.is_finite() && baseline_m > 0.0) {
+        return Err(StereoFileError::Field {
+            eye: "right",
+            field: "P",
+            problem: format!("P[0][3] = {} gives no positive baseline (expected −fx'·B < 0)", p_r[3]),
+        });
+    }
+    // R_r^T · R_l and −R_r^T · (B, 0, 0).
+    let mut rotation = [[0.0; 3]; 3];
+    for (i, row) in rotation.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = (0..3).map(|k| r_r[3 * k + i] * r_l[3 * k + j]).sum();
+        }
+    }
+    let translation = [-r_r[0] * baseline_m, -r_r[1] * baseline_m, -r_r[2] * baseline_m];
+    Ok(StereoCalibration {
+        left: left_k,
+        right: right_k,
+        rotation_right_left: rotation,
+        translation_right_left_m: translation,
+    })
+}
+
+/// A ROS `camera_info` YAML (`camera_calibration`'s format) of one eye of an ideal stereo rig
+/// whose eyes share their orientation and are `baseline_m` metres apart along x: `R` is the
+/// identity and the right eye's `P[0][3] = −fx·B`. What `simrobot` writes for its simulated
+/// endoscope; [`parse_stereo_camera_info`] reads it back.
+pub fn write_camera_info_yaml(name: &str, k: &CameraIntrinsics, right_eye_baseline_m: Option<f64>) -> String {
+    let tx = right_eye_baseline_m.map_or(0.0, |b| -k.fx * b);
+    let d = k.distortion;
+    format!(
+        "image_width: {w}\nimage_height: {h}\ncamera_name: {name}\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [{fx:?}, {s:?}, {cx:?}, 0.0, {fy:?}, {cy:?}, 0.0, 0.0, 1.0]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [{:?}, {:?}, {:?}, {:?}, {:?}]\nrectification_matrix:\n  rows: 3\n  cols: 3\n  data: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]\nprojection_matrix:\n  rows: 3\n  cols: 4\n  data: [{fx:?}, {s:?}, {cx:?}, {tx:?}, 0.0, {fy:?}, {cy:?}, 0.0, 0.0, 0.0, 1.0, 0.0]\n",
+        d[0],
+        d[1],
+        d[2],
+        d[3],
+        d[4],
+        w = k.width,
+        h = k.height,
+        fx = k.fx,
+        fy = k.fy,
+        cx = k.cx,
+        cy = k.cy,
+        s = k.skew,
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -601,5 +762,48 @@ mod tests {
         let without = text.replace("\"min_shaft_px\": 40.0,", "");
         assert_ne!(without, text);
         assert_eq!(parse_dataset(&without).unwrap().min_shaft_px, 0.0);
+    }
+
+    #[test]
+    fn stereo_camera_info_round_trips_and_gives_the_right_from_left_transform() {
+        let k = CameraIntrinsics {
+            fx: 400.0,
+            fy: 401.0,
+            cx: 320.5,
+            cy: 240.0,
+            skew: 0.0,
+            width: 640,
+            height: 480,
+            distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
+        };
+        let left = write_camera_info_yaml("left", &k, None);
+        let right = write_camera_info_yaml("right", &k, Some(0.005));
+        let s = parse_stereo_camera_info(&left, &right).unwrap();
+        assert_eq!(s.left, k);
+        assert_eq!(s.right, k);
+        assert!((s.baseline_m() - 0.005).abs() < 1e-15);
+        // Left optical centre seen from the right eye: 5 mm to its left.
+        assert!((s.translation_right_left_m[0] + 0.005).abs() < 1e-15);
+        assert_eq!(s.rotation_right_left, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+        // A rotated rectification: R_l = Rz(90°) gives R_r^T R_l = Rz(90°) with R_r = I.
+        let rotated = left.replace(
+            "data: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]",
+            "data: [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]",
+        );
+        let s = parse_stereo_camera_info(&rotated, &right).unwrap();
+        assert_eq!(s.rotation_right_left[0], [0.0, -1.0, 0.0]);
+        // Swapped eyes (positive Tx), a non-rotation R, a missing P: typed errors.
+        assert!(matches!(parse_stereo_camera_info(&right, &left), Err(StereoFileError::Field { .. })));
+        let skewed = left.replace(
+            "data: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]",
+            "data: [2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]",
+        );
+        assert!(matches!(parse_stereo_camera_info(&skewed, &right), Err(StereoFileError::Field { field: "R", .. })));
+        let no_p: String =
+            right.lines().take_while(|l| !l.starts_with("projection_matrix")).collect::<Vec<_>>().join("\n");
+        assert!(matches!(
+            parse_stereo_camera_info(&left, &no_p),
+            Err(StereoFileError::Field { eye: "right", field: "projection_matrix", .. })
+        ));
     }
 }

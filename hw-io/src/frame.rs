@@ -7,8 +7,13 @@
 //! the same [`ImageLayout`]; its pixels are the eyes' images one after the other, each
 //! `stride × height` bytes, rows top to bottom.
 //!
-//! Units: pixels; bytes; times in nanoseconds of `CLOCK_MONOTONIC` (the bus clock: the CAN
-//! receive timestamps of fulcrumd are on the same clock).
+//! Units: pixels; bytes; times in nanoseconds of `CLOCK_MONOTONIC`, the clock V4L2 drivers
+//! stamp frames with and the daemons' cycle clock. The CAN receive timestamps
+//! (`hw_io::can::TimedFrame::unix_time_us`, the kernel's `SO_TIMESTAMPNS`) are on
+//! `CLOCK_REALTIME` instead: pair a frame with encoder readings through
+//! [`realtime_minus_monotonic_ns`], sampled near the frame's time (the two clocks differ by a
+//! constant unless the wall clock is stepped or slewed, which a robot PC should not do while it
+//! runs).
 
 use core::fmt;
 
@@ -158,6 +163,50 @@ impl ImageLayout {
     }
 }
 
+/// What a camera rig delivers, fixed for a source's life: the number of eyes and each eye's
+/// layout.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct FrameFormat {
+    /// 1 (mono) or 2 (stereo, left first).
+    pub eyes: u32,
+    /// Each eye's image layout.
+    pub layout: ImageLayout,
+}
+
+/// Why a [`FrameFormat`] is not usable.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum FormatError {
+    /// Not 1 or 2 eyes.
+    #[error("{0} eyes: a rig has 1 (mono) or 2 (stereo)")]
+    Eyes(u32),
+    /// The layout of each eye.
+    #[error(transparent)]
+    Layout(#[from] LayoutError),
+}
+
+impl FrameFormat {
+    /// A checked format.
+    pub fn new(eyes: u32, layout: ImageLayout) -> Result<Self, FormatError> {
+        let format = Self { eyes, layout };
+        format.validate()?;
+        Ok(format)
+    }
+
+    /// Checks the number of eyes and the layout.
+    pub fn validate(&self) -> Result<(), FormatError> {
+        if !(1..=2).contains(&self.eyes) {
+            return Err(FormatError::Eyes(self.eyes));
+        }
+        self.layout.validate()?;
+        Ok(())
+    }
+
+    /// Bytes of one frame's pixels: `eyes × stride × height`.
+    pub const fn payload_bytes(&self) -> usize {
+        self.eyes as usize * self.layout.eye_bytes()
+    }
+}
+
 /// The metadata of one frame (one exposure of every eye of the rig).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameMeta {
@@ -166,7 +215,7 @@ pub struct FrameMeta {
     pub sequence: u64,
     /// Which camera rig (configured; 0 for the first endoscope).
     pub camera_id: u32,
-    /// Mid time of the exposure, nanoseconds of `CLOCK_MONOTONIC` (the bus clock).
+    /// Mid time of the exposure, nanoseconds of `CLOCK_MONOTONIC`.
     pub timestamp_ns: u64,
     /// Exposure time, nanoseconds (0 when unknown).
     pub exposure_ns: u32,
@@ -177,15 +226,49 @@ pub struct FrameMeta {
 }
 
 impl FrameMeta {
+    /// The frame's format (eyes and layout).
+    pub const fn format(&self) -> FrameFormat {
+        FrameFormat { eyes: self.eyes, layout: self.layout }
+    }
+
     /// Bytes of the frame's pixels: `eyes × stride × height`.
     pub const fn payload_bytes(&self) -> usize {
         self.eyes as usize * self.layout.eye_bytes()
     }
 }
 
+/// `CLOCK_REALTIME − CLOCK_MONOTONIC` now, nanoseconds: add it to a frame's `CLOCK_MONOTONIC`
+/// timestamp to compare it with CAN receive timestamps (Unix time). Read as the middle of two
+/// `CLOCK_MONOTONIC` reads around one `CLOCK_REALTIME` read (error below a microsecond).
+pub fn realtime_minus_monotonic_ns() -> i128 {
+    let a = i128::from(monotonic_now_ns());
+    let real = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as i128);
+    let b = i128::from(monotonic_now_ns());
+    real - (a + b) / 2
+}
+
+/// Nanoseconds of `CLOCK_MONOTONIC` now.
+pub fn monotonic_now_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    (ts.tv_sec.max(0) as u64).saturating_mul(1_000_000_000).saturating_add(ts.tv_nsec.max(0) as u64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_clock_offset_matches_the_two_clocks_read_directly() {
+        let off = realtime_minus_monotonic_ns();
+        let mono = i128::from(monotonic_now_ns());
+        let real = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as i128;
+        // Read a few microseconds apart: within 50 ms even on a loaded machine.
+        assert!((real - mono - off).abs() < 50_000_000, "{off}");
+        // Unix time is decades past the boot time.
+        assert!(off > 1_500_000_000 * 1_000_000_000i128);
+    }
 
     #[test]
     fn pixel_format_codes_round_trip_and_unknown_codes_are_refused() {
@@ -209,5 +292,9 @@ mod tests {
         assert!(matches!(huge.validate(), Err(LayoutError::TooLarge(_))));
         let meta = FrameMeta { sequence: 0, camera_id: 0, timestamp_ns: 1, exposure_ns: 0, eyes: 2, layout: l };
         assert_eq!(meta.payload_bytes(), 2 * 921_600);
+        assert_eq!(meta.format().payload_bytes(), 2 * 921_600);
+        assert_eq!(FrameFormat::new(3, l), Err(FormatError::Eyes(3)));
+        assert_eq!(FrameFormat::new(0, l), Err(FormatError::Eyes(0)));
+        assert!(matches!(FrameFormat::new(2, short), Err(FormatError::Layout(LayoutError::Stride { .. }))));
     }
 }

@@ -34,11 +34,7 @@ fn device() -> String {
 }
 
 fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: a valid timespec to fill; CLOCK_MONOTONIC always exists on Linux.
-    let r = unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    assert_eq!(r, 0);
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+    hw_io::frame::monotonic_now_ns()
 }
 
 /// Frames per second asked of vivid (its webcam input starts at 5).

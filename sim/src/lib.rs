@@ -13,13 +13,16 @@
 //! - [`score`]: scoring a detector against ground truth;
 //! - [`calib`]: the dual RCM-arm calibration paper's simulation protocol (Sec. IV);
 //! - [`endoscope`]: the simulated stereo endoscope: rendered frames of tissue and
-//!   instruments with their ground truth (`docs/vision.md`).
+//!   instruments with their ground truth (`docs/vision.md`);
+//! - [`camera`]: the simulated endoscope as a camera source of the frame transport
+//!   ([`camera::SimCamera`], `docs/frames.md`).
 //!
 //! The `simrobot` binary writes a run to a candump log plus its ground truth, or plays the
 //! robot live on a SocketCAN interface; see `docs/simulator.md`.
 #![warn(missing_docs)]
 
 pub mod calib;
+pub mod camera;
 pub mod encoders;
 pub mod endoscope;
 pub mod robot;

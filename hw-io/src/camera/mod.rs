@@ -13,26 +13,17 @@
 
 use core::time::Duration;
 
-use crate::frame::{FrameMeta, ImageLayout};
-
+pub mod image_sequence;
+#[cfg(feature = "ipc")]
+mod pump;
 #[cfg(feature = "v4l2")]
 pub mod v4l2;
 
-/// What a source delivers, fixed for its life: the number of eyes and each eye's layout.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct FrameFormat {
-    /// 1 (mono) or 2 (stereo, left first).
-    pub eyes: u32,
-    /// Each eye's image layout.
-    pub layout: ImageLayout,
-}
+#[cfg(feature = "ipc")]
+pub use pump::{PumpError, PumpSummary, REPORT_PERIOD, pump};
 
-impl FrameFormat {
-    /// Bytes of one frame's pixels: `eyes × stride × height`.
-    pub const fn payload_bytes(&self) -> usize {
-        self.eyes as usize * self.layout.eye_bytes()
-    }
-}
+pub use crate::frame::FrameFormat;
+use crate::frame::FrameMeta;
 
 /// What [`CameraSource::next_into`] found.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -345,7 +345,7 @@ pub enum CaptureError {
 pub enum TimestampError {
     /// The driver's clock is not `CLOCK_MONOTONIC` (`V4L2_BUF_FLAG_TIMESTAMP_*` bits given).
     #[error(
-        "the driver's timestamps are not on CLOCK_MONOTONIC (buffer flags {0:#x}): frames cannot be put on the bus clock"
+        "the driver's timestamps are not on CLOCK_MONOTONIC (buffer flags {0:#x}): frames cannot be related to the robot's clocks"
     )]
     ClockNotMonotonic(u32),
     /// The timestamp is negative or its microseconds are out of range.

@@ -30,12 +30,16 @@
 //! # Ok(()) }
 //! ```
 //!
+//! Camera frames have their own service shape (a `#[repr(C)]` [`FrameHeader`] followed by the
+//! pixels, zero-copy): [`FramePublisher`] and [`FrameSubscriber`], `docs/frames.md`.
+//!
 //! Either side may start first, subscribers may come and go, and the daemon may be restarted
 //! (even after SIGKILL) under running subscribers. Neither side installs signal handlers unless
 //! [`PublisherOptions::iceoryx2_signal_handlers`] asks for it. iceoryx2 keeps its state in
 //! `/tmp/iceoryx2` and `/dev/shm/iox2_*`.
 
 mod continuity;
+mod frames;
 mod fulcrum;
 mod message;
 mod publisher;
@@ -45,6 +49,11 @@ mod subscriber;
 pub mod logging;
 
 pub use continuity::Continuity;
+pub use frames::{
+    DEFAULT_FRAME_SERVICE, FRAME_HEADER_VERSION, FrameConnectError, FrameCounters, FrameCreateError, FrameHeader,
+    FrameHeaderError, FramePublishError, FramePublisher, FrameRecvError, FrameSlot, FrameSubscriber, FrameWaitError,
+    ReceivedFrame,
+};
 pub use fulcrum::{FULCRUM_SAMPLE_VERSION, FulcrumSample, HealthFlags, OutputState, UnknownState};
 /// iceoryx2's derive macro and trait for shared-memory payloads, re-exported so that a crate
 /// defining a [`Message`] needs no direct iceoryx2 dependency (`#[derive(ZeroCopySend)]`,

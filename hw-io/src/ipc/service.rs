@@ -131,7 +131,7 @@ pub(crate) fn open_services<M: Message>(
 }
 
 /// A node with the given signal handling. `node_name` is a constant of a message type.
-fn node(node_name: &'static str, signal_handlers: bool) -> Result<Node<ipc::Service>, NodeCreationFailure> {
+pub(crate) fn node(node_name: &'static str, signal_handlers: bool) -> Result<Node<ipc::Service>, NodeCreationFailure> {
     let mode =
         if signal_handlers { SignalHandlingMode::HandleTerminationRequests } else { SignalHandlingMode::Disabled };
     let mut builder = NodeBuilder::new().signal_handling_mode(mode);
@@ -158,7 +158,7 @@ fn open_pubsub<M: Message>(
         .open_or_create()
 }
 
-fn open_event(
+pub(crate) fn open_event(
     node: &Node<ipc::Service>,
     name: &ServiceName,
     opts: &PublisherOptions,

@@ -16,6 +16,8 @@ use core::time::Duration;
 pub mod image_sequence;
 #[cfg(feature = "ipc")]
 mod pump;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
 
 #[cfg(feature = "ipc")]
 pub use pump::{PumpError, PumpSummary, REPORT_PERIOD, pump};

@@ -21,9 +21,10 @@
 //! - [`calib_files`] (feature `calib-files`: estimator, serde_json, serde_yaml_ng): the dual
 //!   RCM-arm calibration's files: camera intrinsics (OpenCV / ROS YAML), dataset, ground truth
 //!   and result (JSON), see `docs/calibration.md`.
-//! - `camera` (feature `camera`): camera sources behind one trait, `camera::CameraSource`
-//!   (image-sequence directories, Video4Linux2 devices), writing each frame into a buffer the
-//!   caller owns (a loaned shared-memory slot of the frame transport).
+//! - `camera` (feature `camera`: image): camera sources behind one trait, `camera::CameraSource`
+//!   (image-sequence directories; Video4Linux2 devices with feature `v4l2`: zune-jpeg for
+//!   MJPEG), writing each frame into a buffer the caller owns (a loaned shared-memory slot of the
+//!   frame service, `ipc::FramePublisher`).
 //! - [`frame`] (always): camera frames as they cross a boundary: pixel formats, image layouts
 //!   and the metadata of one (stereo) frame, shared by the camera sources and the frame
 //!   transport (`docs/vision.md`).

@@ -13,6 +13,7 @@ use comanip_camera::{Monitor, pump};
 use controller::process::{STOP, init_logging, install_stop_handlers, write_json};
 use hw_io::camera::CameraSource;
 use hw_io::camera::image_sequence::{ImageSequence, ImageSequenceConfig, Timing};
+use hw_io::camera::v4l2::{CaptureFormat, Stereo, V4l2Config, V4l2Source};
 use hw_io::frame::{PixelFormat, monotonic_now_ns};
 use hw_io::ipc::{DEFAULT_FRAME_SERVICE, FramePublisher, FrameSubscriber, PublisherOptions, ReceivedFrame};
 use std::sync::atomic::Ordering;
@@ -38,6 +39,42 @@ enum Command {
         /// Start again after the last frame.
         #[arg(long)]
         repeat: bool,
+        /// Camera rig id in the frame headers.
+        #[arg(long, default_value_t = 0)]
+        camera_id: u32,
+        /// Frame service name.
+        #[arg(long, default_value = DEFAULT_FRAME_SERVICE)]
+        service: String,
+        /// Stop after this many frames.
+        #[arg(long)]
+        frames: Option<u64>,
+        /// Write the run's summary here (JSON).
+        #[arg(long)]
+        summary_json: Option<PathBuf>,
+    },
+    /// Publish a Video4Linux2 capture device (a frame grabber, a USB endoscope; docs/camera.md).
+    V4l2 {
+        /// The device.
+        #[arg(long, default_value = "/dev/video0")]
+        device: PathBuf,
+        /// Pixel format asked of the device (MJPEG is decoded to RGB).
+        #[arg(long, value_enum, default_value = "yuyv")]
+        format: V4l2Format,
+        /// Width of the captured frame, pixels (both eyes with --side-by-side).
+        #[arg(long, default_value_t = 640)]
+        width: u32,
+        /// Height, pixels.
+        #[arg(long, default_value_t = 480)]
+        height: u32,
+        /// Frame rate asked of the device, Hz (0: the device's).
+        #[arg(long, default_value_t = 0)]
+        fps: u32,
+        /// The device delivers a stereo pair side by side (left half, right half).
+        #[arg(long)]
+        side_by_side: bool,
+        /// Exposure time, microseconds, when known (for the mid-exposure timestamp).
+        #[arg(long)]
+        exposure_us: Option<u32>,
         /// Camera rig id in the frame headers.
         #[arg(long, default_value_t = 0)]
         camera_id: u32,
@@ -82,6 +119,19 @@ enum Command {
     },
 }
 
+/// `--format` of `v4l2`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum V4l2Format {
+    /// YUYV 4:2:2, delivered as is.
+    Yuyv,
+    /// RGB24, delivered as is.
+    Rgb24,
+    /// 8-bit grey, delivered as is.
+    Grey,
+    /// Motion JPEG, decoded to RGB.
+    Mjpeg,
+}
+
 fn main() -> ExitCode {
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
@@ -99,6 +149,44 @@ fn main() -> ExitCode {
             cfg.repeat = repeat;
             cfg.camera_id = camera_id;
             let mut source = match ImageSequence::open(cfg) {
+                Ok(s) => s,
+                Err(e) => {
+                    error!("{e}");
+                    return ExitCode::from(3);
+                }
+            };
+            run_source(&mut source, camera_id, &service, frames, summary_json)
+        }
+        Command::V4l2 {
+            device,
+            format,
+            width,
+            height,
+            fps,
+            side_by_side,
+            exposure_us,
+            camera_id,
+            service,
+            frames,
+            summary_json,
+        } => {
+            let config = V4l2Config {
+                device,
+                format: match format {
+                    V4l2Format::Yuyv => CaptureFormat::Yuyv,
+                    V4l2Format::Rgb24 => CaptureFormat::Rgb24,
+                    V4l2Format::Grey => CaptureFormat::Grey,
+                    V4l2Format::Mjpeg => CaptureFormat::Mjpeg,
+                },
+                width_px: width,
+                height_px: height,
+                frame_rate_hz: fps,
+                stereo: if side_by_side { Stereo::SideBySide } else { Stereo::Mono },
+                camera_id,
+                exposure_ns: exposure_us.map(|us| us.saturating_mul(1000)),
+                ..V4l2Config::default()
+            };
+            let mut source = match V4l2Source::open(&config) {
                 Ok(s) => s,
                 Err(e) => {
                     error!("{e}");

@@ -5,11 +5,12 @@
 //! and [`CameraSource::next_into`], which waits for the next frame and writes its pixels into a
 //! buffer the caller owns, usually a loaned shared-memory slot of the frame transport (one copy
 //! from the device or file into shared memory, none after it). Timestamps are the exposure's
-//! mid time in nanoseconds of `CLOCK_MONOTONIC`, the clock of the CAN receive timestamps.
+//! mid time in nanoseconds of `CLOCK_MONOTONIC` (the CAN receive timestamps are Unix time: see
+//! [`crate::frame`] for pairing them).
 //!
 //! Sources: a directory of PNG images with a timestamps file ([`image_sequence`]), Video4Linux2
-//! capture devices (`v4l2`, feature `v4l2`), and the simulated endoscope (`sim::endoscope`, in
-//! the simulator crate).
+//! capture devices (`v4l2`, feature `v4l2`), and the simulated endoscope (`sim::camera`, in the
+//! simulator crate). [`pump`] (with feature `ipc`) publishes any of them on the frame service.
 
 use core::time::Duration;
 

@@ -19,7 +19,8 @@
 //! - [`endoscope`]: the simulated stereo endoscope: rendered frames of tissue and
 //!   instruments with their ground truth (`docs/vision.md`);
 //! - [`camera`]: the simulated endoscope as a camera source of the frame transport
-//!   ([`camera::SimCamera`], `docs/frames.md`).
+//!   ([`camera::SimCamera`], `docs/frames.md`), and [`live_camera`]: it, rendering the two
+//!   simulated arms in step with the live bus (`simrobot live --camera`).
 //!
 //! The `simrobot` binary writes a run to a candump log plus its ground truth, or plays the
 //! robot live on a SocketCAN interface; see `docs/simulator.md`.
@@ -30,6 +31,7 @@ pub mod camera;
 pub mod encoders;
 pub mod endoscope;
 pub mod endoscope_arm;
+pub mod live_camera;
 pub mod robot;
 pub mod scenario;
 pub mod score;

@@ -15,6 +15,8 @@ use core::time::Duration;
 
 use crate::frame::{FrameMeta, ImageLayout};
 
+
+
 /// What a source delivers, fixed for its life: the number of eyes and each eye's layout.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FrameFormat {

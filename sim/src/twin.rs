@@ -4,8 +4,10 @@
 //! advances the surgeon's motion by one sample ([`crate::scenario`]), solves the inverse
 //! kinematics of the **true** instrument line on the **true** arm ([`crate::robot`]:
 //! nominal DH table plus a calibration error) and lets the three virtual encoder nodes
-//! ([`crate::encoders`]) answer with TPDOs, heartbeats and EMCYs. Ground truth (state, pivot,
-//! line, the true insertions and extractions) is available at every sample.
+//! ([`crate::encoders`]) answer with TPDOs, heartbeats and EMCYs. The endoscope-holder arm
+//! ([`crate::endoscope_arm`], on by default) answers on the same bus with its two nodes, every
+//! 10th SYNC. Ground truth (state, pivot, line, the true insertions and extractions, the
+//! endoscope arm's joints) is available at every sample.
 //!
 //! ## What the controller sees, and why
 //! The controller turns the encoder counts into joint angles and runs the *nominal* forward
@@ -438,7 +440,8 @@ impl SimRobot {
 
     /// Answers one SYNC with `counter` (1..=240) sent at `t_us` (microseconds, any time base;
     /// the Unix epoch for `simrobot`): advances one sample, solves the joint angles of the
-    /// true arm and returns the nodes' frames stamped in the same time base, in bus order.
+    /// true arm and returns the nodes' frames (the tool arm's and, when on, the endoscope
+    /// arm's) stamped in the same time base, in bus order.
     /// `Ok(None)` once a finite scenario is over (nothing is sent any more). On error nothing
     /// advances. Allocation-free, except when endless mode starts the next scenario.
     pub fn on_sync(&mut self, counter: u8, t_us: u64) -> Result<Option<TwinFrames>, TwinError> {

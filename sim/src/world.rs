@@ -354,6 +354,11 @@ impl FrameWriter {
         world.history.back().is_some_and(|s| s.t_ns >= self.next_mid_ns().saturating_add(self.half_exposure_ns))
     }
 
+    /// Frames per second.
+    pub fn fps(&self) -> f64 {
+        self.fps
+    }
+
     /// Frames written so far.
     pub fn frames(&self) -> u64 {
         self.next

@@ -458,9 +458,9 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
     bar.finish_and_clear();
     let frames_summary = match frames_out {
         Some((_, writer)) => {
-            let (n, with) = (writer.frames(), writer.frames_with_instrument());
+            let (n, with, fps) = (writer.frames(), writer.frames_with_instrument(), writer.fps());
             writer.finish()?;
-            Some((n, with))
+            Some((n, with, fps))
         }
         None => None,
     };
@@ -483,11 +483,11 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
     outln!("  {}: {} frames, {:.1} MiB", bus_path.display(), bus.frames, mib(size(&bus_path)))
         .map_err(GenerateError::Stdout)?;
     outln!("  {}: {:.1} MiB", truth_path.display(), mib(size(&truth_path))).map_err(GenerateError::Stdout)?;
-    if let Some((n, with)) = frames_summary {
+    if let Some((n, with, fps)) = frames_summary {
         outln!(
             "  {}: {n} stereo frames at {} fps, the instrument visible (>= {} px, left eye) in {with} ({:.1} %)",
             args.out.join("frames").display(),
-            args.fps.unwrap_or(frames_fps(args)),
+            fps,
             sim::world::VISIBLE_MIN_PX,
             if n > 0 { with as f64 * 100.0 / n as f64 } else { 0.0 }
         )
@@ -523,11 +523,6 @@ fn frames_config(args: &GenerateArgs) -> Result<EndoscopeConfig, ConfigError> {
     }
     cfg.validate()?;
     Ok(cfg)
-}
-
-/// Frames per second of `generate --frames` (for the summary).
-fn frames_fps(args: &GenerateArgs) -> f64 {
-    frames_config(args).map_or(0.0, |c| c.timing.fps)
 }
 
 /// The world and the frame writer of `generate --frames`: frames from the first SYNC

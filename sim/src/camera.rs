@@ -69,7 +69,17 @@ pub struct SimCamera<F: Fn(u64) -> SceneState> {
     max_frames: Option<u64>,
     next: u64,
     counters: SourceCounters,
+    ready: Option<ReadyFn>,
+    uncovered: u64,
 }
+
+/// `ready(from_ns, to_ns)`: whether the scene is known over an exposure (see
+/// [`SimCamera::with_ready`]).
+type ReadyFn = Box<dyn Fn(u64, u64) -> bool + Send>;
+
+/// How long past its exposure's end a `Clock` frame waits for [`SimCamera::with_ready`]'s
+/// predicate before it is rendered with what the scene has (nanoseconds).
+pub const MAX_READY_WAIT_NS: u64 = 100_000_000;
 
 impl<F: Fn(u64) -> SceneState> core::fmt::Debug for SimCamera<F> {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
@@ -116,7 +126,23 @@ impl<F: Fn(u64) -> SceneState> SimCamera<F> {
             max_frames,
             next: 0,
             counters: SourceCounters::default(),
+            ready: None,
+            uncovered: 0,
         })
+    }
+
+    /// With `Clock` timing, also waits until `ready(exposure start, exposure end)` (nanoseconds)
+    /// says the scene is known over the whole exposure (a live world has recorded the SYNCs
+    /// that bracket it), at most [`MAX_READY_WAIT_NS`] past the exposure's end; after that the
+    /// frame is rendered with what the scene gives and counted ([`uncovered`](Self::uncovered)).
+    pub fn with_ready(mut self, ready: impl Fn(u64, u64) -> bool + Send + 'static) -> Self {
+        self.ready = Some(Box::new(ready));
+        self
+    }
+
+    /// Frames rendered before the scene covered their exposure (see [`with_ready`](Self::with_ready)).
+    pub fn uncovered(&self) -> u64 {
+        self.uncovered
     }
 
     /// The last frame rendered, with its ground truth (the frame [`CameraSource::next_into`]
@@ -155,7 +181,8 @@ impl<F: Fn(u64) -> SceneState> CameraSource for SimCamera<F> {
                 self.next += 1;
                 self.counters.dropped += 1;
             }
-            let end = frame_mid_time_ns(self.t0_ns, self.fps, self.next) + half_exposure;
+            let mid = frame_mid_time_ns(self.t0_ns, self.fps, self.next);
+            let end = mid + half_exposure;
             if end > now {
                 let wait = Duration::from_nanos(end - now);
                 if wait > timeout {
@@ -163,6 +190,24 @@ impl<F: Fn(u64) -> SceneState> CameraSource for SimCamera<F> {
                     return Ok(Next::Timeout);
                 }
                 std::thread::sleep(wait);
+            }
+            if let Some(ready) = &self.ready {
+                let start = mid.saturating_sub(half_exposure);
+                let waited_from = monotonic_now_ns();
+                loop {
+                    if ready(start, end) {
+                        break;
+                    }
+                    let now = monotonic_now_ns();
+                    if now >= end + MAX_READY_WAIT_NS {
+                        self.uncovered += 1;
+                        break;
+                    }
+                    if Duration::from_nanos(now - waited_from) >= timeout {
+                        return Ok(Next::Timeout);
+                    }
+                    std::thread::sleep(Duration::from_millis(1));
+                }
             }
         }
         let n = self.next;

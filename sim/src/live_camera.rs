@@ -32,6 +32,23 @@ pub fn lock(world: &SharedWorld) -> MutexGuard<'_, World> {
     world.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
+/// What the live camera did (`simrobot live --summary-json`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct CameraCounts {
+    /// Frames sent on the frame service.
+    pub published: u64,
+    /// Frames rendered.
+    pub rendered: u64,
+    /// Frames skipped because the renderer was late (their exposure had long ended).
+    pub skipped: u64,
+    /// Frames lost to rendering or publishing errors.
+    pub errors: u64,
+    /// Frames rendered before the world had recorded the SYNCs around their whole exposure
+    /// (the controller stopped sending SYNCs, or fell more than 100 ms behind): the arms are
+    /// drawn as they were last recorded.
+    pub uncovered: u64,
+}
+
 /// Settings of the live camera.
 #[derive(Clone, Debug)]
 pub struct LiveCameraConfig {
@@ -69,7 +86,7 @@ pub enum LiveCameraError {
 #[derive(Debug)]
 pub struct LiveCamera {
     stop: Arc<AtomicBool>,
-    handle: JoinHandle<Result<PumpSummary, LiveCameraError>>,
+    handle: JoinHandle<Result<CameraCounts, LiveCameraError>>,
 }
 
 impl LiveCamera {
@@ -85,19 +102,37 @@ impl LiveCamera {
     }
 
     /// Stops the thread and returns what it published.
-    pub fn stop(self) -> Result<PumpSummary, LiveCameraError> {
+    pub fn stop(self) -> Result<CameraCounts, LiveCameraError> {
         self.stop.store(true, Ordering::Relaxed);
         self.handle.join().map_err(|_| LiveCameraError::Panicked)?
     }
 }
 
-fn run(world: &SharedWorld, config: LiveCameraConfig, stop: &AtomicBool) -> Result<PumpSummary, LiveCameraError> {
+/// Puts the calling thread under the normal time-sharing policy with nice 10, whatever the
+/// process runs at: `simrobot live` answers SYNCs at a real-time priority (the encoder nodes are
+/// hardware of their own on a robot), and a camera thread inheriting it would take the CPU from
+/// the controller's loop for each frame it renders. Returns false if the kernel refused.
+pub fn lower_thread_priority() -> bool {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: sched_setscheduler(0, ...) acts on the calling thread; `param` is a valid
+    // sched_param; SCHED_OTHER with priority 0 is always allowed (lowering needs no privilege).
+    let policy_ok = unsafe { libc::sched_setscheduler(0, libc::SCHED_OTHER, &param) } == 0;
+    // SAFETY: setpriority on the calling thread (its tid); raising the nice value needs no
+    // privilege.
+    let nice_ok = unsafe { libc::setpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t, 10) } == 0;
+    policy_ok && nice_ok
+}
+
+fn run(world: &SharedWorld, config: LiveCameraConfig, stop: &AtomicBool) -> Result<CameraCounts, LiveCameraError> {
+    if !lower_thread_priority() {
+        tracing::warn!("the camera thread could not lower its scheduling priority");
+    }
     let renderer = StereoRenderer::new(config.endoscope.clone(), config.mesh)?;
     let half_exposure_ns = (config.endoscope.timing.exposure_s * 0.5e9).max(0.0) as u64;
     // Wait for the first SYNC: there is no scene before it.
     let first = loop {
         if stop.load(Ordering::Relaxed) {
-            return Ok(PumpSummary::default());
+            return Ok(CameraCounts::default());
         }
         if let Some(s) = lock(world).history().next().map(|s| s.t_ns) {
             break s;
@@ -108,15 +143,24 @@ fn run(world: &SharedWorld, config: LiveCameraConfig, stop: &AtomicBool) -> Resu
     let t0_ns = first.max(monotonic_now_ns()) + half_exposure_ns;
     // The world keeps at least its newest sample, so it has a scene from now on.
     let Some(fallback) = lock(world).scene_at(first) else {
-        return Ok(PumpSummary::default());
+        return Ok(CameraCounts::default());
     };
     let scene = move |t: u64| lock(world).scene_at(t).unwrap_or(fallback);
-    let mut camera = SimCamera::new(renderer, scene, t0_ns, SimTiming::Clock, config.camera_id, None)?;
+    let covered = Arc::clone(world);
+    let mut camera = SimCamera::new(renderer, scene, t0_ns, SimTiming::Clock, config.camera_id, None)?
+        .with_ready(move |from, to| lock(&covered).covers(from, to));
     let mut publisher = FramePublisher::create(
         &config.service,
         hw_io::camera::CameraSource::format(&camera),
         config.camera_id,
         &PublisherOptions::frames(),
     )?;
-    Ok(pump(&mut camera, &mut publisher, None, stop)?)
+    let p: PumpSummary = pump(&mut camera, &mut publisher, None, stop)?;
+    Ok(CameraCounts {
+        published: p.published,
+        rendered: p.source_delivered,
+        skipped: p.source_dropped,
+        errors: p.source_errors + p.publish_errors,
+        uncovered: camera.uncovered(),
+    })
 }

@@ -32,6 +32,7 @@ use hw_io::stdout::{BROKEN_PIPE_EXIT, is_broken_pipe};
 use sim::endoscope::config::ConfigError as EndoscopeConfigError;
 use sim::endoscope::output::{OutputError, Sequence, render_sequence, write_samples};
 use sim::endoscope::{DemoMotion, EndoscopeConfig, InstrumentMesh, ObjError};
+use sim::live_camera::{LiveCamera, LiveCameraConfig};
 use sim::truth_file::{DEFAULT_STATE_EVERY, EndoscopeRecord, ScenarioStart, TruthHeader, TruthWriteError, TruthWriter};
 use sim::twin::{SYNC_PERIOD_US, SimRobot, TwinConfig, TwinConfigError, TwinError, TwinEvent};
 use sim::world::{DEFAULT_KEEP_NS, FrameWriter, FramesError, World, WorldError};
@@ -170,6 +171,22 @@ struct LiveArgs {
     /// At the end, also write the counts (SYNCs answered, frames sent, ...) as JSON to this file.
     #[arg(long, value_name = "FILE")]
     summary_json: Option<PathBuf>,
+    /// Also film the two arms with the stereo endoscope on the endoscope arm and publish the
+    /// frames on the frame service, in step with the bus (docs/frames.md): frame n's exposure
+    /// is centred on t0 + n/fps on CLOCK_MONOTONIC, rendered from the arms' states at the
+    /// SYNCs' receive times.
+    #[arg(long)]
+    camera: bool,
+    /// With --camera: the frame service's name.
+    #[arg(long, value_name = "NAME", default_value = hw_io::ipc::DEFAULT_FRAME_SERVICE)]
+    camera_service: String,
+    /// With --camera: frames per second (overrides the renderer's timing.fps).
+    #[arg(long, value_name = "FPS")]
+    fps: Option<f64>,
+    /// With --camera: the renderer's configuration (TOML, docs/vision.md); default: the
+    /// renderer's defaults with the tissue placed for the twin (docs/simulator.md).
+    #[arg(long, value_name = "FILE")]
+    endoscope_config: Option<PathBuf>,
 }
 
 /// Why the configuration could not be loaded.
@@ -260,6 +277,10 @@ enum LiveError {
     Twin(#[from] TwinError),
     #[error("writing to standard output: {0}")]
     Stdout(io::Error),
+    #[error("the live camera: {0}")]
+    Camera(#[from] sim::live_camera::LiveCameraError),
+    #[error("cannot start the camera thread: {0}")]
+    CameraThread(io::Error),
 }
 
 fn load_config(common: &Common) -> Result<TwinConfig, ConfigError> {
@@ -503,9 +524,10 @@ fn generate(args: &GenerateArgs) -> Result<(), GenerateError> {
     .map_err(GenerateError::Stdout)
 }
 
-/// The renderer configuration of `generate --frames` (before `--fps`).
-fn frames_config(args: &GenerateArgs) -> Result<EndoscopeConfig, ConfigError> {
-    let mut cfg = match &args.endoscope_config {
+/// The renderer configuration of `generate --frames` and `live --camera`: the file or the
+/// default, then `--fps`.
+fn frames_config(endoscope_config: &Option<PathBuf>, fps: Option<f64>) -> Result<EndoscopeConfig, ConfigError> {
+    let mut cfg = match endoscope_config {
         Some(path) => {
             let text =
                 std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.clone(), source })?;
@@ -513,7 +535,7 @@ fn frames_config(args: &GenerateArgs) -> Result<EndoscopeConfig, ConfigError> {
         }
         None => sim::world::default_endoscope_config(),
     };
-    if let Some(fps) = args.fps {
+    if let Some(fps) = fps {
         if !(fps.is_finite() && fps > 0.0 && fps <= 1000.0) {
             return Err(ConfigError::Fps(fps));
         }
@@ -531,7 +553,7 @@ fn frames_setup(args: &GenerateArgs, config: &TwinConfig, t0_us: u64) -> Result<
     if !config.endoscope_arm.enabled {
         return Err(ConfigError::FramesWithoutEndoscope.into());
     }
-    let cfg = frames_config(args)?;
+    let cfg = frames_config(&args.endoscope_config, args.fps)?;
     let mesh = cfg.instrument.mesh().map_err(|e| ConfigError::Endoscope(e.into()))?;
     let world = World::new(config, &cfg.instrument, DEFAULT_KEEP_NS).map_err(ConfigError::from)?;
     let writer = FrameWriter::new(
@@ -651,6 +673,16 @@ struct LiveCounts {
     endoscope_tpdo_syncs: u64,
     /// Frames the kernel dropped because this socket's receive queue was full (`SO_RXQ_OVFL`).
     dropped_rx_frames: u64,
+    /// --camera: SYNCs recorded into the world the camera films, and refused (out of order).
+    world_samples: u64,
+    /// See `world_samples`.
+    world_refused: u64,
+    /// --camera: CLOCK_MONOTONIC time of the first and last recorded SYNC, nanoseconds.
+    world_first_mono_ns: Option<u64>,
+    /// See `world_first_mono_ns`.
+    world_last_mono_ns: Option<u64>,
+    /// --camera: what the camera published (frames, the renderer's skipped frames).
+    camera: Option<sim::live_camera::CameraCounts>,
 }
 
 fn live(args: &LiveArgs) -> Result<(), LiveError> {
@@ -662,8 +694,38 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         return Err(ConfigError::StateEvery.into());
     }
     let mut robot = SimRobot::new(&config).map_err(ConfigError::from)?;
+    // --camera: the world both arms live in, shared with the camera thread (1 s of history).
+    let camera_setup = if args.camera {
+        if !config.endoscope_arm.enabled {
+            return Err(ConfigError::FramesWithoutEndoscope.into());
+        }
+        let cfg = frames_config(&args.endoscope_config, args.fps)?;
+        let world = World::new(&config, &cfg.instrument, 1_000_000_000).map_err(ConfigError::from)?;
+        let mesh = cfg.instrument.mesh().map_err(|e| ConfigError::Endoscope(e.into()))?;
+        Some((std::sync::Arc::new(std::sync::Mutex::new(world)), cfg, mesh))
+    } else {
+        None
+    };
     install_signal_handlers().map_err(LiveError::Signal)?;
     let mut bus = SocketCanBus::open(&args.iface)?;
+    let mut camera = None;
+    let mut shared_world = None;
+    if let Some((world, cfg, mesh)) = camera_setup {
+        outln!(
+            "simrobot live: camera on {}: {}×{} stereo at {} fps",
+            args.camera_service,
+            cfg.camera.intrinsics.width,
+            cfg.camera.intrinsics.height,
+            cfg.timing.fps
+        )
+        .map_err(LiveError::Stdout)?;
+        let live_cfg = LiveCameraConfig { endoscope: cfg, mesh, service: args.camera_service.clone(), camera_id: 0 };
+        camera = Some(LiveCamera::spawn(std::sync::Arc::clone(&world), live_cfg).map_err(LiveError::CameraThread)?);
+        shared_world = Some(world);
+    }
+    // CLOCK_REALTIME − CLOCK_MONOTONIC, re-read every second: the world is recorded on the
+    // camera's clock (CLOCK_MONOTONIC) at each SYNC's kernel receive time (CLOCK_REALTIME).
+    let mut clock_offset = (hw_io::frame::realtime_minus_monotonic_ns(), Instant::now());
     // Like fulcrumd: a receive queue for bursts (a flood of foreign frames must not push the
     // controller's SYNCs out of a full default queue).
     if let Err(e) = bus.set_receive_buffer(4 << 20) {
@@ -751,6 +813,20 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
             }
             Err(e) => break Err(e.into()),
         };
+        if let Some(world) = &shared_world {
+            if clock_offset.1.elapsed() >= Duration::from_secs(1) {
+                clock_offset = (hw_io::frame::realtime_minus_monotonic_ns(), Instant::now());
+            }
+            let t_mono_ns = (i128::from(rx.unix_time_us) * 1000 - clock_offset.0).max(0) as u64;
+            match sim::live_camera::lock(world).record(t_mono_ns, &robot) {
+                Ok(_) => {
+                    counts.world_samples += 1;
+                    counts.world_first_mono_ns.get_or_insert(t_mono_ns);
+                    counts.world_last_mono_ns = Some(t_mono_ns);
+                }
+                Err(_) => counts.world_refused += 1,
+            }
+        }
         for f in &frames {
             match bus.send(&f.frame) {
                 Ok(()) => counts.frames_sent += 1,
@@ -811,6 +887,23 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         }
     };
     counts.dropped_rx_frames = bus.dropped_rx_frames();
+    let mut result = result;
+    if let Some(camera) = camera {
+        match camera.stop() {
+            Ok(c) => {
+                let _ = outln!(
+                    "simrobot live: camera published {} frames, skipped {} (the renderer was late), {} rendered \
+                     before the SYNCs covered their exposure, {} errors",
+                    c.published,
+                    c.skipped,
+                    c.uncovered,
+                    c.errors
+                );
+                counts.camera = Some(c);
+            }
+            Err(e) => result = result.and(Err(e.into())),
+        }
+    }
     // The files are finished whatever happened to the standard output; the first failed write
     // to it (a closed pipe) is the result if nothing else failed.
     let mut printed = Ok(());

@@ -176,7 +176,7 @@ impl World {
         let k = self.history.partition_point(|s| s.t_ns <= t_ns);
         let a = self.history.get(k.saturating_sub(1))?;
         let (ecm, pose) = match self.history.get(k) {
-            Some(b) if k > 0 && b.t_ns > a.t_ns => {
+            Some(b) if k > 0 && t_ns > a.t_ns && b.t_ns > a.t_ns => {
                 let u = (t_ns - a.t_ns) as f64 / (b.t_ns - a.t_ns) as f64;
                 let ecm = core::array::from_fn(|j| a.ecm_joints[j] + (b.ecm_joints[j] - a.ecm_joints[j]) * u);
                 (ecm, a.instrument_in_ecm.lerp_slerp(&b.instrument_in_ecm, u))

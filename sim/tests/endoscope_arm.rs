@@ -179,3 +179,49 @@ fn the_default_placement_keeps_the_tip_in_view_most_of_the_time() {
         assert!(all > 0.7 && inside > 0.9, "seed {seed}: {all}");
     }
 }
+
+#[test]
+fn the_world_puts_the_instrument_tip_at_the_scenarios_tip_and_interpolates() {
+    let cfg = small(1, 4);
+    let geom = InstrumentGeometry::default();
+    let mut world = World::new(&cfg, &geom, 5_000_000).unwrap();
+    let mut robot = SimRobot::new(&cfg).unwrap();
+    let t_b_e = cfg.endoscope_arm.rcm_in_tool_base().unwrap();
+    let l = cfg.scenario.instrument_length_m;
+    let mut recorded = Vec::new();
+    run(&mut robot, 3000, |robot, _, t_us, _| {
+        let s = world.record(t_us * 1000, robot).unwrap();
+        // The rendered jaw pivot is the scenario's true tip P + L·z, seen from {e}.
+        let line = robot.truth().line;
+        let tip_b = line.wrist_base_m + line.axis_base * l;
+        let tip_e = t_b_e.inverse() * nalgebra::Point3::from(tip_b);
+        assert!((world.tip_in_ecm(&s, &geom) - tip_e.coords).norm() < 1e-9, "sample {}", s.sample);
+        // The instrument's z axis is the tool axis.
+        let z_e = s.instrument_in_ecm.rotation * nalgebra::Vector3::z();
+        assert!((z_e - t_b_e.inverse().rotation * line.axis_base).norm() < 1e-9);
+        assert_eq!(s.ecm_joints, robot.endoscope_joints().unwrap());
+        recorded.push(s);
+    });
+    // Only the kept span (5 ms) is remembered.
+    let first = world.history().next().unwrap().t_ns;
+    assert_eq!(first, recorded[recorded.len() - 6].t_ns);
+    let (a, b) = (&recorded[2994], &recorded[2995]);
+    assert!(world.covers(a.t_ns, b.t_ns) && !world.covers(recorded[0].t_ns, b.t_ns));
+    // Halfway between two samples: halfway joints and poses; outside the kept span, the ends.
+    let mid = world.scene_at((a.t_ns + b.t_ns) / 2).unwrap();
+    for j in 0..4 {
+        assert!((mid.ecm_joints[j] - (a.ecm_joints[j] + b.ecm_joints[j]) / 2.0).abs() < 1e-12);
+    }
+    let pa = a.instrument_in_ecm.translation.vector;
+    let pb = b.instrument_in_ecm.translation.vector;
+    assert!((mid.instrument.pose_world.translation.vector - (pa + pb) / 2.0).norm() < 1e-12);
+    assert_eq!(world.scene_at(a.t_ns).unwrap().instrument.pose_world, a.instrument_in_ecm);
+    let last = recorded.last().unwrap();
+    assert_eq!(world.scene_at(last.t_ns + 1_000_000_000).unwrap().ecm_joints, last.ecm_joints);
+    assert_eq!(world.scene_at(0).unwrap().ecm_joints, world.history().next().unwrap().ecm_joints);
+    assert!(matches!(world.record(0, &robot), Err(sim::world::WorldError::Order { .. })));
+    // No endoscope arm, no world.
+    let mut off = cfg.clone();
+    off.endoscope_arm.enabled = false;
+    assert!(World::new(&off, &geom, 0).is_err());
+}

@@ -65,7 +65,16 @@ enum Scenario {
     /// The daemon, with a small receive queue, is SIGSTOPped while a burst of frames floods
     /// the bus: its queue overflows and the kernel drops frames, which it must count.
     RxOverflow,
+    /// simrobot also films the arms (`live --camera`) and publishes frames; a frame monitor
+    /// process (`comanip-camera monitor`) reads them while the daemon runs.
+    Camera,
 }
+
+/// The camera scenario's frame rate and image size (small: the guest has one slow CPU).
+const CAMERA_FPS: u64 = 10;
+const CAMERA_SIZE: (u32, u32) = (160, 120);
+/// The comanip-camera binary, passed from the host run to the guest run.
+const CAMERA_BIN_ENV: &str = "HIL_CAMERA_BIN";
 
 /// Dropout window of node 2 in `NodeSilent`, microseconds of twin time since simrobot's first
 /// SYNC (1 ms per SYNC: samples 5000 to 5199). The instrument enters its first trocar at sample
@@ -218,31 +227,40 @@ fn harness() -> PathBuf {
 /// rebuilds it only when stale.
 fn simrobot() -> PathBuf {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
-    BIN.get_or_init(|| {
-        let exe = std::env::current_exe().expect("current_exe");
-        // target/<profile dir>/deps/<this test>
-        let profile_dir = exe.parent().and_then(Path::parent).expect("test binary in target/<profile>/deps");
-        let target_dir = profile_dir.parent().expect("target dir");
-        let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
-            Some("debug") => "test".to_string(), // what `cargo test` builds binaries with
-            Some("release") => "release".to_string(),
-            Some(other) => other.to_string(),
-            None => panic!("unexpected target layout: {}", exe.display()),
-        };
-        let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-        let out = Command::new(&cargo)
-            .args(["build", "--quiet", "-p", "sim", "--bin", "simrobot", "--profile", &profile])
-            .arg("--target-dir")
-            .arg(target_dir)
-            .current_dir(env!("CARGO_MANIFEST_DIR"))
-            .output()
-            .expect("running cargo to build simrobot");
-        assert!(out.status.success(), "cargo build simrobot failed:\n{}", String::from_utf8_lossy(&out.stderr));
-        let bin = profile_dir.join("simrobot");
-        assert!(bin.is_file(), "{} was not built", bin.display());
-        bin
-    })
-    .clone()
+    BIN.get_or_init(|| workspace_bin("sim", "simrobot")).clone()
+}
+
+/// `comanip-camera`, built as [`simrobot`] is.
+fn camera_bin() -> PathBuf {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| workspace_bin("comanip-camera", "comanip-camera")).clone()
+}
+
+/// Binary `bin` of workspace package `package`, built by cargo for the same profile as this
+/// test: `$CARGO build -p package --bin bin`; cargo rebuilds it only when stale.
+fn workspace_bin(package: &str, bin: &str) -> PathBuf {
+    let exe = std::env::current_exe().expect("current_exe");
+    // target/<profile dir>/deps/<this test>
+    let profile_dir = exe.parent().and_then(Path::parent).expect("test binary in target/<profile>/deps");
+    let target_dir = profile_dir.parent().expect("target dir");
+    let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
+        Some("debug") => "test".to_string(), // what `cargo test` builds binaries with
+        Some("release") => "release".to_string(),
+        Some(other) => other.to_string(),
+        None => panic!("unexpected target layout: {}", exe.display()),
+    };
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let out = Command::new(&cargo)
+        .args(["build", "--quiet", "-p", package, "--bin", bin, "--profile", &profile])
+        .arg("--target-dir")
+        .arg(target_dir)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap_or_else(|e| panic!("running cargo to build {bin}: {e}"));
+    assert!(out.status.success(), "cargo build {bin} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    let path = profile_dir.join(bin);
+    assert!(path.is_file(), "{} was not built", path.display());
+    path
 }
 
 /// Where the artifacts of `test` go: under cargo's target tmp dir (not under /tmp: the guest
@@ -266,6 +284,7 @@ fn hil(test: &str, scenario: Scenario) -> Option<Artifacts> {
     }
     let _one_vm = VM.lock().unwrap_or_else(|p| p.into_inner());
     let simrobot = simrobot();
+    let camera = if scenario == Scenario::Camera { Some(camera_bin()) } else { None };
     let dir = artifacts_dir(test);
     let started = Instant::now();
     let out = Command::new(harness())
@@ -276,6 +295,7 @@ fn hil(test: &str, scenario: Scenario) -> Option<Artifacts> {
         .args([test, "--exact", "--nocapture", "--test-threads", "1"])
         .env(SCENARIO_DIR_ENV, &dir)
         .env(SIMROBOT_ENV, &simrobot)
+        .env(CAMERA_BIN_ENV, camera.unwrap_or_default())
         .env("RUST_BACKTRACE", "1")
         .stdin(Stdio::null())
         .output()
@@ -522,28 +542,64 @@ fn drive_in(scenario: Scenario, dir: &Path) {
     // The encoder nodes are hardware of their own on the robot: their answer does not wait for
     // the controller's CPU. In the one-CPU guest, simrobot gets a real-time priority above the
     // daemon's loop (SCHED_FIFO 80) so that it answers a SYNC at once, all three TPDOs in a row.
-    let mut robot = spawn(
-        Command::new("chrt")
-            .args(["-f", "90"])
-            .arg(&simrobot)
-            .args(["live", "--iface", "vcan0", "--twin-clock"])
-            .arg("--config")
-            .arg(dir.join("simrobot.toml"))
-            .arg("--truth")
-            .arg(dir.join("truth.jsonl"))
-            .arg("--summary-json")
-            .arg(dir.join("simrobot.json")),
-        dir,
-        "simrobot",
-    );
+    // The camera scenario: a frame monitor subscribes first, then simrobot films the arms.
+    let frames_service = format!("comanip-hil/frames/{}", std::process::id());
+    let mut frame_monitor = (scenario == Scenario::Camera).then(|| {
+        let mut cfg = sim::world::default_endoscope_config();
+        let (w, h) = CAMERA_SIZE;
+        let k = f64::from(w) / f64::from(cfg.camera.intrinsics.width);
+        let i = &mut cfg.camera.intrinsics;
+        (i.width, i.height, i.fx, i.fy) = (w, h, i.fx * k, i.fy * k);
+        (i.cx, i.cy) = (f64::from(w - 1) / 2.0, f64::from(h - 1) / 2.0);
+        cfg.timing.fps = CAMERA_FPS as f64;
+        // The guest's one CPU goes to the real-time processes first: keep each frame cheap.
+        cfg.realism.motion_blur.enabled = false;
+        cfg.realism.defocus.enabled = false;
+        std::fs::write(dir.join("endoscope.toml"), toml::to_string(&cfg).expect("endoscope toml"))
+            .expect("write endoscope.toml");
+        let bin = std::env::var_os(CAMERA_BIN_ENV).expect("HIL_CAMERA_BIN");
+        let child = spawn(
+            Command::new(bin)
+                .args(["monitor", "--service", &frames_service, "--every-frame"])
+                .args(["--start-timeout-s", "600", "--idle-timeout-s", "600"])
+                .arg("--summary-json")
+                .arg(dir.join("frames.json")),
+            dir,
+            "frame-monitor",
+        );
+        wait_for_line(&dir.join("frame-monitor.out"), "subscribed", Duration::from_secs(60));
+        child
+    });
+    let mut robot_cmd = Command::new("chrt");
+    robot_cmd
+        .args(["-f", "90"])
+        .arg(&simrobot)
+        .args(["live", "--iface", "vcan0", "--twin-clock"])
+        .arg("--config")
+        .arg(dir.join("simrobot.toml"))
+        .arg("--truth")
+        .arg(dir.join("truth.jsonl"))
+        .arg("--summary-json")
+        .arg(dir.join("simrobot.json"));
+    if scenario == Scenario::Camera {
+        robot_cmd
+            .args(["--camera", "--camera-service", &frames_service])
+            .arg("--endoscope-config")
+            .arg(dir.join("endoscope.toml"));
+    }
+    let mut robot = spawn(&mut robot_cmd, dir, "simrobot");
     wait_for_line(&dir.join("simrobot.out"), "answering", Duration::from_secs(60));
     wait_for_line(&dir.join("monitor.err"), "waiting for samples", Duration::from_secs(60));
 
     match scenario {
-        Scenario::Clean | Scenario::NodeSilent | Scenario::EmcyBurst => {
+        Scenario::Clean | Scenario::NodeSilent | Scenario::EmcyBurst | Scenario::Camera => {
             // The clean run covers the whole scenario (one SYNC = one sample); the fault
-            // scenarios their first FAULT_RUN_CYCLES samples.
-            let cycles = if scenario == Scenario::Clean { scenario_samples } else { FAULT_RUN_CYCLES };
+            // scenarios their first FAULT_RUN_CYCLES samples; the camera scenario 3000 (6 s).
+            let cycles = match scenario {
+                Scenario::Clean => scenario_samples,
+                Scenario::Camera => 3_000,
+                _ => FAULT_RUN_CYCLES,
+            };
             let mut daemon = spawn(&mut daemon_cmd(dir, &service, "daemon", Some(cycles)), dir, "daemon");
             let limit = Duration::from_secs(cycles * u64::from(HIL_PERIOD_US) * 4 / 1_000_000 + 60);
             driver.insert("daemon_exit".into(), wait_exit(&mut daemon, "fulcrumd", limit).into());
@@ -615,6 +671,13 @@ fn drive_in(scenario: Scenario, dir: &Path) {
         signal(child, libc::SIGINT);
         let code = wait_exit(child, name, Duration::from_secs(30));
         driver.insert(format!("{name}_exit"), code.into());
+    }
+    // The frame monitor last: simrobot's camera has stopped, every frame it sent is in.
+    if let Some(child) = frame_monitor.as_mut() {
+        std::thread::sleep(Duration::from_millis(300));
+        signal(child, libc::SIGINT);
+        let code = wait_exit(child, "frame monitor", Duration::from_secs(30));
+        driver.insert("frame_monitor_exit".into(), code.into());
     }
     std::fs::write(dir.join("driver.json"), serde_json::to_string_pretty(&driver).expect("json"))
         .expect("write driver.json");
@@ -1237,4 +1300,54 @@ fn hil_receive_queue_overflow_is_counted() {
     assert!(samples[..after].iter().any(|s| s.state == OutputState::Inside), "detected before the stop");
     assert!(samples[after..].iter().any(|s| s.state == OutputState::Inside), "detected after the stop");
     check_candump_replay(&a, &run);
+}
+
+/// `simrobot live --camera` and a frame subscriber as two processes beside the daemon on vcan:
+/// every frame the camera published arrives, in order, with its mid-exposure time on the frame
+/// grid inside the span of the SYNCs the arms answered (the bus clock, moved to
+/// `CLOCK_MONOTONIC`); frames the renderer could not make in time are counted, not lost.
+#[test]
+fn hil_live_camera_frames_in_order_on_the_bus_clock() {
+    let Some(a) = hil("hil_live_camera_frames_in_order_on_the_bus_clock", Scenario::Camera) else { return };
+    for k in ["daemon_exit", "simrobot_exit", "frame_monitor_exit"] {
+        assert_eq!(a.driver[k], 0, "{k}: {}", a.driver);
+    }
+    let r = a.json("simrobot.json");
+    let f = a.json("frames.json");
+    eprintln!("simrobot: {r}\nframe monitor: {f}");
+    let cam = &r["camera"];
+    let received = u(&f["received"]);
+    assert!(received >= 5, "frames received: {f}");
+    assert_eq!(u(&cam["published"]), received, "every published frame arrived: {cam} {f}");
+    for k in ["missed", "rejected", "restarts", "timestamps_not_increasing"] {
+        assert_eq!(f[k], 0, "{k}: {f}");
+    }
+    assert_eq!(f["first_sequence"], 0);
+    assert_eq!(u(&f["last_sequence"]), received - 1);
+    assert_eq!(f["format"], format!("{}×{} rgb8 ×2", CAMERA_SIZE.0, CAMERA_SIZE.1));
+    // On the frame grid; the frames between first and last were either received or skipped.
+    let (t_first, t_last) = (u(&f["first_timestamp_ns"]), u(&f["last_timestamp_ns"]));
+    let period = 1_000_000_000 / CAMERA_FPS;
+    assert_eq!((t_last - t_first) % period, 0, "timestamps off the frame grid: {f}");
+    let slots = (t_last - t_first) / period + 1;
+    assert!(slots >= received && slots <= received + u(&f["source_dropped"]), "{slots} slots: {f}");
+    assert_eq!(u(&f["source_dropped"]), u(&cam["skipped"]), "{cam} {f}");
+    // Filmed on the bus clock: the first exposure starts after the first recorded SYNC
+    // (CLOCK_MONOTONIC); frames whose exposure ends after the last SYNC (the daemon stopped,
+    // the twin stands still) are rendered with the arms as last recorded, and counted so.
+    let (w0, w1) = (u(&r["world_first_mono_ns"]), u(&r["world_last_mono_ns"]));
+    let half_exposure = 8_000_000;
+    assert!(w0 <= t_first - half_exposure, "first frame at {t_first}, first SYNC at {w0}");
+    let stamps: Vec<u64> = std::fs::read_to_string(a.dir.join("frame-monitor.out"))
+        .expect("frame-monitor.out")
+        .lines()
+        .filter_map(|l| l.split("t_mid ").nth(1)?.split(' ').next()?.parse().ok())
+        .collect();
+    assert_eq!(stamps.len() as u64, received, "one line per frame");
+    let after_last_sync = stamps.iter().filter(|&&t| t + half_exposure > w1).count() as u64;
+    let during = received - after_last_sync;
+    eprintln!("{during} frames while the SYNCs came, {after_last_sync} after; {} uncovered", cam["uncovered"]);
+    assert!(during >= 5, "frames filmed while the daemon ran: {during}");
+    assert!(u(&cam["uncovered"]) >= after_last_sync, "{cam}");
+    assert_eq!(r["world_refused"], 0, "{r}");
 }

@@ -77,6 +77,9 @@ pub enum LiveCameraError {
     /// Publishing failed for good.
     #[error(transparent)]
     Pump(#[from] PumpError),
+    /// The camera thread could not be started.
+    #[error("cannot start the camera thread: {0}")]
+    Thread(#[source] std::io::Error),
     /// The camera thread panicked (a bug).
     #[error("the camera thread panicked")]
     Panicked,
@@ -90,14 +93,17 @@ pub struct LiveCamera {
 }
 
 impl LiveCamera {
-    /// Starts the camera thread on `world`; it returns when [`stop`](Self::stop) is called.
-    /// Errors of the set-up (renderer, frame service) come back from `stop`.
-    pub fn spawn(world: SharedWorld, config: LiveCameraConfig) -> std::io::Result<Self> {
+    /// Builds the renderer (the tissue texture is precomputed here, on the caller's thread,
+    /// before the bus starts) and starts the camera thread on `world`; it returns when
+    /// [`stop`](Self::stop) is called. Errors of the frame service come back from `stop`.
+    pub fn spawn(world: SharedWorld, config: LiveCameraConfig) -> Result<Self, LiveCameraError> {
+        let renderer = StereoRenderer::new(config.endoscope.clone(), config.mesh.clone())?;
         let stop = Arc::new(AtomicBool::new(false));
         let thread_stop = Arc::clone(&stop);
         let handle = std::thread::Builder::new()
             .name("simrobot-camera".into())
-            .spawn(move || run(&world, config, &thread_stop))?;
+            .spawn(move || run(&world, renderer, config, &thread_stop))
+            .map_err(LiveCameraError::Thread)?;
         Ok(Self { stop, handle })
     }
 
@@ -123,11 +129,15 @@ pub fn lower_thread_priority() -> bool {
     policy_ok && nice_ok
 }
 
-fn run(world: &SharedWorld, config: LiveCameraConfig, stop: &AtomicBool) -> Result<CameraCounts, LiveCameraError> {
+fn run(
+    world: &SharedWorld,
+    renderer: StereoRenderer,
+    config: LiveCameraConfig,
+    stop: &AtomicBool,
+) -> Result<CameraCounts, LiveCameraError> {
     if !lower_thread_priority() {
         tracing::warn!("the camera thread could not lower its scheduling priority");
     }
-    let renderer = StereoRenderer::new(config.endoscope.clone(), config.mesh)?;
     let half_exposure_ns = (config.endoscope.timing.exposure_s * 0.5e9).max(0.0) as u64;
     // Wait for the first SYNC: there is no scene before it.
     let first = loop {

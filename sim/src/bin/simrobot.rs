@@ -279,8 +279,6 @@ enum LiveError {
     Stdout(io::Error),
     #[error("the live camera: {0}")]
     Camera(#[from] sim::live_camera::LiveCameraError),
-    #[error("cannot start the camera thread: {0}")]
-    CameraThread(io::Error),
 }
 
 fn load_config(common: &Common) -> Result<TwinConfig, ConfigError> {
@@ -720,7 +718,7 @@ fn live(args: &LiveArgs) -> Result<(), LiveError> {
         )
         .map_err(LiveError::Stdout)?;
         let live_cfg = LiveCameraConfig { endoscope: cfg, mesh, service: args.camera_service.clone(), camera_id: 0 };
-        camera = Some(LiveCamera::spawn(std::sync::Arc::clone(&world), live_cfg).map_err(LiveError::CameraThread)?);
+        camera = Some(LiveCamera::spawn(std::sync::Arc::clone(&world), live_cfg)?);
         shared_world = Some(world);
     }
     // CLOCK_REALTIME − CLOCK_MONOTONIC, re-read every second: the world is recorded on the

@@ -301,6 +301,9 @@ pub struct FrameWriter {
     half_exposure_ns: u64,
     next: u64,
     with_instrument: u64,
+    index: BufWriter<File>,
+    index_path: std::path::PathBuf,
+    exposure_ns: u64,
 }
 
 impl FrameWriter {
@@ -330,6 +333,20 @@ impl FrameWriter {
         serde_json::to_writer(&mut truth, &header)
             .map_err(|source| OutputError::Json { path: truth_path.clone(), source })?;
         truth.write_all(b"\n").map_err(io)?;
+        // The frame index of an image-sequence directory (`comanip-camera images DIR`,
+        // docs/frames.md) and the two eyes' ROS camera_info.
+        let index_path = dir.join(hw_io::camera::image_sequence::DEFAULT_INDEX);
+        let index_io = |source| OutputError::Io { path: index_path.clone(), source };
+        let mut index = BufWriter::new(File::create(&index_path).map_err(index_io)?);
+        index
+            .write_all(b"# comanip frame index 1 (simrobot generate --frames; bus clock, ns)\n# t_mid_ns exposure_ns left.png right.png\n")
+            .map_err(index_io)?;
+        let k = &cfg.camera.intrinsics;
+        for (name, baseline) in [("left.yaml", None), ("right.yaml", Some(cfg.camera.baseline_m))] {
+            let path = dir.join(name);
+            std::fs::write(&path, hw_io::calib_files::write_camera_info_yaml(name, k, baseline))
+                .map_err(|source| OutputError::Io { path, source })?;
+        }
         Ok(Self {
             dir: dir.to_owned(),
             renderer,
@@ -341,6 +358,9 @@ impl FrameWriter {
             half_exposure_ns: (cfg.timing.exposure_s * 0.5e9).round() as u64,
             next: 0,
             with_instrument: 0,
+            index,
+            index_path,
+            exposure_ns: (cfg.timing.exposure_s * 1e9).round() as u64,
         })
     }
 
@@ -405,6 +425,8 @@ impl FrameWriter {
         let io = |source| OutputError::Io { path: self.truth_path.clone(), source };
         serde_json::to_writer(&mut self.truth, &line).map_err(json)?;
         self.truth.write_all(b"\n").map_err(io)?;
+        writeln!(self.index, "{t} {} {} {}", self.exposure_ns, names[0], names[1])
+            .map_err(|source| OutputError::Io { path: self.index_path.clone(), source })?;
         self.next += 1;
         self.with_instrument += u64::from(px[0] >= VISIBLE_MIN_PX);
         Ok(FrameInfo { index: n, t_mid_ns: t, instrument_px: px })
@@ -422,6 +444,7 @@ impl FrameWriter {
         let end = FramesEnd { kind: "end", frames: self.next, frames_with_instrument: self.with_instrument };
         self.line(&end)?;
         self.truth.flush().map_err(|source| OutputError::Io { path: self.truth_path.clone(), source })?;
+        self.index.flush().map_err(|source| OutputError::Io { path: self.index_path.clone(), source })?;
         Ok(())
     }
 }

@@ -139,6 +139,26 @@ fn frames_are_on_the_bus_clock_deterministic_and_show_the_instrument() {
     eprintln!("instrument visible in {visible} of {} frames", frames.len());
     assert!(visible * 2 > frames.len(), "visible in {visible} of {} frames", frames.len());
     assert_eq!(end["frames_with_instrument"], visible as u64);
+    // The directory plays as a camera source (frames.txt) with the rig's camera_info.
+    let mut src = hw_io::camera::image_sequence::ImageSequence::open(
+        hw_io::camera::image_sequence::ImageSequenceConfig::new(a.join("frames")),
+    )
+    .unwrap();
+    assert_eq!(src.len(), frames.len());
+    let mut buf = vec![0u8; hw_io::camera::CameraSource::format(&src).payload_bytes()];
+    for f in frames.iter().take(3) {
+        let next = hw_io::camera::CameraSource::next_into(&mut src, &mut buf, std::time::Duration::ZERO).unwrap();
+        let hw_io::camera::Next::Frame(m) = next else { panic!("{next:?}") };
+        assert_eq!(m.timestamp_ns, f["t_mid_ns"].as_u64().unwrap());
+        let left = image::open(a.join("frames").join(f["files"][0].as_str().unwrap())).unwrap().to_rgb8();
+        assert_eq!(&buf[..buf.len() / 2], left.as_raw().as_slice());
+    }
+    let rig = hw_io::calib_files::parse_stereo_camera_info(
+        &std::fs::read_to_string(a.join("frames/left.yaml")).unwrap(),
+        &std::fs::read_to_string(a.join("frames/right.yaml")).unwrap(),
+    )
+    .unwrap();
+    assert!(rig.baseline_m() > 0.001 && rig.baseline_m() < 0.02, "{}", rig.baseline_m());
 }
 
 #[test]

@@ -136,11 +136,21 @@ pub enum RenderError {
     },
 }
 
-/// Per-eye work buffers (canvas-sized and image-sized).
+/// Per-eye work buffers (canvas-sized and image-sized) and the cached tissue.
 #[derive(Default)]
 struct EyeWork {
+    /// The tissue alone: depth (metres) and colour (linear RGB), canvas-sized; valid for the
+    /// eye pose and light of `tissue_key`.
     depth_t: Vec<f32>,
+    tissue_col: Vec<[f32; 3]>,
+    /// What `depth_t` and `tissue_col` were rendered for (`None`: not yet).
+    tissue_key: Option<[u64; 10]>,
+    /// How many times the tissue was rasterised.
+    tissue_draws: u64,
+    /// The composite (tissue and blurred instruments); equal to `tissue_col` outside `dirty`.
     colour: Vec<[f32; 3]>,
+    /// Where `colour`, `depth_mid` and `lab_mid` may differ from the tissue alone.
+    dirty: Bounds,
     depth_w: Vec<f32>,
     s_col: Vec<[f32; 3]>,
     s_lab: Vec<u8>,
@@ -149,11 +159,26 @@ struct EyeWork {
     lab_mid: Vec<u8>,
     depth_mid: Vec<f32>,
     out_lin: Vec<[f32; 3]>,
-    out_depth: Vec<f32>,
+    /// Defocus radius per image pixel, pixels.
+    out_rad: Vec<f32>,
     levels: [Vec<[f32; 3]>; 3],
     tmp: Vec<[f32; 3]>,
+    /// Level sampling positions per image column and row (index, next index, weight).
+    taps_x: [Vec<(u32, u32, f32)>; 3],
+    taps_y: [Vec<(u32, u32, f32)>; 3],
     verts: Vec<Vtx<5>>,
     ivert: Vec<Vtx<3>>,
+    ranges: Vec<(usize, usize, Material, u8)>,
+}
+
+/// One image pixel's bilinear tap into the canvas: the top-left canvas index, the nearest
+/// canvas index (labels, depth) and the weights along x and y.
+#[derive(Clone, Copy, Debug)]
+struct Tap {
+    j: u32,
+    nearest: u32,
+    fx: f32,
+    fy: f32,
 }
 
 /// What both eyes share (read-only during a frame).
@@ -164,8 +189,9 @@ struct Shared {
     hand_eye: Isometry3<f64>,
     canvas: Canvas,
     proj: EyeProjection,
-    /// Canvas coordinates of every image pixel (`None`: no distortion, canvas = image).
-    remap: Option<Vec<[f32; 2]>>,
+    /// The bilinear tap of every image pixel into the canvas (`None`: no distortion, canvas =
+    /// image).
+    remap: Option<Vec<Tap>>,
     vignette: Vec<f32>,
     gauss: Vec<f32>,
     srgb: Vec<u8>,
@@ -364,6 +390,12 @@ impl StereoRenderer {
         Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()] })
     }
 
+    /// How many times each eye's tissue was rasterised (the rest of the frames reused it).
+    #[cfg(test)]
+    pub(crate) fn tissue_draws(&self) -> [u64; 2] {
+        [self.work[0].tissue_draws, self.work[1].tissue_draws]
+    }
+
     /// The configuration in use.
     pub fn config(&self) -> &EndoscopeConfig {
         &self.shared.cfg
@@ -438,10 +470,11 @@ fn eye_poses(hand_eye: &Isometry3<f64>, baseline_m: f64, q: &[f64; 4]) -> [Isome
     [left, left * Translation3::new(baseline_m, 0.0, 0.0)]
 }
 
+/// The bilinear taps of every image pixel into the canvas, row-major (`None`: no distortion).
+type Remap = Option<Vec<Tap>>;
+
 /// The canvas (undistorted image covering every ideal pixel the image sees) and, with
-/// distortion, the canvas coordinates of every image pixel.
-/// Canvas coordinates of every image pixel, row-major (`None`: no distortion).
-type Remap = Option<Vec<[f32; 2]>>;
+/// distortion, the tap of every image pixel at its undistorted position.
 
 fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
     let (w, h) = (k.width as usize, k.height as usize);
@@ -489,11 +522,16 @@ fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
         return Err(ConfigError::Distortion);
     }
     let canvas = base(ox as f32, oy as f32, cw as usize, ch as usize);
+    let (cw, ch) = (canvas.w, canvas.h);
     let mut remap = Vec::with_capacity(w * h);
     for y in 0..h {
         for x in 0..w {
             let ideal = k.undistort_px(&Vector2::new(x as f64, y as f64));
-            remap.push([(ideal.x - ox) as f32, (ideal.y - oy) as f32]);
+            let m = [(ideal.x - ox) as f32, (ideal.y - oy) as f32];
+            let (x, y) = (m[0].clamp(0.0, (cw - 1) as f32), m[1].clamp(0.0, (ch - 1) as f32));
+            let (ix, iy) = ((x as usize).min(cw - 2), (y as usize).min(ch - 2));
+            let nearest = ((y + 0.5) as usize * cw + (x + 0.5) as usize).min(cw * ch - 1);
+            remap.push(Tap { j: (iy * cw + ix) as u32, nearest: nearest as u32, fx: x - ix as f32, fy: y - iy as f32 });
         }
     }
     Ok((canvas, Some(remap)))
@@ -525,7 +563,12 @@ fn render_eye(
     let nc = c.w * c.h;
     let (w, h) = (cfg.camera.intrinsics.width as usize, cfg.camera.intrinsics.height as usize);
     let no = w * h;
+    if wk.depth_t.len() != nc {
+        // First frame: size the buffers (nothing is cached yet).
+        wk.tissue_key = None;
+    }
     resize(&mut wk.depth_t, nc, f32::INFINITY);
+    resize(&mut wk.tissue_col, nc, [0.0; 3]);
     resize(&mut wk.colour, nc, [0.0; 3]);
     resize(&mut wk.depth_w, nc, f32::INFINITY);
     resize(&mut wk.s_col, nc, [0.0; 3]);
@@ -535,7 +578,7 @@ fn render_eye(
     resize(&mut wk.lab_mid, nc, 0);
     resize(&mut wk.depth_mid, nc, f32::INFINITY);
     resize(&mut wk.out_lin, no, [0.0; 3]);
-    resize(&mut wk.out_depth, no, f32::INFINITY);
+    resize(&mut wk.out_rad, no, 0.0);
     resize(&mut img.rgb, no * 3, 0);
     resize(&mut img.labels, no, 0);
     img.width = w as u32;
@@ -555,51 +598,38 @@ fn render_eye(
         smoke,
     };
 
-    // 1. Tissue.
-    wk.depth_t.fill(f32::INFINITY);
-    let bg = smoke.map(|(_, haze)| haze).unwrap_or([0.0; 3]);
-    wk.colour.fill(bg);
-    // Tissue lighting per vertex (Gouraud: the grid is finer than the light's variation),
-    // interpolated with the texture coordinates; the texture is sampled per pixel.
-    let rot = t_c_e.rotation;
-    let wet = cfg.tissue.wet_specular as f32;
-    wk.verts.clear();
-    for ((p, n), uv) in sh.tissue.positions.iter().zip(&sh.tissue.normals).zip(&sh.tissue.uv) {
-        let pc = t_c_e * Point3::from(*p);
-        let nc3 = rot * n;
-        let p32 = [pc.x as f32, pc.y as f32, pc.z as f32];
-        let (d, s) = if pc.z > 0.0 {
-            lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], TISSUE_SHININESS)
-        } else {
-            (0.0, 0.0)
-        };
-        wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
-    }
-    {
-        let tissue = &sh.tissue;
-        let colour = &mut wk.colour;
-        let mut b = Bounds::EMPTY;
-        let verts = &wk.verts;
-        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
-            let al = tissue.albedo(a[0], a[1]);
-            let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
-            colour[idx] = lighting.haze(c, a[4]);
-        };
-        for t in &tissue.triangles {
-            let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
-            draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+    // 1. Tissue: rasterised and shaded only when the eye pose (and with it the light, rigid
+    // with the endoscope) differs from the cached one, bit for bit; the configuration and
+    // the tissue are fixed for the renderer's life. Either way `colour`, `depth_mid` and
+    // `lab_mid` hold the tissue alone afterwards.
+    let (tq, tt) = (t_c_e.rotation.quaternion().coords, t_c_e.translation.vector);
+    let key = [tq.x, tq.y, tq.z, tq.w, tt.x, tt.y, tt.z, light_c.x, light_c.y, light_c.z].map(f64::to_bits);
+    if wk.tissue_key != Some(key) {
+        draw_tissue(sh, wk, &t_c_e, &lighting);
+        wk.tissue_key = Some(key);
+        wk.tissue_draws += 1;
+        wk.colour.copy_from_slice(&wk.tissue_col);
+        wk.depth_mid.copy_from_slice(&wk.depth_t);
+        wk.depth_w.copy_from_slice(&wk.depth_t);
+        wk.lab_mid.fill(0);
+    } else if !wk.dirty.is_empty() {
+        // The last frame's instruments are taken out again.
+        let d = wk.dirty;
+        for y in d.y0..=d.y1 {
+            let span = y * c.w + d.x0..=y * c.w + d.x1;
+            wk.colour[span.clone()].copy_from_slice(&wk.tissue_col[span.clone()]);
+            wk.depth_mid[span.clone()].copy_from_slice(&wk.depth_t[span.clone()]);
+            wk.lab_mid[span].fill(0);
         }
     }
+    wk.dirty = Bounds::EMPTY;
 
     // 2. Instruments, once per motion-blur instant.
     let k_samples = states.len();
     let mid = k_samples / 2;
-    wk.lab_mid.fill(0);
-    wk.depth_mid.copy_from_slice(&wk.depth_t);
     let mut union = Bounds::EMPTY;
     let geometry = &cfg.instrument;
-    // The working depth equals the tissue's outside what the last instant drew.
-    wk.depth_w.copy_from_slice(&wk.depth_t);
+    // The working depth `depth_w` equals the tissue's outside what the last instant drew.
     for (s, (_, st)) in states.iter().enumerate() {
         let mut instruments: [Option<(u8, &InstrumentState)>; 2] = [Some((label::INSTRUMENT, &st.instrument)), None];
         if r.second_instrument {
@@ -607,7 +637,7 @@ fn render_eye(
         }
         // Posed vertices of every part of every instrument.
         wk.ivert.clear();
-        let mut ranges: Vec<(usize, usize, Material, u8)> = Vec::with_capacity(8);
+        wk.ranges.clear();
         for (lab, inst) in instruments.iter().flatten() {
             let poses = geometry.part_poses(inst.wrist_rad, inst.jaw_rad);
             for (pi, (part, m)) in sh.mesh.parts.iter().enumerate() {
@@ -631,11 +661,11 @@ fn render_eye(
                     (Part::Shaft, _) => cfg.materials.shaft,
                     _ => cfg.materials.tip,
                 };
-                ranges.push((start, pi, mat, *lab));
+                wk.ranges.push((start, pi, mat, *lab));
             }
         }
         let mut drawn = Bounds::EMPTY;
-        for &(start, pi, mat, lab) in &ranges {
+        for &(start, pi, mat, lab) in &wk.ranges {
             let m = &sh.mesh.parts[pi].1;
             let (albedo, spec, shin) = mat_f32(&mat, r.specular);
             let verts = &wk.ivert[start..start + m.positions.len()];
@@ -655,24 +685,29 @@ fn render_eye(
         }
         union = union.union(&drawn);
         for y in drawn.y0..=drawn.y1 {
-            for i in y * c.w + drawn.x0..=y * c.w + drawn.x1 {
-                let l = wk.s_lab[i];
-                if l != 0 {
-                    let sc = wk.s_col[i];
-                    let a = &mut wk.acc[i];
+            let row = y * c.w;
+            let span = row + drawn.x0..=row + drawn.x1;
+            let labs = &mut wk.s_lab[span.clone()];
+            let cols = &wk.s_col[span.clone()];
+            let accs = &mut wk.acc[span.clone()];
+            let cnts = &mut wk.cnt[span.clone()];
+            for (o, l) in labs.iter_mut().enumerate() {
+                if *l != 0 {
+                    let sc = cols[o];
+                    let a = &mut accs[o];
                     a[0] += sc[0];
                     a[1] += sc[1];
                     a[2] += sc[2];
-                    wk.cnt[i] += 1;
+                    cnts[o] += 1;
                     if s == mid {
-                        wk.lab_mid[i] = l;
+                        let i = row + drawn.x0 + o;
+                        wk.lab_mid[i] = *l;
                         wk.depth_mid[i] = wk.depth_w[i];
                     }
-                    wk.s_lab[i] = 0;
+                    *l = 0;
                 }
             }
-            let row = y * c.w;
-            wk.depth_w[row + drawn.x0..=row + drawn.x1].copy_from_slice(&wk.depth_t[row + drawn.x0..=row + drawn.x1]);
+            wk.depth_w[span.clone()].copy_from_slice(&wk.depth_t[span]);
         }
     }
     // Composite: each instant covers a pixel with the instrument or leaves the tissue.
@@ -683,7 +718,7 @@ fn render_eye(
                 let n = wk.cnt[i];
                 if n != 0 {
                     let rest = (k_samples - n as usize) as f32;
-                    let (t, a) = (wk.colour[i], wk.acc[i]);
+                    let (t, a) = (wk.tissue_col[i], wk.acc[i]);
                     wk.colour[i] =
                         [(t[0] * rest + a[0]) * inv_k, (t[1] * rest + a[1]) * inv_k, (t[2] * rest + a[2]) * inv_k];
                     wk.acc[i] = [0.0; 3];
@@ -692,42 +727,55 @@ fn render_eye(
             }
         }
     }
+    wk.dirty = union;
 
-    // 3. Lens distortion: canvas → image.
+    // 3. Lens distortion: canvas → image (bilinear colour; nearest labels and depth, the
+    // depth kept as the defocus radius).
+    let defocus_on = r.defocus.enabled && r.defocus.aperture_m > 0.0 && r.defocus.max_coc_px > 0.0;
+    let d = &r.defocus;
+    let k_rad = (d.aperture_m as f32) * (cfg.camera.intrinsics.fx as f32) * 0.5; // radius, px, per unit |1/z − 1/zf|
+    let izf = 1.0 / d.focus_distance_m as f32;
+    let rmax = 0.5 * d.max_coc_px as f32;
+    let radius = |z: f32| if z.is_finite() { (k_rad * (1.0 / z - izf).abs()).min(rmax) } else { rmax };
+    let mut blurred = false;
     match &sh.remap {
         None => {
             wk.out_lin.copy_from_slice(&wk.colour);
-            wk.out_depth.copy_from_slice(&wk.depth_mid);
             img.labels.copy_from_slice(&wk.lab_mid);
+            if defocus_on {
+                for (o, &z) in wk.out_rad.iter_mut().zip(&wk.depth_mid) {
+                    *o = radius(z);
+                    blurred |= *o > 0.35;
+                }
+            }
         }
         Some(map) => {
+            let colour = &wk.colour;
             for (i, m) in map.iter().enumerate() {
-                let (x, y) = (m[0].clamp(0.0, (c.w - 1) as f32), m[1].clamp(0.0, (c.h - 1) as f32));
-                let (ix, iy) = ((x as usize).min(c.w - 2), (y as usize).min(c.h - 2));
-                let (fx, fy) = (x - ix as f32, y - iy as f32);
-                let j = iy * c.w + ix;
-                let (a, b, cc, d) = (wk.colour[j], wk.colour[j + 1], wk.colour[j + c.w], wk.colour[j + c.w + 1]);
+                let j = m.j as usize;
+                let (a, b, cc, dd) = (colour[j], colour[j + 1], colour[j + c.w], colour[j + c.w + 1]);
                 let mut o = [0.0f32; 3];
                 for k in 0..3 {
-                    let top = a[k] + (b[k] - a[k]) * fx;
-                    let bot = cc[k] + (d[k] - cc[k]) * fx;
-                    o[k] = top + (bot - top) * fy;
+                    let top = a[k] + (b[k] - a[k]) * m.fx;
+                    let bot = cc[k] + (dd[k] - cc[k]) * m.fx;
+                    o[k] = top + (bot - top) * m.fy;
                 }
                 wk.out_lin[i] = o;
-                let nearest = (y + 0.5) as usize * c.w + (x + 0.5) as usize;
-                let nearest = nearest.min(nc - 1);
-                wk.out_depth[i] = wk.depth_mid[nearest];
+                let nearest = m.nearest as usize;
                 img.labels[i] = wk.lab_mid[nearest];
+                if defocus_on {
+                    let rr = radius(wk.depth_mid[nearest]);
+                    wk.out_rad[i] = rr;
+                    blurred |= rr > 0.35;
+                }
             }
         }
     }
 
-    // 4. Defocus.
-    if r.defocus.enabled && r.defocus.aperture_m > 0.0 && r.defocus.max_coc_px > 0.0 {
-        defocus(wk, w, h, cfg.camera.intrinsics.fx as f32, &r.defocus);
-    }
+    // 4. Defocus: the pyramid of blurred levels, sampled in the last pass.
+    let levels = if defocus_on && blurred { Some(defocus_levels(wk, w, h)) } else { None };
 
-    // 5. Vignetting, noise, sRGB.
+    // 5. Defocus gather, vignetting, noise, sRGB: one pass, row by row.
     let noise =
         r.noise.enabled.then_some((r.noise.full_well_e as f32, (r.noise.read_noise_e * r.noise.read_noise_e) as f32));
     let eye_key = match eye {
@@ -738,10 +786,19 @@ fn render_eye(
     for y in 0..h {
         let mut rng =
             ChaCha8Rng::seed_from_u64(splitmix(seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32)))));
+        let row = y * w;
+        let rgb = &mut img.rgb[3 * row..3 * (row + w)];
         for x in 0..w {
-            let i = y * w + x;
+            let i = row + x;
+            let mut lin = wk.out_lin[i];
+            if let Some(dims) = &levels {
+                let rr = wk.out_rad[i];
+                if rr > 0.35 {
+                    lin = defocus_gather(wk, dims, lin, rr, x, y);
+                }
+            }
             let g = sh.vignette[i];
-            let mut v = wk.out_lin[i].map(|c| c * g);
+            let mut v = lin.map(|c| c * g);
             if let Some((fw, read2)) = noise {
                 let bits = rng.next_u64();
                 for (k, c) in v.iter_mut().enumerate() {
@@ -751,7 +808,7 @@ fn render_eye(
                 }
             }
             for (k, c) in v.iter().enumerate() {
-                img.rgb[3 * i + k] = sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
+                rgb[3 * x + k] = sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
             }
         }
     }
@@ -769,6 +826,44 @@ fn render_eye(
     }
 }
 
+/// Rasterises and shades the tissue seen from camera pose `t_c_e` into `wk.depth_t` and
+/// `wk.tissue_col` (canvas).
+fn draw_tissue(sh: &Shared, wk: &mut EyeWork, t_c_e: &Isometry3<f64>, lighting: &Lighting) {
+    let c = sh.canvas;
+    wk.depth_t.fill(f32::INFINITY);
+    let bg = lighting.smoke.map(|(_, haze)| haze).unwrap_or([0.0; 3]);
+    wk.tissue_col.fill(bg);
+    // Tissue lighting per vertex (Gouraud: the grid is finer than the light's variation),
+    // interpolated with the texture coordinates; the texture is sampled per pixel.
+    let rot = t_c_e.rotation;
+    let wet = sh.cfg.tissue.wet_specular as f32;
+    wk.verts.clear();
+    for ((p, n), uv) in sh.tissue.positions.iter().zip(&sh.tissue.normals).zip(&sh.tissue.uv) {
+        let pc = t_c_e * Point3::from(*p);
+        let nc3 = rot * n;
+        let p32 = [pc.x as f32, pc.y as f32, pc.z as f32];
+        let (d, s) = if pc.z > 0.0 {
+            lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], TISSUE_SHININESS)
+        } else {
+            (0.0, 0.0)
+        };
+        wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
+    }
+    let tissue = &sh.tissue;
+    let colour = &mut wk.tissue_col;
+    let mut b = Bounds::EMPTY;
+    let verts = &wk.verts;
+    let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
+        let al = tissue.albedo(a[0], a[1]);
+        let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+        colour[idx] = lighting.haze(c, a[4]);
+    };
+    for t in &tissue.triangles {
+        let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+        draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+    }
+}
+
 /// 2×2 box down-sampling then a [1 2 1]/4 blur in both directions.
 fn down_blur(
     src: &[[f32; 3]],
@@ -782,10 +877,12 @@ fn down_blur(
     resize(tmp, dw * dh, [0.0; 3]);
     for y in 0..dh {
         let (y0, y1) = (2 * y, (2 * y + 1).min(sh - 1));
-        for x in 0..dw {
+        let (r0, r1) = (&src[y0 * sw..(y0 + 1) * sw], &src[y1 * sw..(y1 + 1) * sw]);
+        let out = &mut tmp[y * dw..(y + 1) * dw];
+        for (x, o) in out.iter_mut().enumerate() {
             let (x0, x1) = (2 * x, (2 * x + 1).min(sw - 1));
-            let (a, b, c, d) = (src[y0 * sw + x0], src[y0 * sw + x1], src[y1 * sw + x0], src[y1 * sw + x1]);
-            tmp[y * dw + x] = [
+            let (a, b, c, d) = (r0[x0], r0[x1], r1[x0], r1[x1]);
+            *o = [
                 0.25 * (a[0] + b[0] + c[0] + d[0]),
                 0.25 * (a[1] + b[1] + c[1] + d[1]),
                 0.25 * (a[2] + b[2] + c[2] + d[2]),
@@ -794,10 +891,11 @@ fn down_blur(
     }
     // Horizontal [1 2 1] into dst, vertical back into tmp, swap.
     for y in 0..dh {
-        let row = y * dw;
-        for x in 0..dw {
-            let (l, m, r) = (tmp[row + x.saturating_sub(1)], tmp[row + x], tmp[row + (x + 1).min(dw - 1)]);
-            dst[row + x] = [
+        let src_row = &tmp[y * dw..(y + 1) * dw];
+        let out = &mut dst[y * dw..(y + 1) * dw];
+        for (x, o) in out.iter_mut().enumerate() {
+            let (l, m, r) = (src_row[x.saturating_sub(1)], src_row[x], src_row[(x + 1).min(dw - 1)]);
+            *o = [
                 0.25 * (l[0] + 2.0 * m[0] + r[0]),
                 0.25 * (l[1] + 2.0 * m[1] + r[1]),
                 0.25 * (l[2] + 2.0 * m[2] + r[2]),
@@ -806,10 +904,11 @@ fn down_blur(
     }
     for y in 0..dh {
         let (up, dn) = (y.saturating_sub(1) * dw, (y + 1).min(dh - 1) * dw);
-        let row = y * dw;
-        for x in 0..dw {
-            let (u, m, d) = (dst[up + x], dst[row + x], dst[dn + x]);
-            tmp[row + x] = [
+        let (ru, rm, rd) = (&dst[up..up + dw], &dst[y * dw..(y + 1) * dw], &dst[dn..dn + dw]);
+        let out = &mut tmp[y * dw..(y + 1) * dw];
+        for (x, o) in out.iter_mut().enumerate() {
+            let (u, m, d) = (ru[x], rm[x], rd[x]);
+            *o = [
                 0.25 * (u[0] + 2.0 * m[0] + d[0]),
                 0.25 * (u[1] + 2.0 * m[1] + d[1]),
                 0.25 * (u[2] + 2.0 * m[2] + d[2]),
@@ -820,13 +919,41 @@ fn down_blur(
     (dw, dh)
 }
 
+/// Where image coordinate `x` (pixel centre) falls in a level `scale` times smaller with
+/// `n` samples: the sample before, the one after and the weight of the latter.
+fn level_taps(out: &mut Vec<(u32, u32, f32)>, len: usize, n: usize, scale: f32) {
+    out.clear();
+    for x in 0..len {
+        let f = ((x as f32 + 0.5) / scale - 0.5).clamp(0.0, (n - 1) as f32);
+        let i = f as usize;
+        out.push((i as u32, (i + 1).min(n - 1) as u32, f - i as f32));
+    }
+}
+
+/// The defocus pyramid: three levels (radius ≈ 1, 2, 4 px) of `wk.out_lin` in `wk.levels`
+/// and their sampling positions; returns the levels' sizes.
+fn defocus_levels(wk: &mut EyeWork, w: usize, h: usize) -> [(usize, usize); 3] {
+    let [l1, l2, l3] = &mut wk.levels;
+    let d1 = down_blur(&wk.out_lin, w, h, l1, &mut wk.tmp);
+    let d2 = down_blur(l1, d1.0, d1.1, l2, &mut wk.tmp);
+    let d3 = down_blur(l2, d2.0, d2.1, l3, &mut wk.tmp);
+    let dims = [d1, d2, d3];
+    for (n, &(lw, lh)) in dims.iter().enumerate() {
+        let scale = (2u32 << n) as f32;
+        level_taps(&mut wk.taps_x[n], w, lw, scale);
+        level_taps(&mut wk.taps_y[n], h, lh, scale);
+    }
+    dims
+}
+
+/// Bilinear sample of pyramid level `n` (1, 2 or 3) at image pixel `(x, y)`.
 #[inline]
-fn sample_level(l: &[[f32; 3]], lw: usize, lh: usize, scale: f32, x: usize, y: usize) -> [f32; 3] {
-    let fx = ((x as f32 + 0.5) / scale - 0.5).clamp(0.0, (lw - 1) as f32);
-    let fy = ((y as f32 + 0.5) / scale - 0.5).clamp(0.0, (lh - 1) as f32);
-    let (ix, iy) = (fx as usize, fy as usize);
-    let (ix1, iy1) = ((ix + 1).min(lw - 1), (iy + 1).min(lh - 1));
-    let (tx, ty) = (fx - ix as f32, fy - iy as f32);
+fn sample_level(wk: &EyeWork, dims: &[(usize, usize); 3], n: usize, x: usize, y: usize) -> [f32; 3] {
+    let l = &wk.levels[n - 1];
+    let lw = dims[n - 1].0;
+    let (ix, ix1, tx) = wk.taps_x[n - 1][x];
+    let (iy, iy1, ty) = wk.taps_y[n - 1][y];
+    let (ix, ix1, iy, iy1) = (ix as usize, ix1 as usize, iy as usize, iy1 as usize);
     let (a, b, c, d) = (l[iy * lw + ix], l[iy * lw + ix1], l[iy1 * lw + ix], l[iy1 * lw + ix1]);
     let mut o = [0.0; 3];
     for k in 0..3 {
@@ -837,53 +964,28 @@ fn sample_level(l: &[[f32; 3]], lw: usize, lh: usize, scale: f32, x: usize, y: u
     o
 }
 
-/// Depth-dependent defocus: a pyramid of blurred levels (radius ≈ 1, 2, 4 px), each pixel
-/// interpolating between the two levels around its circle of confusion (a gather blur:
-/// a pixel's blur follows its own depth, so a blurred edge does not spread onto a sharp
-/// background).
-fn defocus(wk: &mut EyeWork, w: usize, h: usize, fx: f32, d: &super::config::DefocusConfig) {
-    let k = (d.aperture_m as f32) * fx * 0.5; // radius, pixels, per unit |1/z − 1/zf|
-    let izf = 1.0 / d.focus_distance_m as f32;
-    let rmax = 0.5 * d.max_coc_px as f32;
-    let radius = |z: f32| if z.is_finite() { (k * (1.0 / z - izf).abs()).min(rmax) } else { rmax };
-    if !wk.out_depth.iter().any(|&z| radius(z) > 0.35) {
-        return;
-    }
-    let [l1, l2, l3] = &mut wk.levels;
-    let (w1, h1) = down_blur(&wk.out_lin, w, h, l1, &mut wk.tmp);
-    let (w2, h2) = down_blur(l1, w1, h1, l2, &mut wk.tmp);
-    let (w3, h3) = down_blur(l2, w2, h2, l3, &mut wk.tmp);
+/// Depth-dependent defocus of one pixel (linear colour `own`, circle radius `rr` pixels):
+/// interpolation between the two pyramid levels around its circle of confusion (a gather
+/// blur: a pixel's blur follows its own depth, so a blurred edge does not spread onto a
+/// sharp background).
+#[inline]
+fn defocus_gather(wk: &EyeWork, dims: &[(usize, usize); 3], own: [f32; 3], rr: f32, x: usize, y: usize) -> [f32; 3] {
     const R: [f32; 4] = [0.0, 1.0, 2.0, 4.0];
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let rr = radius(wk.out_depth[i]);
-            if rr <= 0.35 {
-                continue;
-            }
-            let lvl = |n: usize, out: &[[f32; 3]]| match n {
-                0 => out[i],
-                1 => sample_level(l1, w1, h1, 2.0, x, y),
-                2 => sample_level(l2, w2, h2, 4.0, x, y),
-                _ => sample_level(l3, w3, h3, 8.0, x, y),
-            };
-            let n = if rr < R[1] {
-                0
-            } else if rr < R[2] {
-                1
-            } else if rr < R[3] {
-                2
-            } else {
-                3
-            };
-            let v = if n == 3 {
-                lvl(3, &wk.out_lin)
-            } else {
-                let t = (rr - R[n]) / (R[n + 1] - R[n]);
-                let (a, b) = (lvl(n, &wk.out_lin), lvl(n + 1, &wk.out_lin));
-                [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
-            };
-            wk.out_lin[i] = v;
-        }
+    let lvl = |n: usize| if n == 0 { own } else { sample_level(wk, dims, n, x, y) };
+    let n = if rr < R[1] {
+        0
+    } else if rr < R[2] {
+        1
+    } else if rr < R[3] {
+        2
+    } else {
+        3
+    };
+    if n == 3 {
+        lvl(3)
+    } else {
+        let t = (rr - R[n]) / (R[n + 1] - R[n]);
+        let (a, b) = (lvl(n), lvl(n + 1));
+        [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
     }
 }

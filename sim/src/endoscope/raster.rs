@@ -271,20 +271,21 @@ fn raster<const N: usize>(
             q0[k] = (b[0] * pa[0][k] + b[1] * pa[1][k] + b[2] * pa[2][k]) as f32;
         }
         let row = y * c.w;
-        for x in xs..=xe {
-            let dx = (x - xs) as f64;
+        // Pixel offsets from the span's start, counted exactly in f64 and f32.
+        let (mut dx, mut dxf) = (0.0f64, 0.0f32);
+        for (x, d) in (xs..=xe).zip(&mut depth[row + xs..=row + xe]) {
             let z = (1.0 / (iz0 + giz * dx)) as f32;
-            let idx = row + x;
-            if z < depth[idx] && z >= NEAR_M * 0.999 {
+            if z < *d && z >= NEAR_M * 0.999 {
                 touched = true;
-                depth[idx] = z;
-                let dxf = dx as f32;
+                *d = z;
                 let mut at = [0.0f32; N];
                 for k in 0..N {
                     at[k] = (q0[k] + ga[k] * dxf) * z;
                 }
-                frag(idx, x, y, z, &at);
+                frag(row + x, x, y, z, &at);
             }
+            dx += 1.0;
+            dxf += 1.0;
         }
     }
     if touched {

@@ -149,8 +149,9 @@ struct EyeWork {
     tissue_draws: u64,
     /// The composite (tissue and blurred instruments); equal to `tissue_col` outside `dirty`.
     colour: Vec<[f32; 3]>,
-    /// Where `colour`, `depth_mid` and `lab_mid` may differ from the tissue alone.
-    dirty: Bounds,
+    /// Canvas indices where `colour`, `depth_mid` and `lab_mid` may differ from the tissue
+    /// alone (the pixels the instruments covered at some instant of the last frame).
+    dirty: Vec<u32>,
     depth_w: Vec<f32>,
     s_col: Vec<[f32; 3]>,
     s_lab: Vec<u8>,
@@ -193,6 +194,10 @@ struct Shared {
     /// image).
     remap: Option<Vec<Tap>>,
     vignette: Vec<f32>,
+    /// `y/z` of the ray of every canvas row, and `x/z` of every canvas column when the skew
+    /// is zero (`None` otherwise): [`Canvas::ray`] tabulated.
+    ray_y: Vec<f32>,
+    ray_x: Option<Vec<f32>>,
     gauss: Vec<f32>,
     srgb: Vec<u8>,
 }
@@ -271,7 +276,12 @@ fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
 #[inline]
 fn normalize(a: [f32; 3]) -> [f32; 3] {
     let l = dot(a, a).sqrt();
-    if l > 0.0 { [a[0] / l, a[1] / l, a[2] / l] } else { a }
+    if l > 0.0 {
+        let il = 1.0 / l;
+        [a[0] * il, a[1] * il, a[2] * il]
+    } else {
+        a
+    }
 }
 
 /// Per-eye shading constants.
@@ -286,7 +296,7 @@ struct Lighting {
 impl Lighting {
     /// Blinn-Phong factors at camera-frame point `p` with unit normal `n`: the diffuse
     /// factor (ambient plus irradiance × cos) and the specular factor (irradiance × lobe).
-    #[inline]
+    #[inline(always)]
     fn terms(&self, p: [f32; 3], n: [f32; 3], shin: f32) -> (f32, f32) {
         let ip = 1.0 / dot(p, p).sqrt();
         let v = [-p[0] * ip, -p[1] * ip, -p[2] * ip];
@@ -300,8 +310,15 @@ impl Lighting {
         let l = [l[0] * il, l[1] * il, l[2] * il];
         let e = self.e_ref / d2;
         let ndl = dot(n, l).max(0.0);
-        let h = normalize([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
-        let s = if ndl > 0.0 { spec_pow(dot(n, h).max(0.0), shin) * e } else { 0.0 };
+        let s = if ndl > 0.0 {
+            // The half vector h = l + v, normalised in the dot product.
+            let h = [l[0] + v[0], l[1] + v[1], l[2] + v[2]];
+            let hl = dot(h, h).sqrt();
+            let ndh = if hl > 0.0 { dot(n, h) / hl } else { dot(n, h) };
+            spec_pow(ndh.max(0.0), shin) * e
+        } else {
+            0.0
+        };
         (self.ambient + e * ndl, s)
     }
 
@@ -326,7 +343,7 @@ impl Lighting {
     }
 
     /// Blinn-Phong at camera-frame point `p` with unit normal `n`, through the smoke.
-    #[inline]
+    #[inline(always)]
     fn shade(&self, p: [f32; 3], n: [f32; 3], albedo: [f32; 3], spec: [f32; 3], shin: f32) -> [f32; 3] {
         let (d, s) = self.terms(p, n, shin);
         let c = [albedo[0] * d + spec[0] * s, albedo[1] * d + spec[1] * s, albedo[2] * d + spec[2] * s];
@@ -384,6 +401,8 @@ impl StereoRenderer {
             proj,
             remap,
             vignette,
+            ray_y: (0..canvas.h).map(|y| canvas.ray(0.0, y as f32).1).collect(),
+            ray_x: (canvas.skew == 0.0).then(|| (0..canvas.w).map(|x| canvas.ray(x as f32, 0.0).0).collect()),
             gauss: gauss_table(GAUSS_LUT),
             srgb: srgb_table(SRGB_LUT),
         };
@@ -612,17 +631,16 @@ fn render_eye(
         wk.depth_mid.copy_from_slice(&wk.depth_t);
         wk.depth_w.copy_from_slice(&wk.depth_t);
         wk.lab_mid.fill(0);
-    } else if !wk.dirty.is_empty() {
+    } else {
         // The last frame's instruments are taken out again.
-        let d = wk.dirty;
-        for y in d.y0..=d.y1 {
-            let span = y * c.w + d.x0..=y * c.w + d.x1;
-            wk.colour[span.clone()].copy_from_slice(&wk.tissue_col[span.clone()]);
-            wk.depth_mid[span.clone()].copy_from_slice(&wk.depth_t[span.clone()]);
-            wk.lab_mid[span].fill(0);
+        for &i in &wk.dirty {
+            let i = i as usize;
+            wk.colour[i] = wk.tissue_col[i];
+            wk.depth_mid[i] = wk.depth_t[i];
+            wk.lab_mid[i] = 0;
         }
     }
-    wk.dirty = Bounds::EMPTY;
+    wk.dirty.clear();
 
     // 2. Instruments, once per motion-blur instant.
     let k_samples = states.len();
@@ -670,8 +688,12 @@ fn render_eye(
             let (albedo, spec, shin) = mat_f32(&mat, r.specular);
             let verts = &wk.ivert[start..start + m.positions.len()];
             let (s_col, s_lab) = (&mut wk.s_col, &mut wk.s_lab);
+            let (ray_x, ray_y) = (sh.ray_x.as_deref(), &sh.ray_y);
             let mut frag = |idx: usize, x: usize, y: usize, z: f32, a: &[f32; 3]| {
-                let (xn, yn) = c.ray(x as f32, y as f32);
+                let (xn, yn) = match ray_x {
+                    Some(rx) => (rx[x], ray_y[y]),
+                    None => c.ray(x as f32, y as f32),
+                };
                 s_col[idx] = lighting.shade([xn * z, yn * z, z], normalize(*a), albedo, spec, shin);
                 s_lab[idx] = lab;
             };
@@ -690,7 +712,7 @@ fn render_eye(
             let labs = &mut wk.s_lab[span.clone()];
             let cols = &wk.s_col[span.clone()];
             let accs = &mut wk.acc[span.clone()];
-            let cnts = &mut wk.cnt[span.clone()];
+            let cnts = &mut wk.cnt[span];
             for (o, l) in labs.iter_mut().enumerate() {
                 if *l != 0 {
                     let sc = cols[o];
@@ -699,15 +721,16 @@ fn render_eye(
                     a[1] += sc[1];
                     a[2] += sc[2];
                     cnts[o] += 1;
+                    let i = row + drawn.x0 + o;
                     if s == mid {
-                        let i = row + drawn.x0 + o;
                         wk.lab_mid[i] = *l;
                         wk.depth_mid[i] = wk.depth_w[i];
                     }
+                    // Drawn: the working depth back to the tissue's.
+                    wk.depth_w[i] = wk.depth_t[i];
                     *l = 0;
                 }
             }
-            wk.depth_w[span.clone()].copy_from_slice(&wk.depth_t[span]);
         }
     }
     // Composite: each instant covers a pixel with the instrument or leaves the tissue.
@@ -723,11 +746,11 @@ fn render_eye(
                         [(t[0] * rest + a[0]) * inv_k, (t[1] * rest + a[1]) * inv_k, (t[2] * rest + a[2]) * inv_k];
                     wk.acc[i] = [0.0; 3];
                     wk.cnt[i] = 0;
+                    wk.dirty.push(i as u32);
                 }
             }
         }
     }
-    wk.dirty = union;
 
     // 3. Lens distortion: canvas → image (bilinear colour; nearest labels and depth, the
     // depth kept as the defocus radius).
@@ -772,10 +795,22 @@ fn render_eye(
         }
     }
 
-    // 4. Defocus: the pyramid of blurred levels, sampled in the last pass.
-    let levels = if defocus_on && blurred { Some(defocus_levels(wk, w, h)) } else { None };
+    // 4. Defocus: the pyramid of blurred levels, each blurred pixel interpolating between
+    // the two levels around its circle.
+    if defocus_on && blurred {
+        let dims = defocus_levels(wk, w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let rr = wk.out_rad[i];
+                if rr > 0.35 {
+                    wk.out_lin[i] = defocus_gather(wk, &dims, wk.out_lin[i], rr, x, y);
+                }
+            }
+        }
+    }
 
-    // 5. Defocus gather, vignetting, noise, sRGB: one pass, row by row.
+    // 5. Vignetting, noise, sRGB, row by row.
     let noise =
         r.noise.enabled.then_some((r.noise.full_well_e as f32, (r.noise.read_noise_e * r.noise.read_noise_e) as f32));
     let eye_key = match eye {
@@ -783,32 +818,36 @@ fn render_eye(
         Eye::Right => 0x5249_4748u64,
     };
     let lut_max = (SRGB_LUT - 1) as f32;
+    let srgb = |c: f32| sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
     for y in 0..h {
-        let mut rng =
-            ChaCha8Rng::seed_from_u64(splitmix(seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32)))));
         let row = y * w;
         let rgb = &mut img.rgb[3 * row..3 * (row + w)];
-        for x in 0..w {
-            let i = row + x;
-            let mut lin = wk.out_lin[i];
-            if let Some(dims) = &levels {
-                let rr = wk.out_rad[i];
-                if rr > 0.35 {
-                    lin = defocus_gather(wk, dims, lin, rr, x, y);
-                }
-            }
-            let g = sh.vignette[i];
-            let mut v = lin.map(|c| c * g);
-            if let Some((fw, read2)) = noise {
-                let bits = rng.next_u64();
-                for (k, c) in v.iter_mut().enumerate() {
-                    let n = sh.gauss[((bits >> (16 * k + 4)) & 0xFFF) as usize];
+        let lin = &wk.out_lin[row..row + w];
+        let vig = &sh.vignette[row..row + w];
+        match noise {
+            Some((fw, read2)) => {
+                let mut rng = ChaCha8Rng::seed_from_u64(splitmix(
+                    seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32))),
+                ));
+                let gauss = &sh.gauss;
+                let noisy = |c: f32, bits: u64| {
+                    let n = gauss[(bits & 0xFFF) as usize];
                     let e = c.max(0.0) * fw;
-                    *c += (e + read2).sqrt() / fw * n;
+                    c + (e + read2).sqrt() / fw * n
+                };
+                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
+                    let bits = rng.next_u64();
+                    out[0] = srgb(noisy(v[0] * g, bits >> 4));
+                    out[1] = srgb(noisy(v[1] * g, bits >> 20));
+                    out[2] = srgb(noisy(v[2] * g, bits >> 36));
                 }
             }
-            for (k, c) in v.iter().enumerate() {
-                rgb[3 * x + k] = sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
+            None => {
+                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
+                    out[0] = srgb(v[0] * g);
+                    out[1] = srgb(v[1] * g);
+                    out[2] = srgb(v[2] * g);
+                }
             }
         }
     }

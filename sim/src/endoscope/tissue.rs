@@ -152,8 +152,11 @@ impl Tissue {
         } else {
             let x = (s * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
             let y = (t * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
-            let (ix, iy) = (x as usize, y as usize);
-            let (wx, wy) = (((x - ix as f32) * 256.0) as u32, ((y - iy as f32) * 256.0) as u32);
+            // In 1/256 texel: the integer part is the texel, the low byte the weight (x ≥ 0,
+            // x·256 and x − ⌊x⌋ are exact in f32, so this is ⌊x⌋ and ⌊(x − ⌊x⌋)·256⌋).
+            let (fx, fy) = ((x * 256.0) as u32, (y * 256.0) as u32);
+            let (ix, iy) = ((fx >> 8) as usize, (fy >> 8) as usize);
+            let (wx, wy) = (fx & 0xFF, fy & 0xFF);
             let ix1 = (ix + 1).min(n - 1);
             let iy1 = (iy + 1).min(n - 1);
             let p = &self.packed;

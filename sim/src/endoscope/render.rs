@@ -198,8 +198,8 @@ struct Shared {
     /// is zero (`None` otherwise): [`Canvas::ray`] tabulated.
     ray_y: Vec<f32>,
     ray_x: Option<Vec<f32>>,
-    gauss: Vec<f32>,
-    srgb: Vec<u8>,
+    gauss: Box<[f32; GAUSS_LUT]>,
+    srgb: Box<[u8; SRGB_LUT]>,
 }
 
 /// The simulated stereo endoscope.
@@ -250,6 +250,15 @@ fn gauss_table(n: usize) -> Vec<f32> {
     let var: f64 = out.iter().map(|&v| (v as f64).powi(2)).sum::<f64>() / n as f64;
     let s = 1.0 / var.sqrt();
     out.into_iter().map(|v| (v as f64 * s) as f32).collect()
+}
+
+/// A table of `N` entries from `v` (padded with `fill`, or cut, to `N`).
+fn lut<T: Copy, const N: usize>(v: Vec<T>, fill: T) -> Box<[T; N]> {
+    let mut out = Box::new([fill; N]);
+    for (o, x) in out.iter_mut().zip(v) {
+        *o = x;
+    }
+    out
 }
 
 fn srgb_table(n: usize) -> Vec<u8> {
@@ -403,8 +412,8 @@ impl StereoRenderer {
             vignette,
             ray_y: (0..canvas.h).map(|y| canvas.ray(0.0, y as f32).1).collect(),
             ray_x: (canvas.skew == 0.0).then(|| (0..canvas.w).map(|x| canvas.ray(x as f32, 0.0).0).collect()),
-            gauss: gauss_table(GAUSS_LUT),
-            srgb: srgb_table(SRGB_LUT),
+            gauss: lut(gauss_table(GAUSS_LUT), 0.0),
+            srgb: lut(srgb_table(SRGB_LUT), 0),
         };
         Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()] })
     }
@@ -776,7 +785,8 @@ fn render_eye(
             let colour = &wk.colour;
             for (i, m) in map.iter().enumerate() {
                 let j = m.j as usize;
-                let (a, b, cc, dd) = (colour[j], colour[j + 1], colour[j + c.w], colour[j + c.w + 1]);
+                let quad = &colour[j..j + c.w + 2];
+                let (a, b, cc, dd) = (quad[0], quad[1], quad[c.w], quad[c.w + 1]);
                 let mut o = [0.0f32; 3];
                 for k in 0..3 {
                     let top = a[k] + (b[k] - a[k]) * m.fx;
@@ -818,7 +828,9 @@ fn render_eye(
         Eye::Right => 0x5249_4748u64,
     };
     let lut_max = (SRGB_LUT - 1) as f32;
-    let srgb = |c: f32| sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
+    // ⌊clamp(c, 0, 1)·lut_max + ½⌋ as ⌊c·lut_max + ½⌋ clamped to the table (the same index:
+    // the truncation toward zero sends (−1, ½) to 0, and NaN goes to 0 either way).
+    let srgb = |c: f32| sh.srgb[((c * lut_max + 0.5) as i32).clamp(0, SRGB_LUT as i32 - 1) as usize];
     for y in 0..h {
         let row = y * w;
         let rgb = &mut img.rgb[3 * row..3 * (row + w)];

@@ -94,8 +94,9 @@ pub struct Tissue {
     pub texture_px: usize,
     /// Linear albedo per texel (RGB ×255, A unused), row-major, `v` down the rows.
     pub texture: Vec<[u8; 4]>,
-    /// The same texels packed little-endian into `u32` (R in the low byte).
-    packed: Vec<u32>,
+    /// The same texels with one 16-bit lane per channel (R in the low lane), for bilinear
+    /// lookups four channels at a time.
+    packed: Vec<u64>,
 }
 
 impl Tissue {
@@ -138,7 +139,7 @@ impl Tissue {
             let c = FLAT_ALBEDO.map(|c| (c * 255.0).round() as u8);
             vec![[c[0], c[1], c[2], 255]]
         };
-        let packed = texture.iter().map(|t| u32::from_le_bytes(*t)).collect();
+        let packed = texture.iter().map(|t| spread(*t)).collect();
         Self { positions, normals, uv, triangles, texture_px, texture, packed }
     }
 
@@ -154,7 +155,7 @@ impl Tissue {
             let y = (t * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
             // In 1/256 texel: the integer part is the texel, the low byte the weight (x ≥ 0,
             // x·256 and x − ⌊x⌋ are exact in f32, so this is ⌊x⌋ and ⌊(x − ⌊x⌋)·256⌋).
-            let (fx, fy) = ((x * 256.0) as u32, (y * 256.0) as u32);
+            let (fx, fy) = ((x * 256.0) as i32 as u32, (y * 256.0) as i32 as u32);
             let (ix, iy) = ((fx >> 8) as usize, (fy >> 8) as usize);
             let (wx, wy) = (fx & 0xFF, fy & 0xFF);
             let ix1 = (ix + 1).min(n - 1);
@@ -165,17 +166,22 @@ impl Tissue {
             lerp_packed(top, bot, wy)
         };
         const K: f32 = 1.0 / 255.0;
-        [(c & 0xFF) as f32 * K, ((c >> 8) & 0xFF) as f32 * K, ((c >> 16) & 0xFF) as f32 * K]
+        [(c & 0xFF) as f32 * K, ((c >> 16) & 0xFF) as f32 * K, ((c >> 32) & 0xFF) as f32 * K]
     }
 }
 
-/// `a + (b − a)·w/256` on the four bytes of packed RGBA texels.
+/// An RGBA texel with each 8-bit channel in its own 16-bit lane of a `u64` (R lowest).
+fn spread(t: [u8; 4]) -> u64 {
+    t.iter().enumerate().fold(0u64, |acc, (k, &v)| acc | (v as u64) << (16 * k))
+}
+
+/// `⌊(a·(256 − w) + b·w) / 256⌋` on each lane of spread texels (`w ≤ 256`): the sums stay
+/// below 2¹⁶, so the lanes never carry into each other.
 #[inline]
-fn lerp_packed(a: u32, b: u32, w: u32) -> u32 {
-    let iw = 256 - w;
-    let rb = (((a & 0x00FF_00FF) * iw + (b & 0x00FF_00FF) * w) >> 8) & 0x00FF_00FF;
-    let ag = (((a >> 8) & 0x00FF_00FF) * iw + ((b >> 8) & 0x00FF_00FF) * w) & 0xFF00_FF00;
-    rb | ag
+fn lerp_packed(a: u64, b: u64, w: u32) -> u64 {
+    const LANES: u64 = 0x00FF_00FF_00FF_00FF;
+    let (w, iw) = (w as u64, 256 - w as u64);
+    ((a * iw + b * w) >> 8) & LANES
 }
 
 fn lerp3(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {

@@ -139,25 +139,29 @@ pub enum RenderError {
 /// Per-eye work buffers (canvas-sized and image-sized) and the cached tissue.
 #[derive(Default)]
 struct EyeWork {
-    /// The tissue alone: depth (metres) and colour (linear RGB), canvas-sized; valid for the
-    /// eye pose and light of `tissue_key`.
+    /// The tissue's depth (metres, canvas-sized), valid for the eye pose and light of
+    /// `tissue_key`.
     depth_t: Vec<f32>,
-    tissue_col: Vec<[f32; 3]>,
-    /// What `depth_t` and `tissue_col` were rendered for (`None`: not yet).
+    /// What `depth_t` and the tissue in `colour` were rendered for (`None`: not yet).
     tissue_key: Option<[u64; 10]>,
     /// How many times the tissue was rasterised.
     tissue_draws: u64,
-    /// The composite (tissue and blurred instruments); equal to `tissue_col` outside `dirty`.
+    /// The composite (linear RGB, canvas-sized): the tissue, and the blurred instruments at
+    /// the pixels of `dirty`.
     colour: Vec<[f32; 3]>,
-    /// Canvas indices where `colour`, `depth_mid` and `lab_mid` may differ from the tissue
-    /// alone (the pixels the instruments covered at some instant of the last frame).
-    dirty: Vec<u32>,
+    /// The pixels (canvas indices) the instruments covered at some instant of the last
+    /// frame, with the tissue's colour there: `colour` and `lab_mid` are the tissue's again
+    /// once these are put back.
+    dirty: Vec<(u32, [f32; 3])>,
     depth_w: Vec<f32>,
     s_col: Vec<[f32; 3]>,
     s_lab: Vec<u8>,
     acc: Vec<[f32; 3]>,
     cnt: Vec<u8>,
+    /// Label at the mid time (0 outside `dirty`).
     lab_mid: Vec<u8>,
+    /// Instrument depth at the mid time, metres: meaningful where `lab_mid` is not 0 (the
+    /// depth is `depth_t` elsewhere).
     depth_mid: Vec<f32>,
     out_lin: Vec<[f32; 3]>,
     /// Defocus radius per image pixel, pixels.
@@ -594,9 +598,9 @@ fn render_eye(
     if wk.depth_t.len() != nc {
         // First frame: size the buffers (nothing is cached yet).
         wk.tissue_key = None;
+        wk.dirty.clear();
     }
     resize(&mut wk.depth_t, nc, f32::INFINITY);
-    resize(&mut wk.tissue_col, nc, [0.0; 3]);
     resize(&mut wk.colour, nc, [0.0; 3]);
     resize(&mut wk.depth_w, nc, f32::INFINITY);
     resize(&mut wk.s_col, nc, [0.0; 3]);
@@ -628,28 +632,27 @@ fn render_eye(
 
     // 1. Tissue: rasterised and shaded only when the eye pose (and with it the light, rigid
     // with the endoscope) differs from the cached one, bit for bit; the configuration and
-    // the tissue are fixed for the renderer's life. Either way `colour`, `depth_mid` and
-    // `lab_mid` hold the tissue alone afterwards.
+    // the tissue are fixed for the renderer's life. Either way `colour` and `depth_t` hold
+    // the tissue alone afterwards, `lab_mid` is 0 and `depth_w` equals `depth_t`.
     let (tq, tt) = (t_c_e.rotation.quaternion().coords, t_c_e.translation.vector);
     let key = [tq.x, tq.y, tq.z, tq.w, tt.x, tt.y, tt.z, light_c.x, light_c.y, light_c.z].map(f64::to_bits);
-    if wk.tissue_key != Some(key) {
+    let hit = wk.tissue_key == Some(key);
+    // The last frame's instruments are taken out again (their colour only matters when the
+    // tissue is kept).
+    for &(i, tissue) in &wk.dirty {
+        let i = i as usize;
+        if hit {
+            wk.colour[i] = tissue;
+        }
+        wk.lab_mid[i] = 0;
+    }
+    wk.dirty.clear();
+    if !hit {
         draw_tissue(sh, wk, &t_c_e, &lighting);
         wk.tissue_key = Some(key);
         wk.tissue_draws += 1;
-        wk.colour.copy_from_slice(&wk.tissue_col);
-        wk.depth_mid.copy_from_slice(&wk.depth_t);
         wk.depth_w.copy_from_slice(&wk.depth_t);
-        wk.lab_mid.fill(0);
-    } else {
-        // The last frame's instruments are taken out again.
-        for &i in &wk.dirty {
-            let i = i as usize;
-            wk.colour[i] = wk.tissue_col[i];
-            wk.depth_mid[i] = wk.depth_t[i];
-            wk.lab_mid[i] = 0;
-        }
     }
-    wk.dirty.clear();
 
     // 2. Instruments, once per motion-blur instant.
     let k_samples = states.len();
@@ -750,12 +753,12 @@ fn render_eye(
                 let n = wk.cnt[i];
                 if n != 0 {
                     let rest = (k_samples - n as usize) as f32;
-                    let (t, a) = (wk.tissue_col[i], wk.acc[i]);
+                    let (t, a) = (wk.colour[i], wk.acc[i]);
+                    wk.dirty.push((i as u32, t));
                     wk.colour[i] =
                         [(t[0] * rest + a[0]) * inv_k, (t[1] * rest + a[1]) * inv_k, (t[2] * rest + a[2]) * inv_k];
                     wk.acc[i] = [0.0; 3];
                     wk.cnt[i] = 0;
-                    wk.dirty.push(i as u32);
                 }
             }
         }
@@ -775,7 +778,8 @@ fn render_eye(
             wk.out_lin.copy_from_slice(&wk.colour);
             img.labels.copy_from_slice(&wk.lab_mid);
             if defocus_on {
-                for (o, &z) in wk.out_rad.iter_mut().zip(&wk.depth_mid) {
+                for (i, o) in wk.out_rad.iter_mut().enumerate() {
+                    let z = if wk.lab_mid[i] != 0 { wk.depth_mid[i] } else { wk.depth_t[i] };
                     *o = radius(z);
                     blurred |= *o > 0.35;
                 }
@@ -795,9 +799,10 @@ fn render_eye(
                 }
                 wk.out_lin[i] = o;
                 let nearest = m.nearest as usize;
-                img.labels[i] = wk.lab_mid[nearest];
+                let l = wk.lab_mid[nearest];
+                img.labels[i] = l;
                 if defocus_on {
-                    let rr = radius(wk.depth_mid[nearest]);
+                    let rr = radius(if l != 0 { wk.depth_mid[nearest] } else { wk.depth_t[nearest] });
                     wk.out_rad[i] = rr;
                     blurred |= rr > 0.35;
                 }
@@ -878,12 +883,12 @@ fn render_eye(
 }
 
 /// Rasterises and shades the tissue seen from camera pose `t_c_e` into `wk.depth_t` and
-/// `wk.tissue_col` (canvas).
+/// `wk.colour` (canvas).
 fn draw_tissue(sh: &Shared, wk: &mut EyeWork, t_c_e: &Isometry3<f64>, lighting: &Lighting) {
     let c = sh.canvas;
     wk.depth_t.fill(f32::INFINITY);
     let bg = lighting.smoke.map(|(_, haze)| haze).unwrap_or([0.0; 3]);
-    wk.tissue_col.fill(bg);
+    wk.colour.fill(bg);
     // Tissue lighting per vertex (Gouraud: the grid is finer than the light's variation),
     // interpolated with the texture coordinates; the texture is sampled per pixel.
     let rot = t_c_e.rotation;
@@ -901,7 +906,7 @@ fn draw_tissue(sh: &Shared, wk: &mut EyeWork, t_c_e: &Isometry3<f64>, lighting: 
         wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
     }
     let tissue = &sh.tissue;
-    let colour = &mut wk.tissue_col;
+    let colour = &mut wk.colour;
     let mut b = Bounds::EMPTY;
     let verts = &wk.verts;
     let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {

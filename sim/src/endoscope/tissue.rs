@@ -169,7 +169,8 @@ impl Tissue {
         let bot = lerp_packed(quad[stride], quad[stride + 1], wx);
         let c = lerp_packed(top, bot, wy);
         const K: f32 = 1.0 / 255.0;
-        [(c & 0xFF) as f32 * K, ((c >> 16) & 0xFF) as f32 * K, ((c >> 32) & 0xFF) as f32 * K]
+        // Each lane holds a byte value: the low byte of the shifted lane is all of it.
+        [c as u8 as f32 * K, (c >> 16) as u8 as f32 * K, (c >> 32) as u8 as f32 * K]
     }
 }
 

@@ -7,8 +7,16 @@
 //! The two eyes are rendered in parallel (rayon), each on its own buffers: the result does
 //! not depend on the scheduling. Noise is drawn from ChaCha8 streams keyed by the seed, the
 //! frame's mid time, the eye and the row: the same seed and times give the same bytes.
-//! Nothing is allocated per frame once the first frame has sized the buffers (the ground
+//! Nothing is allocated per frame once the first frames have sized the buffers (the ground
 //! truth's small vectors aside).
+//!
+//! **The tissue is kept between frames.** Each eye keeps its rasterised and shaded tissue
+//! (colour and depth on the canvas) with the eye pose it was seen from; the light is rigid
+//! with the endoscope, the configuration and the tissue with the renderer. While the
+//! endoscope arm holds still (the same joints bit for bit, hence the same eye poses), a frame
+//! only puts back the tissue where the last frame's instruments were and draws the
+//! instruments again: the bytes are those of a fresh renderer (tested). Every later pass
+//! (distortion, defocus, vignetting, noise, sRGB) runs on every frame.
 
 use estimator::calib::Intrinsics;
 use estimator::calib::rcm_arms::camera_pose;
@@ -210,6 +218,8 @@ struct Shared {
 pub struct StereoRenderer {
     shared: Shared,
     work: [EyeWork; 2],
+    /// The scene at the motion-blur instants of the frame being rendered (reused).
+    states: Vec<(u64, SceneState)>,
 }
 
 const SRGB_LUT: usize = 8192;
@@ -419,7 +429,7 @@ impl StereoRenderer {
             gauss: lut(gauss_table(GAUSS_LUT), 0.0),
             srgb: lut(srgb_table(SRGB_LUT), 0),
         };
-        Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()] })
+        Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()], states: Vec::new() })
     }
 
     /// How many times each eye's tissue was rasterised (the rest of the frames reused it).
@@ -464,7 +474,8 @@ impl StereoRenderer {
         let r = &sh.cfg.realism;
         let k_samples = if r.motion_blur.enabled { r.motion_blur.samples } else { 1 };
         let exposure_ns = sh.cfg.timing.exposure_s * 1e9;
-        let mut states: Vec<(u64, SceneState)> = Vec::with_capacity(k_samples);
+        let states = &mut self.states;
+        states.clear();
         for s in 0..k_samples {
             let dt = exposure_ns * ((s as f64 + 0.5) / k_samples as f64 - 0.5);
             let t = if k_samples == 1 { t_mid_ns } else { (t_mid_ns as f64 + dt).round().max(0.0) as u64 };
@@ -480,6 +491,7 @@ impl StereoRenderer {
             }
             states.push((t, st));
         }
+        let states: &[(u64, SceneState)] = states;
         let mid = states[k_samples / 2].1;
         let poses = eye_poses(&sh.hand_eye, sh.cfg.camera.baseline_m, &mid.ecm_joints);
         let light_world = Point3::from((poses[0].translation.vector + poses[1].translation.vector) / 2.0);
@@ -488,8 +500,8 @@ impl StereoRenderer {
         let [t0, t1] = &mut out.truth;
         let seed = sh.cfg.seed;
         rayon::join(
-            || render_eye(sh, w0, Eye::Left, &poses[0], &light_world, &states, seed, t_mid_ns, i0, t0),
-            || render_eye(sh, w1, Eye::Right, &poses[1], &light_world, &states, seed, t_mid_ns, i1, t1),
+            || render_eye(sh, w0, Eye::Left, &poses[0], &light_world, states, seed, t_mid_ns, i0, t0),
+            || render_eye(sh, w1, Eye::Right, &poses[1], &light_world, states, seed, t_mid_ns, i1, t1),
         );
         out.t_mid_ns = t_mid_ns;
         out.ecm_joints = mid.ecm_joints;

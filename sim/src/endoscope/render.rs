@@ -519,7 +519,6 @@ type Remap = Option<Vec<Tap>>;
 
 /// The canvas (undistorted image covering every ideal pixel the image sees) and, with
 /// distortion, the tap of every image pixel at its undistorted position.
-
 fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
     let (w, h) = (k.width as usize, k.height as usize);
     let base = |ox: f32, oy: f32, cw: usize, ch: usize| Canvas {

@@ -84,8 +84,7 @@ fn cached_tissue_gives_the_same_bytes_as_a_fresh_render() {
     // The endoscope held still for a few frames while the instruments move, then moved, then
     // still again: a renderer that keeps its tissue between frames renders every frame
     // exactly as a fresh renderer does (second instrument and smoke on: every path).
-    let mut realism = RealismConfig::default();
-    realism.second_instrument = true;
+    let mut realism = RealismConfig { second_instrument: true, ..RealismConfig::default() };
     realism.smoke.enabled = true;
     for distorted in [true, false] {
         let cfg = small(realism, distorted);

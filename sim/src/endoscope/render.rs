@@ -15,8 +15,9 @@
 //! with the endoscope, the configuration and the tissue with the renderer. While the
 //! endoscope arm holds still (the same joints bit for bit, hence the same eye poses), a frame
 //! only puts back the tissue where the last frame's instruments were and draws the
-//! instruments again: the bytes are those of a fresh renderer (tested). Every later pass
-//! (distortion, defocus, vignetting, noise, sRGB) runs on every frame.
+//! instruments again, and the image pixels whose distortion taps read no pixel the
+//! instruments covered take the tissue already warped: the bytes are those of a fresh
+//! renderer (tested). Defocus, vignetting, noise and sRGB run on the whole image every frame.
 
 use estimator::calib::Intrinsics;
 use estimator::calib::rcm_arms::camera_pose;
@@ -154,6 +155,11 @@ struct EyeWork {
     tissue_key: Option<[u64; 10]>,
     /// How many times the tissue was rasterised.
     tissue_draws: u64,
+    /// The tissue alone warped onto the image (linear RGB) and its defocus radii (pixels),
+    /// when `tissue_image` is true (made on the first frame that reuses the tissue).
+    tissue_lin: Vec<[f32; 3]>,
+    tissue_rad: Vec<f32>,
+    tissue_image: bool,
     /// The composite (linear RGB, canvas-sized): the tissue, and the blurred instruments at
     /// the pixels of `dirty`.
     colour: Vec<[f32; 3]>,
@@ -192,6 +198,18 @@ struct Tap {
     nearest: u32,
     fx: f32,
     fy: f32,
+    /// The top-left canvas pixel's column and row (`j` split).
+    ix: u16,
+    iy: u16,
+}
+
+impl Tap {
+    /// True when one of the four canvas pixels read lies in `b`.
+    #[inline]
+    fn touches(&self, b: &Bounds) -> bool {
+        let (ix, iy) = (self.ix as usize, self.iy as usize);
+        ix + 1 >= b.x0 && ix <= b.x1 && iy + 1 >= b.y0 && iy <= b.y1
+    }
 }
 
 /// What both eyes share (read-only during a frame).
@@ -574,7 +592,14 @@ fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
             let (x, y) = (m[0].clamp(0.0, (cw - 1) as f32), m[1].clamp(0.0, (ch - 1) as f32));
             let (ix, iy) = ((x as usize).min(cw - 2), (y as usize).min(ch - 2));
             let nearest = ((y + 0.5) as usize * cw + (x + 0.5) as usize).min(cw * ch - 1);
-            remap.push(Tap { j: (iy * cw + ix) as u32, nearest: nearest as u32, fx: x - ix as f32, fy: y - iy as f32 });
+            remap.push(Tap {
+                j: (iy * cw + ix) as u32,
+                nearest: nearest as u32,
+                fx: x - ix as f32,
+                fy: y - iy as f32,
+                ix: ix as u16,
+                iy: iy as u16,
+            });
         }
     }
     Ok((canvas, Some(remap)))
@@ -663,6 +688,24 @@ fn render_eye(
         wk.tissue_key = Some(key);
         wk.tissue_draws += 1;
         wk.depth_w.copy_from_slice(&wk.depth_t);
+        wk.tissue_image = false;
+    }
+    let defocus_on = r.defocus.enabled && r.defocus.aperture_m > 0.0 && r.defocus.max_coc_px > 0.0;
+    let d = &r.defocus;
+    let k_rad = (d.aperture_m as f32) * (cfg.camera.intrinsics.fx as f32) * 0.5; // radius, px, per unit |1/z − 1/zf|
+    let izf = 1.0 / d.focus_distance_m as f32;
+    let rmax = 0.5 * d.max_coc_px as f32;
+    let radius = |z: f32| if z.is_finite() { (k_rad * (1.0 / z - izf).abs()).min(rmax) } else { rmax };
+    // The endoscope held still: the tissue alone is warped once, and the image pixels that
+    // read no pixel the instruments covered take it from there (the same numbers).
+    if let (true, false, Some(map)) = (hit, wk.tissue_image, &sh.remap) {
+        resize(&mut wk.tissue_lin, no, [0.0; 3]);
+        resize(&mut wk.tissue_rad, no, 0.0);
+        for (i, m) in map.iter().enumerate() {
+            wk.tissue_lin[i] = bilinear(&wk.colour, c.w, m);
+            wk.tissue_rad[i] = if defocus_on { radius(wk.depth_t[m.nearest as usize]) } else { 0.0 };
+        }
+        wk.tissue_image = true;
     }
 
     // 2. Instruments, once per motion-blur instant.
@@ -777,12 +820,6 @@ fn render_eye(
 
     // 3. Lens distortion: canvas → image (bilinear colour; nearest labels and depth, the
     // depth kept as the defocus radius).
-    let defocus_on = r.defocus.enabled && r.defocus.aperture_m > 0.0 && r.defocus.max_coc_px > 0.0;
-    let d = &r.defocus;
-    let k_rad = (d.aperture_m as f32) * (cfg.camera.intrinsics.fx as f32) * 0.5; // radius, px, per unit |1/z − 1/zf|
-    let izf = 1.0 / d.focus_distance_m as f32;
-    let rmax = 0.5 * d.max_coc_px as f32;
-    let radius = |z: f32| if z.is_finite() { (k_rad * (1.0 / z - izf).abs()).min(rmax) } else { rmax };
     let mut blurred = false;
     match &sh.remap {
         None => {
@@ -797,18 +834,19 @@ fn render_eye(
             }
         }
         Some(map) => {
-            let colour = &wk.colour;
+            let kept = hit && wk.tissue_image;
             for (i, m) in map.iter().enumerate() {
-                let j = m.j as usize;
-                let quad = &colour[j..j + c.w + 2];
-                let (a, b, cc, dd) = (quad[0], quad[1], quad[c.w], quad[c.w + 1]);
-                let mut o = [0.0f32; 3];
-                for k in 0..3 {
-                    let top = a[k] + (b[k] - a[k]) * m.fx;
-                    let bot = cc[k] + (dd[k] - cc[k]) * m.fx;
-                    o[k] = top + (bot - top) * m.fy;
+                if kept && !m.touches(&union) {
+                    wk.out_lin[i] = wk.tissue_lin[i];
+                    img.labels[i] = label::BACKGROUND;
+                    if defocus_on {
+                        let rr = wk.tissue_rad[i];
+                        wk.out_rad[i] = rr;
+                        blurred |= rr > 0.35;
+                    }
+                    continue;
                 }
-                wk.out_lin[i] = o;
+                wk.out_lin[i] = bilinear(&wk.colour, c.w, m);
                 let nearest = m.nearest as usize;
                 let l = wk.lab_mid[nearest];
                 img.labels[i] = l;
@@ -891,6 +929,21 @@ fn render_eye(
     {
         truth.instruments.push(instrument_truth(label::SECOND, s2, geometry, &t_c_e, &sh.proj));
     }
+}
+
+/// Bilinear sample of a canvas (`cw` pixels wide) at an image pixel's tap.
+#[inline]
+fn bilinear(colour: &[[f32; 3]], cw: usize, m: &Tap) -> [f32; 3] {
+    let j = m.j as usize;
+    let quad = &colour[j..j + cw + 2];
+    let (a, b, cc, dd) = (quad[0], quad[1], quad[cw], quad[cw + 1]);
+    let mut o = [0.0f32; 3];
+    for k in 0..3 {
+        let top = a[k] + (b[k] - a[k]) * m.fx;
+        let bot = cc[k] + (dd[k] - cc[k]) * m.fx;
+        o[k] = top + (bot - top) * m.fy;
+    }
+    o
 }
 
 /// Rasterises and shades the tissue seen from camera pose `t_c_e` into `wk.depth_t` and

@@ -932,7 +932,7 @@ fn render_eye(
 }
 
 /// Bilinear sample of a canvas (`cw` pixels wide) at an image pixel's tap.
-#[inline]
+#[inline(always)]
 fn bilinear(colour: &[[f32; 3]], cw: usize, m: &Tap) -> [f32; 3] {
     let j = m.j as usize;
     let quad = &colour[j..j + cw + 2];

@@ -150,7 +150,7 @@ impl Tissue {
     }
 
     /// Bilinear albedo (linear RGB) at texture coordinates `(s, t)` (clamped to the edge);
-    /// 8-bit weights, two channels per integer operation.
+    /// 8-bit weights, the four channels in one integer operation.
     #[inline]
     pub fn albedo(&self, s: f32, t: f32) -> [f32; 3] {
         let n = self.texture_px;

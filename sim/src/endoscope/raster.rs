@@ -87,6 +87,13 @@ pub struct Bounds {
     pub y1: usize,
 }
 
+impl Default for Bounds {
+    /// Nothing drawn ([`Bounds::EMPTY`]).
+    fn default() -> Self {
+        Bounds::EMPTY
+    }
+}
+
 impl Bounds {
     /// Nothing drawn.
     pub const EMPTY: Bounds = Bounds { x0: usize::MAX, y0: usize::MAX, x1: 0, y1: 0 };
@@ -202,17 +209,27 @@ fn raster<const N: usize>(
         return;
     }
     let inv_area = 1.0 / area;
-    // Attributes pre-multiplied by 1/z.
-    let a0 = tri[0].a;
-    let mut pa = [[0.0f32; N]; 3];
-    for k in 0..N {
-        pa[0][k] = a0[k] * w0 as f32;
-        pa[1][k] = a1[k] * w1 as f32;
-        pa[2][k] = a2[k] * w2 as f32;
-    }
     // Edge function of the edge opposite vertex i, e_i = A_i x + B_i y + C_i, ≥ 0 inside.
     let coef = |ax: f64, ay: f64, bx: f64, by: f64| (-(by - ay), bx - ax, (by - ay) * ax - (bx - ax) * ay);
     let e = [coef(x1, y1, x2, y2), coef(x2, y2, x0, y0), coef(x0, y0, x1, y1)];
+    // 1/z and the attributes pre-multiplied by 1/z are affine in the pixel: with the
+    // barycentrics b_i = e_i / area, q(x, y) = Σ b_i q_i. Their x gradients, per pixel:
+    let ws = [w0, w1, w2];
+    let a0 = tri[0].a;
+    let mut pa = [[0.0f64; N]; 3];
+    for k in 0..N {
+        pa[0][k] = a0[k] as f64 * w0;
+        pa[1][k] = a1[k] as f64 * w1;
+        pa[2][k] = a2[k] as f64 * w2;
+    }
+    let g = [e[0].0 * inv_area, e[1].0 * inv_area, e[2].0 * inv_area];
+    let giz = g[0] * w0 + g[1] * w1 + g[2] * w2;
+    let mut ga = [0.0f32; N];
+    for k in 0..N {
+        ga[k] = (g[0] * pa[0][k] + g[1] * pa[1][k] + g[2] * pa[2][k]) as f32;
+    }
+    let inside =
+        |px: f64, r: &[f64; 3]| e[0].0 * px + r[0] >= 0.0 && e[1].0 * px + r[1] >= 0.0 && e[2].0 * px + r[2] >= 0.0;
     let mut touched = false;
     for y in by0..=by1 {
         let py = y as f64;
@@ -233,28 +250,42 @@ fn raster<const N: usize>(
         if lo.is_nan() || hi.is_nan() || lo > hi {
             continue;
         }
-        let (xs, xe) = ((lo.ceil() as usize).max(bx0), (hi.floor() as usize).min(bx1));
+        let (mut xs, mut xe) = ((lo.ceil() as usize).max(bx0), (hi.floor() as usize).min(bx1));
+        // The computed edge functions are monotone in x (rounding is monotone), so the covered
+        // pixels of the row are an interval: trim its ends with the exact per-pixel test.
+        while xs <= xe && !inside(xs as f64, &r) {
+            xs += 1;
+        }
+        while xe > xs && !inside(xe as f64, &r) {
+            xe -= 1;
+        }
+        if xs > xe {
+            continue;
+        }
+        // 1/z and the pre-multiplied attributes at the span's first pixel.
+        let px = xs as f64;
+        let b = [(e[0].0 * px + r[0]) * inv_area, (e[1].0 * px + r[1]) * inv_area, (e[2].0 * px + r[2]) * inv_area];
+        let iz0 = b[0] * ws[0] + b[1] * ws[1] + b[2] * ws[2];
+        let mut q0 = [0.0f32; N];
+        for k in 0..N {
+            q0[k] = (b[0] * pa[0][k] + b[1] * pa[1][k] + b[2] * pa[2][k]) as f32;
+        }
         let row = y * c.w;
-        for x in xs..=xe {
-            let px = x as f64;
-            let (e0, e1, e2) = (e[0].0 * px + r[0], e[1].0 * px + r[1], e[2].0 * px + r[2]);
-            if e0 < 0.0 || e1 < 0.0 || e2 < 0.0 {
-                continue;
-            }
-            let (b0, b1, b2) = (e0 * inv_area, e1 * inv_area, e2 * inv_area);
-            let iz = b0 * w0 + b1 * w1 + b2 * w2;
-            let z = (1.0 / iz) as f32;
-            let idx = row + x;
-            if z < depth[idx] && z >= NEAR_M * 0.999 {
+        // Pixel offsets from the span's start, counted exactly in f64 and f32.
+        let (mut dx, mut dxf) = (0.0f64, 0.0f32);
+        for (x, d) in (xs..=xe).zip(&mut depth[row + xs..=row + xe]) {
+            let z = (1.0 / (iz0 + giz * dx)) as f32;
+            if z < *d && z >= NEAR_M * 0.999 {
                 touched = true;
-                depth[idx] = z;
-                let (b0, b1, b2) = (b0 as f32, b1 as f32, b2 as f32);
+                *d = z;
                 let mut at = [0.0f32; N];
                 for k in 0..N {
-                    at[k] = (b0 * pa[0][k] + b1 * pa[1][k] + b2 * pa[2][k]) * z;
+                    at[k] = (q0[k] + ga[k] * dxf) * z;
                 }
-                frag(idx, x, y, z, &at);
+                frag(row + x, x, y, z, &at);
             }
+            dx += 1.0;
+            dxf += 1.0;
         }
     }
     if touched {

@@ -7,8 +7,17 @@
 //! The two eyes are rendered in parallel (rayon), each on its own buffers: the result does
 //! not depend on the scheduling. Noise is drawn from ChaCha8 streams keyed by the seed, the
 //! frame's mid time, the eye and the row: the same seed and times give the same bytes.
-//! Nothing is allocated per frame once the first frame has sized the buffers (the ground
+//! Nothing is allocated per frame once the first frames have sized the buffers (the ground
 //! truth's small vectors aside).
+//!
+//! **The tissue is kept between frames.** Each eye keeps its rasterised and shaded tissue
+//! (colour and depth on the canvas) with the eye pose it was seen from; the light is rigid
+//! with the endoscope, the configuration and the tissue with the renderer. While the
+//! endoscope arm holds still (the same joints bit for bit, hence the same eye poses), a frame
+//! only puts back the tissue where the last frame's instruments were and draws the
+//! instruments again, and the image pixels whose distortion taps read no pixel the
+//! instruments covered take the tissue already warped: the bytes are those of a fresh
+//! renderer (tested). Defocus, vignetting, noise and sRGB run on the whole image every frame.
 
 use estimator::calib::Intrinsics;
 use estimator::calib::rcm_arms::camera_pose;
@@ -136,24 +145,71 @@ pub enum RenderError {
     },
 }
 
-/// Per-eye work buffers (canvas-sized and image-sized).
+/// Per-eye work buffers (canvas-sized and image-sized) and the cached tissue.
 #[derive(Default)]
 struct EyeWork {
+    /// The tissue's depth (metres, canvas-sized), valid for the eye pose and light of
+    /// `tissue_key`.
     depth_t: Vec<f32>,
+    /// What `depth_t` and the tissue in `colour` were rendered for (`None`: not yet).
+    tissue_key: Option<[u64; 10]>,
+    /// How many times the tissue was rasterised.
+    tissue_draws: u64,
+    /// The tissue alone warped onto the image (linear RGB) and its defocus radii (pixels),
+    /// when `tissue_image` is true (made on the first frame that reuses the tissue).
+    tissue_lin: Vec<[f32; 3]>,
+    tissue_rad: Vec<f32>,
+    tissue_image: bool,
+    /// The composite (linear RGB, canvas-sized): the tissue, and the blurred instruments at
+    /// the pixels of `dirty`.
     colour: Vec<[f32; 3]>,
+    /// The pixels (canvas indices) the instruments covered at some instant of the last
+    /// frame, with the tissue's colour there: `colour` and `lab_mid` are the tissue's again
+    /// once these are put back.
+    dirty: Vec<(u32, [f32; 3])>,
     depth_w: Vec<f32>,
     s_col: Vec<[f32; 3]>,
     s_lab: Vec<u8>,
     acc: Vec<[f32; 3]>,
     cnt: Vec<u8>,
+    /// Label at the mid time (0 outside `dirty`).
     lab_mid: Vec<u8>,
+    /// Instrument depth at the mid time, metres: meaningful where `lab_mid` is not 0 (the
+    /// depth is `depth_t` elsewhere).
     depth_mid: Vec<f32>,
     out_lin: Vec<[f32; 3]>,
-    out_depth: Vec<f32>,
+    /// Defocus radius per image pixel, pixels.
+    out_rad: Vec<f32>,
     levels: [Vec<[f32; 3]>; 3],
     tmp: Vec<[f32; 3]>,
+    /// Level sampling positions per image column and row (index, next index, weight).
+    taps_x: [Vec<(u32, u32, f32)>; 3],
+    taps_y: [Vec<(u32, u32, f32)>; 3],
     verts: Vec<Vtx<5>>,
     ivert: Vec<Vtx<3>>,
+    ranges: Vec<(usize, usize, Material, u8)>,
+}
+
+/// One image pixel's bilinear tap into the canvas: the top-left canvas index, the nearest
+/// canvas index (labels, depth) and the weights along x and y.
+#[derive(Clone, Copy, Debug)]
+struct Tap {
+    j: u32,
+    nearest: u32,
+    fx: f32,
+    fy: f32,
+    /// The top-left canvas pixel's column and row (`j` split).
+    ix: u16,
+    iy: u16,
+}
+
+impl Tap {
+    /// True when one of the four canvas pixels read lies in `b`.
+    #[inline]
+    fn touches(&self, b: &Bounds) -> bool {
+        let (ix, iy) = (self.ix as usize, self.iy as usize);
+        ix + 1 >= b.x0 && ix <= b.x1 && iy + 1 >= b.y0 && iy <= b.y1
+    }
 }
 
 /// What both eyes share (read-only during a frame).
@@ -164,17 +220,24 @@ struct Shared {
     hand_eye: Isometry3<f64>,
     canvas: Canvas,
     proj: EyeProjection,
-    /// Canvas coordinates of every image pixel (`None`: no distortion, canvas = image).
-    remap: Option<Vec<[f32; 2]>>,
+    /// The bilinear tap of every image pixel into the canvas (`None`: no distortion, canvas =
+    /// image).
+    remap: Option<Vec<Tap>>,
     vignette: Vec<f32>,
-    gauss: Vec<f32>,
-    srgb: Vec<u8>,
+    /// `y/z` of the ray of every canvas row, and `x/z` of every canvas column when the skew
+    /// is zero (`None` otherwise): [`Canvas::ray`] tabulated.
+    ray_y: Vec<f32>,
+    ray_x: Option<Vec<f32>>,
+    gauss: Box<[f32; GAUSS_LUT]>,
+    srgb: Box<[u8; SRGB_LUT]>,
 }
 
 /// The simulated stereo endoscope.
 pub struct StereoRenderer {
     shared: Shared,
     work: [EyeWork; 2],
+    /// The scene at the motion-blur instants of the frame being rendered (reused).
+    states: Vec<(u64, SceneState)>,
 }
 
 const SRGB_LUT: usize = 8192;
@@ -221,6 +284,15 @@ fn gauss_table(n: usize) -> Vec<f32> {
     out.into_iter().map(|v| (v as f64 * s) as f32).collect()
 }
 
+/// A table of `N` entries from `v` (padded with `fill`, or cut, to `N`).
+fn lut<T: Copy, const N: usize>(v: Vec<T>, fill: T) -> Box<[T; N]> {
+    let mut out = Box::new([fill; N]);
+    for (o, x) in out.iter_mut().zip(v) {
+        *o = x;
+    }
+    out
+}
+
 fn srgb_table(n: usize) -> Vec<u8> {
     (0..n)
         .map(|i| {
@@ -245,7 +317,12 @@ fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
 #[inline]
 fn normalize(a: [f32; 3]) -> [f32; 3] {
     let l = dot(a, a).sqrt();
-    if l > 0.0 { [a[0] / l, a[1] / l, a[2] / l] } else { a }
+    if l > 0.0 {
+        let il = 1.0 / l;
+        [a[0] * il, a[1] * il, a[2] * il]
+    } else {
+        a
+    }
 }
 
 /// Per-eye shading constants.
@@ -260,7 +337,7 @@ struct Lighting {
 impl Lighting {
     /// Blinn-Phong factors at camera-frame point `p` with unit normal `n`: the diffuse
     /// factor (ambient plus irradiance × cos) and the specular factor (irradiance × lobe).
-    #[inline]
+    #[inline(always)]
     fn terms(&self, p: [f32; 3], n: [f32; 3], shin: f32) -> (f32, f32) {
         let ip = 1.0 / dot(p, p).sqrt();
         let v = [-p[0] * ip, -p[1] * ip, -p[2] * ip];
@@ -274,8 +351,15 @@ impl Lighting {
         let l = [l[0] * il, l[1] * il, l[2] * il];
         let e = self.e_ref / d2;
         let ndl = dot(n, l).max(0.0);
-        let h = normalize([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
-        let s = if ndl > 0.0 { spec_pow(dot(n, h).max(0.0), shin) * e } else { 0.0 };
+        let s = if ndl > 0.0 {
+            // The half vector h = l + v, normalised in the dot product.
+            let h = [l[0] + v[0], l[1] + v[1], l[2] + v[2]];
+            let hl = dot(h, h).sqrt();
+            let ndh = if hl > 0.0 { dot(n, h) / hl } else { dot(n, h) };
+            spec_pow(ndh.max(0.0), shin) * e
+        } else {
+            0.0
+        };
         (self.ambient + e * ndl, s)
     }
 
@@ -300,7 +384,7 @@ impl Lighting {
     }
 
     /// Blinn-Phong at camera-frame point `p` with unit normal `n`, through the smoke.
-    #[inline]
+    #[inline(always)]
     fn shade(&self, p: [f32; 3], n: [f32; 3], albedo: [f32; 3], spec: [f32; 3], shin: f32) -> [f32; 3] {
         let (d, s) = self.terms(p, n, shin);
         let c = [albedo[0] * d + spec[0] * s, albedo[1] * d + spec[1] * s, albedo[2] * d + spec[2] * s];
@@ -358,10 +442,18 @@ impl StereoRenderer {
             proj,
             remap,
             vignette,
-            gauss: gauss_table(GAUSS_LUT),
-            srgb: srgb_table(SRGB_LUT),
+            ray_y: (0..canvas.h).map(|y| canvas.ray(0.0, y as f32).1).collect(),
+            ray_x: (canvas.skew == 0.0).then(|| (0..canvas.w).map(|x| canvas.ray(x as f32, 0.0).0).collect()),
+            gauss: lut(gauss_table(GAUSS_LUT), 0.0),
+            srgb: lut(srgb_table(SRGB_LUT), 0),
         };
-        Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()] })
+        Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()], states: Vec::new() })
+    }
+
+    /// How many times each eye's tissue was rasterised (the rest of the frames reused it).
+    #[cfg(test)]
+    pub(crate) fn tissue_draws(&self) -> [u64; 2] {
+        [self.work[0].tissue_draws, self.work[1].tissue_draws]
     }
 
     /// The configuration in use.
@@ -400,7 +492,8 @@ impl StereoRenderer {
         let r = &sh.cfg.realism;
         let k_samples = if r.motion_blur.enabled { r.motion_blur.samples } else { 1 };
         let exposure_ns = sh.cfg.timing.exposure_s * 1e9;
-        let mut states: Vec<(u64, SceneState)> = Vec::with_capacity(k_samples);
+        let states = &mut self.states;
+        states.clear();
         for s in 0..k_samples {
             let dt = exposure_ns * ((s as f64 + 0.5) / k_samples as f64 - 0.5);
             let t = if k_samples == 1 { t_mid_ns } else { (t_mid_ns as f64 + dt).round().max(0.0) as u64 };
@@ -416,6 +509,7 @@ impl StereoRenderer {
             }
             states.push((t, st));
         }
+        let states: &[(u64, SceneState)] = states;
         let mid = states[k_samples / 2].1;
         let poses = eye_poses(&sh.hand_eye, sh.cfg.camera.baseline_m, &mid.ecm_joints);
         let light_world = Point3::from((poses[0].translation.vector + poses[1].translation.vector) / 2.0);
@@ -424,8 +518,8 @@ impl StereoRenderer {
         let [t0, t1] = &mut out.truth;
         let seed = sh.cfg.seed;
         rayon::join(
-            || render_eye(sh, w0, Eye::Left, &poses[0], &light_world, &states, seed, t_mid_ns, i0, t0),
-            || render_eye(sh, w1, Eye::Right, &poses[1], &light_world, &states, seed, t_mid_ns, i1, t1),
+            || render_eye(sh, w0, Eye::Left, &poses[0], &light_world, states, seed, t_mid_ns, i0, t0),
+            || render_eye(sh, w1, Eye::Right, &poses[1], &light_world, states, seed, t_mid_ns, i1, t1),
         );
         out.t_mid_ns = t_mid_ns;
         out.ecm_joints = mid.ecm_joints;
@@ -438,11 +532,11 @@ fn eye_poses(hand_eye: &Isometry3<f64>, baseline_m: f64, q: &[f64; 4]) -> [Isome
     [left, left * Translation3::new(baseline_m, 0.0, 0.0)]
 }
 
-/// The canvas (undistorted image covering every ideal pixel the image sees) and, with
-/// distortion, the canvas coordinates of every image pixel.
-/// Canvas coordinates of every image pixel, row-major (`None`: no distortion).
-type Remap = Option<Vec<[f32; 2]>>;
+/// The bilinear taps of every image pixel into the canvas, row-major (`None`: no distortion).
+type Remap = Option<Vec<Tap>>;
 
+/// The canvas (undistorted image covering every ideal pixel the image sees) and, with
+/// distortion, the tap of every image pixel at its undistorted position.
 fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
     let (w, h) = (k.width as usize, k.height as usize);
     let base = |ox: f32, oy: f32, cw: usize, ch: usize| Canvas {
@@ -489,11 +583,23 @@ fn canvas_and_remap(k: &Intrinsics) -> Result<(Canvas, Remap), ConfigError> {
         return Err(ConfigError::Distortion);
     }
     let canvas = base(ox as f32, oy as f32, cw as usize, ch as usize);
+    let (cw, ch) = (canvas.w, canvas.h);
     let mut remap = Vec::with_capacity(w * h);
     for y in 0..h {
         for x in 0..w {
             let ideal = k.undistort_px(&Vector2::new(x as f64, y as f64));
-            remap.push([(ideal.x - ox) as f32, (ideal.y - oy) as f32]);
+            let m = [(ideal.x - ox) as f32, (ideal.y - oy) as f32];
+            let (x, y) = (m[0].clamp(0.0, (cw - 1) as f32), m[1].clamp(0.0, (ch - 1) as f32));
+            let (ix, iy) = ((x as usize).min(cw - 2), (y as usize).min(ch - 2));
+            let nearest = ((y + 0.5) as usize * cw + (x + 0.5) as usize).min(cw * ch - 1);
+            remap.push(Tap {
+                j: (iy * cw + ix) as u32,
+                nearest: nearest as u32,
+                fx: x - ix as f32,
+                fy: y - iy as f32,
+                ix: ix as u16,
+                iy: iy as u16,
+            });
         }
     }
     Ok((canvas, Some(remap)))
@@ -525,6 +631,11 @@ fn render_eye(
     let nc = c.w * c.h;
     let (w, h) = (cfg.camera.intrinsics.width as usize, cfg.camera.intrinsics.height as usize);
     let no = w * h;
+    if wk.depth_t.len() != nc {
+        // First frame: size the buffers (nothing is cached yet).
+        wk.tissue_key = None;
+        wk.dirty.clear();
+    }
     resize(&mut wk.depth_t, nc, f32::INFINITY);
     resize(&mut wk.colour, nc, [0.0; 3]);
     resize(&mut wk.depth_w, nc, f32::INFINITY);
@@ -535,7 +646,7 @@ fn render_eye(
     resize(&mut wk.lab_mid, nc, 0);
     resize(&mut wk.depth_mid, nc, f32::INFINITY);
     resize(&mut wk.out_lin, no, [0.0; 3]);
-    resize(&mut wk.out_depth, no, f32::INFINITY);
+    resize(&mut wk.out_rad, no, 0.0);
     resize(&mut img.rgb, no * 3, 0);
     resize(&mut img.labels, no, 0);
     img.width = w as u32;
@@ -555,51 +666,54 @@ fn render_eye(
         smoke,
     };
 
-    // 1. Tissue.
-    wk.depth_t.fill(f32::INFINITY);
-    let bg = smoke.map(|(_, haze)| haze).unwrap_or([0.0; 3]);
-    wk.colour.fill(bg);
-    // Tissue lighting per vertex (Gouraud: the grid is finer than the light's variation),
-    // interpolated with the texture coordinates; the texture is sampled per pixel.
-    let rot = t_c_e.rotation;
-    let wet = cfg.tissue.wet_specular as f32;
-    wk.verts.clear();
-    for ((p, n), uv) in sh.tissue.positions.iter().zip(&sh.tissue.normals).zip(&sh.tissue.uv) {
-        let pc = t_c_e * Point3::from(*p);
-        let nc3 = rot * n;
-        let p32 = [pc.x as f32, pc.y as f32, pc.z as f32];
-        let (d, s) = if pc.z > 0.0 {
-            lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], TISSUE_SHININESS)
-        } else {
-            (0.0, 0.0)
-        };
-        wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
-    }
-    {
-        let tissue = &sh.tissue;
-        let colour = &mut wk.colour;
-        let mut b = Bounds::EMPTY;
-        let verts = &wk.verts;
-        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
-            let al = tissue.albedo(a[0], a[1]);
-            let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
-            colour[idx] = lighting.haze(c, a[4]);
-        };
-        for t in &tissue.triangles {
-            let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
-            draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+    // 1. Tissue: rasterised and shaded only when the eye pose (and with it the light, rigid
+    // with the endoscope) differs from the cached one, bit for bit; the configuration and
+    // the tissue are fixed for the renderer's life. Either way `colour` and `depth_t` hold
+    // the tissue alone afterwards, `lab_mid` is 0 and `depth_w` equals `depth_t`.
+    let (tq, tt) = (t_c_e.rotation.quaternion().coords, t_c_e.translation.vector);
+    let key = [tq.x, tq.y, tq.z, tq.w, tt.x, tt.y, tt.z, light_c.x, light_c.y, light_c.z].map(f64::to_bits);
+    let hit = wk.tissue_key == Some(key);
+    // The last frame's instruments are taken out again (their colour only matters when the
+    // tissue is kept).
+    for &(i, tissue) in &wk.dirty {
+        let i = i as usize;
+        if hit {
+            wk.colour[i] = tissue;
         }
+        wk.lab_mid[i] = 0;
+    }
+    wk.dirty.clear();
+    if !hit {
+        draw_tissue(sh, wk, &t_c_e, &lighting);
+        wk.tissue_key = Some(key);
+        wk.tissue_draws += 1;
+        wk.depth_w.copy_from_slice(&wk.depth_t);
+        wk.tissue_image = false;
+    }
+    let defocus_on = r.defocus.enabled && r.defocus.aperture_m > 0.0 && r.defocus.max_coc_px > 0.0;
+    let d = &r.defocus;
+    let k_rad = (d.aperture_m as f32) * (cfg.camera.intrinsics.fx as f32) * 0.5; // radius, px, per unit |1/z − 1/zf|
+    let izf = 1.0 / d.focus_distance_m as f32;
+    let rmax = 0.5 * d.max_coc_px as f32;
+    let radius = |z: f32| if z.is_finite() { (k_rad * (1.0 / z - izf).abs()).min(rmax) } else { rmax };
+    // The endoscope held still: the tissue alone is warped once, and the image pixels that
+    // read no pixel the instruments covered take it from there (the same numbers).
+    if let (true, false, Some(map)) = (hit, wk.tissue_image, &sh.remap) {
+        resize(&mut wk.tissue_lin, no, [0.0; 3]);
+        resize(&mut wk.tissue_rad, no, 0.0);
+        for (i, m) in map.iter().enumerate() {
+            wk.tissue_lin[i] = bilinear(&wk.colour, c.w, m);
+            wk.tissue_rad[i] = if defocus_on { radius(wk.depth_t[m.nearest as usize]) } else { 0.0 };
+        }
+        wk.tissue_image = true;
     }
 
     // 2. Instruments, once per motion-blur instant.
     let k_samples = states.len();
     let mid = k_samples / 2;
-    wk.lab_mid.fill(0);
-    wk.depth_mid.copy_from_slice(&wk.depth_t);
     let mut union = Bounds::EMPTY;
     let geometry = &cfg.instrument;
-    // The working depth equals the tissue's outside what the last instant drew.
-    wk.depth_w.copy_from_slice(&wk.depth_t);
+    // The working depth `depth_w` equals the tissue's outside what the last instant drew.
     for (s, (_, st)) in states.iter().enumerate() {
         let mut instruments: [Option<(u8, &InstrumentState)>; 2] = [Some((label::INSTRUMENT, &st.instrument)), None];
         if r.second_instrument {
@@ -607,7 +721,7 @@ fn render_eye(
         }
         // Posed vertices of every part of every instrument.
         wk.ivert.clear();
-        let mut ranges: Vec<(usize, usize, Material, u8)> = Vec::with_capacity(8);
+        wk.ranges.clear();
         for (lab, inst) in instruments.iter().flatten() {
             let poses = geometry.part_poses(inst.wrist_rad, inst.jaw_rad);
             for (pi, (part, m)) in sh.mesh.parts.iter().enumerate() {
@@ -631,17 +745,21 @@ fn render_eye(
                     (Part::Shaft, _) => cfg.materials.shaft,
                     _ => cfg.materials.tip,
                 };
-                ranges.push((start, pi, mat, *lab));
+                wk.ranges.push((start, pi, mat, *lab));
             }
         }
         let mut drawn = Bounds::EMPTY;
-        for &(start, pi, mat, lab) in &ranges {
+        for &(start, pi, mat, lab) in &wk.ranges {
             let m = &sh.mesh.parts[pi].1;
             let (albedo, spec, shin) = mat_f32(&mat, r.specular);
             let verts = &wk.ivert[start..start + m.positions.len()];
             let (s_col, s_lab) = (&mut wk.s_col, &mut wk.s_lab);
+            let (ray_x, ray_y) = (sh.ray_x.as_deref(), &sh.ray_y);
             let mut frag = |idx: usize, x: usize, y: usize, z: f32, a: &[f32; 3]| {
-                let (xn, yn) = c.ray(x as f32, y as f32);
+                let (xn, yn) = match ray_x {
+                    Some(rx) => (rx[x], ray_y[y]),
+                    None => c.ray(x as f32, y as f32),
+                };
                 s_col[idx] = lighting.shade([xn * z, yn * z, z], normalize(*a), albedo, spec, shin);
                 s_lab[idx] = lab;
             };
@@ -655,24 +773,30 @@ fn render_eye(
         }
         union = union.union(&drawn);
         for y in drawn.y0..=drawn.y1 {
-            for i in y * c.w + drawn.x0..=y * c.w + drawn.x1 {
-                let l = wk.s_lab[i];
-                if l != 0 {
-                    let sc = wk.s_col[i];
-                    let a = &mut wk.acc[i];
+            let row = y * c.w;
+            let span = row + drawn.x0..=row + drawn.x1;
+            let labs = &mut wk.s_lab[span.clone()];
+            let cols = &wk.s_col[span.clone()];
+            let accs = &mut wk.acc[span.clone()];
+            let cnts = &mut wk.cnt[span];
+            for (o, l) in labs.iter_mut().enumerate() {
+                if *l != 0 {
+                    let sc = cols[o];
+                    let a = &mut accs[o];
                     a[0] += sc[0];
                     a[1] += sc[1];
                     a[2] += sc[2];
-                    wk.cnt[i] += 1;
+                    cnts[o] += 1;
+                    let i = row + drawn.x0 + o;
                     if s == mid {
-                        wk.lab_mid[i] = l;
+                        wk.lab_mid[i] = *l;
                         wk.depth_mid[i] = wk.depth_w[i];
                     }
-                    wk.s_lab[i] = 0;
+                    // Drawn: the working depth back to the tissue's.
+                    wk.depth_w[i] = wk.depth_t[i];
+                    *l = 0;
                 }
             }
-            let row = y * c.w;
-            wk.depth_w[row + drawn.x0..=row + drawn.x1].copy_from_slice(&wk.depth_t[row + drawn.x0..=row + drawn.x1]);
         }
     }
     // Composite: each instant covers a pixel with the instrument or leaves the tissue.
@@ -684,6 +808,7 @@ fn render_eye(
                 if n != 0 {
                     let rest = (k_samples - n as usize) as f32;
                     let (t, a) = (wk.colour[i], wk.acc[i]);
+                    wk.dirty.push((i as u32, t));
                     wk.colour[i] =
                         [(t[0] * rest + a[0]) * inv_k, (t[1] * rest + a[1]) * inv_k, (t[2] * rest + a[2]) * inv_k];
                     wk.acc[i] = [0.0; 3];
@@ -693,41 +818,63 @@ fn render_eye(
         }
     }
 
-    // 3. Lens distortion: canvas → image.
+    // 3. Lens distortion: canvas → image (bilinear colour; nearest labels and depth, the
+    // depth kept as the defocus radius).
+    let mut blurred = false;
     match &sh.remap {
         None => {
             wk.out_lin.copy_from_slice(&wk.colour);
-            wk.out_depth.copy_from_slice(&wk.depth_mid);
             img.labels.copy_from_slice(&wk.lab_mid);
+            if defocus_on {
+                for (i, o) in wk.out_rad.iter_mut().enumerate() {
+                    let z = if wk.lab_mid[i] != 0 { wk.depth_mid[i] } else { wk.depth_t[i] };
+                    *o = radius(z);
+                    blurred |= *o > 0.35;
+                }
+            }
         }
         Some(map) => {
+            let kept = hit && wk.tissue_image;
             for (i, m) in map.iter().enumerate() {
-                let (x, y) = (m[0].clamp(0.0, (c.w - 1) as f32), m[1].clamp(0.0, (c.h - 1) as f32));
-                let (ix, iy) = ((x as usize).min(c.w - 2), (y as usize).min(c.h - 2));
-                let (fx, fy) = (x - ix as f32, y - iy as f32);
-                let j = iy * c.w + ix;
-                let (a, b, cc, d) = (wk.colour[j], wk.colour[j + 1], wk.colour[j + c.w], wk.colour[j + c.w + 1]);
-                let mut o = [0.0f32; 3];
-                for k in 0..3 {
-                    let top = a[k] + (b[k] - a[k]) * fx;
-                    let bot = cc[k] + (d[k] - cc[k]) * fx;
-                    o[k] = top + (bot - top) * fy;
+                if kept && !m.touches(&union) {
+                    wk.out_lin[i] = wk.tissue_lin[i];
+                    img.labels[i] = label::BACKGROUND;
+                    if defocus_on {
+                        let rr = wk.tissue_rad[i];
+                        wk.out_rad[i] = rr;
+                        blurred |= rr > 0.35;
+                    }
+                    continue;
                 }
-                wk.out_lin[i] = o;
-                let nearest = (y + 0.5) as usize * c.w + (x + 0.5) as usize;
-                let nearest = nearest.min(nc - 1);
-                wk.out_depth[i] = wk.depth_mid[nearest];
-                img.labels[i] = wk.lab_mid[nearest];
+                wk.out_lin[i] = bilinear(&wk.colour, c.w, m);
+                let nearest = m.nearest as usize;
+                let l = wk.lab_mid[nearest];
+                img.labels[i] = l;
+                if defocus_on {
+                    let rr = radius(if l != 0 { wk.depth_mid[nearest] } else { wk.depth_t[nearest] });
+                    wk.out_rad[i] = rr;
+                    blurred |= rr > 0.35;
+                }
             }
         }
     }
 
-    // 4. Defocus.
-    if r.defocus.enabled && r.defocus.aperture_m > 0.0 && r.defocus.max_coc_px > 0.0 {
-        defocus(wk, w, h, cfg.camera.intrinsics.fx as f32, &r.defocus);
+    // 4. Defocus: the pyramid of blurred levels, each blurred pixel interpolating between
+    // the two levels around its circle.
+    if defocus_on && blurred {
+        let dims = defocus_levels(wk, w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let rr = wk.out_rad[i];
+                if rr > 0.35 {
+                    wk.out_lin[i] = defocus_gather(wk, &dims, wk.out_lin[i], rr, x, y);
+                }
+            }
+        }
     }
 
-    // 5. Vignetting, noise, sRGB.
+    // 5. Vignetting, noise, sRGB, row by row.
     let noise =
         r.noise.enabled.then_some((r.noise.full_well_e as f32, (r.noise.read_noise_e * r.noise.read_noise_e) as f32));
     let eye_key = match eye {
@@ -735,23 +882,38 @@ fn render_eye(
         Eye::Right => 0x5249_4748u64,
     };
     let lut_max = (SRGB_LUT - 1) as f32;
+    // ⌊clamp(c, 0, 1)·lut_max + ½⌋ as ⌊c·lut_max + ½⌋ clamped to the table (the same index:
+    // the truncation toward zero sends (−1, ½) to 0, and NaN goes to 0 either way).
+    let srgb = |c: f32| sh.srgb[((c * lut_max + 0.5) as i32).clamp(0, SRGB_LUT as i32 - 1) as usize];
     for y in 0..h {
-        let mut rng =
-            ChaCha8Rng::seed_from_u64(splitmix(seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32)))));
-        for x in 0..w {
-            let i = y * w + x;
-            let g = sh.vignette[i];
-            let mut v = wk.out_lin[i].map(|c| c * g);
-            if let Some((fw, read2)) = noise {
-                let bits = rng.next_u64();
-                for (k, c) in v.iter_mut().enumerate() {
-                    let n = sh.gauss[((bits >> (16 * k + 4)) & 0xFFF) as usize];
+        let row = y * w;
+        let rgb = &mut img.rgb[3 * row..3 * (row + w)];
+        let lin = &wk.out_lin[row..row + w];
+        let vig = &sh.vignette[row..row + w];
+        match noise {
+            Some((fw, read2)) => {
+                let mut rng = ChaCha8Rng::seed_from_u64(splitmix(
+                    seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32))),
+                ));
+                let gauss = &sh.gauss;
+                let noisy = |c: f32, bits: u64| {
+                    let n = gauss[(bits & 0xFFF) as usize];
                     let e = c.max(0.0) * fw;
-                    *c += (e + read2).sqrt() / fw * n;
+                    c + (e + read2).sqrt() / fw * n
+                };
+                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
+                    let bits = rng.next_u64();
+                    out[0] = srgb(noisy(v[0] * g, bits >> 4));
+                    out[1] = srgb(noisy(v[1] * g, bits >> 20));
+                    out[2] = srgb(noisy(v[2] * g, bits >> 36));
                 }
             }
-            for (k, c) in v.iter().enumerate() {
-                img.rgb[3 * i + k] = sh.srgb[(c.clamp(0.0, 1.0) * lut_max + 0.5) as usize];
+            None => {
+                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
+                    out[0] = srgb(v[0] * g);
+                    out[1] = srgb(v[1] * g);
+                    out[2] = srgb(v[2] * g);
+                }
             }
         }
     }
@@ -769,6 +931,59 @@ fn render_eye(
     }
 }
 
+/// Bilinear sample of a canvas (`cw` pixels wide) at an image pixel's tap.
+#[inline(always)]
+fn bilinear(colour: &[[f32; 3]], cw: usize, m: &Tap) -> [f32; 3] {
+    let j = m.j as usize;
+    let quad = &colour[j..j + cw + 2];
+    let (a, b, cc, dd) = (quad[0], quad[1], quad[cw], quad[cw + 1]);
+    let mut o = [0.0f32; 3];
+    for k in 0..3 {
+        let top = a[k] + (b[k] - a[k]) * m.fx;
+        let bot = cc[k] + (dd[k] - cc[k]) * m.fx;
+        o[k] = top + (bot - top) * m.fy;
+    }
+    o
+}
+
+/// Rasterises and shades the tissue seen from camera pose `t_c_e` into `wk.depth_t` and
+/// `wk.colour` (canvas).
+fn draw_tissue(sh: &Shared, wk: &mut EyeWork, t_c_e: &Isometry3<f64>, lighting: &Lighting) {
+    let c = sh.canvas;
+    wk.depth_t.fill(f32::INFINITY);
+    let bg = lighting.smoke.map(|(_, haze)| haze).unwrap_or([0.0; 3]);
+    wk.colour.fill(bg);
+    // Tissue lighting per vertex (Gouraud: the grid is finer than the light's variation),
+    // interpolated with the texture coordinates; the texture is sampled per pixel.
+    let rot = t_c_e.rotation;
+    let wet = sh.cfg.tissue.wet_specular as f32;
+    wk.verts.clear();
+    for ((p, n), uv) in sh.tissue.positions.iter().zip(&sh.tissue.normals).zip(&sh.tissue.uv) {
+        let pc = t_c_e * Point3::from(*p);
+        let nc3 = rot * n;
+        let p32 = [pc.x as f32, pc.y as f32, pc.z as f32];
+        let (d, s) = if pc.z > 0.0 {
+            lighting.terms(p32, [nc3.x as f32, nc3.y as f32, nc3.z as f32], TISSUE_SHININESS)
+        } else {
+            (0.0, 0.0)
+        };
+        wk.verts.push(Vtx { p: p32, a: [uv[0], uv[1], d, s * wet, lighting.transmittance(p32[2].max(0.0))] });
+    }
+    let tissue = &sh.tissue;
+    let colour = &mut wk.colour;
+    let mut b = Bounds::EMPTY;
+    let verts = &wk.verts;
+    let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
+        let al = tissue.albedo(a[0], a[1]);
+        let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+        colour[idx] = lighting.haze(c, a[4]);
+    };
+    for t in &tissue.triangles {
+        let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+        draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+    }
+}
+
 /// 2×2 box down-sampling then a [1 2 1]/4 blur in both directions.
 fn down_blur(
     src: &[[f32; 3]],
@@ -782,10 +997,12 @@ fn down_blur(
     resize(tmp, dw * dh, [0.0; 3]);
     for y in 0..dh {
         let (y0, y1) = (2 * y, (2 * y + 1).min(sh - 1));
-        for x in 0..dw {
+        let (r0, r1) = (&src[y0 * sw..(y0 + 1) * sw], &src[y1 * sw..(y1 + 1) * sw]);
+        let out = &mut tmp[y * dw..(y + 1) * dw];
+        for (x, o) in out.iter_mut().enumerate() {
             let (x0, x1) = (2 * x, (2 * x + 1).min(sw - 1));
-            let (a, b, c, d) = (src[y0 * sw + x0], src[y0 * sw + x1], src[y1 * sw + x0], src[y1 * sw + x1]);
-            tmp[y * dw + x] = [
+            let (a, b, c, d) = (r0[x0], r0[x1], r1[x0], r1[x1]);
+            *o = [
                 0.25 * (a[0] + b[0] + c[0] + d[0]),
                 0.25 * (a[1] + b[1] + c[1] + d[1]),
                 0.25 * (a[2] + b[2] + c[2] + d[2]),
@@ -794,10 +1011,11 @@ fn down_blur(
     }
     // Horizontal [1 2 1] into dst, vertical back into tmp, swap.
     for y in 0..dh {
-        let row = y * dw;
-        for x in 0..dw {
-            let (l, m, r) = (tmp[row + x.saturating_sub(1)], tmp[row + x], tmp[row + (x + 1).min(dw - 1)]);
-            dst[row + x] = [
+        let src_row = &tmp[y * dw..(y + 1) * dw];
+        let out = &mut dst[y * dw..(y + 1) * dw];
+        for (x, o) in out.iter_mut().enumerate() {
+            let (l, m, r) = (src_row[x.saturating_sub(1)], src_row[x], src_row[(x + 1).min(dw - 1)]);
+            *o = [
                 0.25 * (l[0] + 2.0 * m[0] + r[0]),
                 0.25 * (l[1] + 2.0 * m[1] + r[1]),
                 0.25 * (l[2] + 2.0 * m[2] + r[2]),
@@ -806,10 +1024,11 @@ fn down_blur(
     }
     for y in 0..dh {
         let (up, dn) = (y.saturating_sub(1) * dw, (y + 1).min(dh - 1) * dw);
-        let row = y * dw;
-        for x in 0..dw {
-            let (u, m, d) = (dst[up + x], dst[row + x], dst[dn + x]);
-            tmp[row + x] = [
+        let (ru, rm, rd) = (&dst[up..up + dw], &dst[y * dw..(y + 1) * dw], &dst[dn..dn + dw]);
+        let out = &mut tmp[y * dw..(y + 1) * dw];
+        for (x, o) in out.iter_mut().enumerate() {
+            let (u, m, d) = (ru[x], rm[x], rd[x]);
+            *o = [
                 0.25 * (u[0] + 2.0 * m[0] + d[0]),
                 0.25 * (u[1] + 2.0 * m[1] + d[1]),
                 0.25 * (u[2] + 2.0 * m[2] + d[2]),
@@ -820,13 +1039,41 @@ fn down_blur(
     (dw, dh)
 }
 
+/// Where image coordinate `x` (pixel centre) falls in a level `scale` times smaller with
+/// `n` samples: the sample before, the one after and the weight of the latter.
+fn level_taps(out: &mut Vec<(u32, u32, f32)>, len: usize, n: usize, scale: f32) {
+    out.clear();
+    for x in 0..len {
+        let f = ((x as f32 + 0.5) / scale - 0.5).clamp(0.0, (n - 1) as f32);
+        let i = f as usize;
+        out.push((i as u32, (i + 1).min(n - 1) as u32, f - i as f32));
+    }
+}
+
+/// The defocus pyramid: three levels (radius ≈ 1, 2, 4 px) of `wk.out_lin` in `wk.levels`
+/// and their sampling positions; returns the levels' sizes.
+fn defocus_levels(wk: &mut EyeWork, w: usize, h: usize) -> [(usize, usize); 3] {
+    let [l1, l2, l3] = &mut wk.levels;
+    let d1 = down_blur(&wk.out_lin, w, h, l1, &mut wk.tmp);
+    let d2 = down_blur(l1, d1.0, d1.1, l2, &mut wk.tmp);
+    let d3 = down_blur(l2, d2.0, d2.1, l3, &mut wk.tmp);
+    let dims = [d1, d2, d3];
+    for (n, &(lw, lh)) in dims.iter().enumerate() {
+        let scale = (2u32 << n) as f32;
+        level_taps(&mut wk.taps_x[n], w, lw, scale);
+        level_taps(&mut wk.taps_y[n], h, lh, scale);
+    }
+    dims
+}
+
+/// Bilinear sample of pyramid level `n` (1, 2 or 3) at image pixel `(x, y)`.
 #[inline]
-fn sample_level(l: &[[f32; 3]], lw: usize, lh: usize, scale: f32, x: usize, y: usize) -> [f32; 3] {
-    let fx = ((x as f32 + 0.5) / scale - 0.5).clamp(0.0, (lw - 1) as f32);
-    let fy = ((y as f32 + 0.5) / scale - 0.5).clamp(0.0, (lh - 1) as f32);
-    let (ix, iy) = (fx as usize, fy as usize);
-    let (ix1, iy1) = ((ix + 1).min(lw - 1), (iy + 1).min(lh - 1));
-    let (tx, ty) = (fx - ix as f32, fy - iy as f32);
+fn sample_level(wk: &EyeWork, dims: &[(usize, usize); 3], n: usize, x: usize, y: usize) -> [f32; 3] {
+    let l = &wk.levels[n - 1];
+    let lw = dims[n - 1].0;
+    let (ix, ix1, tx) = wk.taps_x[n - 1][x];
+    let (iy, iy1, ty) = wk.taps_y[n - 1][y];
+    let (ix, ix1, iy, iy1) = (ix as usize, ix1 as usize, iy as usize, iy1 as usize);
     let (a, b, c, d) = (l[iy * lw + ix], l[iy * lw + ix1], l[iy1 * lw + ix], l[iy1 * lw + ix1]);
     let mut o = [0.0; 3];
     for k in 0..3 {
@@ -837,53 +1084,28 @@ fn sample_level(l: &[[f32; 3]], lw: usize, lh: usize, scale: f32, x: usize, y: u
     o
 }
 
-/// Depth-dependent defocus: a pyramid of blurred levels (radius ≈ 1, 2, 4 px), each pixel
-/// interpolating between the two levels around its circle of confusion (a gather blur:
-/// a pixel's blur follows its own depth, so a blurred edge does not spread onto a sharp
-/// background).
-fn defocus(wk: &mut EyeWork, w: usize, h: usize, fx: f32, d: &super::config::DefocusConfig) {
-    let k = (d.aperture_m as f32) * fx * 0.5; // radius, pixels, per unit |1/z − 1/zf|
-    let izf = 1.0 / d.focus_distance_m as f32;
-    let rmax = 0.5 * d.max_coc_px as f32;
-    let radius = |z: f32| if z.is_finite() { (k * (1.0 / z - izf).abs()).min(rmax) } else { rmax };
-    if !wk.out_depth.iter().any(|&z| radius(z) > 0.35) {
-        return;
-    }
-    let [l1, l2, l3] = &mut wk.levels;
-    let (w1, h1) = down_blur(&wk.out_lin, w, h, l1, &mut wk.tmp);
-    let (w2, h2) = down_blur(l1, w1, h1, l2, &mut wk.tmp);
-    let (w3, h3) = down_blur(l2, w2, h2, l3, &mut wk.tmp);
+/// Depth-dependent defocus of one pixel (linear colour `own`, circle radius `rr` pixels):
+/// interpolation between the two pyramid levels around its circle of confusion (a gather
+/// blur: a pixel's blur follows its own depth, so a blurred edge does not spread onto a
+/// sharp background).
+#[inline]
+fn defocus_gather(wk: &EyeWork, dims: &[(usize, usize); 3], own: [f32; 3], rr: f32, x: usize, y: usize) -> [f32; 3] {
     const R: [f32; 4] = [0.0, 1.0, 2.0, 4.0];
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let rr = radius(wk.out_depth[i]);
-            if rr <= 0.35 {
-                continue;
-            }
-            let lvl = |n: usize, out: &[[f32; 3]]| match n {
-                0 => out[i],
-                1 => sample_level(l1, w1, h1, 2.0, x, y),
-                2 => sample_level(l2, w2, h2, 4.0, x, y),
-                _ => sample_level(l3, w3, h3, 8.0, x, y),
-            };
-            let n = if rr < R[1] {
-                0
-            } else if rr < R[2] {
-                1
-            } else if rr < R[3] {
-                2
-            } else {
-                3
-            };
-            let v = if n == 3 {
-                lvl(3, &wk.out_lin)
-            } else {
-                let t = (rr - R[n]) / (R[n + 1] - R[n]);
-                let (a, b) = (lvl(n, &wk.out_lin), lvl(n + 1, &wk.out_lin));
-                [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
-            };
-            wk.out_lin[i] = v;
-        }
+    let lvl = |n: usize| if n == 0 { own } else { sample_level(wk, dims, n, x, y) };
+    let n = if rr < R[1] {
+        0
+    } else if rr < R[2] {
+        1
+    } else if rr < R[3] {
+        2
+    } else {
+        3
+    };
+    if n == 3 {
+        lvl(3)
+    } else {
+        let t = (rr - R[n]) / (R[n + 1] - R[n]);
+        let (a, b) = (lvl(n), lvl(n + 1));
+        [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
     }
 }

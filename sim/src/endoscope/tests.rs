@@ -79,6 +79,35 @@ fn same_seed_same_bytes_other_seed_other_noise() {
     assert_eq!(e.render(0, &|_| st).unwrap().images, e.render(33_000_000, &|_| st).unwrap().images);
 }
 
+#[test]
+fn cached_tissue_gives_the_same_bytes_as_a_fresh_render() {
+    // The endoscope held still for a few frames while the instruments move, then moved, then
+    // still again: a renderer that keeps its tissue between frames renders every frame
+    // exactly as a fresh renderer does (second instrument and smoke on: every path).
+    let mut realism = RealismConfig { second_instrument: true, ..RealismConfig::default() };
+    realism.smoke.enabled = true;
+    for distorted in [true, false] {
+        let cfg = small(realism, distorted);
+        let held = demo(0).ecm_joints;
+        let scene = |t: u64| {
+            let mut s = demo(t);
+            if !(700_000_000..900_000_000).contains(&t) {
+                s.ecm_joints = held;
+            }
+            s
+        };
+        let mut kept = renderer(cfg.clone());
+        let times: Vec<u64> = (0..8u64).map(|i| 400_000_000 + i * 100_000_000).collect();
+        for &t in &times {
+            let f = kept.render(t, &scene).unwrap();
+            let fresh = renderer(cfg.clone()).render(t, &scene).unwrap();
+            assert_eq!(f, fresh, "t {t} distorted {distorted}");
+        }
+        // 8 frames, the endoscope moving for 2 of them (t = 0.7 s and 0.8 s) and back: 4 draws.
+        assert_eq!(kept.tissue_draws(), [4, 4], "distorted {distorted}");
+    }
+}
+
 fn label_at(f: &StereoFrame, eye: usize, p: [f64; 2]) -> Option<u8> {
     let img = &f.images[eye];
     let (x, y) = (p[0].round(), p[1].round());

@@ -94,8 +94,10 @@ pub struct Tissue {
     pub texture_px: usize,
     /// Linear albedo per texel (RGB ×255, A unused), row-major, `v` down the rows.
     pub texture: Vec<[u8; 4]>,
-    /// The same texels packed little-endian into `u32` (R in the low byte).
-    packed: Vec<u32>,
+    /// The same texels with one 16-bit lane per channel (R in the low lane), for bilinear
+    /// lookups four channels at a time; one more column and row repeat the last ones, so
+    /// that the four texels of a lookup are always there (`(texture_px + 1)²` entries).
+    packed: Vec<u64>,
 }
 
 impl Tissue {
@@ -138,41 +140,52 @@ impl Tissue {
             let c = FLAT_ALBEDO.map(|c| (c * 255.0).round() as u8);
             vec![[c[0], c[1], c[2], 255]]
         };
-        let packed = texture.iter().map(|t| u32::from_le_bytes(*t)).collect();
+        let mut packed = Vec::with_capacity((texture_px + 1) * (texture_px + 1));
+        for j in 0..=texture_px {
+            let row = &texture[j.min(texture_px - 1) * texture_px..][..texture_px];
+            packed.extend(row.iter().map(|t| spread(*t)));
+            packed.push(spread(row[texture_px - 1]));
+        }
         Self { positions, normals, uv, triangles, texture_px, texture, packed }
     }
 
     /// Bilinear albedo (linear RGB) at texture coordinates `(s, t)` (clamped to the edge);
-    /// 8-bit weights, two channels per integer operation.
+    /// 8-bit weights, the four channels in one integer operation.
     #[inline]
     pub fn albedo(&self, s: f32, t: f32) -> [f32; 3] {
         let n = self.texture_px;
-        let c = if n == 1 {
-            self.packed[0]
-        } else {
-            let x = (s * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
-            let y = (t * n as f32 - 0.5).clamp(0.0, (n - 1) as f32);
-            let (ix, iy) = (x as usize, y as usize);
-            let (wx, wy) = (((x - ix as f32) * 256.0) as u32, ((y - iy as f32) * 256.0) as u32);
-            let ix1 = (ix + 1).min(n - 1);
-            let iy1 = (iy + 1).min(n - 1);
-            let p = &self.packed;
-            let top = lerp_packed(p[iy * n + ix], p[iy * n + ix1], wx);
-            let bot = lerp_packed(p[iy1 * n + ix], p[iy1 * n + ix1], wx);
-            lerp_packed(top, bot, wy)
-        };
+        // In 1/256 texel, clamped to the edge texels' centres: the integer part is the texel,
+        // the low byte the weight. The same numbers as clamping x = s·n − ½ to [0, n − 1]
+        // first (x·256 is exact in f32, truncation sends (−1, 0) to 0, NaN goes to 0).
+        let fix = |s: f32| ((s * n as f32 - 0.5) * 256.0) as i32;
+        let max = (n as i32 - 1) * 256;
+        let (fx, fy) = (fix(s).clamp(0, max) as u32, fix(t).clamp(0, max) as u32);
+        let (ix, iy) = ((fx >> 8) as usize, (fy >> 8) as usize);
+        let (wx, wy) = (fx & 0xFF, fy & 0xFF);
+        // The four texels (the padding column and row stand in at the edges, with weight 0).
+        let stride = n + 1;
+        let quad = &self.packed[iy * stride + ix..][..stride + 2];
+        let top = lerp_packed(quad[0], quad[1], wx);
+        let bot = lerp_packed(quad[stride], quad[stride + 1], wx);
+        let c = lerp_packed(top, bot, wy);
         const K: f32 = 1.0 / 255.0;
-        [(c & 0xFF) as f32 * K, ((c >> 8) & 0xFF) as f32 * K, ((c >> 16) & 0xFF) as f32 * K]
+        // Each lane holds a byte value: the low byte of the shifted lane is all of it.
+        [c as u8 as f32 * K, (c >> 16) as u8 as f32 * K, (c >> 32) as u8 as f32 * K]
     }
 }
 
-/// `a + (b − a)·w/256` on the four bytes of packed RGBA texels.
+/// An RGBA texel with each 8-bit channel in its own 16-bit lane of a `u64` (R lowest).
+fn spread(t: [u8; 4]) -> u64 {
+    t.iter().enumerate().fold(0u64, |acc, (k, &v)| acc | (v as u64) << (16 * k))
+}
+
+/// `⌊(a·(256 − w) + b·w) / 256⌋` on each lane of spread texels (`w ≤ 256`): the sums stay
+/// below 2¹⁶, so the lanes never carry into each other.
 #[inline]
-fn lerp_packed(a: u32, b: u32, w: u32) -> u32 {
-    let iw = 256 - w;
-    let rb = (((a & 0x00FF_00FF) * iw + (b & 0x00FF_00FF) * w) >> 8) & 0x00FF_00FF;
-    let ag = (((a >> 8) & 0x00FF_00FF) * iw + ((b >> 8) & 0x00FF_00FF) * w) & 0xFF00_FF00;
-    rb | ag
+fn lerp_packed(a: u64, b: u64, w: u32) -> u64 {
+    const LANES: u64 = 0x00FF_00FF_00FF_00FF;
+    let (w, iw) = (w as u64, 256 - w as u64);
+    ((a * iw + b * w) >> 8) & LANES
 }
 
 fn lerp3(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {

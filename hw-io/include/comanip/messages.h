@@ -1,0 +1,73 @@
+/* comanip's shared-memory messages as C declarations (C11; C++ compatible).
+ *
+ * - FulcrumSample: fulcrumd's output, service "comanip/fulcrum", iceoryx2 type name
+ *   "comanip::FulcrumSample", 200 bytes, alignment 8 (docs/output.md).
+ * - comanip_frame_header_t: the user header of the frame service
+ *   "comanip/frames/endoscope", iceoryx2 type name "comanip::FrameHeader", 72 bytes,
+ *   alignment 8; the payload is the frame's pixels as a slice of bytes (docs/frames.md).
+ *
+ * Units and frames are in each field's comment. hw-io/tests/c_layout.rs compiles this header
+ * and checks every offset, the sizes and the alignments against the Rust types, and that the
+ * declarations quoted in docs/output.md and docs/frames.md are the ones here.
+ */
+#ifndef COMANIP_MESSAGES_H
+#define COMANIP_MESSAGES_H
+
+#include <stdint.h>
+
+#define FULCRUM_SAMPLE_VERSION 1u
+#define FULCRUM_STATE_INVALID 0u
+#define FULCRUM_STATE_OUTSIDE 1u
+#define FULCRUM_STATE_INSIDE 2u
+
+typedef struct FulcrumSample {
+    uint32_t version;               /*   0: FULCRUM_SAMPLE_VERSION */
+    uint32_t state;                 /*   4: FULCRUM_STATE_* */
+    uint64_t sequence;              /*   8: cycle number since the daemon started */
+    uint64_t run_id;                /*  16: random per daemon start */
+    uint64_t timestamp_ns;          /*  24: SYNC instant, CLOCK_MONOTONIC, ns */
+    uint32_t health;                /*  32: health flags */
+    uint32_t trocar_id;             /*  36: trocar while inside, else 0 */
+    double fulcrum_base_m[3];       /*  40: m, base frame */
+    double residual_m;              /*  64: m */
+    double fulcrum_std_m;           /*  72: m */
+    double conditioning;            /*  80: dimensionless, 0..2/3 */
+    double wrist_base_m[3];         /*  88: m, base frame */
+    double axis_base[3];            /* 112: unit vector, base frame */
+    double joints_rad[6];           /* 136: rad, joints 1..6 */
+    uint16_t window_fill;           /* 184: lines */
+    uint16_t window_len;            /* 186: lines */
+    uint16_t fit_lines;             /* 188: lines */
+    uint16_t reserved;              /* 190: zero */
+    uint32_t wake_late_ns;          /* 192: ns */
+    uint32_t prev_cycle_compute_ns; /* 196: ns */
+} FulcrumSample;
+
+_Static_assert(sizeof(FulcrumSample) == 200, "FulcrumSample layout");
+_Static_assert(_Alignof(FulcrumSample) == 8, "FulcrumSample alignment");
+
+#define COMANIP_FRAME_HEADER_VERSION 1u
+#define COMANIP_PIXEL_GRAY8 1u /* 1 byte per pixel */
+#define COMANIP_PIXEL_RGB8  2u /* R, G, B: 3 bytes per pixel, sRGB */
+#define COMANIP_PIXEL_YUYV  3u /* V4L2 YUYV 4:2:2: Y0 U Y1 V per two pixels, even width */
+
+typedef struct {
+    uint32_t version;        /*  0: COMANIP_FRAME_HEADER_VERSION */
+    uint32_t camera_id;      /*  4: camera rig id (0: the first endoscope) */
+    uint64_t sequence;       /*  8: 0 for the publisher run's first frame, +1 per frame */
+    uint64_t run_id;         /* 16: random per publisher start */
+    uint64_t timestamp_ns;   /* 24: mid time of the exposure, CLOCK_MONOTONIC, ns */
+    uint32_t exposure_ns;    /* 32: exposure time, ns (0: unknown) */
+    uint32_t eyes;           /* 36: 1 mono, 2 stereo (left first) */
+    uint32_t width;          /* 40: pixels, each eye */
+    uint32_t height;         /* 44: pixels, each eye */
+    uint32_t stride;         /* 48: bytes from one row to the next */
+    uint32_t pixel_format;   /* 52: COMANIP_PIXEL_* */
+    uint64_t payload_bytes;  /* 56: eyes * stride * height */
+    uint64_t source_dropped; /* 64: frames the source lost so far (cumulative, this run) */
+} comanip_frame_header_t;    /* sizeof 72, alignof 8 */
+
+_Static_assert(sizeof(comanip_frame_header_t) == 72, "comanip_frame_header_t layout");
+_Static_assert(_Alignof(comanip_frame_header_t) == 8, "comanip_frame_header_t alignment");
+
+#endif /* COMANIP_MESSAGES_H */

@@ -185,6 +185,10 @@ struct EyeWork {
     /// Level sampling positions per image column and row (index, next index, weight).
     taps_x: [Vec<(u32, u32, f32)>; 3],
     taps_y: [Vec<(u32, u32, f32)>; 3],
+    /// One image row's signal and noise draws, a float per channel (work buffers).
+    row_val: Vec<f32>,
+    row_noise: Vec<f32>,
+    row_idx: Vec<i32>,
     verts: Vec<Vtx<5>>,
     ivert: Vec<Vtx<3>>,
     ranges: Vec<(usize, usize, Material, u8)>,
@@ -223,7 +227,8 @@ struct Shared {
     /// The bilinear tap of every image pixel into the canvas (`None`: no distortion, canvas =
     /// image).
     remap: Option<Vec<Tap>>,
-    vignette: Vec<f32>,
+    /// The vignetting factor of every image pixel, repeated for its three channels.
+    vignette3: Vec<f32>,
     /// `y/z` of the ray of every canvas row, and `x/z` of every canvas column when the skew
     /// is zero (`None` otherwise): [`Canvas::ray`] tabulated.
     ray_y: Vec<f32>,
@@ -441,7 +446,7 @@ impl StereoRenderer {
             canvas,
             proj,
             remap,
-            vignette,
+            vignette3: vignette.iter().flat_map(|&v| [v; 3]).collect(),
             ray_y: (0..canvas.h).map(|y| canvas.ray(0.0, y as f32).1).collect(),
             ray_x: (canvas.skew == 0.0).then(|| (0..canvas.w).map(|x| canvas.ray(x as f32, 0.0).0).collect()),
             gauss: lut(gauss_table(GAUSS_LUT), 0.0),
@@ -882,39 +887,49 @@ fn render_eye(
         Eye::Right => 0x5249_4748u64,
     };
     let lut_max = (SRGB_LUT - 1) as f32;
-    // ⌊clamp(c, 0, 1)·lut_max + ½⌋ as ⌊c·lut_max + ½⌋ clamped to the table (the same index:
-    // the truncation toward zero sends (−1, ½) to 0, and NaN goes to 0 either way).
-    let srgb = |c: f32| sh.srgb[((c * lut_max + 0.5) as i32).clamp(0, SRGB_LUT as i32 - 1) as usize];
+    // The signal of a row, one float per channel: vignetted, then noisy (the same operations
+    // as per pixel, in loops the compiler vectorises), then to sRGB bytes.
+    resize(&mut wk.row_val, 3 * w, 0.0);
+    resize(&mut wk.row_noise, 3 * w, 0.0);
+    resize(&mut wk.row_idx, 3 * w, 0);
     for y in 0..h {
         let row = y * w;
         let rgb = &mut img.rgb[3 * row..3 * (row + w)];
-        let lin = &wk.out_lin[row..row + w];
-        let vig = &sh.vignette[row..row + w];
+        let lin = wk.out_lin[row..row + w].as_flattened();
+        let vig = &sh.vignette3[3 * row..3 * (row + w)];
+        let val = &mut wk.row_val[..3 * w];
         match noise {
             Some((fw, read2)) => {
                 let mut rng = ChaCha8Rng::seed_from_u64(splitmix(
                     seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32))),
                 ));
                 let gauss = &sh.gauss;
-                let noisy = |c: f32, bits: u64| {
-                    let n = gauss[(bits & 0xFFF) as usize];
-                    let e = c.max(0.0) * fw;
-                    c + (e + read2).sqrt() / fw * n
-                };
-                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
+                for nk in wk.row_noise[..3 * w].chunks_exact_mut(3) {
                     let bits = rng.next_u64();
-                    out[0] = srgb(noisy(v[0] * g, bits >> 4));
-                    out[1] = srgb(noisy(v[1] * g, bits >> 20));
-                    out[2] = srgb(noisy(v[2] * g, bits >> 36));
+                    nk[0] = gauss[((bits >> 4) & 0xFFF) as usize];
+                    nk[1] = gauss[((bits >> 20) & 0xFFF) as usize];
+                    nk[2] = gauss[((bits >> 36) & 0xFFF) as usize];
+                }
+                for (((o, &v), &g), &n) in val.iter_mut().zip(lin).zip(vig).zip(&wk.row_noise[..3 * w]) {
+                    let c = v * g;
+                    let e = c.max(0.0) * fw;
+                    *o = c + (e + read2).sqrt() / fw * n;
                 }
             }
             None => {
-                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
-                    out[0] = srgb(v[0] * g);
-                    out[1] = srgb(v[1] * g);
-                    out[2] = srgb(v[2] * g);
+                for ((o, &v), &g) in val.iter_mut().zip(lin).zip(vig) {
+                    *o = v * g;
                 }
             }
+        }
+        // ⌊clamp(c, 0, 1)·lut_max + ½⌋ as ⌊c·lut_max + ½⌋ clamped to [0, lut_max] before
+        // the truncation (the same index: lut_max is an integer, truncation sends (−1, ½) to
+        // 0, and NaN goes to 0 either way, `f32::max` returning the number).
+        let idx = &mut wk.row_idx[..3 * w];
+        srgb_indices(val, idx, lut_max);
+        for (o, &i) in rgb.iter_mut().zip(idx.iter()) {
+            // In [0, SRGB_LUT − 1] already; the mask only spares the bounds check.
+            *o = sh.srgb[(i as usize) & (SRGB_LUT - 1)];
         }
     }
 
@@ -928,6 +943,35 @@ fn render_eye(
         && let Some(s2) = &st.second
     {
         truth.instruments.push(instrument_truth(label::SECOND, s2, geometry, &t_c_e, &sh.proj));
+    }
+}
+
+/// `idx[i] = ⌊clamp(val[i]·lut_max + ½, 0, lut_max)⌋` (NaN to 0, `f32::max` returning the
+/// number); on x86-64 four at a time with SSE2 (the same operations: `maxps` returns its
+/// second operand, 0, for NaN; the truncation of a value in `[0, lut_max]` is exact).
+#[inline]
+fn srgb_indices(val: &[f32], idx: &mut [i32], lut_max: f32) {
+    let scalar = |v: f32| (v * lut_max + 0.5).max(0.0).min(lut_max) as i32;
+    #[cfg(target_arch = "x86_64")]
+    let (val, idx) = {
+        use std::arch::x86_64::{
+            _mm_add_ps, _mm_cvttps_epi32, _mm_loadu_ps, _mm_max_ps, _mm_min_ps, _mm_mul_ps, _mm_set1_ps,
+            _mm_setzero_ps, _mm_storeu_si128,
+        };
+        let n4 = val.len().min(idx.len()) / 4 * 4;
+        for (v, o) in val[..n4].chunks_exact(4).zip(idx[..n4].chunks_exact_mut(4)) {
+            // SAFETY: SSE2 is part of the x86-64 baseline; `v` and `o` are exactly four
+            // elements long, so the unaligned 16-byte load and store stay inside them.
+            unsafe {
+                let x = _mm_add_ps(_mm_mul_ps(_mm_loadu_ps(v.as_ptr()), _mm_set1_ps(lut_max)), _mm_set1_ps(0.5));
+                let x = _mm_min_ps(_mm_max_ps(x, _mm_setzero_ps()), _mm_set1_ps(lut_max));
+                _mm_storeu_si128(o.as_mut_ptr().cast(), _mm_cvttps_epi32(x));
+            }
+        }
+        (&val[n4..], &mut idx[n4..])
+    };
+    for (i, &v) in idx.iter_mut().zip(val) {
+        *i = scalar(v);
     }
 }
 
@@ -1107,5 +1151,24 @@ fn defocus_gather(wk: &EyeWork, dims: &[(usize, usize); 3], own: [f32; 3], rr: f
         let t = (rr - R[n]) / (R[n + 1] - R[n]);
         let (a, b) = (lvl(n), lvl(n + 1));
         [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
+    }
+}
+
+#[cfg(test)]
+mod simd_tests {
+    use super::*;
+
+    #[test]
+    fn srgb_indices_match_the_scalar_clamp() {
+        let lut_max = (SRGB_LUT - 1) as f32;
+        let mut val = vec![f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1.0, -1e-5, -0.0, 0.0, 1.0, 1.5, 1e30];
+        val.extend((0..5000).map(|i| i as f32 * 2.7e-4 - 0.2));
+        let mut idx = vec![0; val.len()];
+        srgb_indices(&val, &mut idx, lut_max);
+        for (&v, &i) in val.iter().zip(&idx) {
+            // The former per-channel formula.
+            let want = ((v * lut_max + 0.5) as i32).clamp(0, SRGB_LUT as i32 - 1);
+            assert_eq!(i, want, "{v}");
+        }
     }
 }

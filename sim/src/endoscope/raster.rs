@@ -250,7 +250,10 @@ fn raster<const N: usize>(
         if lo.is_nan() || hi.is_nan() || lo > hi {
             continue;
         }
-        let (mut xs, mut xe) = ((lo.ceil() as usize).max(bx0), (hi.floor() as usize).min(bx1));
+        // bx0 ≤ lo ≤ hi ≤ bx1 here (neither is NaN): ⌈lo⌉ and ⌊hi⌋ of non-negative numbers
+        // by truncation (baseline x86-64 has no rounding instruction; `ceil` is a call).
+        let (lt, ht) = (lo as usize, hi as usize);
+        let (mut xs, mut xe) = ((lt + ((lt as f64) < lo) as usize).max(bx0), ht.min(bx1));
         // The computed edge functions are monotone in x (rounding is monotone), so the covered
         // pixels of the row are an interval: trim its ends with the exact per-pixel test.
         while xs <= xe && !inside(xs as f64, &r) {

@@ -219,15 +219,18 @@ fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
 #[inline(always)]
 fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
     use std::arch::x86_64::{
-        _mm_add_epi16, _mm_cvtepi32_ps, _mm_cvtss_f32, _mm_mul_ps, _mm_mullo_epi16, _mm_set_epi64x, _mm_set1_ps,
-        _mm_setzero_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi64, _mm_unpacklo_epi16,
+        _mm_add_epi16, _mm_cvtepi32_ps, _mm_cvtss_f32, _mm_mul_ps, _mm_mullo_epi16, _mm_set_epi64x, _mm_set1_epi16,
+        _mm_set1_ps, _mm_setzero_si128, _mm_xor_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi64, _mm_unpacklo_epi16,
         _mm_unpacklo_epi64,
     };
     // SAFETY: SSE2 is part of the x86-64 baseline (every x86_64 target enables it), and these
     // intrinsics only read and write registers.
     unsafe {
-        const ONES: u64 = 0x0001_0001_0001_0001;
-        let weights = |w: u32| _mm_set_epi64x((w as u64 * ONES) as i64, ((256 - w) as u64 * ONES) as i64);
+        // [256 − w (4 lanes) | w (4 lanes)] = (w ^ [!0 | 0]) + [257 | 0] (two's complement:
+        // !w + 257 = 256 − w).
+        let flip = _mm_set_epi64x(0, -1);
+        let base = _mm_set_epi64x(0, 0x0101_0101_0101_0101);
+        let weights = |w: u32| _mm_add_epi16(_mm_xor_si128(_mm_set1_epi16(w as i16), flip), base);
         let wxv = weights(wx);
         // [a·(256 − wx) | b·wx] and [c·(256 − wx) | d·wx], lane by lane.
         let pt = _mm_mullo_epi16(_mm_set_epi64x(b as i64, a as i64), wxv);

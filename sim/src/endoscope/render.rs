@@ -190,6 +190,7 @@ struct EyeWork {
     row_noise: Vec<f32>,
     row_idx: Vec<i32>,
     verts: Vec<Vtx<5>>,
+    verts4: Vec<Vtx<4>>,
     ivert: Vec<Vtx<3>>,
     ranges: Vec<(usize, usize, Material, u8)>,
 }
@@ -1040,15 +1041,31 @@ fn draw_tissue(sh: &Shared, wk: &mut EyeWork, t_c_e: &Isometry3<f64>, lighting: 
     let tissue = &sh.tissue;
     let colour = &mut wk.colour;
     let mut b = Bounds::EMPTY;
-    let verts = &wk.verts;
-    let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
-        let al = tissue.albedo(a[0], a[1]);
-        let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
-        colour[idx] = lighting.haze(c, a[4]);
-    };
-    for t in &tissue.triangles {
-        let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
-        draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+    if lighting.smoke.is_some() {
+        let verts = &wk.verts;
+        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
+            let al = tissue.albedo(a[0], a[1]);
+            let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+            colour[idx] = lighting.haze(c, a[4]);
+        };
+        for t in &tissue.triangles {
+            let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+            draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+        }
+    } else {
+        // Without smoke the transmittance is 1 and the haze the identity: the other four
+        // attributes alone (each is interpolated on its own: the same numbers).
+        wk.verts4.clear();
+        wk.verts4.extend(wk.verts.iter().map(|v| Vtx { p: v.p, a: [v.a[0], v.a[1], v.a[2], v.a[3]] }));
+        let verts = &wk.verts4;
+        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 4]| {
+            let al = tissue.albedo(a[0], a[1]);
+            colour[idx] = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+        };
+        for t in &tissue.triangles {
+            let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+            draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+        }
     }
 }
 
@@ -1078,29 +1095,37 @@ fn down_blur(
         }
     }
     // Horizontal [1 2 1] into dst, vertical back into tmp, swap.
+    // On flat rows of floats (the three channels alike, in loops the compiler vectorises);
+    // the edge pixels repeat themselves as their missing neighbour.
+    let blur = |l: f32, m: f32, r: f32| 0.25 * (l + 2.0 * m + r);
     for y in 0..dh {
-        let src_row = &tmp[y * dw..(y + 1) * dw];
-        let out = &mut dst[y * dw..(y + 1) * dw];
-        for (x, o) in out.iter_mut().enumerate() {
-            let (l, m, r) = (src_row[x.saturating_sub(1)], src_row[x], src_row[(x + 1).min(dw - 1)]);
-            *o = [
-                0.25 * (l[0] + 2.0 * m[0] + r[0]),
-                0.25 * (l[1] + 2.0 * m[1] + r[1]),
-                0.25 * (l[2] + 2.0 * m[2] + r[2]),
-            ];
+        let src_row = tmp[y * dw..(y + 1) * dw].as_flattened();
+        let out = dst[y * dw..(y + 1) * dw].as_flattened_mut();
+        let n = 3 * dw;
+        let first_r = if dw > 1 { 3 } else { 0 };
+        for k in 0..3 {
+            out[k] = blur(src_row[k], src_row[k], src_row[k + first_r]);
+        }
+        if dw > 1 {
+            for k in n - 3..n {
+                out[k] = blur(src_row[k - 3], src_row[k], src_row[k]);
+            }
+        }
+        if dw > 2 {
+            let inner = out[3..n - 3].iter_mut().zip(&src_row[..n - 6]).zip(&src_row[3..n - 3]).zip(&src_row[6..]);
+            for (((o, &l), &m), &r) in inner {
+                *o = blur(l, m, r);
+            }
         }
     }
     for y in 0..dh {
         let (up, dn) = (y.saturating_sub(1) * dw, (y + 1).min(dh - 1) * dw);
-        let (ru, rm, rd) = (&dst[up..up + dw], &dst[y * dw..(y + 1) * dw], &dst[dn..dn + dw]);
-        let out = &mut tmp[y * dw..(y + 1) * dw];
-        for (x, o) in out.iter_mut().enumerate() {
-            let (u, m, d) = (ru[x], rm[x], rd[x]);
-            *o = [
-                0.25 * (u[0] + 2.0 * m[0] + d[0]),
-                0.25 * (u[1] + 2.0 * m[1] + d[1]),
-                0.25 * (u[2] + 2.0 * m[2] + d[2]),
-            ];
+        let ru = dst[up..up + dw].as_flattened();
+        let rm = dst[y * dw..(y + 1) * dw].as_flattened();
+        let rd = dst[dn..dn + dw].as_flattened();
+        let out = tmp[y * dw..(y + 1) * dw].as_flattened_mut();
+        for (((o, &u), &m), &d) in out.iter_mut().zip(ru).zip(rm).zip(rd) {
+            *o = blur(u, m, d);
         }
     }
     std::mem::swap(dst, tmp);

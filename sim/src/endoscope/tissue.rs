@@ -152,7 +152,7 @@ impl Tissue {
     /// Bilinear albedo (linear RGB) at texture coordinates `(s, t)` (clamped to the edge);
     /// 8-bit weights, the four channels in one integer operation (on x86-64, the two
     /// texture coordinates and the four texels in SSE2 registers: the same numbers).
-    #[inline]
+    #[inline(always)]
     pub fn albedo(&self, s: f32, t: f32) -> [f32; 3] {
         let n = self.texture_px;
         // In 1/256 texel, clamped to the edge texels' centres: the integer part is the texel,

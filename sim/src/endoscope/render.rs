@@ -841,24 +841,27 @@ fn render_eye(
         }
         Some(map) => {
             let kept = hit && wk.tissue_image;
-            for (i, m) in map.iter().enumerate() {
+            let (colour, lab_mid, depth_mid, depth_t) = (&wk.colour, &wk.lab_mid, &wk.depth_mid, &wk.depth_t);
+            let (tissue_lin, tissue_rad) = (&wk.tissue_lin, &wk.tissue_rad);
+            let outs = wk.out_lin.iter_mut().zip(img.labels.iter_mut()).zip(wk.out_rad.iter_mut());
+            for (i, (m, ((out, lab), rad))) in map.iter().zip(outs).enumerate() {
                 if kept && !m.touches(&union) {
-                    wk.out_lin[i] = wk.tissue_lin[i];
-                    img.labels[i] = label::BACKGROUND;
+                    *out = tissue_lin[i];
+                    *lab = label::BACKGROUND;
                     if defocus_on {
-                        let rr = wk.tissue_rad[i];
-                        wk.out_rad[i] = rr;
+                        let rr = tissue_rad[i];
+                        *rad = rr;
                         blurred |= rr > 0.35;
                     }
                     continue;
                 }
-                wk.out_lin[i] = bilinear(&wk.colour, c.w, m);
+                *out = bilinear(colour, c.w, m);
                 let nearest = m.nearest as usize;
-                let l = wk.lab_mid[nearest];
-                img.labels[i] = l;
+                let l = lab_mid[nearest];
+                *lab = l;
                 if defocus_on {
-                    let rr = radius(if l != 0 { wk.depth_mid[nearest] } else { wk.depth_t[nearest] });
-                    wk.out_rad[i] = rr;
+                    let rr = radius(if l != 0 { depth_mid[nearest] } else { depth_t[nearest] });
+                    *rad = rr;
                     blurred |= rr > 0.35;
                 }
             }

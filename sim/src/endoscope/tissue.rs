@@ -98,6 +98,9 @@ pub struct Tissue {
     /// lookups four channels at a time; one more column and row repeat the last ones, so
     /// that the four texels of a lookup are always there (`(texture_px + 1)²` entries).
     packed: Vec<u64>,
+    /// `texture_px` and `(texture_px − 1)·256` as floats (the lookup's constants).
+    n_f32: f32,
+    max_f32: f32,
 }
 
 impl Tissue {
@@ -146,7 +149,8 @@ impl Tissue {
             packed.extend(row.iter().map(|t| spread(*t)));
             packed.push(spread(row[texture_px - 1]));
         }
-        Self { positions, normals, uv, triangles, texture_px, texture, packed }
+        let (n_f32, max_f32) = (texture_px as f32, ((texture_px - 1) * 256) as f32);
+        Self { positions, normals, uv, triangles, texture_px, texture, packed, n_f32, max_f32 }
     }
 
     /// Bilinear albedo (linear RGB) at texture coordinates `(s, t)` (clamped to the edge);
@@ -158,13 +162,14 @@ impl Tissue {
         // In 1/256 texel, clamped to the edge texels' centres: the integer part is the texel,
         // the low byte the weight. The same numbers as clamping x = s·n − ½ to [0, n − 1]
         // first (x·256 is exact in f32, truncation sends (−1, 0) to 0, NaN goes to 0).
-        let (fx, fy) = fixed_coords(s, t, n);
+        let (fx, fy) = fixed_coords(s, t, n, self.n_f32, self.max_f32);
         let (ix, iy) = ((fx >> 8) as usize, (fy >> 8) as usize);
         let (wx, wy) = (fx & 0xFF, fy & 0xFF);
         // The four texels (the padding column and row stand in at the edges, with weight 0).
         let stride = n + 1;
-        let quad = &self.packed[iy * stride + ix..][..stride + 2];
-        bilerp(quad[0], quad[1], quad[stride], quad[stride + 1], wx, wy)
+        let i = iy * stride + ix;
+        let (top, bot) = self.packed[i..i + stride + 2].split_at(stride);
+        bilerp(top[0], top[1], bot[0], bot[1], wx, wy)
     }
 }
 
@@ -174,7 +179,7 @@ const K_BYTE: f32 = 1.0 / 255.0;
 /// (NaN to 0).
 #[cfg(not(target_arch = "x86_64"))]
 #[inline(always)]
-fn fixed_coords(s: f32, t: f32, n: usize) -> (u32, u32) {
+fn fixed_coords(s: f32, t: f32, n: usize, _n_f32: f32, _max_f32: f32) -> (u32, u32) {
     let fix = |s: f32| ((s * n as f32 - 0.5) * 256.0) as i32;
     let max = (n as i32 - 1) * 256;
     (fix(s).clamp(0, max) as u32, fix(t).clamp(0, max) as u32)
@@ -185,7 +190,7 @@ fn fixed_coords(s: f32, t: f32, n: usize) -> (u32, u32) {
 /// before or after truncating gives the same integer).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn fixed_coords(s: f32, t: f32, n: usize) -> (u32, u32) {
+fn fixed_coords(s: f32, t: f32, _n: usize, n_f32: f32, max_f32: f32) -> (u32, u32) {
     use std::arch::x86_64::{
         _mm_cvtsi128_si32, _mm_cvttps_epi32, _mm_max_ps, _mm_min_ps, _mm_mul_ps, _mm_set_ps, _mm_set1_ps,
         _mm_setzero_ps, _mm_shuffle_epi32, _mm_sub_ps,
@@ -193,9 +198,9 @@ fn fixed_coords(s: f32, t: f32, n: usize) -> (u32, u32) {
     // SAFETY: SSE2 is part of the x86-64 baseline (every x86_64 target enables it), and these
     // intrinsics only read and write registers.
     unsafe {
-        let x = _mm_mul_ps(_mm_sub_ps(_mm_mul_ps(_mm_set_ps(0.0, 0.0, t, s), _mm_set1_ps(n as f32)), _mm_set1_ps(0.5)), _mm_set1_ps(256.0));
+        let x = _mm_mul_ps(_mm_sub_ps(_mm_mul_ps(_mm_set_ps(0.0, 0.0, t, s), _mm_set1_ps(n_f32)), _mm_set1_ps(0.5)), _mm_set1_ps(256.0));
         // `_mm_max_ps(x, 0)` returns 0 where x is NaN.
-        let x = _mm_min_ps(_mm_max_ps(x, _mm_setzero_ps()), _mm_set1_ps(((n - 1) * 256) as f32));
+        let x = _mm_min_ps(_mm_max_ps(x, _mm_setzero_ps()), _mm_set1_ps(max_f32));
         let i = _mm_cvttps_epi32(x);
         (_mm_cvtsi128_si32(i) as u32, _mm_cvtsi128_si32(_mm_shuffle_epi32::<1>(i)) as u32)
     }
@@ -396,8 +401,9 @@ mod lookup_tests {
         let coords: Vec<f32> =
             specials.iter().copied().chain((0..2000).map(|_| rng.random_range(-0.1f32..1.1))).collect();
         for &s in &coords {
-            assert_eq!(fixed_coords(s, 0.25, n).0, fixed_ref(s, n), "s = {s}");
-            assert_eq!(fixed_coords(0.25, s, n).1, fixed_ref(s, n), "t = {s}");
+            let (nf, maxf) = (n as f32, ((n - 1) * 256) as f32);
+            assert_eq!(fixed_coords(s, 0.25, n, nf, maxf).0, fixed_ref(s, n), "s = {s}");
+            assert_eq!(fixed_coords(0.25, s, n, nf, maxf).1, fixed_ref(s, n), "t = {s}");
         }
         for _ in 0..20_000 {
             let q: [u64; 4] = std::array::from_fn(|_| spread(rng.random::<[u8; 4]>()));

@@ -988,9 +988,7 @@ fn bilinear(colour: &[[f32; 3]], cw: usize, m: &Tap) -> [f32; 3] {
         // Four floats from each of the four pixels (the fourth lane, the next pixel's red, is
         // ignored): the same operations per channel. Needs one float past the bottom-right
         // pixel; the scalar code below takes the last tap of the canvas.
-        use std::arch::x86_64::{
-            _mm_add_ps, _mm_loadu_ps, _mm_mul_ps, _mm_set1_ps, _mm_storeu_ps, _mm_sub_ps,
-        };
+        use std::arch::x86_64::{_mm_add_ps, _mm_loadu_ps, _mm_mul_ps, _mm_set1_ps, _mm_storeu_ps, _mm_sub_ps};
         let flat = colour.as_flattened();
         if let Some(q) = flat.get(3 * j..3 * (j + cw) + 7) {
             let mut o = [0.0f32; 4];

@@ -198,7 +198,10 @@ fn fixed_coords(s: f32, t: f32, _n: usize, n_f32: f32, max_f32: f32) -> (u32, u3
     // SAFETY: SSE2 is part of the x86-64 baseline (every x86_64 target enables it), and these
     // intrinsics only read and write registers.
     unsafe {
-        let x = _mm_mul_ps(_mm_sub_ps(_mm_mul_ps(_mm_set_ps(0.0, 0.0, t, s), _mm_set1_ps(n_f32)), _mm_set1_ps(0.5)), _mm_set1_ps(256.0));
+        let x = _mm_mul_ps(
+            _mm_sub_ps(_mm_mul_ps(_mm_set_ps(0.0, 0.0, t, s), _mm_set1_ps(n_f32)), _mm_set1_ps(0.5)),
+            _mm_set1_ps(256.0),
+        );
         // `_mm_max_ps(x, 0)` returns 0 where x is NaN.
         let x = _mm_min_ps(_mm_max_ps(x, _mm_setzero_ps()), _mm_set1_ps(max_f32));
         let i = _mm_cvttps_epi32(x);
@@ -225,8 +228,8 @@ fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
 fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
     use std::arch::x86_64::{
         _mm_add_epi16, _mm_cvtepi32_ps, _mm_cvtss_f32, _mm_mul_ps, _mm_mullo_epi16, _mm_set_epi64x, _mm_set1_epi16,
-        _mm_set1_ps, _mm_setzero_si128, _mm_xor_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi64, _mm_unpacklo_epi16,
-        _mm_unpacklo_epi64,
+        _mm_set1_ps, _mm_setzero_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi64, _mm_unpacklo_epi16,
+        _mm_unpacklo_epi64, _mm_xor_si128,
     };
     // SAFETY: SSE2 is part of the x86-64 baseline (every x86_64 target enables it), and these
     // intrinsics only read and write registers.
@@ -396,7 +399,8 @@ mod lookup_tests {
     #[test]
     fn the_lookup_matches_the_scalar_reference_bit_for_bit() {
         let n = 1024;
-        let specials = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1e9, 1e9, -0.0, 0.0, 1.0, 0.5 / n as f32, 1.3, -0.2];
+        let specials =
+            [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1e9, 1e9, -0.0, 0.0, 1.0, 0.5 / n as f32, 1.3, -0.2];
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let coords: Vec<f32> =
             specials.iter().copied().chain((0..2000).map(|_| rng.random_range(-0.1f32..1.1))).collect();

@@ -94,10 +94,11 @@ pub struct Tissue {
     pub texture_px: usize,
     /// Linear albedo per texel (RGB ×255, A unused), row-major, `v` down the rows.
     pub texture: Vec<[u8; 4]>,
-    /// The same texels with one 16-bit lane per channel (R in the low lane), for bilinear
-    /// lookups four channels at a time; one more column and row repeat the last ones, so
-    /// that the four texels of a lookup are always there (`(texture_px + 1)²` entries).
-    packed: Vec<u64>,
+    /// The same texels as little-endian `u32` (R in the low byte; half the memory of one
+    /// 16-bit lane per channel: the lookup widens them), for bilinear lookups four channels
+    /// at a time; one more column and row repeat the last ones, so that the four texels of
+    /// a lookup are always there (`(texture_px + 1)²` entries).
+    packed: Vec<u32>,
     /// `texture_px` and `(texture_px − 1)·256` as floats (the lookup's constants).
     n_f32: f32,
     max_f32: f32,
@@ -146,8 +147,8 @@ impl Tissue {
         let mut packed = Vec::with_capacity((texture_px + 1) * (texture_px + 1));
         for j in 0..=texture_px {
             let row = &texture[j.min(texture_px - 1) * texture_px..][..texture_px];
-            packed.extend(row.iter().map(|t| spread(*t)));
-            packed.push(spread(row[texture_px - 1]));
+            packed.extend(row.iter().map(|t| u32::from_le_bytes(*t)));
+            packed.push(u32::from_le_bytes(row[texture_px - 1]));
         }
         let (n_f32, max_f32) = (texture_px as f32, ((texture_px - 1) * 256) as f32);
         Self { positions, normals, uv, triangles, texture_px, texture, packed, n_f32, max_f32 }
@@ -169,7 +170,9 @@ impl Tissue {
         let stride = n + 1;
         let i = iy * stride + ix;
         let (top, bot) = self.packed[i..i + stride + 2].split_at(stride);
-        bilerp(top[0], top[1], bot[0], bot[1], wx, wy)
+        // Two neighbouring texels in one 64-bit word (the left one in the low half).
+        let pair = |p: &[u32]| p[0] as u64 | (p[1] as u64) << 32;
+        bilerp(pair(top), pair(bot), wx, wy)
     }
 }
 
@@ -209,11 +212,13 @@ fn fixed_coords(s: f32, t: f32, _n: usize, n_f32: f32, max_f32: f32) -> (u32, u3
     }
 }
 
-/// Bilinear blend of four spread texels (`a` top left, `b` top right, `c` bottom left, `d`
-/// bottom right) with 8-bit weights, to linear RGB.
+/// Bilinear blend of four texels with 8-bit weights, to linear RGB: `top` holds the top left
+/// texel's RGBA bytes then the top right one's, `bot` the bottom ones.
 #[cfg(not(target_arch = "x86_64"))]
 #[inline(always)]
-fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
+fn bilerp(top: u64, bot: u64, wx: u32, wy: u32) -> [f32; 3] {
+    let texel = |pair: u64, k: u32| spread(((pair >> (32 * k)) as u32).to_le_bytes());
+    let (a, b, c, d) = (texel(top, 0), texel(top, 1), texel(bot, 0), texel(bot, 1));
     let top = lerp_packed(a, b, wx);
     let bot = lerp_packed(c, d, wx);
     let c = lerp_packed(top, bot, wy);
@@ -225,8 +230,9 @@ fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
 /// (16-bit products and sums never exceed 255·256), two texels per register.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
+fn bilerp(top: u64, bot: u64, wx: u32, wy: u32) -> [f32; 3] {
     use std::arch::x86_64::{
+        _mm_unpackhi_epi8, _mm_unpacklo_epi8,
         _mm_add_epi16, _mm_cvtepi32_ps, _mm_cvtss_f32, _mm_mul_ps, _mm_mullo_epi16, _mm_set_epi64x, _mm_set1_epi16,
         _mm_set1_ps, _mm_setzero_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi64, _mm_unpacklo_epi16,
         _mm_unpacklo_epi64, _mm_xor_si128,
@@ -241,8 +247,11 @@ fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
         let weights = |w: u32| _mm_add_epi16(_mm_xor_si128(_mm_set1_epi16(w as i16), flip), base);
         let wxv = weights(wx);
         // [a·(256 − wx) | b·wx] and [c·(256 − wx) | d·wx], lane by lane.
-        let pt = _mm_mullo_epi16(_mm_set_epi64x(b as i64, a as i64), wxv);
-        let pb = _mm_mullo_epi16(_mm_set_epi64x(d as i64, c as i64), wxv);
+        // The four texels' bytes widened to 16-bit lanes: [a | b] and [c | d].
+        let bytes = _mm_set_epi64x(bot as i64, top as i64);
+        let (ab, cd) = (_mm_unpacklo_epi8(bytes, _mm_setzero_si128()), _mm_unpackhi_epi8(bytes, _mm_setzero_si128()));
+        let pt = _mm_mullo_epi16(ab, wxv);
+        let pb = _mm_mullo_epi16(cd, wxv);
         // [top | bottom] = (sums) >> 8.
         let tb = _mm_srli_epi16::<8>(_mm_add_epi16(_mm_unpacklo_epi64(pt, pb), _mm_unpackhi_epi64(pt, pb)));
         let p = _mm_mullo_epi16(tb, weights(wy));
@@ -253,6 +262,7 @@ fn bilerp(a: u64, b: u64, c: u64, d: u64, wx: u32, wy: u32) -> [f32; 3] {
 }
 
 /// An RGBA texel with each 8-bit channel in its own 16-bit lane of a `u64` (R lowest).
+#[cfg_attr(target_arch = "x86_64", allow(dead_code, reason = "the scalar fallback, and the tests' reference"))]
 fn spread(t: [u8; 4]) -> u64 {
     t.iter().enumerate().fold(0u64, |acc, (k, &v)| acc | (v as u64) << (16 * k))
 }
@@ -410,11 +420,13 @@ mod lookup_tests {
             assert_eq!(fixed_coords(0.25, s, n, nf, maxf).1, fixed_ref(s, n), "t = {s}");
         }
         for _ in 0..20_000 {
-            let q: [u64; 4] = std::array::from_fn(|_| spread(rng.random::<[u8; 4]>()));
+            let t: [[u8; 4]; 4] = std::array::from_fn(|_| rng.random::<[u8; 4]>());
+            let q = t.map(spread);
+            let pair = |l: [u8; 4], r: [u8; 4]| u32::from_le_bytes(l) as u64 | (u32::from_le_bytes(r) as u64) << 32;
             let (wx, wy) = (rng.random_range(0..256u32), rng.random_range(0..256u32));
             let c = lerp_packed(lerp_packed(q[0], q[1], wx), lerp_packed(q[2], q[3], wx), wy);
             let want = [c as u8 as f32 * K_BYTE, (c >> 16) as u8 as f32 * K_BYTE, (c >> 32) as u8 as f32 * K_BYTE];
-            let got = bilerp(q[0], q[1], q[2], q[3], wx, wy);
+            let got = bilerp(pair(t[0], t[1]), pair(t[2], t[3]), wx, wy);
             assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits));
         }
     }

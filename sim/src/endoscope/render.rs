@@ -188,6 +188,7 @@ struct EyeWork {
     /// One image row's signal and noise draws, a float per channel (work buffers).
     row_val: Vec<f32>,
     row_noise: Vec<f32>,
+    row_vig: Vec<f32>,
     row_idx: Vec<i32>,
     verts: Vec<Vtx<5>>,
     verts4: Vec<Vtx<4>>,
@@ -228,8 +229,7 @@ struct Shared {
     /// The bilinear tap of every image pixel into the canvas (`None`: no distortion, canvas =
     /// image).
     remap: Option<Vec<Tap>>,
-    /// The vignetting factor of every image pixel, repeated for its three channels.
-    vignette3: Vec<f32>,
+    vignette: Vec<f32>,
     /// `y/z` of the ray of every canvas row, and `x/z` of every canvas column when the skew
     /// is zero (`None` otherwise): [`Canvas::ray`] tabulated.
     ray_y: Vec<f32>,
@@ -447,7 +447,7 @@ impl StereoRenderer {
             canvas,
             proj,
             remap,
-            vignette3: vignette.iter().flat_map(|&v| [v; 3]).collect(),
+            vignette,
             ray_y: (0..canvas.h).map(|y| canvas.ray(0.0, y as f32).1).collect(),
             ray_x: (canvas.skew == 0.0).then(|| (0..canvas.w).map(|x| canvas.ray(x as f32, 0.0).0).collect()),
             gauss: lut(gauss_table(GAUSS_LUT), 0.0),
@@ -895,12 +895,19 @@ fn render_eye(
     // as per pixel, in loops the compiler vectorises), then to sRGB bytes.
     resize(&mut wk.row_val, 3 * w, 0.0);
     resize(&mut wk.row_noise, 3 * w, 0.0);
+    resize(&mut wk.row_vig, 3 * w, 0.0);
     resize(&mut wk.row_idx, 3 * w, 0);
     for y in 0..h {
         let row = y * w;
         let rgb = &mut img.rgb[3 * row..3 * (row + w)];
         let lin = wk.out_lin[row..row + w].as_flattened();
-        let vig = &sh.vignette3[3 * row..3 * (row + w)];
+        // The row's vignetting repeated per channel (a row buffer: less memory traffic than a
+        // whole image of it).
+        let vig = &mut wk.row_vig[..3 * w];
+        for (o, &g) in vig.chunks_exact_mut(3).zip(&sh.vignette[row..row + w]) {
+            o.fill(g);
+        }
+        let vig = &wk.row_vig[..3 * w];
         let val = &mut wk.row_val[..3 * w];
         match noise {
             Some((fw, read2)) => {

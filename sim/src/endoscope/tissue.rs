@@ -232,10 +232,9 @@ fn bilerp(top: u64, bot: u64, wx: u32, wy: u32) -> [f32; 3] {
 #[inline(always)]
 fn bilerp(top: u64, bot: u64, wx: u32, wy: u32) -> [f32; 3] {
     use std::arch::x86_64::{
-        _mm_unpackhi_epi8, _mm_unpacklo_epi8,
         _mm_add_epi16, _mm_cvtepi32_ps, _mm_cvtss_f32, _mm_mul_ps, _mm_mullo_epi16, _mm_set_epi64x, _mm_set1_epi16,
-        _mm_set1_ps, _mm_setzero_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi64, _mm_unpacklo_epi16,
-        _mm_unpacklo_epi64, _mm_xor_si128,
+        _mm_set1_ps, _mm_setzero_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi8, _mm_unpackhi_epi64,
+        _mm_unpacklo_epi8, _mm_unpacklo_epi16, _mm_unpacklo_epi64, _mm_xor_si128,
     };
     // SAFETY: SSE2 is part of the x86-64 baseline (every x86_64 target enables it), and these
     // intrinsics only read and write registers.

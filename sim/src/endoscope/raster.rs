@@ -250,7 +250,10 @@ fn raster<const N: usize>(
         if lo.is_nan() || hi.is_nan() || lo > hi {
             continue;
         }
-        let (mut xs, mut xe) = ((lo.ceil() as usize).max(bx0), (hi.floor() as usize).min(bx1));
+        // bx0 ≤ lo ≤ hi ≤ bx1 here (neither is NaN): ⌈lo⌉ and ⌊hi⌋ of non-negative numbers
+        // by truncation (baseline x86-64 has no rounding instruction; `ceil` is a call).
+        let (lt, ht) = (lo as usize, hi as usize);
+        let (mut xs, mut xe) = ((lt + ((lt as f64) < lo) as usize).max(bx0), ht.min(bx1));
         // The computed edge functions are monotone in x (rounding is monotone), so the covered
         // pixels of the row are an interval: trim its ends with the exact per-pixel test.
         while xs <= xe && !inside(xs as f64, &r) {
@@ -271,21 +274,29 @@ fn raster<const N: usize>(
             q0[k] = (b[0] * pa[0][k] + b[1] * pa[1][k] + b[2] * pa[2][k]) as f32;
         }
         let row = y * c.w;
-        // Pixel offsets from the span's start, counted exactly in f64 and f32.
-        let (mut dx, mut dxf) = (0.0f64, 0.0f32);
-        for (x, d) in (xs..=xe).zip(&mut depth[row + xs..=row + xe]) {
-            let z = (1.0 / (iz0 + giz * dx)) as f32;
-            if z < *d && z >= NEAR_M * 0.999 {
-                touched = true;
-                *d = z;
-                let mut at = [0.0f32; N];
-                for k in 0..N {
-                    at[k] = (q0[k] + ga[k] * dxf) * z;
-                }
-                frag(row + x, x, y, z, &at);
+        // By chunks of the span: the depths first (independent divisions, off the per-pixel
+        // path), then the depth test and the fragments. Pixel offsets from the span's start
+        // are exact integers in f64 and f32.
+        const CHUNK: usize = 32;
+        let mut zs = [0.0f32; CHUNK];
+        for (ci, chunk) in depth[row + xs..=row + xe].chunks_mut(CHUNK).enumerate() {
+            let base = ci * CHUNK;
+            for (k, zo) in zs.iter_mut().enumerate().take(chunk.len()) {
+                *zo = (1.0 / (iz0 + giz * (base + k) as f64)) as f32;
             }
-            dx += 1.0;
-            dxf += 1.0;
+            for (k, (d, &z)) in chunk.iter_mut().zip(&zs).enumerate() {
+                if z < *d && z >= NEAR_M * 0.999 {
+                    touched = true;
+                    *d = z;
+                    let dxf = (base + k) as f32;
+                    let mut at = [0.0f32; N];
+                    for j in 0..N {
+                        at[j] = (q0[j] + ga[j] * dxf) * z;
+                    }
+                    let x = xs + base + k;
+                    frag(row + x, x, y, z, &at);
+                }
+            }
         }
     }
     if touched {

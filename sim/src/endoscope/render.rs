@@ -185,7 +185,13 @@ struct EyeWork {
     /// Level sampling positions per image column and row (index, next index, weight).
     taps_x: [Vec<(u32, u32, f32)>; 3],
     taps_y: [Vec<(u32, u32, f32)>; 3],
+    /// One image row's signal and noise draws, a float per channel (work buffers).
+    row_val: Vec<f32>,
+    row_noise: Vec<f32>,
+    row_vig: Vec<f32>,
+    row_idx: Vec<i32>,
     verts: Vec<Vtx<5>>,
+    verts4: Vec<Vtx<4>>,
     ivert: Vec<Vtx<3>>,
     ranges: Vec<(usize, usize, Material, u8)>,
 }
@@ -835,24 +841,27 @@ fn render_eye(
         }
         Some(map) => {
             let kept = hit && wk.tissue_image;
-            for (i, m) in map.iter().enumerate() {
+            let (colour, lab_mid, depth_mid, depth_t) = (&wk.colour, &wk.lab_mid, &wk.depth_mid, &wk.depth_t);
+            let (tissue_lin, tissue_rad) = (&wk.tissue_lin, &wk.tissue_rad);
+            let outs = wk.out_lin.iter_mut().zip(img.labels.iter_mut()).zip(wk.out_rad.iter_mut());
+            for (i, (m, ((out, lab), rad))) in map.iter().zip(outs).enumerate() {
                 if kept && !m.touches(&union) {
-                    wk.out_lin[i] = wk.tissue_lin[i];
-                    img.labels[i] = label::BACKGROUND;
+                    *out = tissue_lin[i];
+                    *lab = label::BACKGROUND;
                     if defocus_on {
-                        let rr = wk.tissue_rad[i];
-                        wk.out_rad[i] = rr;
+                        let rr = tissue_rad[i];
+                        *rad = rr;
                         blurred |= rr > 0.35;
                     }
                     continue;
                 }
-                wk.out_lin[i] = bilinear(&wk.colour, c.w, m);
+                *out = bilinear(colour, c.w, m);
                 let nearest = m.nearest as usize;
-                let l = wk.lab_mid[nearest];
-                img.labels[i] = l;
+                let l = lab_mid[nearest];
+                *lab = l;
                 if defocus_on {
-                    let rr = radius(if l != 0 { wk.depth_mid[nearest] } else { wk.depth_t[nearest] });
-                    wk.out_rad[i] = rr;
+                    let rr = radius(if l != 0 { depth_mid[nearest] } else { depth_t[nearest] });
+                    *rad = rr;
                     blurred |= rr > 0.35;
                 }
             }
@@ -882,39 +891,56 @@ fn render_eye(
         Eye::Right => 0x5249_4748u64,
     };
     let lut_max = (SRGB_LUT - 1) as f32;
-    // ⌊clamp(c, 0, 1)·lut_max + ½⌋ as ⌊c·lut_max + ½⌋ clamped to the table (the same index:
-    // the truncation toward zero sends (−1, ½) to 0, and NaN goes to 0 either way).
-    let srgb = |c: f32| sh.srgb[((c * lut_max + 0.5) as i32).clamp(0, SRGB_LUT as i32 - 1) as usize];
+    // The signal of a row, one float per channel: vignetted, then noisy (the same operations
+    // as per pixel, in loops the compiler vectorises), then to sRGB bytes.
+    resize(&mut wk.row_val, 3 * w, 0.0);
+    resize(&mut wk.row_noise, 3 * w, 0.0);
+    resize(&mut wk.row_vig, 3 * w, 0.0);
+    resize(&mut wk.row_idx, 3 * w, 0);
     for y in 0..h {
         let row = y * w;
         let rgb = &mut img.rgb[3 * row..3 * (row + w)];
-        let lin = &wk.out_lin[row..row + w];
-        let vig = &sh.vignette[row..row + w];
+        let lin = wk.out_lin[row..row + w].as_flattened();
+        // The row's vignetting repeated per channel (a row buffer: less memory traffic than a
+        // whole image of it).
+        let vig = &mut wk.row_vig[..3 * w];
+        for (o, &g) in vig.chunks_exact_mut(3).zip(&sh.vignette[row..row + w]) {
+            o.fill(g);
+        }
+        let vig = &wk.row_vig[..3 * w];
+        let val = &mut wk.row_val[..3 * w];
         match noise {
             Some((fw, read2)) => {
                 let mut rng = ChaCha8Rng::seed_from_u64(splitmix(
                     seed ^ splitmix(t_mid_ns ^ splitmix(eye_key ^ ((y as u64) << 32))),
                 ));
                 let gauss = &sh.gauss;
-                let noisy = |c: f32, bits: u64| {
-                    let n = gauss[(bits & 0xFFF) as usize];
-                    let e = c.max(0.0) * fw;
-                    c + (e + read2).sqrt() / fw * n
-                };
-                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
+                for nk in wk.row_noise[..3 * w].chunks_exact_mut(3) {
                     let bits = rng.next_u64();
-                    out[0] = srgb(noisy(v[0] * g, bits >> 4));
-                    out[1] = srgb(noisy(v[1] * g, bits >> 20));
-                    out[2] = srgb(noisy(v[2] * g, bits >> 36));
+                    nk[0] = gauss[((bits >> 4) & 0xFFF) as usize];
+                    nk[1] = gauss[((bits >> 20) & 0xFFF) as usize];
+                    nk[2] = gauss[((bits >> 36) & 0xFFF) as usize];
+                }
+                for (((o, &v), &g), &n) in val.iter_mut().zip(lin).zip(vig).zip(&wk.row_noise[..3 * w]) {
+                    let c = v * g;
+                    let e = c.max(0.0) * fw;
+                    *o = c + (e + read2).sqrt() / fw * n;
                 }
             }
             None => {
-                for ((out, v), &g) in rgb.chunks_exact_mut(3).zip(lin).zip(vig) {
-                    out[0] = srgb(v[0] * g);
-                    out[1] = srgb(v[1] * g);
-                    out[2] = srgb(v[2] * g);
+                for ((o, &v), &g) in val.iter_mut().zip(lin).zip(vig) {
+                    *o = v * g;
                 }
             }
+        }
+        // ⌊clamp(c, 0, 1)·lut_max + ½⌋ as ⌊c·lut_max + ½⌋ clamped to [0, lut_max] before
+        // the truncation (the same index: lut_max is an integer, truncation sends (−1, ½) to
+        // 0, and NaN goes to 0 either way, `f32::max` returning the number).
+        let idx = &mut wk.row_idx[..3 * w];
+        srgb_indices(val, idx, lut_max);
+        for (o, &i) in rgb.iter_mut().zip(idx.iter()) {
+            // In [0, SRGB_LUT − 1] already; the mask only spares the bounds check.
+            *o = sh.srgb[(i as usize) & (SRGB_LUT - 1)];
         }
     }
 
@@ -931,10 +957,61 @@ fn render_eye(
     }
 }
 
+/// `idx[i] = ⌊clamp(val[i]·lut_max + ½, 0, lut_max)⌋` (NaN to 0, `f32::max` returning the
+/// number); on x86-64 four at a time with SSE2 (the same operations: `maxps` returns its
+/// second operand, 0, for NaN; the truncation of a value in `[0, lut_max]` is exact).
+#[inline]
+fn srgb_indices(val: &[f32], idx: &mut [i32], lut_max: f32) {
+    let scalar = |v: f32| (v * lut_max + 0.5).max(0.0).min(lut_max) as i32;
+    #[cfg(target_arch = "x86_64")]
+    let (val, idx) = {
+        use std::arch::x86_64::{
+            _mm_add_ps, _mm_cvttps_epi32, _mm_loadu_ps, _mm_max_ps, _mm_min_ps, _mm_mul_ps, _mm_set1_ps,
+            _mm_setzero_ps, _mm_storeu_si128,
+        };
+        let n4 = val.len().min(idx.len()) / 4 * 4;
+        for (v, o) in val[..n4].chunks_exact(4).zip(idx[..n4].chunks_exact_mut(4)) {
+            // SAFETY: SSE2 is part of the x86-64 baseline; `v` and `o` are exactly four
+            // elements long, so the unaligned 16-byte load and store stay inside them.
+            unsafe {
+                let x = _mm_add_ps(_mm_mul_ps(_mm_loadu_ps(v.as_ptr()), _mm_set1_ps(lut_max)), _mm_set1_ps(0.5));
+                let x = _mm_min_ps(_mm_max_ps(x, _mm_setzero_ps()), _mm_set1_ps(lut_max));
+                _mm_storeu_si128(o.as_mut_ptr().cast(), _mm_cvttps_epi32(x));
+            }
+        }
+        (&val[n4..], &mut idx[n4..])
+    };
+    for (i, &v) in idx.iter_mut().zip(val) {
+        *i = scalar(v);
+    }
+}
+
 /// Bilinear sample of a canvas (`cw` pixels wide) at an image pixel's tap.
 #[inline(always)]
 fn bilinear(colour: &[[f32; 3]], cw: usize, m: &Tap) -> [f32; 3] {
     let j = m.j as usize;
+    #[cfg(target_arch = "x86_64")]
+    {
+        // Four floats from each of the four pixels (the fourth lane, the next pixel's red, is
+        // ignored): the same operations per channel. Needs one float past the bottom-right
+        // pixel; the scalar code below takes the last tap of the canvas.
+        use std::arch::x86_64::{_mm_add_ps, _mm_loadu_ps, _mm_mul_ps, _mm_set1_ps, _mm_storeu_ps, _mm_sub_ps};
+        let flat = colour.as_flattened();
+        if let Some(q) = flat.get(3 * j..3 * (j + cw) + 7) {
+            let mut o = [0.0f32; 4];
+            // SAFETY: SSE2 is part of the x86-64 baseline; `q` holds `3·cw + 7` floats, so the
+            // 4-float loads at 0, 3, 3·cw and 3·cw + 3 stay inside it, and `o` holds 4.
+            unsafe {
+                let (fx, fy) = (_mm_set1_ps(m.fx), _mm_set1_ps(m.fy));
+                let (a, b) = (_mm_loadu_ps(q.as_ptr()), _mm_loadu_ps(q.as_ptr().add(3)));
+                let (cc, dd) = (_mm_loadu_ps(q.as_ptr().add(3 * cw)), _mm_loadu_ps(q.as_ptr().add(3 * cw + 3)));
+                let top = _mm_add_ps(a, _mm_mul_ps(_mm_sub_ps(b, a), fx));
+                let bot = _mm_add_ps(cc, _mm_mul_ps(_mm_sub_ps(dd, cc), fx));
+                _mm_storeu_ps(o.as_mut_ptr(), _mm_add_ps(top, _mm_mul_ps(_mm_sub_ps(bot, top), fy)));
+            }
+            return [o[0], o[1], o[2]];
+        }
+    }
     let quad = &colour[j..j + cw + 2];
     let (a, b, cc, dd) = (quad[0], quad[1], quad[cw], quad[cw + 1]);
     let mut o = [0.0f32; 3];
@@ -972,15 +1049,31 @@ fn draw_tissue(sh: &Shared, wk: &mut EyeWork, t_c_e: &Isometry3<f64>, lighting: 
     let tissue = &sh.tissue;
     let colour = &mut wk.colour;
     let mut b = Bounds::EMPTY;
-    let verts = &wk.verts;
-    let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
-        let al = tissue.albedo(a[0], a[1]);
-        let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
-        colour[idx] = lighting.haze(c, a[4]);
-    };
-    for t in &tissue.triangles {
-        let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
-        draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+    if lighting.smoke.is_some() {
+        let verts = &wk.verts;
+        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 5]| {
+            let al = tissue.albedo(a[0], a[1]);
+            let c = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+            colour[idx] = lighting.haze(c, a[4]);
+        };
+        for t in &tissue.triangles {
+            let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+            draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+        }
+    } else {
+        // Without smoke the transmittance is 1 and the haze the identity: the other four
+        // attributes alone (each is interpolated on its own: the same numbers).
+        wk.verts4.clear();
+        wk.verts4.extend(wk.verts.iter().map(|v| Vtx { p: v.p, a: [v.a[0], v.a[1], v.a[2], v.a[3]] }));
+        let verts = &wk.verts4;
+        let mut frag = |idx: usize, _x: usize, _y: usize, _z: f32, a: &[f32; 4]| {
+            let al = tissue.albedo(a[0], a[1]);
+            colour[idx] = [al[0] * a[2] + a[3], al[1] * a[2] + a[3], al[2] * a[2] + a[3]];
+        };
+        for t in &tissue.triangles {
+            let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
+            draw_triangle(&c, &mut wk.depth_t, &tri, false, &mut b, &mut frag);
+        }
     }
 }
 
@@ -1010,29 +1103,37 @@ fn down_blur(
         }
     }
     // Horizontal [1 2 1] into dst, vertical back into tmp, swap.
+    // On flat rows of floats (the three channels alike, in loops the compiler vectorises);
+    // the edge pixels repeat themselves as their missing neighbour.
+    let blur = |l: f32, m: f32, r: f32| 0.25 * (l + 2.0 * m + r);
     for y in 0..dh {
-        let src_row = &tmp[y * dw..(y + 1) * dw];
-        let out = &mut dst[y * dw..(y + 1) * dw];
-        for (x, o) in out.iter_mut().enumerate() {
-            let (l, m, r) = (src_row[x.saturating_sub(1)], src_row[x], src_row[(x + 1).min(dw - 1)]);
-            *o = [
-                0.25 * (l[0] + 2.0 * m[0] + r[0]),
-                0.25 * (l[1] + 2.0 * m[1] + r[1]),
-                0.25 * (l[2] + 2.0 * m[2] + r[2]),
-            ];
+        let src_row = tmp[y * dw..(y + 1) * dw].as_flattened();
+        let out = dst[y * dw..(y + 1) * dw].as_flattened_mut();
+        let n = 3 * dw;
+        let first_r = if dw > 1 { 3 } else { 0 };
+        for k in 0..3 {
+            out[k] = blur(src_row[k], src_row[k], src_row[k + first_r]);
+        }
+        if dw > 1 {
+            for k in n - 3..n {
+                out[k] = blur(src_row[k - 3], src_row[k], src_row[k]);
+            }
+        }
+        if dw > 2 {
+            let inner = out[3..n - 3].iter_mut().zip(&src_row[..n - 6]).zip(&src_row[3..n - 3]).zip(&src_row[6..]);
+            for (((o, &l), &m), &r) in inner {
+                *o = blur(l, m, r);
+            }
         }
     }
     for y in 0..dh {
         let (up, dn) = (y.saturating_sub(1) * dw, (y + 1).min(dh - 1) * dw);
-        let (ru, rm, rd) = (&dst[up..up + dw], &dst[y * dw..(y + 1) * dw], &dst[dn..dn + dw]);
-        let out = &mut tmp[y * dw..(y + 1) * dw];
-        for (x, o) in out.iter_mut().enumerate() {
-            let (u, m, d) = (ru[x], rm[x], rd[x]);
-            *o = [
-                0.25 * (u[0] + 2.0 * m[0] + d[0]),
-                0.25 * (u[1] + 2.0 * m[1] + d[1]),
-                0.25 * (u[2] + 2.0 * m[2] + d[2]),
-            ];
+        let ru = dst[up..up + dw].as_flattened();
+        let rm = dst[y * dw..(y + 1) * dw].as_flattened();
+        let rd = dst[dn..dn + dw].as_flattened();
+        let out = tmp[y * dw..(y + 1) * dw].as_flattened_mut();
+        for (((o, &u), &m), &d) in out.iter_mut().zip(ru).zip(rm).zip(rd) {
+            *o = blur(u, m, d);
         }
     }
     std::mem::swap(dst, tmp);
@@ -1107,5 +1208,24 @@ fn defocus_gather(wk: &EyeWork, dims: &[(usize, usize); 3], own: [f32; 3], rr: f
         let t = (rr - R[n]) / (R[n + 1] - R[n]);
         let (a, b) = (lvl(n), lvl(n + 1));
         [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
+    }
+}
+
+#[cfg(test)]
+mod simd_tests {
+    use super::*;
+
+    #[test]
+    fn srgb_indices_match_the_scalar_clamp() {
+        let lut_max = (SRGB_LUT - 1) as f32;
+        let mut val = vec![f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1.0, -1e-5, -0.0, 0.0, 1.0, 1.5, 1e30];
+        val.extend((0..5000).map(|i| i as f32 * 2.7e-4 - 0.2));
+        let mut idx = vec![0; val.len()];
+        srgb_indices(&val, &mut idx, lut_max);
+        for (&v, &i) in val.iter().zip(&idx) {
+            // The former per-channel formula.
+            let want = ((v * lut_max + 0.5) as i32).clamp(0, SRGB_LUT as i32 - 1);
+            assert_eq!(i, want, "{v}");
+        }
     }
 }

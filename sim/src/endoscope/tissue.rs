@@ -94,10 +94,14 @@ pub struct Tissue {
     pub texture_px: usize,
     /// Linear albedo per texel (RGB ×255, A unused), row-major, `v` down the rows.
     pub texture: Vec<[u8; 4]>,
-    /// The same texels with one 16-bit lane per channel (R in the low lane), for bilinear
-    /// lookups four channels at a time; one more column and row repeat the last ones, so
-    /// that the four texels of a lookup are always there (`(texture_px + 1)²` entries).
-    packed: Vec<u64>,
+    /// The same texels as little-endian `u32` (R in the low byte; half the memory of one
+    /// 16-bit lane per channel: the lookup widens them), for bilinear lookups four channels
+    /// at a time; one more column and row repeat the last ones, so that the four texels of
+    /// a lookup are always there (`(texture_px + 1)²` entries).
+    packed: Vec<u32>,
+    /// `texture_px` and `(texture_px − 1)·256` as floats (the lookup's constants).
+    n_f32: f32,
+    max_f32: f32,
 }
 
 impl Tissue {
@@ -143,44 +147,128 @@ impl Tissue {
         let mut packed = Vec::with_capacity((texture_px + 1) * (texture_px + 1));
         for j in 0..=texture_px {
             let row = &texture[j.min(texture_px - 1) * texture_px..][..texture_px];
-            packed.extend(row.iter().map(|t| spread(*t)));
-            packed.push(spread(row[texture_px - 1]));
+            packed.extend(row.iter().map(|t| u32::from_le_bytes(*t)));
+            packed.push(u32::from_le_bytes(row[texture_px - 1]));
         }
-        Self { positions, normals, uv, triangles, texture_px, texture, packed }
+        let (n_f32, max_f32) = (texture_px as f32, ((texture_px - 1) * 256) as f32);
+        Self { positions, normals, uv, triangles, texture_px, texture, packed, n_f32, max_f32 }
     }
 
     /// Bilinear albedo (linear RGB) at texture coordinates `(s, t)` (clamped to the edge);
-    /// 8-bit weights, the four channels in one integer operation.
-    #[inline]
+    /// 8-bit weights, the four channels in one integer operation (on x86-64, the two
+    /// texture coordinates and the four texels in SSE2 registers: the same numbers).
+    #[inline(always)]
     pub fn albedo(&self, s: f32, t: f32) -> [f32; 3] {
         let n = self.texture_px;
         // In 1/256 texel, clamped to the edge texels' centres: the integer part is the texel,
         // the low byte the weight. The same numbers as clamping x = s·n − ½ to [0, n − 1]
         // first (x·256 is exact in f32, truncation sends (−1, 0) to 0, NaN goes to 0).
-        let fix = |s: f32| ((s * n as f32 - 0.5) * 256.0) as i32;
-        let max = (n as i32 - 1) * 256;
-        let (fx, fy) = (fix(s).clamp(0, max) as u32, fix(t).clamp(0, max) as u32);
+        let (fx, fy) = fixed_coords(s, t, n, self.n_f32, self.max_f32);
         let (ix, iy) = ((fx >> 8) as usize, (fy >> 8) as usize);
         let (wx, wy) = (fx & 0xFF, fy & 0xFF);
         // The four texels (the padding column and row stand in at the edges, with weight 0).
         let stride = n + 1;
-        let quad = &self.packed[iy * stride + ix..][..stride + 2];
-        let top = lerp_packed(quad[0], quad[1], wx);
-        let bot = lerp_packed(quad[stride], quad[stride + 1], wx);
-        let c = lerp_packed(top, bot, wy);
-        const K: f32 = 1.0 / 255.0;
-        // Each lane holds a byte value: the low byte of the shifted lane is all of it.
-        [c as u8 as f32 * K, (c >> 16) as u8 as f32 * K, (c >> 32) as u8 as f32 * K]
+        let i = iy * stride + ix;
+        let (top, bot) = self.packed[i..i + stride + 2].split_at(stride);
+        // Two neighbouring texels in one 64-bit word (the left one in the low half).
+        let pair = |p: &[u32]| p[0] as u64 | (p[1] as u64) << 32;
+        bilerp(pair(top), pair(bot), wx, wy)
+    }
+}
+
+const K_BYTE: f32 = 1.0 / 255.0;
+
+/// `(s·n − ½)·256` and `(t·n − ½)·256` truncated toward zero, clamped to `[0, (n − 1)·256]`
+/// (NaN to 0).
+#[cfg(not(target_arch = "x86_64"))]
+#[inline(always)]
+fn fixed_coords(s: f32, t: f32, n: usize, _n_f32: f32, _max_f32: f32) -> (u32, u32) {
+    let fix = |s: f32| ((s * n as f32 - 0.5) * 256.0) as i32;
+    let max = (n as i32 - 1) * 256;
+    (fix(s).clamp(0, max) as u32, fix(t).clamp(0, max) as u32)
+}
+
+/// [`fixed_coords`] on x86-64: both coordinates in one SSE2 register, clamped as floats
+/// before the truncation (`maxps` sends NaN to 0; `(n − 1)·256` is an integer, so clamping
+/// before or after truncating gives the same integer).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn fixed_coords(s: f32, t: f32, _n: usize, n_f32: f32, max_f32: f32) -> (u32, u32) {
+    use std::arch::x86_64::{
+        _mm_cvtsi128_si32, _mm_cvttps_epi32, _mm_max_ps, _mm_min_ps, _mm_mul_ps, _mm_set_ps, _mm_set1_ps,
+        _mm_setzero_ps, _mm_shuffle_epi32, _mm_sub_ps,
+    };
+    // SAFETY: SSE2 is part of the x86-64 baseline (every x86_64 target enables it), and these
+    // intrinsics only read and write registers.
+    unsafe {
+        let x = _mm_mul_ps(
+            _mm_sub_ps(_mm_mul_ps(_mm_set_ps(0.0, 0.0, t, s), _mm_set1_ps(n_f32)), _mm_set1_ps(0.5)),
+            _mm_set1_ps(256.0),
+        );
+        // `_mm_max_ps(x, 0)` returns 0 where x is NaN.
+        let x = _mm_min_ps(_mm_max_ps(x, _mm_setzero_ps()), _mm_set1_ps(max_f32));
+        let i = _mm_cvttps_epi32(x);
+        (_mm_cvtsi128_si32(i) as u32, _mm_cvtsi128_si32(_mm_shuffle_epi32::<1>(i)) as u32)
+    }
+}
+
+/// Bilinear blend of four texels with 8-bit weights, to linear RGB: `top` holds the top left
+/// texel's RGBA bytes then the top right one's, `bot` the bottom ones.
+#[cfg(not(target_arch = "x86_64"))]
+#[inline(always)]
+fn bilerp(top: u64, bot: u64, wx: u32, wy: u32) -> [f32; 3] {
+    let texel = |pair: u64, k: u32| spread(((pair >> (32 * k)) as u32).to_le_bytes());
+    let (a, b, c, d) = (texel(top, 0), texel(top, 1), texel(bot, 0), texel(bot, 1));
+    let top = lerp_packed(a, b, wx);
+    let bot = lerp_packed(c, d, wx);
+    let c = lerp_packed(top, bot, wy);
+    // Each lane holds a byte value: the low byte of the shifted lane is all of it.
+    [c as u8 as f32 * K_BYTE, (c >> 16) as u8 as f32 * K_BYTE, (c >> 32) as u8 as f32 * K_BYTE]
+}
+
+/// [`bilerp`] on x86-64 with SSE2: the same per-lane integer operations as [`lerp_packed`]
+/// (16-bit products and sums never exceed 255·256), two texels per register.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn bilerp(top: u64, bot: u64, wx: u32, wy: u32) -> [f32; 3] {
+    use std::arch::x86_64::{
+        _mm_add_epi16, _mm_cvtepi32_ps, _mm_cvtss_f32, _mm_mul_ps, _mm_mullo_epi16, _mm_set_epi64x, _mm_set1_epi16,
+        _mm_set1_ps, _mm_setzero_si128, _mm_shuffle_ps, _mm_srli_epi16, _mm_unpackhi_epi8, _mm_unpackhi_epi64,
+        _mm_unpacklo_epi8, _mm_unpacklo_epi16, _mm_unpacklo_epi64, _mm_xor_si128,
+    };
+    // SAFETY: SSE2 is part of the x86-64 baseline (every x86_64 target enables it), and these
+    // intrinsics only read and write registers.
+    unsafe {
+        // [256 − w (4 lanes) | w (4 lanes)] = (w ^ [!0 | 0]) + [257 | 0] (two's complement:
+        // !w + 257 = 256 − w).
+        let flip = _mm_set_epi64x(0, -1);
+        let base = _mm_set_epi64x(0, 0x0101_0101_0101_0101);
+        let weights = |w: u32| _mm_add_epi16(_mm_xor_si128(_mm_set1_epi16(w as i16), flip), base);
+        let wxv = weights(wx);
+        // [a·(256 − wx) | b·wx] and [c·(256 − wx) | d·wx], lane by lane.
+        // The four texels' bytes widened to 16-bit lanes: [a | b] and [c | d].
+        let bytes = _mm_set_epi64x(bot as i64, top as i64);
+        let (ab, cd) = (_mm_unpacklo_epi8(bytes, _mm_setzero_si128()), _mm_unpackhi_epi8(bytes, _mm_setzero_si128()));
+        let pt = _mm_mullo_epi16(ab, wxv);
+        let pb = _mm_mullo_epi16(cd, wxv);
+        // [top | bottom] = (sums) >> 8.
+        let tb = _mm_srli_epi16::<8>(_mm_add_epi16(_mm_unpacklo_epi64(pt, pb), _mm_unpackhi_epi64(pt, pb)));
+        let p = _mm_mullo_epi16(tb, weights(wy));
+        let v = _mm_srli_epi16::<8>(_mm_add_epi16(p, _mm_unpackhi_epi64(p, p)));
+        let f = _mm_mul_ps(_mm_cvtepi32_ps(_mm_unpacklo_epi16(v, _mm_setzero_si128())), _mm_set1_ps(K_BYTE));
+        [_mm_cvtss_f32(f), _mm_cvtss_f32(_mm_shuffle_ps::<1>(f, f)), _mm_cvtss_f32(_mm_shuffle_ps::<2>(f, f))]
     }
 }
 
 /// An RGBA texel with each 8-bit channel in its own 16-bit lane of a `u64` (R lowest).
+#[cfg_attr(target_arch = "x86_64", allow(dead_code, reason = "the scalar fallback, and the tests' reference"))]
 fn spread(t: [u8; 4]) -> u64 {
     t.iter().enumerate().fold(0u64, |acc, (k, &v)| acc | (v as u64) << (16 * k))
 }
 
 /// `⌊(a·(256 − w) + b·w) / 256⌋` on each lane of spread texels (`w ≤ 256`): the sums stay
 /// below 2¹⁶, so the lanes never carry into each other.
+#[cfg_attr(target_arch = "x86_64", allow(dead_code, reason = "the scalar fallback, and the tests' reference"))]
 #[inline]
 fn lerp_packed(a: u64, b: u64, w: u32) -> u64 {
     const LANES: u64 = 0x00FF_00FF_00FF_00FF;
@@ -304,5 +392,41 @@ mod tests {
         let mid = a.albedo(6.0 / n as f32, 9.5 / n as f32);
         let (l, r) = (a.texture[9 * n + 5], a.texture[9 * n + 6]);
         assert!((mid[0] * 255.0 - (l[0] as f32 + r[0] as f32) / 2.0).abs() < 1.01);
+    }
+}
+
+#[cfg(test)]
+mod lookup_tests {
+    use super::*;
+
+    /// The scalar reference of [`fixed_coords`].
+    fn fixed_ref(s: f32, n: usize) -> u32 {
+        let max = (n as i32 - 1) * 256;
+        (((s * n as f32 - 0.5) * 256.0) as i32).clamp(0, max) as u32
+    }
+
+    #[test]
+    fn the_lookup_matches_the_scalar_reference_bit_for_bit() {
+        let n = 1024;
+        let specials =
+            [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1e9, 1e9, -0.0, 0.0, 1.0, 0.5 / n as f32, 1.3, -0.2];
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let coords: Vec<f32> =
+            specials.iter().copied().chain((0..2000).map(|_| rng.random_range(-0.1f32..1.1))).collect();
+        for &s in &coords {
+            let (nf, maxf) = (n as f32, ((n - 1) * 256) as f32);
+            assert_eq!(fixed_coords(s, 0.25, n, nf, maxf).0, fixed_ref(s, n), "s = {s}");
+            assert_eq!(fixed_coords(0.25, s, n, nf, maxf).1, fixed_ref(s, n), "t = {s}");
+        }
+        for _ in 0..20_000 {
+            let t: [[u8; 4]; 4] = std::array::from_fn(|_| rng.random::<[u8; 4]>());
+            let q = t.map(spread);
+            let pair = |l: [u8; 4], r: [u8; 4]| u32::from_le_bytes(l) as u64 | (u32::from_le_bytes(r) as u64) << 32;
+            let (wx, wy) = (rng.random_range(0..256u32), rng.random_range(0..256u32));
+            let c = lerp_packed(lerp_packed(q[0], q[1], wx), lerp_packed(q[2], q[3], wx), wy);
+            let want = [c as u8 as f32 * K_BYTE, (c >> 16) as u8 as f32 * K_BYTE, (c >> 32) as u8 as f32 * K_BYTE];
+            let got = bilerp(pair(t[0], t[1]), pair(t[2], t[3]), wx, wy);
+            assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits));
+        }
     }
 }

@@ -448,19 +448,11 @@ fn touch_stack(bytes: usize) {
 // ---------------------------------------------------------------------------------------------
 // Clock
 
-/// `CLOCK_MONOTONIC` now, nanoseconds since an arbitrary origin (boot).
+/// `CLOCK_MONOTONIC` now, nanoseconds since an arbitrary origin (boot): hw-io's, the one clock
+/// read of the workspace (frames are stamped with it too).
 ///
 /// **Real-time (1 kHz loop):** called several times a cycle; allocation-free, no system call (vDSO).
-pub fn monotonic_now_ns() -> u64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: `ts` is a valid timespec to write. With CLOCK_MONOTONIC and a valid pointer,
-    // clock_gettime cannot fail on Linux; 0 would be returned if it ever did.
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    if rc != 0 {
-        return 0;
-    }
-    (ts.tv_sec as u64).saturating_mul(NS_PER_S).saturating_add(ts.tv_nsec as u64)
-}
+pub use hw_io::frame::monotonic_now_ns;
 
 /// Why the clock could not be slept on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]

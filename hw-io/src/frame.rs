@@ -247,11 +247,17 @@ pub fn realtime_minus_monotonic_ns() -> i128 {
     real - (a + b) / 2
 }
 
-/// Nanoseconds of `CLOCK_MONOTONIC` now.
+/// `CLOCK_MONOTONIC` now, nanoseconds since an arbitrary origin (boot). The one clock read of
+/// the workspace: fulcrumd's loop (`controller::rt`), frame timestamps, the simulated camera.
+///
+/// **Real-time (1 kHz loop):** allocation-free, no system call (vDSO).
 pub fn monotonic_now_ns() -> u64 {
     let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    // SAFETY: `ts` is a valid, writable timespec. With CLOCK_MONOTONIC and a valid pointer,
+    // clock_gettime cannot fail on Linux; 0 is returned if it ever did.
+    if unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) } != 0 {
+        return 0;
+    }
     (ts.tv_sec.max(0) as u64).saturating_mul(1_000_000_000).saturating_add(ts.tv_nsec.max(0) as u64)
 }
 

@@ -42,6 +42,14 @@ pub enum SimCameraError {
     /// The scene is not renderable (a non-finite pose).
     #[error(transparent)]
     Render(#[from] RenderError),
+    /// The renderer's image is not the configured size (a bug: never sent as a frame).
+    #[error("rendered {got}-byte eye image, the frame format needs {expected}")]
+    ImageSize {
+        /// Bytes of one eye in the frame format.
+        expected: usize,
+        /// Bytes the renderer produced.
+        got: usize,
+    },
 }
 
 /// Why [`SimCamera::new`] failed.
@@ -219,13 +227,11 @@ impl<F: Fn(u64) -> SceneState> CameraSource for SimCamera<F> {
         }
         let eye_bytes = self.format.layout.eye_bytes();
         for (eye, img) in self.frame.images.iter().enumerate() {
-            let out = &mut dst[eye * eye_bytes..(eye + 1) * eye_bytes];
-            if img.rgb.len() == out.len() {
-                out.copy_from_slice(&img.rgb);
-            } else {
-                // The renderer always fills the configured size; a mismatch would be a bug here.
-                out.fill(0);
+            if img.rgb.len() != eye_bytes {
+                self.counters.dropped += 1;
+                return Err(SimCameraError::ImageSize { expected: eye_bytes, got: img.rgb.len() });
             }
+            dst[eye * eye_bytes..(eye + 1) * eye_bytes].copy_from_slice(&img.rgb);
         }
         self.counters.delivered += 1;
         Ok(Next::Frame(FrameMeta {

@@ -148,14 +148,10 @@ fn main() -> ExitCode {
             cfg.timing = if paced { Timing::Paced } else { Timing::Recorded };
             cfg.repeat = repeat;
             cfg.camera_id = camera_id;
-            let mut source = match ImageSequence::open(cfg) {
-                Ok(s) => s,
-                Err(e) => {
-                    error!("{e}");
-                    return ExitCode::from(3);
-                }
-            };
-            run_source(&mut source, camera_id, &service, frames, summary_json)
+            match ImageSequence::open(cfg) {
+                Ok(mut source) => run_source(&mut source, camera_id, &service, frames, summary_json),
+                Err(e) => cannot_open(&e),
+            }
         }
         Command::V4l2 {
             device,
@@ -186,14 +182,10 @@ fn main() -> ExitCode {
                 exposure_ns: exposure_us.map(|us| us.saturating_mul(1000)),
                 ..V4l2Config::default()
             };
-            let mut source = match V4l2Source::open(&config) {
-                Ok(s) => s,
-                Err(e) => {
-                    error!("{e}");
-                    return ExitCode::from(3);
-                }
-            };
-            run_source(&mut source, camera_id, &service, frames, summary_json)
+            match V4l2Source::open(&config) {
+                Ok(mut source) => run_source(&mut source, camera_id, &service, frames, summary_json),
+                Err(e) => cannot_open(&e),
+            }
         }
         Command::Monitor {
             service,
@@ -215,6 +207,12 @@ fn main() -> ExitCode {
             summary_json,
         }),
     }
+}
+
+/// A source that cannot be opened: logged, exit code 3.
+fn cannot_open(e: &dyn std::error::Error) -> ExitCode {
+    error!("{e}");
+    ExitCode::from(3)
 }
 
 fn secs(s: f64) -> Duration {

@@ -10,8 +10,14 @@
 //!   paper (Wang et al., *Vision-based calibration of dual RCM-based robot arms in
 //!   human-robot collaborative minimally invasive surgery*, IEEE RA-L 2017) takes instead.
 //!
+//! - [`detect`]: the contract every shaft detector meets ([`ShaftDetector`]): an sRGB image
+//!   in, the shafts out, best first, or none.
+//!
 //! Units: pixels of the undistorted (ideal pinhole) image, OpenCV's convention (the centre of
 //! the top-left pixel is `(0, 0)`); camera frame: x right, y down, z forward.
 #![warn(missing_docs)]
 
+pub mod detect;
 pub mod shaft;
+
+pub use detect::{DetectError, ImageError, RgbView, Segment, ShaftDetection, ShaftDetector};

@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 
 /// Pinhole intrinsics (pixels) with plumb-bob distortion, as read from a file: the
 /// estimator's own type, so that no field is copied across.
+pub use estimator::calib::Eye;
 pub use estimator::calib::Intrinsics as CameraIntrinsics;
 
 /// Why an intrinsics YAML file was refused.
@@ -190,6 +191,14 @@ pub struct ObservationJson {
     pub psm_joints: [f64; 3],
     /// Two distinct points of the tool centreline in the image, pixels `[[u, v], [u, v]]`.
     pub line_px: [[f64; 2]; 2],
+    /// The eye that saw the line, `"left"` (default, omitted) or `"right"` (needs the
+    /// dataset's `right_eye`).
+    #[serde(default, skip_serializing_if = "is_left")]
+    pub eye: Eye,
+}
+
+fn is_left(e: &Eye) -> bool {
+    *e == Eye::Left
 }
 
 /// The dataset file's `format` value.
@@ -213,6 +222,10 @@ pub struct DatasetFile {
     pub intrinsics: CameraIntrinsics,
     /// Hand-eye `T_f_c`: camera frame in robot 1's end-effector frame.
     pub hand_eye: TransformJson,
+    /// `T_c_r`: a stereo endoscope's right eye in the left eye's camera frame `{c}` (metres;
+    /// same intrinsics); absent for a single camera.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub right_eye: Option<TransformJson>,
     /// Optional kinematic noise model (weights our pipeline).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_model: Option<NoiseJson>,
@@ -680,12 +693,14 @@ mod tests {
             version: 1,
             intrinsics: parse_intrinsics_yaml(ROS).unwrap(),
             hand_eye: TransformJson { translation_m: [0.0, 0.0, 0.001], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] },
+            right_eye: None,
             noise_model: None,
             min_shaft_px: 40.0,
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],
                 psm_joints: [0.0, 0.1, 0.1],
                 line_px: [[10.0, 20.0], [200.0, 220.0]],
+                eye: Eye::Left,
             }],
         }
     }

@@ -17,7 +17,7 @@
 //! Deterministic: the same protocol and seed give the same dataset (ChaCha8).
 
 use estimator::calib::rcm_arms::{ecm_frames, psm_frames, se3_exp};
-use estimator::calib::{Intrinsics, KinematicNoise, Observation, Setup};
+use estimator::calib::{Eye, Intrinsics, KinematicNoise, Observation, Setup};
 use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -303,6 +303,7 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
                         ecm_joints: *qe,
                         psm_joints: *qt,
                         line_px: [[a.x + s * n0, a.y + s * n1], [b.x + s * n2, b.y + s * n3]],
+                        eye: Eye::Left,
                     });
                 }
                 None => dropped += 1,
@@ -315,7 +316,12 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
     }
     let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: p.pixel_sigma_px };
     Ok(CalibDataset {
-        setup: Setup { intrinsics: g.intrinsics, hand_eye: g.hand_eye, min_shaft_px: g.min_visible_px },
+        setup: Setup {
+            intrinsics: g.intrinsics,
+            hand_eye: g.hand_eye,
+            right_eye: None,
+            min_shaft_px: g.min_visible_px,
+        },
         truth: g.truth,
         observations,
         generated,

@@ -25,11 +25,16 @@ pub fn transform_json(t: &Isometry3<f64>) -> TransformJson {
 
 /// A parsed dataset file → setup, observations and optional noise model.
 pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoise>) {
-    let setup = Setup { intrinsics: d.intrinsics, hand_eye: isometry(&d.hand_eye), min_shaft_px: d.min_shaft_px };
+    let setup = Setup {
+        intrinsics: d.intrinsics,
+        hand_eye: isometry(&d.hand_eye),
+        right_eye: d.right_eye.as_ref().map(isometry),
+        min_shaft_px: d.min_shaft_px,
+    };
     let obs = d
         .observations
         .iter()
-        .map(|o| Observation { ecm_joints: o.ecm_joints, psm_joints: o.psm_joints, line_px: o.line_px })
+        .map(|o| Observation { ecm_joints: o.ecm_joints, psm_joints: o.psm_joints, line_px: o.line_px, eye: o.eye })
         .collect();
     let noise = d.noise_model.map(|n| KinematicNoise { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px });
     (setup, obs, noise)
@@ -42,11 +47,17 @@ pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicN
         version: CALIB_FILE_VERSION,
         intrinsics: setup.intrinsics,
         hand_eye: transform_json(&setup.hand_eye),
+        right_eye: setup.right_eye.as_ref().map(transform_json),
         noise_model: noise.map(|n| NoiseJson { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px }),
         min_shaft_px: setup.min_shaft_px,
         observations: obs
             .iter()
-            .map(|o| ObservationJson { ecm_joints: o.ecm_joints, psm_joints: o.psm_joints, line_px: o.line_px })
+            .map(|o| ObservationJson {
+                ecm_joints: o.ecm_joints,
+                psm_joints: o.psm_joints,
+                line_px: o.line_px,
+                eye: o.eye,
+            })
             .collect(),
     }
 }

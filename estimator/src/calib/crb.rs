@@ -275,7 +275,12 @@ fn predicted_observation(
     let len = if k.in_image(&tip) { exit(tip.x, dir.x, w).min(exit(tip.y, dir.y, h)) } else { 0.0 };
     let len = if len >= setup.min_shaft_px.max(1.0) { len } else { setup.min_shaft_px.max(40.0) };
     let far = tip + dir * len;
-    Some(Observation { ecm_joints: *ecm_joints, psm_joints: *psm_joints, line_px: [tip.into(), far.into()] })
+    Some(Observation {
+        ecm_joints: *ecm_joints,
+        psm_joints: *psm_joints,
+        line_px: [tip.into(), far.into()],
+        eye: super::Eye::Left,
+    })
 }
 
 fn summarise(fisher: &Matrix6<f64>) -> Result<Crb, CrbError> {

@@ -61,6 +61,22 @@ pub struct Observation {
     pub psm_joints: [f64; 3],
     /// Two distinct points of the tool's centreline in the image, pixels `[[u, v], [u, v]]`.
     pub line_px: [[f64; 2]; 2],
+    /// Which eye of a stereo endoscope saw the line (default: the left eye, the camera frame
+    /// `{c}` of [`Setup::hand_eye`]; the right eye needs [`Setup::right_eye`]).
+    #[serde(default)]
+    pub eye: Eye,
+}
+
+/// An eye of a stereo endoscope. The left eye is the camera frame `{c}`; both eyes share the
+/// intrinsics of [`Setup::intrinsics`] (a rectified or identical pair).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Eye {
+    /// The left eye, `{c}`.
+    #[default]
+    Left,
+    /// The right eye, at [`Setup::right_eye`] in `{c}`.
+    Right,
 }
 
 /// Everything fixed across observations: camera intrinsics and robot 1's hand-eye transform.
@@ -70,11 +86,26 @@ pub struct Setup {
     pub intrinsics: Intrinsics,
     /// `T_f_c`: the camera frame in robot 1's end-effector frame (metres); the paper's `X`.
     pub hand_eye: Isometry3<f64>,
+    /// `T_c_r`: the right eye's camera frame in the left eye's `{c}` (metres; for a parallel
+    /// stereo endoscope a translation of the baseline along `x`). `None`: a single camera
+    /// (observations from the right eye are refused).
+    pub right_eye: Option<Isometry3<f64>>,
     /// How observations were selected: one is recorded only when the tool tip is inside the
     /// image and at least this much shaft (pixels, ≥ 0) is visible from the tip toward robot
     /// 2's RCM. Our pipeline models this selection ([`selection`]); 0: the tip inside the
     /// image is the only condition.
     pub min_shaft_px: f64,
+}
+
+impl Setup {
+    /// `T_f_eye`: the frame of `eye` in robot 1's end effector (metres); `None` for the right
+    /// eye of a single camera.
+    pub fn hand_eye_of(&self, eye: Eye) -> Option<Isometry3<f64>> {
+        match eye {
+            Eye::Left => Some(self.hand_eye),
+            Eye::Right => self.right_eye.map(|r| self.hand_eye * r),
+        }
+    }
 }
 
 /// The kinematic noise model of the simulation protocol (Sec. IV, Eq. 11), used to weight our

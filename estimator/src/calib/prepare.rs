@@ -38,6 +38,9 @@ pub struct Prepared {
     pub insertion_m: f64,
     /// The two line points as ideal (undistorted) pixels.
     pub px: [Vector2<f64>; 2],
+    /// `Ad(T_f_eye⁻¹)` of the eye that saw this observation (6×6, `(ρ, φ)` order): maps a
+    /// right perturbation of robot 1's end effector into that eye's frame.
+    pub eye_inv_adjoint: Matrix6<f64>,
 }
 
 /// All observations, prepared, with the camera model.
@@ -49,9 +52,6 @@ pub struct PreparedSet {
     pub k_inv_t: Matrix3<f64>,
     /// `T_f_c`, metres.
     pub hand_eye: Isometry3<f64>,
-    /// `Ad(T_f_c⁻¹)` (6×6, `(ρ, φ)` order): maps a right perturbation of robot 1's end
-    /// effector into the camera frame. Derived from `hand_eye` once.
-    pub hand_eye_inv_adjoint: Matrix6<f64>,
     /// The camera intrinsics (pixels; image size for the border guard).
     pub intrinsics: super::Intrinsics,
     /// [`Setup::min_shaft_px`](super::Setup::min_shaft_px), pixels.
@@ -71,9 +71,15 @@ pub enum PrepareError {
     /// The intrinsics are unusable.
     #[error("camera intrinsics: {0}")]
     Intrinsics(#[from] IntrinsicsError),
-    /// The hand-eye transform is not finite.
+    /// The hand-eye transform (or the right eye's transform) is not finite.
     #[error("hand-eye transform is not finite")]
     HandEye,
+    /// An observation from the right eye, but the setup has no right eye.
+    #[error("observation {index}: from the right eye, but the setup has no right eye (stereo transform)")]
+    NoRightEye {
+        /// Observation index (0-based).
+        index: usize,
+    },
     /// A joint value is NaN or infinite.
     #[error("observation {index}: joint values must be finite")]
     Joint {
@@ -123,9 +129,11 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
         return Err(PrepareError::Empty);
     }
     setup.intrinsics.validate()?;
-    if !finite_iso(&setup.hand_eye) {
+    if !finite_iso(&setup.hand_eye) || setup.right_eye.is_some_and(|r| !finite_iso(&r)) {
         return Err(PrepareError::HandEye);
     }
+    let left_ad = inverse_adjoint(&setup.hand_eye);
+    let right = setup.hand_eye_of(super::Eye::Right).map(|x| (x, inverse_adjoint(&x)));
     if !(setup.min_shaft_px.is_finite() && setup.min_shaft_px >= 0.0) {
         return Err(PrepareError::MinShaft(setup.min_shaft_px));
     }
@@ -140,8 +148,12 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
             setup.intrinsics.undistort_px(&Vector2::from(o.line_px[1])),
         ];
         let n_c = plane_normal(&k_inv, &px[0], &px[1]).map_err(|source| PrepareError::Line { index, source })?;
+        let (hand_eye, eye_inv_adjoint) = match o.eye {
+            super::Eye::Left => (setup.hand_eye, left_ad),
+            super::Eye::Right => right.ok_or(PrepareError::NoRightEye { index })?,
+        };
         let tip = ecm_frames(&o.ecm_joints)[3];
-        let cam = tip * setup.hand_eye;
+        let cam = tip * hand_eye;
         let r_ec = cam.rotation.to_rotation_matrix().into_inner();
         let f2 = psm_frames(&o.psm_joints)[1];
         obs.push(Prepared {
@@ -154,6 +166,7 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
             psm_f2: f2,
             insertion_m: o.psm_joints[2],
             px,
+            eye_inv_adjoint,
         });
     }
     let views = count_distinct(obs.iter().map(|p| p.o_ec), 2, |a, b| (a - b).norm() > SAME_VIEW_M);
@@ -169,7 +182,6 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
         obs,
         k_inv_t: k_inv.transpose(),
         hand_eye: setup.hand_eye,
-        hand_eye_inv_adjoint: inverse_adjoint(&setup.hand_eye),
         intrinsics: setup.intrinsics,
         min_shaft_px: setup.min_shaft_px,
         views,

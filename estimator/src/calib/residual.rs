@@ -72,7 +72,7 @@ pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     let mut dn_c = SMatrix::<f64, 3, 6>::zeros();
     dn_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&sd);
     dn_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&(sp * sd - sd * sp));
-    let ad = &set.hand_eye_inv_adjoint;
+    let ad = &o.eye_inv_adjoint;
     dn.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dn_c * *ad));
     // Tool: δP = R2(ρa + ρb − d[ẑ]×φa), δD = −R2[ẑ]×(φa + φb), mapped into the camera.
     let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();

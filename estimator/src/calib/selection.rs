@@ -110,7 +110,7 @@ pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     dp_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&p));
     let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
     let mut dp = SMatrix::<f64, 3, 18>::zeros();
-    dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * set.hand_eye_inv_adjoint));
+    dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * o.eye_inv_adjoint));
     dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
     dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
     dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);

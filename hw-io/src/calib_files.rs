@@ -443,6 +443,14 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
         });
     }
     check_transform("hand_eye", &d.hand_eye)?;
+    if let Some(r) = &d.right_eye {
+        check_transform("right_eye", r)?;
+    } else if let Some(i) = d.observations.iter().position(|o| o.eye == Eye::Right) {
+        return Err(CalibFileError::Field {
+            field: format!("observations[{i}].eye"),
+            problem: "\"right\" needs the dataset's right_eye transform".into(),
+        });
+    }
     if let Some(n) = &d.noise_model {
         let v = [n.rot_rad, n.trans_m, n.pixel_px];
         if !v.iter().all(|x| x.is_finite() && *x >= 0.0) || v.iter().all(|x| *x == 0.0) {
@@ -468,6 +476,66 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
         }
     }
     Ok(d)
+}
+
+/// The shaft-lines file's `format` value (`comanip-calib detect`).
+pub const LINES_FORMAT: &str = "comanip-shaft-lines";
+/// The shaft-lines file's version (the calibration files' [`CALIB_FILE_VERSION`]).
+pub const LINES_VERSION: u32 = CALIB_FILE_VERSION;
+
+/// One detected shaft in a lines file. Lines `[a, b, c]` (`a·u + b·v + c = 0`, `a² + b² = 1`)
+/// are in **undistorted** pixels of the file's camera; `ends_px` are measured (distorted)
+/// pixels.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShaftJson {
+    /// The centreline (the projected axis, or the middle line for the paper's detector).
+    pub centreline: [f64; 3],
+    /// The two contour lines.
+    pub contours: [[f64; 3]; 2],
+    /// Two points on the centreline spanning the visible shaft, measured pixels
+    /// (a calibration observation's `line_px`).
+    pub ends_px: [[f64; 2]; 2],
+    /// The detector's confidence, 0..=1.
+    pub confidence: f64,
+}
+
+/// One image of a lines file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImageLinesJson {
+    /// The image file's name (relative to the images directory).
+    pub file: String,
+    /// The shafts found, best first (empty: none).
+    pub shafts: Vec<ShaftJson>,
+    /// Why the image was not examined (unreadable, wrong size), when it was not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Detection time, milliseconds (0 when not examined).
+    pub detect_ms: f64,
+}
+
+/// The lines file of `comanip-calib detect` (JSON).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LinesFile {
+    /// Always [`LINES_FORMAT`].
+    pub format: String,
+    /// Always [`LINES_VERSION`].
+    pub version: u32,
+    /// The detector (`ours`, `paper`).
+    pub detector: String,
+    /// The camera the lines are expressed in, pixels.
+    pub intrinsics: CameraIntrinsics,
+    /// Every image, in order.
+    pub images: Vec<ImageLinesJson>,
+}
+
+/// Parses a lines file (header checked).
+pub fn parse_lines(text: &str) -> Result<LinesFile, CalibFileError> {
+    let l: LinesFile = json(text)?;
+    check_header(&l.format, l.version, LINES_FORMAT)?;
+    Ok(l)
 }
 
 /// Parses a truth file.

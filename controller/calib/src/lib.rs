@@ -4,10 +4,15 @@
 //! - [`run`]: `generate` (simulated dataset + ground truth), `calibrate` (dataset → result
 //!   file, paper / ours / both).
 //! - [`residual_plot`]: the residual figure of `calibrate --plot` (SVG).
+//! - [`detect`]: `detect`, the shaft's lines in a directory of images (lines file, overlays).
+//! - [`pixels`]: `pixels`, the calibration from rendered stereo frames with detected lines,
+//!   next to the same poses with exact lines.
 //! - [`sweep`]: the paper's simulation protocol sweeps (σ, n_e × n_t, random initial
 //!   quaternions) to a Markdown table and SVG box plots.
 
 pub mod convert;
+pub mod detect;
+pub mod pixels;
 pub mod residual_plot;
 pub mod run;
 pub mod sweep;

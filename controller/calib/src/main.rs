@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use comanip_calib::detect::{DetectorChoice, detect_dir};
 use comanip_calib::run::{Pipeline, calibrate, default_protocol, generate};
 use comanip_calib::sweep::{SweepOptions, run_sweep};
 use sim::calib::NoiseUnits;
@@ -78,6 +79,52 @@ enum Command {
         /// Pipeline(s) to run.
         #[arg(long, value_enum, default_value = "both")]
         pipeline: Pipeline,
+    },
+    /// Detect the instrument shaft's lines in a directory of images; write them as JSON.
+    Detect {
+        /// Images: an image-sequence directory (frames.txt) or a directory of PNG files.
+        #[arg(long)]
+        images: PathBuf,
+        /// The camera: a ROS camera_info or OpenCV calibration YAML file (intrinsics and
+        /// distortion; the images' size).
+        #[arg(long)]
+        camera: PathBuf,
+        /// Lines file to write (JSON).
+        #[arg(long, default_value = "lines.json")]
+        out: PathBuf,
+        /// Also write an overlay PNG per image into this directory (contours green, centreline
+        /// blue, end points red).
+        #[arg(long)]
+        overlay: Option<PathBuf>,
+        /// The detector.
+        #[arg(long, value_enum, default_value = "ours")]
+        detector: DetectorChoice,
+        /// With frames.txt: the right eye's images instead of the left's.
+        #[arg(long)]
+        right: bool,
+    },
+    /// Calibration from pixels: the protocol's poses rendered by the simulated stereo
+    /// endoscope, the lines detected (ours and the paper's detector), both pipelines run on
+    /// them and on the exact lines of the same poses; writes pixels.md and the datasets.
+    Pixels {
+        /// Output directory.
+        #[arg(long, default_value = "docs/calibration/pixels")]
+        out_dir: PathBuf,
+        /// Values per ECM joint (n_e⁴ endoscope poses), 1..=4.
+        #[arg(long, default_value_t = 3)]
+        n_e: usize,
+        /// Values per PSM joint (n_t² tool directions), 1..=8.
+        #[arg(long, default_value_t = 3)]
+        n_t: usize,
+        /// Noise σ of δ = (ρ, φ).
+        #[arg(long, default_value_t = 0.01)]
+        sigma: f64,
+        /// Unit of ρ.
+        #[arg(long, value_enum, default_value = "mm")]
+        units: Units,
+        /// Seed of the kinematic noise.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
     },
     /// Run the protocol sweeps; write sweep.md and SVG box plots into a directory.
     Sweep {
@@ -158,6 +205,60 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 hw_io::outln!("wrote {}", p.display())?;
             }
         }
+        Command::Detect { images, camera, out, overlay, detector, right } => {
+            let text = std::fs::read_to_string(&camera).map_err(|e| format!("{}: {e}", camera.display()))?;
+            let k = hw_io::calib_files::parse_intrinsics_yaml(&text).map_err(|e| format!("{}: {e}", camera.display()))?;
+            let bar = comanip_calib::sweep::progress_bar(0, "images");
+            let s = detect_dir(&images, k, detector, right, &out, overlay.as_deref(), |n, total| {
+                bar.set_length(total as u64);
+                bar.set_position(n as u64);
+            })?;
+            bar.finish_and_clear();
+            hw_io::outln!(
+                "{} images: a shaft in {}, none in {}, {} unreadable; {:.2} ms per image (median); wrote {}",
+                s.images,
+                s.with_shaft,
+                s.images - s.with_shaft - s.failed,
+                s.failed,
+                s.median_ms,
+                out.display()
+            )?;
+            if s.failed > 0 {
+                return Err(format!("{} image(s) could not be examined (listed in {})", s.failed, out.display()).into());
+            }
+        }
+        Command::Pixels { out_dir, n_e, n_t, sigma, units, seed } => {
+            use comanip_calib::detect::make_detector;
+            use comanip_calib::pixels::{PixelProtocol, calibrate_all, render_and_detect, report_markdown};
+            let p = PixelProtocol {
+                n_e,
+                n_t,
+                sigma,
+                units: match units {
+                    Units::Mm => NoiseUnits::Millimetre,
+                    Units::M => NoiseUnits::Metre,
+                },
+                seed,
+                ..PixelProtocol::default()
+            };
+            let k = p.endoscope.camera.intrinsics;
+            let mut detectors = vec![make_detector(DetectorChoice::Paper, k)?, make_detector(DetectorChoice::Ours, k)?];
+            let bar = comanip_calib::sweep::progress_bar(0, "poses");
+            let run = render_and_detect(&p, &mut detectors, |n, total| {
+                bar.set_length(total as u64);
+                bar.set_position(n as u64);
+            })?;
+            bar.finish_and_clear();
+            let rows = calibrate_all(&run);
+            std::fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            let md = report_markdown(&p, &run, &rows, &command);
+            let path = out_dir.join("pixels.md");
+            std::fs::write(&path, &md).map_err(|e| format!("{}: {e}", path.display()))?;
+            comanip_calib::pixels::write_datasets(&run, &p, &out_dir)?;
+            hw_io::outln!("{md}")?;
+            hw_io::outln!("wrote {}", path.display())?;
+        }
         Command::Sweep { out_dir, trials, quick, seed } => {
             let mut opts = SweepOptions::full();
             opts.trials = trials;
@@ -174,3 +275,4 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
     }
     Ok(())
 }
+

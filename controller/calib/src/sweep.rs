@@ -210,14 +210,15 @@ fn bounds_of(c: &Condition) -> Bounds {
     }
 }
 
-fn progress_bar(total: u64) -> indicatif::ProgressBar {
+/// A progress bar of `total` `unit`s on a terminal; hidden otherwise (CI, pipes).
+pub fn progress_bar(total: u64, unit: &str) -> indicatif::ProgressBar {
     if !std::io::stderr().is_terminal() {
         return indicatif::ProgressBar::hidden();
     }
     let bar = indicatif::ProgressBar::new(total);
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} trials ({percent}%, eta {eta})",
-    ) {
+    if let Ok(style) = indicatif::ProgressStyle::with_template(&format!(
+        "{{spinner}} [{{elapsed_precise}}] {{wide_bar}} {{pos}}/{{len}} {unit} ({{percent}}%, eta {{eta}})"
+    )) {
         bar.set_style(style);
     }
     bar
@@ -226,7 +227,7 @@ fn progress_bar(total: u64) -> indicatif::ProgressBar {
 /// Runs every condition's trials in parallel (rayon) with a progress bar on a terminal.
 pub fn run_conditions(conditions: &[Condition], trials: usize, seed: u64) -> Result<Vec<ConditionResult>, SweepError> {
     let jobs: Vec<(usize, usize)> = (0..conditions.len()).flat_map(|c| (0..trials).map(move |k| (c, k))).collect();
-    let bar = progress_bar(jobs.len() as u64);
+    let bar = progress_bar(jobs.len() as u64, "trials");
     let outcomes: Result<Vec<Trial>, CalibProtocolError> = jobs
         .par_iter()
         .map(|&(c, k)| {

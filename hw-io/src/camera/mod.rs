@@ -15,6 +15,7 @@
 use core::time::Duration;
 
 pub mod image_sequence;
+pub mod png;
 #[cfg(feature = "ipc")]
 mod pump;
 #[cfg(feature = "v4l2")]

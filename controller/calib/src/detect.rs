@@ -160,8 +160,9 @@ pub fn detect_dir(
                                 draw_overlay(&mut rgb, img.width, img.height, &k, &shafts);
                                 let stem = Path::new(file).file_stem().and_then(|s| s.to_str()).unwrap_or("image");
                                 let path = o.join(format!("{stem}_overlay.png"));
-                                write_rgb_png(&path, img.width, img.height, &rgb)
-                                    .map_err(|e| DetectCmdError::Write { path: path.clone(), message: e.to_string() })?;
+                                write_rgb_png(&path, img.width, img.height, &rgb).map_err(|e| {
+                                    DetectCmdError::Write { path: path.clone(), message: e.to_string() }
+                                })?;
                             }
                         }
                     }

@@ -207,7 +207,8 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         }
         Command::Detect { images, camera, out, overlay, detector, right } => {
             let text = std::fs::read_to_string(&camera).map_err(|e| format!("{}: {e}", camera.display()))?;
-            let k = hw_io::calib_files::parse_intrinsics_yaml(&text).map_err(|e| format!("{}: {e}", camera.display()))?;
+            let k =
+                hw_io::calib_files::parse_intrinsics_yaml(&text).map_err(|e| format!("{}: {e}", camera.display()))?;
             let bar = comanip_calib::sweep::progress_bar(0, "images");
             let s = detect_dir(&images, k, detector, right, &out, overlay.as_deref(), |n, total| {
                 bar.set_length(total as u64);
@@ -275,4 +276,3 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
     }
     Ok(())
 }
-

@@ -30,7 +30,6 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use sim::calib::NoiseUnits;
-use sim::endoscope::config::RealismConfig;
 use sim::endoscope::{DemoMotion, EndoscopeConfig, InstrumentState, SceneState, StereoFrame, StereoRenderer};
 use vision::shaft::ImageLine;
 use vision::{RgbView, ShaftDetector};
@@ -321,7 +320,11 @@ pub fn observations(run: &PixelRun, source: LineSource, both_eyes: bool) -> Vec<
 
 /// Angle (degrees) and offset (pixels, at the truth segment's middle) of a detected
 /// centreline against the truth line; `None` without both.
-pub fn line_error(truth: &([[f64; 2]; 2], ImageLine), detected: &ImageLine, k: &estimator::calib::Intrinsics) -> (f64, f64) {
+pub fn line_error(
+    truth: &([[f64; 2]; 2], ImageLine),
+    detected: &ImageLine,
+    k: &estimator::calib::Intrinsics,
+) -> (f64, f64) {
     let (t, d) = (truth.1.abc, detected.abc);
     let cos = (t[0] * d[0] + t[1] * d[1]).abs().min(1.0);
     let angle = cos.acos().to_degrees();
@@ -456,15 +459,8 @@ pub fn report_markdown(p: &PixelProtocol, run: &PixelRun, rows: &[CalibRow], com
         Err(e) => format!("failed: {e}"),
     };
     for r in rows {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {} | {} | {} |",
-            r.source,
-            r.eyes,
-            r.observations,
-            cell(&r.paper),
-            cell(&r.ours)
-        );
+        let _ =
+            writeln!(s, "| {} | {} | {} | {} | {} |", r.source, r.eyes, r.observations, cell(&r.paper), cell(&r.ours));
     }
     s
 }

@@ -25,8 +25,8 @@
 
 pub mod detect;
 pub mod edlines;
-pub mod paper;
 pub mod ours;
+pub mod paper;
 pub mod shaft;
 pub mod synth;
 

@@ -284,7 +284,14 @@ impl OursDetector {
     }
 
     /// Refines one contour along `s ∈ range` of the frame `(o, t)`.
-    fn refine(&mut self, sampler: &Sampler<'_>, start: Line, o: [f64; 2], t: [f64; 2], range: [f64; 2]) -> Option<Contour> {
+    fn refine(
+        &mut self,
+        sampler: &Sampler<'_>,
+        start: Line,
+        o: [f64; 2],
+        t: [f64; 2],
+        range: [f64; 2],
+    ) -> Option<Contour> {
         let mut line = start;
         let mut fit = None;
         for (gate, step) in [(3.0, 2.0), (1.5, 1.0)] {
@@ -338,25 +345,37 @@ impl OursDetector {
         };
         let ov = [sa[0].max(sb[0]), sa[1].min(sb[1])];
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
-            dbg_reject(1); return None;
+            dbg_reject(1);
+            return None;
         }
         // Refine both contours over the union of the spans, a little extended.
         let range = [sa[0].min(sb[0]) - 12.0, sa[1].max(sb[1]) + 12.0];
-        let Some(ca) = self.refine(&sampler, a.line, o, t, range) else { dbg_reject(21); return None; };
-        let Some(cb) = self.refine(&sampler, b.line, o, t, range) else { dbg_reject(22); return None; };
-        if std::env::var_os("OURS_DEBUG").is_some() { eprintln!("  ca {ca:?}\n  cb {cb:?}"); }
+        let Some(ca) = self.refine(&sampler, a.line, o, t, range) else {
+            dbg_reject(21);
+            return None;
+        };
+        let Some(cb) = self.refine(&sampler, b.line, o, t, range) else {
+            dbg_reject(22);
+            return None;
+        };
+        if std::env::var_os("OURS_DEBUG").is_some() {
+            eprintln!("  ca {ca:?}\n  cb {cb:?}");
+        }
         let span = [ca.span[0].max(cb.span[0]), ca.span[1].min(cb.span[1])];
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
-            dbg_reject(3); return None;
+            dbg_reject(3);
+            return None;
         }
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
-            dbg_reject(4); return None;
+            dbg_reject(4);
+            return None;
         }
         let support = (ca.inliers.min(cb.inliers) as f64 / (len + 1.0)).min(1.0);
         if support < cfg.min_support {
-            dbg_reject(5); return None;
+            dbg_reject(5);
+            return None;
         }
         // Interior point: middle of the two contours at the span's middle.
         let sm = 0.5 * (span[0] + span[1]);
@@ -367,11 +386,13 @@ impl OursDetector {
         let inside = [q[0] + mid * d[0], q[1] + mid * d[1]];
         let dist = self.axis_distance(&ca.line, &cb.line, inside)?;
         if !(dist >= cfg.min_depth_m && dist <= cfg.max_depth_m) {
-            dbg_reject(6); return None;
+            dbg_reject(6);
+            return None;
         }
         let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
         if !self.colour_ok(&fine) {
-            dbg_reject(7); return None;
+            dbg_reject(7);
+            return None;
         }
         let c0 = ImageLine::new(ca.line.abc()).ok()?;
         let c1 = ImageLine::new(cb.line.abc()).ok()?;

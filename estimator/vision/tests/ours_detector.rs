@@ -64,9 +64,8 @@ fn detect(k: &Intrinsics, s: &Scene) -> Vec<ShaftDetection> {
 #[test]
 fn a_shaft_near_the_centre_at_30_to_150_mm_is_found_precisely() {
     let k = camera();
-    for (i, &(z, angle, tilt)) in [(0.03, 20.0, 10.0), (0.06, 160.0, 30.0), (0.1, -35.0, 0.0), (0.15, 95.0, -20.0)]
-        .iter()
-        .enumerate()
+    for (i, &(z, angle, tilt)) in
+        [(0.03, 20.0, 10.0), (0.06, 160.0, 30.0), (0.1, -35.0, 0.0), (0.15, 95.0, -20.0)].iter().enumerate()
     {
         let c = shaft(&k, [300.0, 250.0], z, angle, tilt);
         let found = detect(&k, &scene(vec![c], 10 + i as u64));

@@ -217,7 +217,8 @@ pub fn read_run(dir: &Path, cfg: &Config) -> Result<BusRunData, BusRunError> {
     let replay = controller::replay::replay_candump(&bus, cfg).map_err(|e| BusRunError::Replay(e.to_string()))?;
     // The endoscope arm's TPDOs.
     let ecm_cfg = EndoscopeArmConfig::default();
-    let file = std::fs::File::open(&bus).map_err(|e| BusRunError::File { path: bus.clone(), message: e.to_string() })?;
+    let file =
+        std::fs::File::open(&bus).map_err(|e| BusRunError::File { path: bus.clone(), message: e.to_string() })?;
     let mut reader = CandumpReader::new(std::io::BufReader::new(file));
     let mut ecm: Vec<(u64, [f64; 4])> = Vec::new();
     let mut pending: [Option<(u64, [i32; 2])>; 2] = [None, None];

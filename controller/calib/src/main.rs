@@ -301,10 +301,11 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             let k = data.intrinsics;
             let mut detectors = vec![make_detector(DetectorChoice::Paper, k)?, make_detector(DetectorChoice::Ours, k)?];
             let bar = comanip_calib::sweep::progress_bar(0, "frames");
-            let (pr, trocar, f_ref) = to_pixel_run(&data, &run.join("frames"), &mut detectors, sigma_px, |n, total| {
-                bar.set_length(total as u64);
-                bar.set_position(n as u64);
-            })?;
+            let (pr, trocar, f_ref) =
+                to_pixel_run(&data, &run.join("frames"), &mut detectors, sigma_px, |n, total| {
+                    bar.set_length(total as u64);
+                    bar.set_position(n as u64);
+                })?;
             bar.finish_and_clear();
             let rows = calibrate_all(&pr);
             let mut md = String::new();
@@ -326,7 +327,10 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 "The trocar's median fulcrum (fulcrumd's estimate) is {:.1} mm from the nearest true trocar; it is the origin of `{{t}}` and of the truth `T_e_t`.\n",
                 nearest * 1e3
             );
-            let _ = writeln!(md, "| detector | truth lines | detected | angle median / p95 (°) | offset median / p95 (px) | ms per image (median) |");
+            let _ = writeln!(
+                md,
+                "| detector | truth lines | detected | angle median / p95 (°) | offset median / p95 (px) | ms per image (median) |"
+            );
             let _ = writeln!(md, "|---|---|---|---|---|---|");
             for (name, n, found, a50, a95, o50, o95, ms) in detection_stats(&pr) {
                 let _ = writeln!(
@@ -335,13 +339,24 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                     100.0 * found as f64 / n.max(1) as f64
                 );
             }
-            let _ = writeln!(md, "\n| lines | eyes | observations | paper pipeline | our pipeline |\n|---|---|---|---|---|");
+            let _ = writeln!(
+                md,
+                "\n| lines | eyes | observations | paper pipeline | our pipeline |\n|---|---|---|---|---|"
+            );
             let cell = |r: &Result<(f64, f64), String>| match r {
                 Ok((t, a)) => format!("{t:.3} mm / {a:.4}°"),
                 Err(e) => format!("failed: {e}"),
             };
             for r in &rows {
-                let _ = writeln!(md, "| {} | {} | {} | {} | {} |", r.source, r.eyes, r.observations, cell(&r.paper), cell(&r.ours));
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {} | {} | {} |",
+                    r.source,
+                    r.eyes,
+                    r.observations,
+                    cell(&r.paper),
+                    cell(&r.ours)
+                );
             }
             std::fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
             let path = out_dir.join("from-run.md");

@@ -103,7 +103,8 @@ pub struct OursConfig {
     pub min_chroma_contrast: f64,
     /// Largest interior chroma as a fraction of the chroma outside, both sides (default 0.5).
     pub max_interior_chroma_ratio: f64,
-    /// Largest robust residual scale of a contour's fit, pixels (default 0.8).
+    /// Largest robust residual scale of a contour's fit, pixels (default 2; defocus and
+    /// motion blur on a noisy image scatter single edge points by about a pixel).
     pub max_residual_px: f64,
     /// Least fraction of the visible span with an inlier edge on each contour (default 0.5).
     pub min_support: f64,
@@ -122,7 +123,7 @@ impl Default for OursConfig {
             max_detections: 2,
             min_chroma_contrast: 12.0,
             max_interior_chroma_ratio: 0.5,
-            max_residual_px: 0.8,
+            max_residual_px: 2.0,
             min_support: 0.5,
         }
     }

@@ -23,7 +23,18 @@ fn evaluate_on_rendered_frames() {
         height: 480,
         distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
     };
-    let mut det = OursDetector::new(k, OursConfig::default()).unwrap();
+    let mut cfg = OursConfig::default();
+    let env = |name: &str| std::env::var(name).ok().and_then(|v| v.parse::<f64>().ok());
+    if let Some(v) = env("OURS_EDGE_T") {
+        cfg.edge_threshold = v;
+    }
+    if let Some(v) = env("OURS_MIN_LEN") {
+        cfg.min_length_px = v;
+    }
+    if let Some(v) = env("OURS_LUMA_W") {
+        cfg.luma_weight = v;
+    }
+    let mut det = OursDetector::new(k, cfg).unwrap();
     let list = std::fs::read_to_string(dir.join("list.txt")).unwrap();
     let (mut angles, mut offsets, mut times) = (Vec::new(), Vec::new(), Vec::new());
     let (mut eligible, mut found, mut false_det, mut frames) = (0, 0, 0, 0);

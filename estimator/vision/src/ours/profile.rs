@@ -121,7 +121,8 @@ pub(crate) fn interior(
             }
         }
         for (side, h) in [h0, h1].into_iter().enumerate() {
-            let margin = 2.5 + 0.25 * h.abs();
+            // Just outside: beyond a blurred edge, not as far as another structure.
+            let margin = 4.0;
             if let Some((cv, _)) = at(h + h.signum() * margin) {
                 buf[1 + side].push(cv);
             }

@@ -103,10 +103,20 @@ pub struct OursConfig {
     pub min_chroma_contrast: f64,
     /// Largest interior chroma as a fraction of the chroma outside, both sides (default 0.5).
     pub max_interior_chroma_ratio: f64,
-    /// Largest robust residual scale of a contour's fit, pixels (default 0.8).
+    /// Largest robust residual scale of a contour's fit, pixels (default 2; defocus and
+    /// motion blur on a noisy image scatter single edge points by about a pixel).
     pub max_residual_px: f64,
     /// Least fraction of the visible span with an inlier edge on each contour (default 0.5).
     pub min_support: f64,
+    /// A visible shaft shorter than `long_span_px` must reach this close to the image border,
+    /// measured pixels (default 24): a shaft comes through a trocar and runs out of the view,
+    /// while a tapered tip or a pair of jaws (which can pass for a farther cylinder) lies
+    /// inside it. Infinite to switch the test off.
+    pub border_margin_px: f64,
+    /// Visible length from which the border test is waived, undistorted pixels (default 200;
+    /// a long span with straight parallel edges and a grey interior is a shaft, and its end
+    /// at the border may be lost in a vignetted, hazy corner).
+    pub long_span_px: f64,
 }
 
 impl Default for OursConfig {
@@ -122,8 +132,10 @@ impl Default for OursConfig {
             max_detections: 2,
             min_chroma_contrast: 12.0,
             max_interior_chroma_ratio: 0.5,
-            max_residual_px: 0.8,
+            max_residual_px: 2.0,
             min_support: 0.5,
+            border_margin_px: 24.0,
+            long_span_px: 200.0,
         }
     }
 }
@@ -180,6 +192,8 @@ impl OursConfig {
         )?;
         check(pos(self.max_residual_px), "max_residual_px", "finite and > 0")?;
         check((0.0..=1.0).contains(&self.min_support), "min_support", "in [0, 1]")?;
+        check(!self.border_margin_px.is_nan() && self.border_margin_px >= 0.0, "border_margin_px", "≥ 0 (infinite: off)")?;
+        check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
         Ok(())
     }
 }
@@ -205,10 +219,14 @@ pub struct OursDetector {
     edges: EdgeBuffers,
     hough: Hough,
     pts: Vec<[f64; 2]>,
-    ss: Vec<f64>,
     w: Vec<f64>,
     res: Vec<f64>,
     col: [Vec<f64>; 3],
+    samp: [Vec<(f64, [f64; 2])>; 2],
+    /// Bounding box of the undistorted image, pixels: `(min, max)`.
+    bounds: ([f64; 2], [f64; 2]),
+    has: Vec<u8>,
+    margin: Vec<f64>,
     found: Vec<Found>,
 }
 
@@ -217,9 +235,6 @@ pub struct OursDetector {
 struct Contour {
     line: Line,
     sigma: f64,
-    /// Span of the inlier edges along the pair's direction, pixels from the pair's origin.
-    span: [f64; 2],
-    inliers: usize,
 }
 
 impl OursDetector {
@@ -232,8 +247,16 @@ impl OursDetector {
         cfg.validate()?;
         let table = HalfResTable::new(&k);
         let (mut rmax, c) = (1.0f32, [k.cx as f32, k.cy as f32]);
+        let mut bounds = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for p in &table.uv {
             rmax = rmax.max((p[0] - c[0]).hypot(p[1] - c[1]));
+            for i in 0..2 {
+                bounds.0[i] = bounds.0[i].min(f64::from(p[i]) - 2.0);
+                bounds.1[i] = bounds.1[i].max(f64::from(p[i]) + 2.0);
+            }
+        }
+        if table.uv.is_empty() {
+            bounds = ([0.0; 2], [0.0; 2]);
         }
         let hough = Hough::new(c, rmax + 4.0);
         Ok(Self {
@@ -245,10 +268,13 @@ impl OursDetector {
             edges: EdgeBuffers::default(),
             hough,
             pts: Vec::new(),
-            ss: Vec::new(),
             w: Vec::new(),
             res: Vec::new(),
             col: Default::default(),
+            samp: Default::default(),
+            bounds,
+            has: Vec::new(),
+            margin: Vec::new(),
             found: Vec::new(),
         })
     }
@@ -274,6 +300,40 @@ impl OursDetector {
         (half > 0.0).then(|| r / half)
     }
 
+    /// The depth (camera z, metres) at which the ray of the undistorted pixel `px` meets the
+    /// axis of the cylinder (radius from the settings) whose contours are `a` and `b`
+    /// (`interior` a pixel between them): the axis is along `n₀ × n₁`, at distance
+    /// `d = r / sin(θ/2)` from the optical centre towards `n₀ + n₁` (the plane normals
+    /// oriented with the inside positive). `None` when degenerate.
+    fn axis_depth_at(&self, a: &Line, b: &Line, interior: [f64; 2], px: [f64; 2]) -> Option<f64> {
+        let plane = |l: &Line| {
+            let s = if l.distance(interior) >= 0.0 { 1.0 } else { -1.0 };
+            let n = self.kmat.transpose() * Vector3::new(s * l.n[0], s * l.n[1], s * l.c);
+            let norm = n.norm();
+            (norm > 0.0).then(|| n / norm)
+        };
+        let (na, nb) = (plane(a)?, plane(b)?);
+        let dist = self.axis_distance(a, b, interior)?;
+        let d = na.cross(&nb);
+        let m = na + nb;
+        let (dn, mn) = (d.norm(), m.norm());
+        if !(dn > 1e-12 && mn > 1e-12) {
+            return None;
+        }
+        let (d, p0) = (d / dn, m * (dist / mn));
+        let r = self.k.k_inv() * Vector3::new(px[0], px[1], 1.0);
+        // Closest points of t·r and p0 + λ·d.
+        let (rr, rd) = (r.dot(&r), r.dot(&d));
+        let (rp, dp) = (r.dot(&p0), d.dot(&p0));
+        let den = rr - rd * rd;
+        if den.abs() < 1e-15 {
+            return None;
+        }
+        let lam = (rd * rp - rr * dp) / den;
+        let z = (p0 + lam * d).z;
+        z.is_finite().then_some(z)
+    }
+
     /// The pair's frame: an origin on `a`'s span and a unit direction along `a`.
     fn pair_frame(a: &LineCand) -> ([f64; 2], [f64; 2]) {
         let o = a.ends[0];
@@ -283,7 +343,8 @@ impl OursDetector {
         (o, t)
     }
 
-    /// Refines one contour along `s ∈ range` of the frame `(o, t)`.
+    /// Refines one contour along `s ∈ range` of the frame `(o, t)`; its inlier edge points
+    /// (with their `s`, sorted) are left in `self.samp[which]`.
     fn refine(
         &mut self,
         sampler: &Sampler<'_>,
@@ -291,6 +352,7 @@ impl OursDetector {
         o: [f64; 2],
         t: [f64; 2],
         range: [f64; 2],
+        which: usize,
     ) -> Option<Contour> {
         let mut line = start;
         let mut fit = None;
@@ -317,17 +379,105 @@ impl OursDetector {
             fit = Some(f);
         }
         let f = fit?;
-        // Span of the inliers along t (isolated ends trimmed).
-        self.ss.clear();
+        let samp = &mut self.samp[which];
+        samp.clear();
         for (p, w) in self.pts.iter().zip(&self.w) {
             if *w > 0.0 {
-                self.ss.push((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1]);
+                samp.push(((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p));
             }
         }
-        self.ss.sort_by(f64::total_cmp);
-        let span = trimmed_span(&self.ss, 16.0, 6)?;
-        let inliers = self.ss.iter().filter(|s| **s >= span[0] && **s <= span[1]).count();
-        Some(Contour { line, sigma: f.sigma, span, inliers })
+        samp.sort_by(|x, y| x.0.total_cmp(&y.0));
+        Some(Contour { line, sigma: f.sigma })
+    }
+
+    /// The visible span of the pair: stations every 2 px along `t` over `range` are good where
+    /// both contours have an inlier edge within 2 px and the interior (mean of three samples)
+    /// is less red than both outsides by half the colour contrast (smoothed over 5 stations);
+    /// the span is the run of good stations (gaps up to 48 px: a crossing instrument) with
+    /// the most good stations. Returns the span and the fraction of good stations in it.
+    fn visible_span(
+        &mut self,
+        sampler: &Sampler<'_>,
+        c: [&Line; 2],
+        o: [f64; 2],
+        t: [f64; 2],
+        range: [f64; 2],
+    ) -> Option<([f64; 2], f64)> {
+        const STEP: f64 = 2.0;
+        let n = ((range[1] - range[0]) / STEP).floor().max(0.0) as usize + 1;
+        self.has.clear();
+        self.has.resize(n, 0);
+        for (bit, samp) in self.samp.iter().enumerate() {
+            for (s, _) in samp {
+                let i = ((s - range[0]) / STEP).round();
+                if i >= 0.0 && (i as usize) < n {
+                    let i = i as usize;
+                    for j in i.saturating_sub(1)..=(i + 1).min(n - 1) {
+                        self.has[j] |= 1 << bit;
+                    }
+                }
+            }
+        }
+        self.margin.clear();
+        self.margin.resize(n, f64::NAN);
+        let d = [-t[1], t[0]];
+        for i in 0..n {
+            if self.has[i] != 3 {
+                continue;
+            }
+            let s = range[0] + i as f64 * STEP;
+            let q = [o[0] + s * t[0], o[1] + s * t[1]];
+            let (Some(l0), Some(l1)) = (c[0].hit(q, d), c[1].hit(q, d)) else { continue };
+            let m = 0.5 * (l0 + l1);
+            let h = 0.5 * (l1 - l0);
+            let at = |lam: f64| sampler.sample(q[0] + lam * d[0], q[1] + lam * d[1]).map(|v| v.0);
+            let (Some(i0), Some(i1), Some(i2)) = (at(m - 0.3 * h), at(m), at(m + 0.3 * h)) else { continue };
+            let margin = 4.0 * h.signum();
+            let (Some(out0), Some(out1)) = (at(l0 - margin), at(l1 + margin)) else { continue };
+            let inside = (i0 + i1 + i2) / 3.0;
+            self.margin[i] = (out0 - inside).min(out1 - inside);
+        }
+        let need = 0.5 * self.cfg.min_chroma_contrast;
+        let mut best: Option<(usize, usize, usize)> = None;
+        let mut run: Option<(usize, usize, usize)> = None;
+        let max_gap = (48.0 / STEP) as usize;
+        for i in 0..n {
+            let (lo, hi) = (i.saturating_sub(2), (i + 2).min(n - 1));
+            let (mut sum, mut cnt) = (0.0, 0);
+            for m in &self.margin[lo..=hi] {
+                if m.is_finite() {
+                    sum += m;
+                    cnt += 1;
+                }
+            }
+            let good = self.has[i] == 3 && cnt >= 2 && sum / cnt as f64 >= need;
+            if !good {
+                continue;
+            }
+            run = match run {
+                Some((start, last, count)) if i - last <= max_gap => Some((start, i, count + 1)),
+                _ => Some((i, i, 1)),
+            };
+            if let Some(r) = run {
+                if best.is_none_or(|b| r.2 > b.2) {
+                    best = Some(r);
+                }
+            }
+        }
+        let (start, last, count) = best?;
+        let span = [range[0] + start as f64 * STEP, range[0] + last as f64 * STEP];
+        Some((span, count as f64 / (last - start + 1) as f64))
+    }
+
+    /// Refits contour `which` with its inlier points inside `span`.
+    fn refit_in_span(&mut self, which: usize, start: Line, span: [f64; 2]) -> Option<Contour> {
+        self.pts.clear();
+        self.pts.extend(self.samp[which].iter().filter(|(s, _)| *s >= span[0] && *s <= span[1]).map(|(_, p)| *p));
+        if self.pts.len() < 8 {
+            return None;
+        }
+        let f = robust_fit(&self.pts, start, &mut self.w, &mut self.res)?;
+        Some(Contour { line: f.line, sigma: f.sigma })
     }
 
     /// Checks and refines the pair `(ia, ib)` of line hypotheses.
@@ -345,37 +495,76 @@ impl OursDetector {
         };
         let ov = [sa[0].max(sb[0]), sa[1].min(sb[1])];
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
-            dbg_reject(1);
-            return None;
+            dbg_reject(1); return None;
         }
         // Refine both contours over the union of the spans, a little extended.
-        let range = [sa[0].min(sb[0]) - 12.0, sa[1].max(sb[1]) + 12.0];
-        let Some(ca) = self.refine(&sampler, a.line, o, t, range) else {
-            dbg_reject(21);
+        // Refine both contours over the whole line inside the image (the Hough spans may stop
+        // short of the border in the vignetted corners).
+        let range = {
+            let (lo, hi) = self.bounds;
+            let mut r = [f64::INFINITY, f64::NEG_INFINITY];
+            for c in [[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]] {
+                let sc = proj(c);
+                r = [r[0].min(sc), r[1].max(sc)];
+            }
+            [r[0].max(sa[0].min(sb[0]) - 12.0 - 2000.0), r[1].min(sa[1].max(sb[1]) + 12.0 + 2000.0)]
+        };
+        let Some(ca) = self.refine(&sampler, a.line, o, t, range, 0) else { dbg_reject(21); return None; };
+        let Some(cb) = self.refine(&sampler, b.line, o, t, range, 1) else { dbg_reject(22); return None; };
+        let Some((span, support)) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range) else {
+            dbg_reject(23);
             return None;
         };
-        let Some(cb) = self.refine(&sampler, b.line, o, t, range) else {
-            dbg_reject(22);
-            return None;
-        };
-        if std::env::var_os("OURS_DEBUG").is_some() {
-            eprintln!("  ca {ca:?}\n  cb {cb:?}");
-        }
-        let span = [ca.span[0].max(cb.span[0]), ca.span[1].min(cb.span[1])];
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
-            dbg_reject(3);
-            return None;
+            dbg_reject(3); return None;
         }
+        if support < cfg.min_support {
+            dbg_reject(5); return None;
+        }
+        let Some(mut ca) = self.refit_in_span(0, ca.line, span) else { dbg_reject(24); return None; };
+        let Some(mut cb) = self.refit_in_span(1, cb.line, span) else { dbg_reject(25); return None; };
+        // Trim ends where either contour leaves its line systematically (the wrist, a bent or
+        // thinner link, a tapered tip), then refit.
+        let mut span = span;
+        for _ in 0..24 {
+            const WIN: f64 = 16.0;
+            let off = |samp: &[(f64, [f64; 2])], line: &Line, lo: f64, hi: f64| {
+                let (mut sum, mut n) = (0.0, 0);
+                for (s, p) in samp {
+                    if *s >= lo && *s <= hi {
+                        sum += line.distance(*p);
+                        n += 1;
+                    }
+                }
+                if n >= 4 { (sum / n as f64).abs() } else { 0.0 }
+            };
+            let thr = 0.35;
+            let head = off(&self.samp[0], &ca.line, span[0], span[0] + WIN).max(off(&self.samp[1], &cb.line, span[0], span[0] + WIN));
+            let tail = off(&self.samp[0], &ca.line, span[1] - WIN, span[1]).max(off(&self.samp[1], &cb.line, span[1] - WIN, span[1]));
+            if head <= thr && tail <= thr {
+                break;
+            }
+            if head > thr {
+                span[0] += 0.5 * WIN;
+            }
+            if tail > thr {
+                span[1] -= 0.5 * WIN;
+            }
+            if span[1] - span[0] < cfg.min_length_px {
+                dbg_reject(26); return None;
+            }
+            let (Some(na), Some(nb)) = (self.refit_in_span(0, ca.line, span), self.refit_in_span(1, cb.line, span)) else {
+                dbg_reject(27);
+                return None;
+            };
+            (ca, cb) = (na, nb);
+        }
+        let len = span[1] - span[0];
+        if std::env::var_os("OURS_DEBUG").is_some() { eprintln!("  ca {ca:?}\n  cb {cb:?}\n  span {span:?} support {support}"); }
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
-            dbg_reject(4);
-            return None;
-        }
-        let support = (ca.inliers.min(cb.inliers) as f64 / (len + 1.0)).min(1.0);
-        if support < cfg.min_support {
-            dbg_reject(5);
-            return None;
+            dbg_reject(4); return None;
         }
         // Interior point: middle of the two contours at the span's middle.
         let sm = 0.5 * (span[0] + span[1]);
@@ -386,13 +575,20 @@ impl OursDetector {
         let inside = [q[0] + mid * d[0], q[1] + mid * d[1]];
         let dist = self.axis_distance(&ca.line, &cb.line, inside)?;
         if !(dist >= cfg.min_depth_m && dist <= cfg.max_depth_m) {
-            dbg_reject(6);
-            return None;
+            dbg_reject(6); return None;
+        }
+        // The axis's depth at both ends of the visible span must be plausible too (a tapered
+        // tip seen as a cylinder would reach far beyond the range towards its apex).
+        for e in span {
+            let p = [o[0] + e * t[0], o[1] + e * t[1]];
+            let z = self.axis_depth_at(&ca.line, &cb.line, inside, p).unwrap_or(f64::NAN);
+            if !(z >= 0.5 * cfg.min_depth_m && z <= cfg.max_depth_m) {
+                dbg_reject(8); return None;
+            }
         }
         let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
         if !self.colour_ok(&fine) {
-            dbg_reject(7);
-            return None;
+            dbg_reject(7); return None;
         }
         let c0 = ImageLine::new(ca.line.abc()).ok()?;
         let c1 = ImageLine::new(cb.line.abc()).ok()?;
@@ -406,6 +602,13 @@ impl OursDetector {
             let f = [p[0] - dd * axis_l.n[0], p[1] - dd * axis_l.n[1]];
             let (x, y) = self.lens.distort_px(f[0], f[1]);
             *e = [x, y];
+        }
+        if cfg.border_margin_px.is_finite() && len < cfg.long_span_px {
+            let (w, h) = (f64::from(self.k.width) - 1.0, f64::from(self.k.height) - 1.0);
+            let near = |p: &[f64; 2]| p[0].min(p[1]).min(w - p[0]).min(h - p[1]) <= cfg.border_margin_px;
+            if !ends_px.iter().any(near) {
+                dbg_reject(9); return None;
+            }
         }
         let contrast = (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside);
         let confidence = support / (1.0 + (sigma / 0.5).powi(2))
@@ -486,22 +689,6 @@ impl OursDetector {
     }
 }
 
-/// The extent of the sorted `s` after trimming, at each end, points with fewer than
-/// `min_count` points within `window` towards the bulk; `None` when nothing is left.
-fn trimmed_span(s: &[f64], window: f64, min_count: usize) -> Option<[f64; 2]> {
-    let n = s.len();
-    let dense = |i: usize, fwd: bool| {
-        if fwd {
-            s[i..].iter().take_while(|&&x| x <= s[i] + window).count() >= min_count
-        } else {
-            s[..=i].iter().rev().take_while(|&&x| x >= s[i] - window).count() >= min_count
-        }
-    };
-    let lo = (0..n).find(|&i| dense(i, true))?;
-    let hi = (lo..n).rev().find(|&i| dense(i, false))?;
-    (hi > lo).then(|| [s[lo], s[hi]])
-}
-
 impl ShaftDetector for OursDetector {
     fn name(&self) -> &'static str {
         "ours"
@@ -538,7 +725,7 @@ impl ShaftDetector for OursDetector {
             }
             tried += 1;
             if let Some(f) = self.verify(image, i, j) {
-                let dup = self.found.iter().any(|g| same_axis(g, &f));
+                let dup = self.found.iter().any(|g| same_axis(g, &f) || shares_contour(g, &f));
                 if !dup {
                     self.found.push(f);
                 }
@@ -564,4 +751,16 @@ fn dbg_reject(why: u32) {
     if std::env::var_os("OURS_DEBUG").is_some() {
         eprintln!("  reject {why}");
     }
+}
+
+/// True when two detections share a contour (within 1° and 2 px at the other's span middle).
+fn shares_contour(a: &Found, b: &Found) -> bool {
+    a.det.contours.iter().any(|ca| {
+        b.det.contours.iter().any(|cb| {
+            let cos = (ca.abc[0] * cb.abc[0] + ca.abc[1] * cb.abc[1]).abs();
+            cos > 1f64.to_radians().cos()
+                && (ca.distance_px(b.mid[0], b.mid[1]).abs() - cb.distance_px(b.mid[0], b.mid[1]).abs()).abs() < 2.0
+                && (ca.distance_px(a.mid[0], a.mid[1]).abs() - cb.distance_px(a.mid[0], a.mid[1]).abs()).abs() < 2.0
+        })
+    })
 }

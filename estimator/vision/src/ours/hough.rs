@@ -121,7 +121,17 @@ impl Hough {
             let (n0, n1) = (theta.cos(), theta.sin());
             let line = Line { n: [n0, n1], c: -(rho + n0 * f64::from(cx) + n1 * f64::from(cy)) };
             if let Some(cand) = self.gather(edgels, line) {
-                self.lines.push(cand);
+                // Two peaks may refit to the same line: keep the better supported.
+                let mid = [0.5 * (cand.ends[0][0] + cand.ends[1][0]), 0.5 * (cand.ends[0][1] + cand.ends[1][1])];
+                let same = |l: &LineCand| {
+                    (l.line.n[0] * cand.line.n[0] + l.line.n[1] * cand.line.n[1]).abs() > 0.99985
+                        && l.line.distance(mid).abs() < 2.0
+                };
+                match self.lines.iter().position(same) {
+                    Some(i) if self.lines[i].count < cand.count => self.lines[i] = cand,
+                    Some(_) => {}
+                    None => self.lines.push(cand),
+                }
             }
         }
         self.peaks = peaks;

@@ -45,26 +45,35 @@ impl Sampler<'_> {
     /// gate's border or below `min_strength`.
     pub(crate) fn edge_offset(&self, line: &Line, p: [f64; 2], gate_px: f64, min_strength: f64) -> Option<(f64, f64)> {
         const MAX_K: usize = 8;
-        let k_gate = (gate_px.ceil() as usize).clamp(1, MAX_K - 2);
-        let kk = k_gate + 1;
+        let k_gate = (gate_px.ceil() as usize).clamp(1, MAX_K - 3);
+        let kk = k_gate + 2;
         let mut vals = [(0.0f64, 0.0f64); 2 * MAX_K + 1];
+        let dir = line.direction();
         for (idx, k) in (-(kk as isize)..=kk as isize).enumerate() {
             let t = k as f64;
-            vals[idx] = self.sample(p[0] + t * line.n[0], p[1] + t * line.n[1])?;
+            let (x, y) = (p[0] + t * line.n[0], p[1] + t * line.n[1]);
+            // Three samples 1 px apart along the contour: averages the noise along the edge.
+            let a = self.sample(x - dir[0], y - dir[1])?;
+            let b = self.sample(x, y)?;
+            let c = self.sample(x + dir[0], y + dir[1])?;
+            vals[idx] = ((a.0 + b.0 + c.0) / 3.0, (a.1 + b.1 + c.1) / 3.0);
         }
         let mut strength = [0.0f64; 2 * MAX_K + 1];
-        for idx in 1..2 * kk {
-            let dc = 0.5 * (vals[idx + 1].0 - vals[idx - 1].0);
-            let dl = 0.5 * (vals[idx + 1].1 - vals[idx - 1].1);
+        // Derivative kernel [−1, −2, 0, 2, 1] / 8 (smooths blurred, noisy edges).
+        for idx in 2..2 * kk - 1 {
+            let d = |ch: fn(&(f64, f64)) -> f64| {
+                (2.0 * (ch(&vals[idx + 1]) - ch(&vals[idx - 1])) + ch(&vals[idx + 2]) - ch(&vals[idx - 2])) / 8.0
+            };
+            let (dc, dl) = (d(|v| v.0), d(|v| v.1));
             strength[idx] = (dc * dc + dl * dl).sqrt();
         }
-        let mut best = 1;
-        for idx in 1..2 * kk {
+        let mut best = 2;
+        for idx in 2..2 * kk - 1 {
             if strength[idx] > strength[best] {
                 best = idx;
             }
         }
-        if best == 1 || best == 2 * kk - 1 || strength[best] < min_strength {
+        if best == 2 || best == 2 * kk - 2 || strength[best] < min_strength {
             return None;
         }
         let (a, b, c) = (strength[best - 1], strength[best], strength[best + 1]);
@@ -112,7 +121,8 @@ pub(crate) fn interior(
             }
         }
         for (side, h) in [h0, h1].into_iter().enumerate() {
-            let margin = 2.5 + 0.25 * h.abs();
+            // Just outside: beyond a blurred edge, not as far as another structure.
+            let margin = 4.0;
             if let Some((cv, _)) = at(h + h.signum() * margin) {
                 buf[1 + side].push(cv);
             }

@@ -1,6 +1,3 @@
-<<<<<<< HEAD
-fn main() {}
-=======
 //! Our shaft detector's time per 640×480 frame (one core): a synthetic frame with one shaft
 //! over textured tissue with vessels and folds (`vision::synth`), and the same tissue without
 //! a shaft (the "nothing found" path, where every hypothesis is checked and refused).
@@ -49,4 +46,3 @@ fn bench(c: &mut Criterion) {
 
 criterion_group!(benches, bench);
 criterion_main!(benches);
->>>>>>> wt-oursdet

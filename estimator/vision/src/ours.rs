@@ -21,7 +21,7 @@
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
 //!    undistortion per frame): there the contours are straight lines.
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform (each edgel votes
-//!    once at its own normal, 1° × 2 px bins, peaks of a 5 × 3 box sum), then each peak's
+//!    once at its own normal, 1° × 2 px bins, peaks of a 9 × 3 box sum), then each peak's
 //!    edgels are gathered and refitted (total least squares) and its supported span found.
 //! 3. **Pairs with physics**: two lines are the contours of one cylinder of radius `r` only
 //!    if they are nearly parallel, overlap along their length, and the angle `θ` between their
@@ -92,8 +92,13 @@ pub struct OursConfig {
     /// Edgel threshold on the half-resolution Di Zenzo gradient magnitude (chroma units
     /// `2R − G − B` per half-resolution pixel, 8-bit values; default 6).
     pub edge_threshold: f64,
-    /// Weight of luma against the chroma `2R − G − B` in the gradients (default 1).
+    /// Weight of luma against the chroma `2R − G − B` in the half-resolution gradients that
+    /// find the lines (default 1).
     pub luma_weight: f64,
+    /// Weight of luma against the chroma in the full-resolution profiles that place the
+    /// contours (default 0.3: the silhouette is where the colour changes; a metal shaft's dark
+    /// rim and highlights are luma edges just inside it).
+    pub profile_luma_weight: f64,
     /// Most line hypotheses kept (default 40).
     pub max_lines: usize,
     /// Most shafts returned (default 2).
@@ -128,6 +133,7 @@ impl Default for OursConfig {
             min_length_px: 80.0,
             edge_threshold: 6.0,
             luma_weight: 1.0,
+            profile_luma_weight: 0.3,
             max_lines: 40,
             max_detections: 2,
             min_chroma_contrast: 12.0,
@@ -178,6 +184,11 @@ impl OursConfig {
         check(pos(self.min_length_px), "min_length_px", "finite and > 0")?;
         check(pos(self.edge_threshold), "edge_threshold", "finite and > 0")?;
         check(self.luma_weight.is_finite() && self.luma_weight >= 0.0, "luma_weight", "finite and ≥ 0")?;
+        check(
+            self.profile_luma_weight.is_finite() && self.profile_luma_weight >= 0.0,
+            "profile_luma_weight",
+            "finite and ≥ 0",
+        )?;
         check((1..=10_000).contains(&self.max_lines), "max_lines", "1 ..= 10000")?;
         check(self.max_detections >= 1, "max_detections", "≥ 1")?;
         check(
@@ -343,42 +354,83 @@ impl OursDetector {
         (o, t)
     }
 
-    /// Refines one contour along `s ∈ range` of the frame `(o, t)`; its inlier edge points
-    /// (with their `s`, sorted) are left in `self.samp[which]`.
+    /// Refines one contour: two rounds of profiles (gates ±3 px every 2 px, then ±1.5 px
+    /// every pixel) over `core` (the Hough support, `s` along the frame `(o, t)`), each
+    /// followed by a robust fit; then the contour is followed outwards to `full` (the line
+    /// inside the image) as long as edges keep coming within 1 px of the line, and refitted.
+    /// Its inlier edge points (with their `s`, sorted) are left in `self.samp[which]`.
+    #[allow(clippy::too_many_arguments)]
     fn refine(
         &mut self,
         sampler: &Sampler<'_>,
         start: Line,
         o: [f64; 2],
         t: [f64; 2],
-        range: [f64; 2],
+        core: [f64; 2],
+        full: [f64; 2],
         which: usize,
     ) -> Option<Contour> {
         let mut line = start;
-        let mut fit = None;
-        for (gate, step) in [(3.0, 2.0), (1.5, 1.0)] {
-            self.pts.clear();
-            // Walk the line itself: the foot of o on it, along its own direction (aligned with t).
+        let mut min_strength = 0.75 * self.cfg.edge_threshold;
+        // The walk along the line: the foot of o on it, its own direction aligned with t.
+        let frame = |line: &Line| {
             let lt = line.direction();
             let lt = if lt[0] * t[0] + lt[1] * t[1] >= 0.0 { lt } else { [-lt[0], -lt[1]] };
             let dist = line.distance(o);
-            let o_l = [o[0] - dist * line.n[0], o[1] - dist * line.n[1]];
-            let n_steps = ((range[1] - range[0]) / step).floor().max(0.0) as usize;
+            ([o[0] - dist * line.n[0], o[1] - dist * line.n[1]], lt)
+        };
+        for (gate, step) in [(3.0, 2.0), (1.5, 1.0)] {
+            self.pts.clear();
+            self.res.clear();
+            let (o_l, lt) = frame(&line);
+            let n_steps = ((core[1] - core[0]) / step).floor().max(0.0) as usize;
             for k in 0..=n_steps {
-                let s = range[0] + k as f64 * step;
+                let s = core[0] + k as f64 * step;
                 let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
-                if let Some((off, _)) = sampler.edge_offset(&line, p, gate, 0.75 * self.cfg.edge_threshold) {
+                if let Some((off, st)) = sampler.edge_offset(&line, p, gate, min_strength) {
                     self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
+                    self.res.push(st);
                 }
             }
             if self.pts.len() < 8 {
                 return None;
             }
+            // From now on, an edge must be at least a third of this contour's typical one
+            // (weak tissue texture along the line is not the contour).
+            let mid = self.res.len() / 2;
+            self.res.select_nth_unstable_by(mid, f64::total_cmp);
+            min_strength = min_strength.max(self.res[mid] / 3.0);
             let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
+            if std::env::var_os("OURS_DEBUG").is_some() {
+                let txt: String = self.pts.iter().zip(&self.w).map(|(p, w)| format!("{:.0}:{:.2}:{:.1} ", (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], line.distance(*p), w)).collect();
+                eprintln!("  round{gate} {which} core {core:?} {txt}");
+            }
             line = f.line;
-            fit = Some(f);
         }
-        let f = fit?;
+        // Follow the contour outwards from both ends of the core.
+        let (o_l, lt) = frame(&line);
+        for dir in [-1.0f64, 1.0] {
+            let (from, to) = if dir < 0.0 { (core[0], full[0]) } else { (core[1], full[1]) };
+            let mut misses = 0u32;
+            let mut s = from + dir;
+            while (to - s) * dir > 0.0 && misses < 12 {
+                let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
+                match sampler.edge_offset(&line, p, 1.5, min_strength) {
+                    Some((off, _)) if off.abs() <= 1.0 => {
+                        self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
+                        misses = misses.saturating_sub(1);
+                    }
+                    _ => misses += 2,
+                }
+                s += dir;
+            }
+        }
+        let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
+        let line = f.line;
+        if std::env::var_os("OURS_DEBUG").is_some() {
+            let txt: String = self.pts.iter().zip(&self.w).map(|(p, w)| format!("{:.0}:{:.2}:{:.1} ", (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], line.distance(*p), w)).collect();
+            eprintln!("  samples{which} {txt}");
+        }
         let samp = &mut self.samp[which];
         samp.clear();
         for (p, w) in self.pts.iter().zip(&self.w) {
@@ -437,6 +489,10 @@ impl OursDetector {
             let inside = (i0 + i1 + i2) / 3.0;
             self.margin[i] = (out0 - inside).min(out1 - inside);
         }
+        if std::env::var_os("OURS_DEBUG").is_some() {
+            let line: String = (0..n).step_by(4).map(|i| format!("{}:{}:{:.0} ", range[0] + i as f64 * STEP, self.has[i], self.margin[i])).collect();
+            eprintln!("  stations {line}");
+        }
         let need = 0.5 * self.cfg.min_chroma_contrast;
         let mut best: Option<(usize, usize, usize)> = None;
         let mut run: Option<(usize, usize, usize)> = None;
@@ -485,7 +541,7 @@ impl OursDetector {
         let (a, b) = (self.hough.lines[ia], self.hough.lines[ib]);
         let cfg = self.cfg;
         let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: cfg.luma_weight };
+        let sampler = Sampler { image, lens: &lens, luma_weight: cfg.profile_luma_weight };
         let (o, t) = Self::pair_frame(&a);
         let proj = |p: [f64; 2]| (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1];
         let sa = [proj(a.ends[0]), proj(a.ends[1])];
@@ -507,10 +563,12 @@ impl OursDetector {
                 let sc = proj(c);
                 r = [r[0].min(sc), r[1].max(sc)];
             }
-            [r[0].max(sa[0].min(sb[0]) - 12.0 - 2000.0), r[1].min(sa[1].max(sb[1]) + 12.0 + 2000.0)]
+            r
         };
-        let Some(ca) = self.refine(&sampler, a.line, o, t, range, 0) else { dbg_reject(21); return None; };
-        let Some(cb) = self.refine(&sampler, b.line, o, t, range, 1) else { dbg_reject(22); return None; };
+        let core_a = [sa[0].max(range[0]), sa[1].min(range[1])];
+        let core_b = [sb[0].max(range[0]), sb[1].min(range[1])];
+        let Some(ca) = self.refine(&sampler, a.line, o, t, core_a, range, 0) else { dbg_reject(21); return None; };
+        let Some(cb) = self.refine(&sampler, b.line, o, t, core_b, range, 1) else { dbg_reject(22); return None; };
         let Some((span, support)) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range) else {
             dbg_reject(23);
             return None;
@@ -633,7 +691,7 @@ impl OursDetector {
     /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
     fn pairs(&mut self, image: &RgbView<'_>) -> Vec<(f64, usize, usize)> {
         let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.luma_weight };
+        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
         let mut col = std::mem::take(&mut self.col);
         let lines = &self.hough.lines;
         let cfg = self.cfg;
@@ -707,6 +765,8 @@ impl ShaftDetector for OursDetector {
         let pairs = self.pairs(image);
         if std::env::var_os("OURS_DEBUG").is_some() {
             eprintln!("edgels {} lines {} pairs {}", self.edges.edgels.len(), self.hough.lines.len(), pairs.len());
+            let txt: String = self.edges.edgels.iter().map(|e| format!("{} {} {} {}\n", e.p[0], e.p[1], e.n[0], e.n[1])).collect();
+            let _ = std::fs::write("/tmp/ours_edgels.txt", txt);
             for l in &self.hough.lines {
                 eprintln!("  line n={:?} c={:.1} ends={:?} count={}", l.line.n, l.line.c, l.ends, l.count);
             }

@@ -34,6 +34,9 @@ fn evaluate_on_rendered_frames() {
     if let Some(v) = env("OURS_LUMA_W") {
         cfg.luma_weight = v;
     }
+    if let Some(v) = env("OURS_PLUMA_W") {
+        cfg.profile_luma_weight = v;
+    }
     let mut det = OursDetector::new(k, cfg).unwrap();
     let list = std::fs::read_to_string(dir.join("list.txt")).unwrap();
     let (mut angles, mut offsets, mut times) = (Vec::new(), Vec::new(), Vec::new());
@@ -54,7 +57,7 @@ fn evaluate_on_rendered_frames() {
         frames += 1;
         let mut matched = vec![false; dets.len()];
         for tr in nums.chunks(8) {
-            let [label, a, b, c, x0, y0, x1, y1] = tr.try_into().unwrap();
+            let [label, a, b, _c, x0, y0, x1, y1] = tr.try_into().unwrap();
             let len = (x1 - x0).hypot(y1 - y0);
             let (mx, my) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
             // The detection nearest this axis.

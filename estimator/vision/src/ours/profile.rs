@@ -76,10 +76,29 @@ impl Sampler<'_> {
         if best == 2 || best == 2 * kk - 2 || strength[best] < min_strength {
             return None;
         }
-        let (a, b, c) = (strength[best - 1], strength[best], strength[best + 1]);
-        let den = a - 2.0 * b + c;
-        let delta = if den < 0.0 { (0.5 * (a - c) / den).clamp(-0.5, 0.5) } else { 0.0 };
-        let off = best as f64 - kk as f64 + delta;
+        // Sub-pixel: the centroid of the peak's upper half (a motion-blurred edge is a
+        // staircase of a few steps: its centroid is the middle instant's edge, where a
+        // parabola would lock onto the strongest step).
+        let peak = strength[best];
+        let half = 0.5 * peak;
+        let (mut sw, mut swx) = (0.0, 0.0);
+        let mut i = best;
+        while i >= 2 && strength[i] > half {
+            sw += strength[i] - half;
+            swx += (strength[i] - half) * i as f64;
+            i -= 1;
+        }
+        let mut i = best + 1;
+        while i <= 2 * kk - 2 && strength[i] > half {
+            sw += strength[i] - half;
+            swx += (strength[i] - half) * i as f64;
+            i += 1;
+        }
+        if !(sw > 0.0) {
+            return None;
+        }
+        let off = swx / sw - kk as f64;
+        let b = peak;
         (off.abs() <= gate_px).then_some((off, b))
     }
 }

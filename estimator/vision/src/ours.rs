@@ -232,7 +232,7 @@ pub struct OursDetector {
     pts: Vec<[f64; 2]>,
     w: Vec<f64>,
     res: Vec<f64>,
-    col: [Vec<f64>; 3],
+    col: [Vec<f64>; 5],
     samp: [Vec<(f64, [f64; 2])>; 2],
     /// Bounding box of the undistorted image, pixels: `(min, max)`.
     bounds: ([f64; 2], [f64; 2]),
@@ -683,8 +683,9 @@ impl OursDetector {
     }
 
     fn colour_ok(&self, c: &profile::Interior) -> bool {
-        c.outside.iter().all(|&out| {
-            out - c.inside >= self.cfg.min_chroma_contrast && c.inside <= self.cfg.max_interior_chroma_ratio * out
+        c.outside.iter().zip(c.near).all(|(&out, near)| {
+            let inside = c.inside.max(near);
+            out - inside >= self.cfg.min_chroma_contrast && inside <= self.cfg.max_interior_chroma_ratio * out
         })
     }
 
@@ -738,7 +739,9 @@ impl OursDetector {
                 if !self.colour_ok(&c) {
                     continue;
                 }
-                out.push((len * (a.count.min(b.count) as f64), i, j));
+                // Rank by support and by how grey the interior is against the outsides.
+                let grey = (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0);
+                out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
             }
         }
         self.col = col;

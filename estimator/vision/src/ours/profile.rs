@@ -103,11 +103,14 @@ impl Sampler<'_> {
     }
 }
 
-/// Medians of the chroma inside the strip between two contours and just outside each.
+/// The chroma inside the strip between two contours (upper quartile) and just outside each
+/// (medians).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Interior {
     pub(crate) inside: f64,
     pub(crate) outside: [f64; 2],
+    /// Just inside each contour (medians).
+    pub(crate) near: [f64; 2],
 }
 
 /// Samples the strip between `c0` and `c1` at 16 stations of `o + s·t`, `s ∈ [s0, s1]`
@@ -119,7 +122,7 @@ pub(crate) fn interior(
     o: [f64; 2],
     t: [f64; 2],
     s: [f64; 2],
-    buf: &mut [Vec<f64>; 3],
+    buf: &mut [Vec<f64>; 5],
 ) -> Option<Interior> {
     buf.iter_mut().for_each(Vec::clear);
     let d = [-t[1], t[0]];
@@ -134,27 +137,34 @@ pub(crate) fn interior(
             return None;
         }
         let at = |lam: f64| sampler.sample(q[0] + (m + lam) * d[0], q[1] + (m + lam) * d[1]);
-        for f in [-0.5, 0.0, 0.5] {
+        for f in [-0.7, -0.35, 0.0, 0.35, 0.7] {
             if let Some((cv, _)) = at(f * h0.abs()) {
                 buf[0].push(cv);
             }
         }
         for (side, h) in [h0, h1].into_iter().enumerate() {
-            // Just outside: beyond a blurred edge, not as far as another structure.
+            // Just outside: beyond a blurred edge, not as far as another structure; and just
+            // inside (the contour must bound the grey strip itself).
             let margin = 4.0;
             if let Some((cv, _)) = at(h + h.signum() * margin) {
                 buf[1 + side].push(cv);
+            }
+            let inner = margin.min(0.4 * h.abs());
+            if let Some((cv, _)) = at(h - h.signum() * inner) {
+                buf[3 + side].push(cv);
             }
         }
     }
     if buf.iter().any(|b| b.len() < 4) {
         return None;
     }
-    let mut med = [0.0; 3];
-    for (m, b) in med.iter_mut().zip(buf.iter_mut()) {
-        let mid = b.len() / 2;
-        b.select_nth_unstable_by(mid, f64::total_cmp);
-        *m = b[mid];
+    // Inside: the upper quartile (nearly all of the strip must be grey, not just half of it);
+    // outside: the medians.
+    let mut med = [0.0; 5];
+    for (i, (m, b)) in med.iter_mut().zip(buf.iter_mut()).enumerate() {
+        let q = if i == 0 { (3 * b.len()) / 4 } else { b.len() / 2 };
+        b.select_nth_unstable_by(q, f64::total_cmp);
+        *m = b[q];
     }
-    Some(Interior { inside: med[0], outside: [med[1], med[2]] })
+    Some(Interior { inside: med[0], outside: [med[1], med[2]], near: [med[3], med[4]] })
 }

@@ -238,6 +238,7 @@ pub struct OursDetector {
     bounds: ([f64; 2], [f64; 2]),
     has: Vec<u8>,
     margin: Vec<f64>,
+    cands: Vec<Found>,
     found: Vec<Found>,
 }
 
@@ -286,6 +287,7 @@ impl OursDetector {
             bounds,
             has: Vec::new(),
             margin: Vec::new(),
+            cands: Vec::new(),
             found: Vec::new(),
         })
     }
@@ -357,7 +359,7 @@ impl OursDetector {
     /// Refines one contour: two rounds of profiles (gates ±3 px every 2 px, then ±1.5 px
     /// every pixel) over `core` (the Hough support, `s` along the frame `(o, t)`), each
     /// followed by a robust fit; then the contour is followed outwards to `full` (the line
-    /// inside the image) as long as edges keep coming within 1 px of the line, and refitted.
+    /// inside the image) as long as edges keep coming within 1.5 px of the line, and refitted.
     /// Its inlier edge points (with their `s`, sorted) are left in `self.samp[which]`.
     #[allow(clippy::too_many_arguments)]
     fn refine(
@@ -413,10 +415,10 @@ impl OursDetector {
             let (from, to) = if dir < 0.0 { (core[0], full[0]) } else { (core[1], full[1]) };
             let mut misses = 0u32;
             let mut s = from + dir;
-            while (to - s) * dir > 0.0 && misses < 12 {
+            while (to - s) * dir > 0.0 && misses < 40 {
                 let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
-                match sampler.edge_offset(&line, p, 1.5, min_strength) {
-                    Some((off, _)) if off.abs() <= 1.0 => {
+                match sampler.edge_offset(&line, p, 2.0, min_strength) {
+                    Some((off, _)) if off.abs() <= 1.5 => {
                         self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
                         misses = misses.saturating_sub(1);
                     }
@@ -444,8 +446,9 @@ impl OursDetector {
 
     /// The visible span of the pair: stations every 2 px along `t` over `range` are good where
     /// both contours have an inlier edge within 2 px and the interior (mean of three samples)
-    /// is less red than both outsides by half the colour contrast (smoothed over 5 stations);
-    /// the span is the run of good stations (gaps up to 48 px: a crossing instrument) with
+    /// is less red than both outsides by half the colour contrast (smoothed over 5 stations),
+    /// or one contour has one and the contrast is full; the span is the run of good stations
+    /// (gaps up to 64 px: a crossing instrument) with
     /// the most good stations. Returns the span and the fraction of good stations in it.
     fn visible_span(
         &mut self,
@@ -474,7 +477,7 @@ impl OursDetector {
         self.margin.resize(n, f64::NAN);
         let d = [-t[1], t[0]];
         for i in 0..n {
-            if self.has[i] != 3 {
+            if self.has[i] == 0 {
                 continue;
             }
             let s = range[0] + i as f64 * STEP;
@@ -496,7 +499,7 @@ impl OursDetector {
         let need = 0.5 * self.cfg.min_chroma_contrast;
         let mut best: Option<(usize, usize, usize)> = None;
         let mut run: Option<(usize, usize, usize)> = None;
-        let max_gap = (48.0 / STEP) as usize;
+        let max_gap = (64.0 / STEP) as usize;
         for i in 0..n {
             let (lo, hi) = (i.saturating_sub(2), (i + 2).min(n - 1));
             let (mut sum, mut cnt) = (0.0, 0);
@@ -506,7 +509,10 @@ impl OursDetector {
                     cnt += 1;
                 }
             }
-            let good = self.has[i] == 3 && cnt >= 2 && sum / cnt as f64 >= need;
+            // Both edges and a grey interior; or one edge (the other may fade against bright
+            // fat or in a hazy corner) and a clearly grey interior.
+            let mean = if cnt >= 2 { sum / cnt as f64 } else { f64::NEG_INFINITY };
+            let good = (self.has[i] == 3 && mean >= need) || (self.has[i] != 0 && mean >= 2.0 * need);
             if !good {
                 continue;
             }
@@ -777,21 +783,26 @@ impl ShaftDetector for OursDetector {
                 eprintln!("  pair {p:?}");
             }
         }
+        // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
+        // sharing a line, a contour or the axis with a better one is dropped).
+        self.cands.clear();
+        let budget = 4 * cfg.max_detections + 4;
+        for &(_, i, j) in pairs.iter().take(budget) {
+            if let Some(f) = self.verify(image, i, j) {
+                self.cands.push(f);
+            }
+        }
+        self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
         self.found.clear();
-        let mut tried = 0;
-        for &(_, i, j) in &pairs {
-            if self.found.len() >= cfg.max_detections || tried >= 4 * cfg.max_detections + 4 {
+        for f in &self.cands {
+            if self.found.len() >= cfg.max_detections {
                 break;
             }
-            if self.found.iter().any(|f| f.lines.contains(&i) || f.lines.contains(&j)) {
-                continue;
-            }
-            tried += 1;
-            if let Some(f) = self.verify(image, i, j) {
-                let dup = self.found.iter().any(|g| same_axis(g, &f) || shares_contour(g, &f));
-                if !dup {
-                    self.found.push(f);
-                }
+            let clash = self.found.iter().any(|g| {
+                g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f)
+            });
+            if !clash {
+                self.found.push(*f);
             }
         }
         self.found.sort_by(|a, b| b.score.total_cmp(&a.score));

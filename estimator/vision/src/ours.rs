@@ -240,6 +240,10 @@ pub struct OursDetector {
     margin: Vec<f64>,
     cands: Vec<Found>,
     found: Vec<Found>,
+    /// Per Hough line of the frame: its refined contour (`None`: not yet refined).
+    cache: Vec<Option<Option<Contour>>>,
+    /// Per Hough line: its refined contour's inlier points, undistorted pixels.
+    cache_pts: Vec<Vec<[f64; 2]>>,
 }
 
 /// A contour refined in the full-resolution image.
@@ -289,6 +293,8 @@ impl OursDetector {
             margin: Vec::new(),
             cands: Vec::new(),
             found: Vec::new(),
+            cache: Vec::new(),
+            cache_pts: Vec::new(),
         })
     }
 
@@ -356,10 +362,10 @@ impl OursDetector {
         (o, t)
     }
 
-    /// Refines one contour: two rounds of profiles (gates ±3 px every 2 px, then ±1.5 px
+    /// Refines one contour: two rounds of profiles (gates ±3 px every 3 px, then ±1.5 px
     /// every pixel) over `core` (the Hough support, `s` along the frame `(o, t)`), each
     /// followed by a robust fit; then the contour is followed outwards to `full` (the line
-    /// inside the image) as long as edges keep coming within 1.5 px of the line, and refitted.
+    /// inside the image, every 2 px) as long as edges keep coming within 1.5 px of the line, and refitted.
     /// Its inlier edge points (with their `s`, sorted) are left in `self.samp[which]`.
     #[allow(clippy::too_many_arguments)]
     fn refine(
@@ -381,7 +387,7 @@ impl OursDetector {
             let dist = line.distance(o);
             ([o[0] - dist * line.n[0], o[1] - dist * line.n[1]], lt)
         };
-        for (gate, step) in [(3.0, 2.0), (1.5, 1.0)] {
+        for (gate, step) in [(3.0, 3.0), (1.5, 1.0)] {
             self.pts.clear();
             self.res.clear();
             let (o_l, lt) = frame(&line);
@@ -414,8 +420,8 @@ impl OursDetector {
         for dir in [-1.0f64, 1.0] {
             let (from, to) = if dir < 0.0 { (core[0], full[0]) } else { (core[1], full[1]) };
             let mut misses = 0u32;
-            let mut s = from + dir;
-            while (to - s) * dir > 0.0 && misses < 40 {
+            let mut s = from + 2.0 * dir;
+            while (to - s) * dir > 0.0 && misses < 24 {
                 let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
                 match sampler.edge_offset(&line, p, 2.0, min_strength) {
                     Some((off, _)) if off.abs() <= 1.5 => {
@@ -424,7 +430,7 @@ impl OursDetector {
                     }
                     _ => misses += 2,
                 }
-                s += dir;
+                s += 2.0 * dir;
             }
         }
         let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
@@ -442,6 +448,36 @@ impl OursDetector {
         }
         samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         Some(Contour { line, sigma: f.sigma })
+    }
+
+    /// The refined contour of Hough line `idx` (computed once per frame, in the line's own
+    /// frame), its inlier edge points left in `self.cache_pts[idx]`.
+    fn contour_of(&mut self, sampler: &Sampler<'_>, idx: usize) -> Option<Contour> {
+        if let Some(c) = self.cache[idx] {
+            return c;
+        }
+        let cand = self.hough.lines[idx];
+        let (o, t) = Self::pair_frame(&cand);
+        let len = (cand.ends[1][0] - o[0]) * t[0] + (cand.ends[1][1] - o[1]) * t[1];
+        let full = self.line_range(o, t);
+        let core = [0.0f64.max(full[0]), len.min(full[1])];
+        let c = self.refine(sampler, cand.line, o, t, core, full, 0);
+        let pts = &mut self.cache_pts[idx];
+        pts.clear();
+        pts.extend(self.samp[0].iter().map(|(_, p)| *p));
+        self.cache[idx] = Some(c);
+        c
+    }
+
+    /// The extent along `t` (from `o`) of the undistorted image's bounding box.
+    fn line_range(&self, o: [f64; 2], t: [f64; 2]) -> [f64; 2] {
+        let (lo, hi) = self.bounds;
+        let mut r = [f64::INFINITY, f64::NEG_INFINITY];
+        for c in [[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]] {
+            let sc = (c[0] - o[0]) * t[0] + (c[1] - o[1]) * t[1];
+            r = [r[0].min(sc), r[1].max(sc)];
+        }
+        r
     }
 
     /// The visible span of the pair: stations every 2 px along `t` over `range` are good where
@@ -559,22 +595,16 @@ impl OursDetector {
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
             dbg_reject(1); return None;
         }
-        // Refine both contours over the union of the spans, a little extended.
-        // Refine both contours over the whole line inside the image (the Hough spans may stop
-        // short of the border in the vignetted corners).
-        let range = {
-            let (lo, hi) = self.bounds;
-            let mut r = [f64::INFINITY, f64::NEG_INFINITY];
-            for c in [[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]] {
-                let sc = proj(c);
-                r = [r[0].min(sc), r[1].max(sc)];
-            }
-            r
-        };
-        let core_a = [sa[0].max(range[0]), sa[1].min(range[1])];
-        let core_b = [sb[0].max(range[0]), sb[1].min(range[1])];
-        let Some(ca) = self.refine(&sampler, a.line, o, t, core_a, range, 0) else { dbg_reject(21); return None; };
-        let Some(cb) = self.refine(&sampler, b.line, o, t, core_b, range, 1) else { dbg_reject(22); return None; };
+        // Both contours, refined once per frame each; their inlier points in the pair's frame.
+        let range = self.line_range(o, t);
+        let Some(ca) = self.contour_of(&sampler, ia) else { dbg_reject(21); return None; };
+        let Some(cb) = self.contour_of(&sampler, ib) else { dbg_reject(22); return None; };
+        for (which, idx) in [(0, ia), (1, ib)] {
+            let samp = &mut self.samp[which];
+            samp.clear();
+            samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
+            samp.sort_by(|x, y| x.0.total_cmp(&y.0));
+        }
         let Some((span, support)) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range) else {
             dbg_reject(23);
             return None;
@@ -772,6 +802,12 @@ impl ShaftDetector for OursDetector {
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
         self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
         let pairs = self.pairs(image);
+        let n_lines = self.hough.lines.len();
+        self.cache.clear();
+        self.cache.resize(n_lines, None);
+        if self.cache_pts.len() < n_lines {
+            self.cache_pts.resize_with(n_lines, Vec::new);
+        }
         if std::env::var_os("OURS_DEBUG").is_some() {
             eprintln!("edgels {} lines {} pairs {}", self.edges.edgels.len(), self.hough.lines.len(), pairs.len());
             let txt: String = self.edges.edgels.iter().map(|e| format!("{} {} {} {}\n", e.p[0], e.p[1], e.n[0], e.n[1])).collect();
@@ -786,7 +822,7 @@ impl ShaftDetector for OursDetector {
         // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
         // sharing a line, a contour or the axis with a better one is dropped).
         self.cands.clear();
-        let budget = 4 * cfg.max_detections + 4;
+        let budget = 3 * cfg.max_detections + 2;
         for &(_, i, j) in pairs.iter().take(budget) {
             if let Some(f) = self.verify(image, i, j) {
                 self.cands.push(f);

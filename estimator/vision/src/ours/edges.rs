@@ -71,15 +71,17 @@ impl EdgeBuffers {
         let t2 = threshold * threshold;
         let tan22 = 0.414_213_56_f32;
         for i in 1..h2 - 1 {
+            fn rows(ch: &[f32], i: usize, w2: usize) -> (&[f32], &[f32], &[f32]) {
+                (&ch[(i - 1) * w2..i * w2], &ch[i * w2..(i + 1) * w2], &ch[(i + 1) * w2..(i + 2) * w2])
+            }
+            let (c0, c1, c2) = rows(&self.chroma, i, w2);
+            let (l0, l1, l2) = rows(&self.luma, i, w2);
             for j in 1..w2 - 1 {
                 let (a, c, b) = {
                     let mut acc = (0.0f32, 0.0f32, 0.0f32);
-                    for ch in [&self.chroma, &self.luma] {
-                        let at = |ii: usize, jj: usize| ch[ii * w2 + jj];
-                        let gx = (at(i - 1, j + 1) + 2.0 * at(i, j + 1) + at(i + 1, j + 1))
-                            - (at(i - 1, j - 1) + 2.0 * at(i, j - 1) + at(i + 1, j - 1));
-                        let gy = (at(i + 1, j - 1) + 2.0 * at(i + 1, j) + at(i + 1, j + 1))
-                            - (at(i - 1, j - 1) + 2.0 * at(i - 1, j) + at(i - 1, j + 1));
+                    for (u, m, d) in [(c0, c1, c2), (l0, l1, l2)] {
+                        let gx = (u[j + 1] + 2.0 * m[j + 1] + d[j + 1]) - (u[j - 1] + 2.0 * m[j - 1] + d[j - 1]);
+                        let gy = (d[j - 1] + 2.0 * d[j] + d[j + 1]) - (u[j - 1] + 2.0 * u[j] + u[j + 1]);
                         let (gx, gy) = (gx * 0.125, gy * 0.125);
                         acc.0 += gx * gx;
                         acc.1 += gy * gy;

@@ -52,11 +52,11 @@ impl Sampler<'_> {
         for (idx, k) in (-(kk as isize)..=kk as isize).enumerate() {
             let t = k as f64;
             let (x, y) = (p[0] + t * line.n[0], p[1] + t * line.n[1]);
-            // Three samples 1 px apart along the contour: averages the noise along the edge.
-            let a = self.sample(x - dir[0], y - dir[1])?;
-            let b = self.sample(x, y)?;
-            let c = self.sample(x + dir[0], y + dir[1])?;
-            vals[idx] = ((a.0 + b.0 + c.0) / 3.0, (a.1 + b.1 + c.1) / 3.0);
+            // Two samples 1.5 px apart along the contour (each bilinear): averages the noise
+            // along the edge over about three pixels.
+            let a = self.sample(x - 0.75 * dir[0], y - 0.75 * dir[1])?;
+            let b = self.sample(x + 0.75 * dir[0], y + 0.75 * dir[1])?;
+            vals[idx] = (0.5 * (a.0 + b.0), 0.5 * (a.1 + b.1));
         }
         let mut strength = [0.0f64; 2 * MAX_K + 1];
         // Derivative kernel [−1, −2, 0, 2, 1] / 8 (smooths blurred, noisy edges).

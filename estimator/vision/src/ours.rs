@@ -203,7 +203,11 @@ impl OursConfig {
         )?;
         check(pos(self.max_residual_px), "max_residual_px", "finite and > 0")?;
         check((0.0..=1.0).contains(&self.min_support), "min_support", "in [0, 1]")?;
-        check(!self.border_margin_px.is_nan() && self.border_margin_px >= 0.0, "border_margin_px", "≥ 0 (infinite: off)")?;
+        check(
+            !self.border_margin_px.is_nan() && self.border_margin_px >= 0.0,
+            "border_margin_px",
+            "≥ 0 (infinite: off)",
+        )?;
         check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
         Ok(())
     }
@@ -240,6 +244,7 @@ pub struct OursDetector {
     margin: Vec<f64>,
     cands: Vec<Found>,
     found: Vec<Found>,
+    pair_buf: Vec<(f64, usize, usize)>,
     /// Per Hough line of the frame: its refined contour (`None`: not yet refined).
     cache: Vec<Option<Option<Contour>>>,
     /// Per Hough line: its refined contour's inlier points, undistorted pixels.
@@ -266,9 +271,9 @@ impl OursDetector {
         let mut bounds = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for p in &table.uv {
             rmax = rmax.max((p[0] - c[0]).hypot(p[1] - c[1]));
-            for i in 0..2 {
-                bounds.0[i] = bounds.0[i].min(f64::from(p[i]) - 2.0);
-                bounds.1[i] = bounds.1[i].max(f64::from(p[i]) + 2.0);
+            for (i, pi) in p.iter().enumerate() {
+                bounds.0[i] = bounds.0[i].min(f64::from(*pi) - 2.0);
+                bounds.1[i] = bounds.1[i].max(f64::from(*pi) + 2.0);
             }
         }
         if table.uv.is_empty() {
@@ -293,6 +298,7 @@ impl OursDetector {
             margin: Vec::new(),
             cands: Vec::new(),
             found: Vec::new(),
+            pair_buf: Vec::new(),
             cache: Vec::new(),
             cache_pts: Vec::new(),
         })
@@ -409,10 +415,6 @@ impl OursDetector {
             self.res.select_nth_unstable_by(mid, f64::total_cmp);
             min_strength = min_strength.max(self.res[mid] / 3.0);
             let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
-            if std::env::var_os("OURS_DEBUG").is_some() {
-                let txt: String = self.pts.iter().zip(&self.w).map(|(p, w)| format!("{:.0}:{:.2}:{:.1} ", (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], line.distance(*p), w)).collect();
-                eprintln!("  round{gate} {which} core {core:?} {txt}");
-            }
             line = f.line;
         }
         // Follow the contour outwards from both ends of the core.
@@ -435,10 +437,6 @@ impl OursDetector {
         }
         let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
         let line = f.line;
-        if std::env::var_os("OURS_DEBUG").is_some() {
-            let txt: String = self.pts.iter().zip(&self.w).map(|(p, w)| format!("{:.0}:{:.2}:{:.1} ", (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], line.distance(*p), w)).collect();
-            eprintln!("  samples{which} {txt}");
-        }
         let samp = &mut self.samp[which];
         samp.clear();
         for (p, w) in self.pts.iter().zip(&self.w) {
@@ -528,10 +526,6 @@ impl OursDetector {
             let inside = (i0 + i1 + i2) / 3.0;
             self.margin[i] = (out0 - inside).min(out1 - inside);
         }
-        if std::env::var_os("OURS_DEBUG").is_some() {
-            let line: String = (0..n).step_by(4).map(|i| format!("{}:{}:{:.0} ", range[0] + i as f64 * STEP, self.has[i], self.margin[i])).collect();
-            eprintln!("  stations {line}");
-        }
         let need = 0.5 * self.cfg.min_chroma_contrast;
         let mut best: Option<(usize, usize, usize)> = None;
         let mut run: Option<(usize, usize, usize)> = None;
@@ -556,10 +550,10 @@ impl OursDetector {
                 Some((start, last, count)) if i - last <= max_gap => Some((start, i, count + 1)),
                 _ => Some((i, i, 1)),
             };
-            if let Some(r) = run {
-                if best.is_none_or(|b| r.2 > b.2) {
-                    best = Some(r);
-                }
+            if let Some(r) = run
+                && best.is_none_or(|b| r.2 > b.2)
+            {
+                best = Some(r);
             }
         }
         let (start, last, count) = best?;
@@ -593,31 +587,28 @@ impl OursDetector {
         };
         let ov = [sa[0].max(sb[0]), sa[1].min(sb[1])];
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
-            dbg_reject(1); return None;
+            return None;
         }
         // Both contours, refined once per frame each; their inlier points in the pair's frame.
         let range = self.line_range(o, t);
-        let Some(ca) = self.contour_of(&sampler, ia) else { dbg_reject(21); return None; };
-        let Some(cb) = self.contour_of(&sampler, ib) else { dbg_reject(22); return None; };
+        let ca = self.contour_of(&sampler, ia)?;
+        let cb = self.contour_of(&sampler, ib)?;
         for (which, idx) in [(0, ia), (1, ib)] {
             let samp = &mut self.samp[which];
             samp.clear();
             samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
             samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         }
-        let Some((span, support)) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range) else {
-            dbg_reject(23);
-            return None;
-        };
+        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range)?;
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
-            dbg_reject(3); return None;
+            return None;
         }
         if support < cfg.min_support {
-            dbg_reject(5); return None;
+            return None;
         }
-        let Some(mut ca) = self.refit_in_span(0, ca.line, span) else { dbg_reject(24); return None; };
-        let Some(mut cb) = self.refit_in_span(1, cb.line, span) else { dbg_reject(25); return None; };
+        let mut ca = self.refit_in_span(0, ca.line, span)?;
+        let mut cb = self.refit_in_span(1, cb.line, span)?;
         // Trim ends where either contour leaves its line systematically (the wrist, a bent or
         // thinner link, a tapered tip), then refit.
         let mut span = span;
@@ -634,8 +625,18 @@ impl OursDetector {
                 if n >= 4 { (sum / n as f64).abs() } else { 0.0 }
             };
             let thr = 0.35;
-            let head = off(&self.samp[0], &ca.line, span[0], span[0] + WIN).max(off(&self.samp[1], &cb.line, span[0], span[0] + WIN));
-            let tail = off(&self.samp[0], &ca.line, span[1] - WIN, span[1]).max(off(&self.samp[1], &cb.line, span[1] - WIN, span[1]));
+            let head = off(&self.samp[0], &ca.line, span[0], span[0] + WIN).max(off(
+                &self.samp[1],
+                &cb.line,
+                span[0],
+                span[0] + WIN,
+            ));
+            let tail = off(&self.samp[0], &ca.line, span[1] - WIN, span[1]).max(off(
+                &self.samp[1],
+                &cb.line,
+                span[1] - WIN,
+                span[1],
+            ));
             if head <= thr && tail <= thr {
                 break;
             }
@@ -646,19 +647,18 @@ impl OursDetector {
                 span[1] -= 0.5 * WIN;
             }
             if span[1] - span[0] < cfg.min_length_px {
-                dbg_reject(26); return None;
+                return None;
             }
-            let (Some(na), Some(nb)) = (self.refit_in_span(0, ca.line, span), self.refit_in_span(1, cb.line, span)) else {
-                dbg_reject(27);
+            let (Some(na), Some(nb)) = (self.refit_in_span(0, ca.line, span), self.refit_in_span(1, cb.line, span))
+            else {
                 return None;
             };
             (ca, cb) = (na, nb);
         }
         let len = span[1] - span[0];
-        if std::env::var_os("OURS_DEBUG").is_some() { eprintln!("  ca {ca:?}\n  cb {cb:?}\n  span {span:?} support {support}"); }
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
-            dbg_reject(4); return None;
+            return None;
         }
         // Interior point: middle of the two contours at the span's middle.
         let sm = 0.5 * (span[0] + span[1]);
@@ -669,7 +669,7 @@ impl OursDetector {
         let inside = [q[0] + mid * d[0], q[1] + mid * d[1]];
         let dist = self.axis_distance(&ca.line, &cb.line, inside)?;
         if !(dist >= cfg.min_depth_m && dist <= cfg.max_depth_m) {
-            dbg_reject(6); return None;
+            return None;
         }
         // The axis's depth at both ends of the visible span must be plausible too (a tapered
         // tip seen as a cylinder would reach far beyond the range towards its apex).
@@ -677,12 +677,12 @@ impl OursDetector {
             let p = [o[0] + e * t[0], o[1] + e * t[1]];
             let z = self.axis_depth_at(&ca.line, &cb.line, inside, p).unwrap_or(f64::NAN);
             if !(z >= 0.5 * cfg.min_depth_m && z <= cfg.max_depth_m) {
-                dbg_reject(8); return None;
+                return None;
             }
         }
         let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
         if !self.colour_ok(&fine) {
-            dbg_reject(7); return None;
+            return None;
         }
         let c0 = ImageLine::new(ca.line.abc()).ok()?;
         let c1 = ImageLine::new(cb.line.abc()).ok()?;
@@ -700,8 +700,32 @@ impl OursDetector {
         if cfg.border_margin_px.is_finite() && len < cfg.long_span_px {
             let (w, h) = (f64::from(self.k.width) - 1.0, f64::from(self.k.height) - 1.0);
             let near = |p: &[f64; 2]| p[0].min(p[1]).min(w - p[0]).min(h - p[1]) <= cfg.border_margin_px;
-            if !ends_px.iter().any(near) {
-                dbg_reject(9); return None;
+            // The contours' edges may run on past the span's colour evidence (haze, vignetting):
+            // follow either contour's inlier edges from each end (gaps up to 32 px).
+            let mut reach = span;
+            for samp in &self.samp {
+                let (mut lo, mut hi) = (span[0], span[1]);
+                for (sv, _) in samp.iter().rev().filter(|(sv, _)| *sv < span[0]) {
+                    if lo - sv > 32.0 {
+                        break;
+                    }
+                    lo = *sv;
+                }
+                for (sv, _) in samp.iter().filter(|(sv, _)| *sv > span[1]) {
+                    if sv - hi > 32.0 {
+                        break;
+                    }
+                    hi = *sv;
+                }
+                reach = [reach[0].min(lo), reach[1].max(hi)];
+            }
+            let reach_px = reach.map(|sv| {
+                let p = [o[0] + sv * t[0], o[1] + sv * t[1]];
+                let (x, y) = self.lens.distort_px(p[0], p[1]);
+                [x, y]
+            });
+            if !reach_px.iter().any(near) {
+                return None;
             }
         }
         let contrast = (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside);
@@ -726,13 +750,13 @@ impl OursDetector {
     }
 
     /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
-    fn pairs(&mut self, image: &RgbView<'_>) -> Vec<(f64, usize, usize)> {
+    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
         let lens = self.lens;
         let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
         let mut col = std::mem::take(&mut self.col);
         let lines = &self.hough.lines;
         let cfg = self.cfg;
-        let mut out = Vec::new();
+        out.clear();
         let cos_max = (25.0f64).to_radians().cos();
         for i in 0..lines.len() {
             for j in i + 1..lines.len() {
@@ -801,23 +825,13 @@ impl ShaftDetector for OursDetector {
         self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
         self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
-        let pairs = self.pairs(image);
+        let buf = std::mem::take(&mut self.pair_buf);
+        let pairs = self.pairs(image, buf);
         let n_lines = self.hough.lines.len();
         self.cache.clear();
         self.cache.resize(n_lines, None);
         if self.cache_pts.len() < n_lines {
             self.cache_pts.resize_with(n_lines, Vec::new);
-        }
-        if std::env::var_os("OURS_DEBUG").is_some() {
-            eprintln!("edgels {} lines {} pairs {}", self.edges.edgels.len(), self.hough.lines.len(), pairs.len());
-            let txt: String = self.edges.edgels.iter().map(|e| format!("{} {} {} {}\n", e.p[0], e.p[1], e.n[0], e.n[1])).collect();
-            let _ = std::fs::write("/tmp/ours_edgels.txt", txt);
-            for l in &self.hough.lines {
-                eprintln!("  line n={:?} c={:.1} ends={:?} count={}", l.line.n, l.line.c, l.ends, l.count);
-            }
-            for p in pairs.iter().take(10) {
-                eprintln!("  pair {p:?}");
-            }
         }
         // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
         // sharing a line, a contour or the axis with a better one is dropped).
@@ -828,15 +842,17 @@ impl ShaftDetector for OursDetector {
                 self.cands.push(f);
             }
         }
+        self.pair_buf = pairs;
         self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
         self.found.clear();
         for f in &self.cands {
             if self.found.len() >= cfg.max_detections {
                 break;
             }
-            let clash = self.found.iter().any(|g| {
-                g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f)
-            });
+            let clash = self
+                .found
+                .iter()
+                .any(|g| g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f));
             if !clash {
                 self.found.push(*f);
             }
@@ -855,12 +871,6 @@ fn same_axis(a: &Found, b: &Found) -> bool {
         return false;
     }
     lb.distance_px(a.mid[0], a.mid[1]).abs() < 5.0 || la.distance_px(b.mid[0], b.mid[1]).abs() < 5.0
-}
-
-fn dbg_reject(why: u32) {
-    if std::env::var_os("OURS_DEBUG").is_some() {
-        eprintln!("  reject {why}");
-    }
 }
 
 /// True when two detections share a contour (within 1° and 2 px at the other's span middle).

@@ -1,6 +1,7 @@
 //! Our shaft detector on synthetic images with exact ground truth (`vision::synth`): the
 //! detected axis against the true projected axis, no detection on tissue alone, two crossing
 //! shafts, bad input.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
 use nalgebra::Vector2;
@@ -64,9 +65,8 @@ fn detect(k: &Intrinsics, s: &Scene) -> Vec<ShaftDetection> {
 #[test]
 fn a_shaft_near_the_centre_at_30_to_150_mm_is_found_precisely() {
     let k = camera();
-    for (i, &(z, angle, tilt)) in [(0.03, 20.0, 10.0), (0.06, 160.0, 30.0), (0.1, -35.0, 0.0), (0.15, 95.0, -20.0)]
-        .iter()
-        .enumerate()
+    for (i, &(z, angle, tilt)) in
+        [(0.03, 20.0, 10.0), (0.06, 160.0, 30.0), (0.1, -35.0, 0.0), (0.15, 95.0, -20.0)].iter().enumerate()
     {
         let c = shaft(&k, [300.0, 250.0], z, angle, tilt);
         let found = detect(&k, &scene(vec![c], 10 + i as u64));
@@ -195,7 +195,7 @@ fn dump_images() {
     ];
     for (name, shafts) in cases {
         let img = render(&k, &scene(shafts, 11));
-        let mut f = format!("P6\n640 480\n255\n").into_bytes();
+        let mut f = b"P6\n640 480\n255\n".to_vec();
         f.extend_from_slice(&img);
         std::fs::write(format!("/tmp/ours_{name}.ppm"), f).unwrap();
     }

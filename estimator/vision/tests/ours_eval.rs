@@ -2,6 +2,7 @@
 //! with a truth list (`OURS_EVAL_DIR/list.txt`: per line the `.rgb` file, then per instrument
 //! `label a b c x0 y0 x1 y1`, the true axis and its visible segment, undistorted pixels).
 //! `OURS_EVAL_DIR=DIR cargo test --release -p vision --test ours_eval -- --ignored --nocapture`
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
 use std::time::Instant;
@@ -72,6 +73,9 @@ fn evaluate_on_rendered_frames() {
             }
             if let Some((i, _, _)) = best {
                 matched[i] = true;
+                if std::env::var_os("OURS_EVAL_CONF").is_some() {
+                    println!("matched conf {:.3}", dets[i].confidence);
+                }
             }
             if len >= 100.0 {
                 eligible += 1;
@@ -89,7 +93,11 @@ fn evaluate_on_rendered_frames() {
         }
         let extra = matched.iter().filter(|m| !**m).count();
         if extra > 0 && verbose {
-            println!("{file}: {extra} unmatched detections");
+            for (d, m) in dets.iter().zip(&matched) {
+                if !m {
+                    println!("{file}: unmatched detection ends {:?} conf {:.2}", d.ends_px, d.confidence);
+                }
+            }
         }
         false_det += extra;
     }

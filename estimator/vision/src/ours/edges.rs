@@ -103,7 +103,7 @@ impl EdgeBuffers {
                 // Eigenvector of the largest eigenvalue.
                 let (ex, ey) = if a >= c { (lam - c, b) } else { (b, lam - a) };
                 let norm = (ex * ex + ey * ey).sqrt();
-                if !(norm > 0.0) {
+                if norm <= 0.0 || norm.is_nan() {
                     continue;
                 }
                 let (ex, ey) = (ex / norm, ey / norm);
@@ -144,7 +144,7 @@ impl EdgeBuffers {
                 let (pos, tan) = table.map(j, i, -ey, ex);
                 let (mut nx, mut ny) = (tan[1], -tan[0]);
                 let nn = (nx * nx + ny * ny).sqrt();
-                if !(nn > 0.0) {
+                if nn <= 0.0 || nn.is_nan() {
                     continue;
                 }
                 nx /= nn;

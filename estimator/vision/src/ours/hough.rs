@@ -31,6 +31,7 @@ pub(crate) struct Hough {
     rho0: usize,
     centre: [f32; 2],
     peaks: Vec<(u32, usize, usize)>,
+    kept: Vec<(usize, usize)>,
     members: Vec<[f64; 2]>,
     /// Per edgel, its angle bin.
     tbs: Vec<u16>,
@@ -38,6 +39,8 @@ pub(crate) struct Hough {
     bins: Vec<u32>,
     /// Edgel indices sorted by angle bin.
     order: Vec<u32>,
+    /// Scratch: next free slot per angle bin.
+    next: Vec<u32>,
     s_buf: Vec<f64>,
     pub(crate) lines: Vec<LineCand>,
 }
@@ -95,9 +98,10 @@ impl Hough {
         self.order.clear();
         self.order.resize(edgels.len(), 0);
         {
-            let mut next = self.bins.clone();
+            self.next.clear();
+            self.next.extend_from_slice(&self.bins);
             for (i, &tb) in self.tbs.iter().enumerate() {
-                let slot = &mut next[tb as usize];
+                let slot = &mut self.next[tb as usize];
                 self.order[*slot as usize] = i as u32;
                 *slot += 1;
             }
@@ -120,8 +124,9 @@ impl Hough {
                 }
             }
         }
-        self.peaks.sort_unstable_by(|a, b| b.0.cmp(&a.0));
-        let mut kept: Vec<(usize, usize)> = Vec::new();
+        self.peaks.sort_unstable_by_key(|p| std::cmp::Reverse(p.0));
+        let mut kept = std::mem::take(&mut self.kept);
+        kept.clear();
         let peaks = std::mem::take(&mut self.peaks);
         for &(_, tb, rb) in &peaks {
             if kept.len() >= max_lines {
@@ -160,7 +165,8 @@ impl Hough {
             }
         }
         self.peaks = peaks;
-        self.lines.sort_by(|a, b| b.count.cmp(&a.count));
+        self.kept = kept;
+        self.lines.sort_by_key(|l| std::cmp::Reverse(l.count));
     }
 
     /// The edgels near `line` (twice: wide, then around the refit), the refit line and its

@@ -94,7 +94,7 @@ impl Sampler<'_> {
             swx += (strength[i] - half) * i as f64;
             i += 1;
         }
-        if !(sw > 0.0) {
+        if sw <= 0.0 || sw.is_nan() {
             return None;
         }
         let off = swx / sw - kk as f64;

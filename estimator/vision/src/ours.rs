@@ -23,35 +23,55 @@
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform (each edgel votes
 //!    once at its own normal, 1° × 2 px bins, peaks of a 9 × 3 box sum), then each peak's
 //!    edgels are gathered and refitted (total least squares) and its supported span found.
-//! 3. **Pairs with physics**: two lines are the contours of one cylinder of radius `r` only
-//!    if they are nearly parallel, overlap along their length, and the angle `θ` between their
-//!    planes through the optical centre (normals `Kᵀl`) gives a plausible distance of the
-//!    axis, `d = r / sin(θ/2)`, inside `[min_depth_m, max_depth_m]` (this is what rejects
-//!    vessels and creases: far too thin for a shaft at that distance). Then the **interior
-//!    colour test**: the strip between the lines must be clearly less red than the tissue just
-//!    outside on both sides (`C_out − C_in ≥ min_chroma_contrast` and `C_in ≤
-//!    max_interior_chroma_ratio · C_out`); a vessel is redder inside, a pair of unrelated
-//!    tissue edges has tissue inside, a fold's highlight stays pink.
-//! 4. **Sub-pixel refinement** of each contour in the full-resolution measured image: profiles
-//!    across the contour at every pixel along it, sampled at undistorted positions mapped
-//!    through the lens (so each found edge is directly an undistorted point on the straight
-//!    contour), the peak of `√(dC² + dL²)` located by a parabola, then a Tukey-biweight IRLS
-//!    line fit (the wrist, the jaws, a crossing instrument and specular spots become
-//!    outliers). Two rounds (gates ±3 px then ±1.5 px).
-//! 5. **The exact axis** from the two refined contours, [`crate::shaft::axis_from_contours`]
-//!    (the middle line is wrong by up to pixels under perspective), the distance gate and the
-//!    colour test again on the refined lines, then the visible span: the overlap of both
-//!    contours' inlier edges, projected on the axis and mapped back to measured pixels.
+//! 3. **Pairs with physics** (cheap tests on the hypotheses): two lines are the contours of
+//!    one cylinder of radius `r` only if they are within 25° of parallel, overlap along their
+//!    length, and the angle `θ` between their planes through the optical centre (normals
+//!    `Kᵀl`) gives a plausible distance of the axis, `d = r / sin(θ/2)`, inside
+//!    `[min_depth_m, max_depth_m]` (this rejects vessels and creases: far too thin for a shaft
+//!    at that distance). Then the **interior colour test**: the strip between the lines must
+//!    be clearly less red than the tissue just outside on both sides, `C_out − C_in ≥
+//!    min_chroma_contrast` and `C_in ≤ max_interior_chroma_ratio · C_out`, with `C_in` the
+//!    upper quartile across the strip and also the median just inside each line (a vessel is
+//!    redder inside; a contour paired with an unrelated tissue edge or fold has tissue in part
+//!    of the strip; a fold's highlight stays pink). Pairs are ranked by length × support ×
+//!    greyness of the interior.
+//! 4. **Sub-pixel contours** in the full-resolution measured image, each Hough line once per
+//!    frame: profiles across the contour, sampled at undistorted positions mapped through the
+//!    lens (so each edge found is directly an undistorted point on the straight contour), two
+//!    samples 1.5 px apart along the edge averaged, the combined gradient
+//!    `√(dC² + (w·dL)²)` (kernel `[1 2 0 −2 −1]/8`, `w = profile_luma_weight`: the silhouette is
+//!    where the colour changes, the dark rim and highlights of the metal are luma edges just
+//!    inside), its peak placed by the centroid of its upper half (a motion-blurred edge is a
+//!    staircase: its centroid is the middle instant). Two rounds over the Hough support
+//!    (gates ±3 px then ±1.5 px), each with a Tukey-biweight IRLS line fit; then the contour is
+//!    followed outwards along the line while edges keep coming, and refitted; from the second
+//!    round on, an edge must be at least a third of the contour's median strength.
+//! 5. **The visible span**: stations every 2 px where both contours have an inlier edge and
+//!    the interior is grey against both outsides (or one edge and a clearly grey interior);
+//!    the run with the most good stations (gaps up to 64 px, a crossing instrument) is the
+//!    shaft. Its ends are trimmed while either contour leaves its line systematically (the
+//!    wrist, a bent link, the tapered jaws), and both contours are refitted on the span.
+//! 6. **The exact axis** from the two contours, [`crate::shaft::axis_from_contours`] (the
+//!    middle line is wrong by up to pixels under perspective); the distance gate again, the
+//!    axis's depth at both ends of the span (a tapered tip seen as a cylinder would reach far
+//!    beyond the range towards its apex), the colour test on the span; a span shorter than
+//!    `long_span_px` must reach the image border (a shaft runs out of the view, a pair of jaws
+//!    does not). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
 //!
-//! A second instrument is a second valid pair (both are returned, best first); pairs sharing a
-//! contour with a better one, or duplicating its axis, are dropped.
+//! The best-ranked pairs (`3 · max_detections + 2`) are verified; the best-scoring consistent
+//! set is returned (score: confidence × √length), so a second instrument is a second valid
+//! pair, and a pair sharing a Hough line, a contour or the axis with a better one is dropped.
+//!
+//! Cost (640×480, one core): about 1 ms for the half-resolution edgels, under 1 ms for the
+//! Hough stage, the rest in the profiles; no allocation per frame once warm, except the
+//! returned vector.
 //!
 //! ## Confidence
 //!
 //! `support × 1/(1 + (σ/0.5 px)²) × min(1, contrast / (3·min_chroma_contrast))`: `support` is
-//! the smaller of the two contours' fractions of the visible span with an inlier edge, `σ` the
-//! larger robust residual scale of the two fits (pixels), `contrast` the smaller interior/outside
-//! chroma difference.
+//! the fraction of good stations in the visible span, `σ` the larger robust residual scale of
+//! the two contour fits (pixels), `contrast` the smaller interior/outside chroma difference.
+//! Low under smoke (the colour contrast fades) even when the axis is right.
 //!
 //! Pixels: measured (distorted) images in, lines in undistorted pixels, `ends_px` measured.
 

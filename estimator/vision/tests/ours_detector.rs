@@ -70,12 +70,6 @@ fn a_shaft_near_the_centre_at_30_to_150_mm_is_found_precisely() {
     {
         let c = shaft(&k, [300.0, 250.0], z, angle, tilt);
         let found = detect(&k, &scene(vec![c], 10 + i as u64));
-        if std::env::var_os("OURS_DUMP").is_some() {
-            let img = render(&k, &scene(vec![c], 10 + i as u64));
-            let mut f = b"P6\n640 480\n255\n".to_vec();
-            f.extend_from_slice(&img);
-            std::fs::write(format!("/tmp/ours_centre{i}.ppm"), f).unwrap();
-        }
         assert!(!found.is_empty(), "z = {z}: not found");
         let (ang, off) = errors(&k, &found[0], &c);
         println!("centre z={z} angle={ang:.4}° offset={off:.3}px conf={:.2} n={}", found[0].confidence, found.len());
@@ -98,12 +92,6 @@ fn a_shaft_near_the_border_is_found_precisely() {
     {
         let c = shaft(&k, tip, z, angle, tilt);
         let found = detect(&k, &scene(vec![c], 20 + i as u64));
-        if std::env::var_os("OURS_DUMP").is_some() {
-            let img = render(&k, &scene(vec![c], 20 + i as u64));
-            let mut f = b"P6\n640 480\n255\n".to_vec();
-            f.extend_from_slice(&img);
-            std::fs::write(format!("/tmp/ours_border{i}.ppm"), f).unwrap();
-        }
         assert!(!found.is_empty(), "tip {tip:?}: not found");
         let (ang, off) = errors(&k, &found[0], &c);
         println!("border tip={tip:?} angle={ang:.4}° offset={off:.3}px n={}", found.len());
@@ -181,22 +169,5 @@ proptest! {
         for d in found {
             prop_assert!(d.confidence.is_finite());
         }
-    }
-}
-
-#[test]
-#[ignore = "debug: writes /tmp/ours_*.ppm"]
-fn dump_images() {
-    let k = camera();
-    let cases = [
-        ("z150", vec![shaft(&k, [300.0, 250.0], 0.15, 95.0, -20.0)]),
-        ("border", vec![shaft(&k, [560.0, 80.0], 0.05, 10.0, 0.0)]),
-        ("bg", vec![]),
-    ];
-    for (name, shafts) in cases {
-        let img = render(&k, &scene(shafts, 11));
-        let mut f = b"P6\n640 480\n255\n".to_vec();
-        f.extend_from_slice(&img);
-        std::fs::write(format!("/tmp/ours_{name}.ppm"), f).unwrap();
     }
 }

@@ -75,6 +75,11 @@ fn a_shaft_near_the_centre_at_30_to_150_mm_is_found_precisely() {
         println!("centre z={z} angle={ang:.4}° offset={off:.3}px conf={:.2} n={}", found[0].confidence, found.len());
         assert!(ang < 0.1 && off < 0.3, "z = {z}: angle {ang}°, offset {off} px");
         assert!(found[0].confidence > 0.3);
+        // One end of the visible span is the shaft's distal end (measured pixels).
+        let tip = c.axis_point_px(&k, 0.0);
+        let gap = found[0].ends_px.iter().map(|e| (e[0] - tip[0]).hypot(e[1] - tip[1])).fold(f64::INFINITY, f64::min);
+        println!("  distal end within {gap:.1} px");
+        assert!(gap < 12.0, "z = {z}: the span's nearest end is {gap} px from the distal end");
     }
 }
 

@@ -35,6 +35,12 @@ fn evaluate_on_rendered_frames() {
     if let Some(v) = env("OURS_LUMA_W") {
         cfg.luma_weight = v;
     }
+    if let Some(v) = env("OURS_MIN_CC") {
+        cfg.min_chroma_contrast = v;
+    }
+    if let Some(v) = env("OURS_CC_RATIO") {
+        cfg.max_interior_chroma_ratio = v;
+    }
     if let Some(v) = env("OURS_PLUMA_W") {
         cfg.profile_luma_weight = v;
     }

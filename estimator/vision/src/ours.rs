@@ -289,14 +289,17 @@ impl OursDetector {
         let table = HalfResTable::new(&k);
         let (mut rmax, c) = (1.0f32, [k.cx as f32, k.cy as f32]);
         let mut bounds = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for p in &table.uv {
+        // A strong distortion may not invert everywhere (the table then holds far or
+        // non-finite positions): those pixels are ignored, and the accumulator is capped.
+        let cap = 4.0 * (k.width as f32 + k.height as f32);
+        for p in table.uv.iter().filter(|p| p.iter().all(|v| v.is_finite() && v.abs() < cap)) {
             rmax = rmax.max((p[0] - c[0]).hypot(p[1] - c[1]));
             for (i, pi) in p.iter().enumerate() {
                 bounds.0[i] = bounds.0[i].min(f64::from(*pi) - 2.0);
                 bounds.1[i] = bounds.1[i].max(f64::from(*pi) + 2.0);
             }
         }
-        if table.uv.is_empty() {
+        if !bounds.0.iter().chain(&bounds.1).all(|v| v.is_finite()) {
             bounds = ([0.0; 2], [0.0; 2]);
         }
         let hough = Hough::new(c, rmax + 4.0);

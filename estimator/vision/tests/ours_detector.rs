@@ -176,3 +176,49 @@ proptest! {
         }
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+    /// Random grey bands over random pink, any distortion: every stage runs, nothing panics,
+    /// and every detection is finite.
+    #[test]
+    fn random_bands_never_panic(
+        bands in proptest::collection::vec((0.0f64..std::f64::consts::PI, -60.0f64..60.0, 2.0f64..30.0, any::<u8>()), 0..4),
+        bg in (100u8..255, 0u8..120, 0u8..120),
+        k1 in -0.6f64..0.4,
+        seed in any::<u64>(),
+    ) {
+        let (w, h) = (96usize, 72usize);
+        let k = Intrinsics {
+            fx: 60.0,
+            fy: 60.0,
+            cx: 47.5,
+            cy: 35.5,
+            skew: 0.0,
+            width: w as u32,
+            height: h as u32,
+            distortion: [k1, 0.0, 0.0, 0.0, 0.0],
+        };
+        let mut img = vec![0u8; 3 * w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let mut c = [bg.0, bg.1, bg.2];
+                for &(ang, off, width, grey) in &bands {
+                    let d = (x as f64 - 47.5) * ang.cos() + (y as f64 - 35.5) * ang.sin() - off;
+                    if d.abs() < width / 2.0 {
+                        c = [grey, grey, grey];
+                    }
+                }
+                let nz = (seed.wrapping_mul((y * w + x) as u64 | 1) >> 60) as u8;
+                img[3 * (y * w + x)..3 * (y * w + x) + 3].copy_from_slice(&c.map(|v| v.saturating_add(nz)));
+            }
+        }
+        let cfg = OursConfig { min_length_px: 20.0, ..OursConfig::default() };
+        let mut det = OursDetector::new(k, cfg).unwrap();
+        for d in det.detect(&RgbView::new(w, h, &img).unwrap()).unwrap() {
+            prop_assert!(d.confidence.is_finite() && (0.0..=1.0).contains(&d.confidence));
+            prop_assert!(d.centreline.abc.iter().all(|v| v.is_finite()));
+            prop_assert!(d.ends_px.iter().flatten().all(|v| v.is_finite()));
+        }
+    }
+}

@@ -142,6 +142,9 @@ impl EdgeBuffers {
                 let [ex, ey] = self.eig[idx];
                 // The edge's tangent, mapped; the undistorted normal is its perpendicular.
                 let (pos, tan) = table.map(j, i, -ey, ex);
+                if !pos.iter().all(|v| v.is_finite()) {
+                    continue;
+                }
                 let (mut nx, mut ny) = (tan[1], -tan[0]);
                 let nn = (nx * nx + ny * ny).sqrt();
                 if nn <= 0.0 || nn.is_nan() {

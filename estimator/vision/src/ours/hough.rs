@@ -84,6 +84,9 @@ impl Hough {
             self.tbs.push(tb as u16);
             self.bins[tb + 1] += 1;
             let rho = (e.p[0] - cx) * e.n[0] + (e.p[1] - cy) * e.n[1];
+            if !rho.is_finite() || rho.abs() > RHO_STEP * self.rho0 as f32 {
+                continue;
+            }
             let rb = (rho / RHO_STEP).round() as isize + self.rho0 as isize;
             if rb < 0 || rb >= self.n_rho as isize {
                 continue;

@@ -126,6 +126,10 @@ pub struct OursConfig {
     /// Least chroma drop from the tissue just outside to the shaft's interior, both sides
     /// (chroma units `2R − G − B`, default 12).
     pub min_chroma_contrast: f64,
+    /// Luma difference (8-bit) between the interior and the outside of a side from which half
+    /// of `min_chroma_contrast` is enough there (default 25: haze fades the colour, not the
+    /// brightness step of the metal).
+    pub min_luma_contrast: f64,
     /// Largest interior chroma as a fraction of the chroma outside, both sides (default 0.5).
     pub max_interior_chroma_ratio: f64,
     /// Largest robust residual scale of a contour's fit, pixels (default 2; defocus and
@@ -157,6 +161,7 @@ impl Default for OursConfig {
             max_lines: 40,
             max_detections: 2,
             min_chroma_contrast: 12.0,
+            min_luma_contrast: 25.0,
             max_interior_chroma_ratio: 0.5,
             max_residual_px: 2.0,
             min_support: 0.5,
@@ -217,6 +222,11 @@ impl OursConfig {
             "finite and ≥ 0",
         )?;
         check(
+            self.min_luma_contrast.is_finite() && self.min_luma_contrast >= 0.0,
+            "min_luma_contrast",
+            "finite and ≥ 0",
+        )?;
+        check(
             self.max_interior_chroma_ratio.is_finite() && self.max_interior_chroma_ratio >= 0.0,
             "max_interior_chroma_ratio",
             "finite and ≥ 0",
@@ -256,7 +266,7 @@ pub struct OursDetector {
     pts: Vec<[f64; 2]>,
     w: Vec<f64>,
     res: Vec<f64>,
-    col: [Vec<f64>; 5],
+    col: [Vec<f64>; 8],
     samp: [Vec<(f64, [f64; 2])>; 2],
     /// Bounding box of the undistorted image, pixels: `(min, max)`.
     bounds: ([f64; 2], [f64; 2]),
@@ -766,9 +776,14 @@ impl OursDetector {
     }
 
     fn colour_ok(&self, c: &profile::Interior) -> bool {
-        c.outside.iter().zip(c.near).all(|(&out, near)| {
+        let cfg = &self.cfg;
+        c.outside.iter().zip(c.near).zip(c.luma_outside).all(|((&out, near), luma_out)| {
             let inside = c.inside.max(near);
-            out - inside >= self.cfg.min_chroma_contrast && inside <= self.cfg.max_interior_chroma_ratio * out
+            // Under haze the colour contrast fades: half of it is enough where the luma
+            // contrast is clear.
+            let luma = (c.luma_inside - luma_out).abs() >= cfg.min_luma_contrast;
+            let need = if luma { 0.5 * cfg.min_chroma_contrast } else { cfg.min_chroma_contrast };
+            out - inside >= need && inside <= cfg.max_interior_chroma_ratio * out
         })
     }
 

@@ -38,6 +38,9 @@ fn evaluate_on_rendered_frames() {
     if let Some(v) = env("OURS_LONG_SPAN") {
         cfg.long_span_px = v;
     }
+    if let Some(v) = env("OURS_MIN_LC") {
+        cfg.min_luma_contrast = v;
+    }
     if let Some(v) = env("OURS_MIN_CC") {
         cfg.min_chroma_contrast = v;
     }

@@ -243,6 +243,15 @@ impl OursConfig {
     }
 }
 
+/// What makes a strip between two lines a shaft's interior.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Evidence {
+    /// Grey against redder tissue.
+    Colour,
+    /// Haze washed the colour out: a luma step of this sign (+1 brighter inside) on both sides.
+    Luma(f64),
+}
+
 /// A verified shaft before it becomes a [`ShaftDetection`].
 #[derive(Clone, Copy, Debug)]
 struct Found {
@@ -524,6 +533,7 @@ impl OursDetector {
         o: [f64; 2],
         t: [f64; 2],
         range: [f64; 2],
+        mode: Evidence,
     ) -> Option<([f64; 2], f64)> {
         const STEP: f64 = 2.0;
         let n = ((range[1] - range[0]) / STEP).floor().max(0.0) as usize + 1;
@@ -552,14 +562,24 @@ impl OursDetector {
             let (Some(l0), Some(l1)) = (c[0].hit(q, d), c[1].hit(q, d)) else { continue };
             let m = 0.5 * (l0 + l1);
             let h = 0.5 * (l1 - l0);
-            let at = |lam: f64| sampler.sample(q[0] + lam * d[0], q[1] + lam * d[1]).map(|v| v.0);
+            // The margin of the interior over the outsides: less red (colour), or the luma step
+            // in the pair's sign (luma).
+            let at = |lam: f64| {
+                sampler.sample(q[0] + lam * d[0], q[1] + lam * d[1]).map(|v| match mode {
+                    Evidence::Colour => v.0,
+                    Evidence::Luma(sign) => -sign * v.1,
+                })
+            };
             let (Some(i0), Some(i1), Some(i2)) = (at(m - 0.3 * h), at(m), at(m + 0.3 * h)) else { continue };
             let margin = 4.0 * h.signum();
             let (Some(out0), Some(out1)) = (at(l0 - margin), at(l1 + margin)) else { continue };
             let inside = (i0 + i1 + i2) / 3.0;
             self.margin[i] = (out0 - inside).min(out1 - inside);
         }
-        let need = 0.5 * self.cfg.min_chroma_contrast;
+        let need = match mode {
+            Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
+            Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
+        };
         let mut best: Option<(usize, usize, usize)> = None;
         let mut run: Option<(usize, usize, usize)> = None;
         let max_gap = (64.0 / STEP) as usize;
@@ -622,6 +642,8 @@ impl OursDetector {
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
             return None;
         }
+        let coarse = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut self.col)?;
+        let mode = self.colour_mode(&coarse)?;
         // Both contours, refined once per frame each; their inlier points in the pair's frame.
         let range = self.line_range(o, t);
         let ca = self.contour_of(&sampler, ia)?;
@@ -632,7 +654,7 @@ impl OursDetector {
             samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
             samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         }
-        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range)?;
+        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode)?;
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
             return None;
@@ -714,7 +736,7 @@ impl OursDetector {
             }
         }
         let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
-        if !self.colour_ok(&fine) {
+        if self.colour_mode(&fine) != Some(mode) {
             return None;
         }
         let c0 = ImageLine::new(ca.line.abc()).ok()?;
@@ -761,9 +783,17 @@ impl OursDetector {
                 return None;
             }
         }
-        let contrast = (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside);
-        let confidence = support / (1.0 + (sigma / 0.5).powi(2))
-            * (contrast / (3.0 * cfg.min_chroma_contrast.max(1e-9))).clamp(0.0, 1.0);
+        let contrast = match mode {
+            Evidence::Colour => {
+                (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside)
+                    / (3.0 * cfg.min_chroma_contrast.max(1e-9))
+            }
+            Evidence::Luma(sign) => {
+                fine.luma_outside.iter().map(|o| sign * (fine.luma_inside - o)).fold(f64::INFINITY, f64::min)
+                    / (3.0 * cfg.min_luma_contrast.max(1e-9))
+            }
+        };
+        let confidence = support / (1.0 + (sigma / 0.5).powi(2)) * contrast.clamp(0.0, 1.0);
         Some(Found {
             det: ShaftDetection { centreline: axis, contours: [c0, c1], ends_px, confidence },
             mid: {
@@ -775,16 +805,28 @@ impl OursDetector {
         })
     }
 
-    fn colour_ok(&self, c: &profile::Interior) -> bool {
+    /// How the strip between two contours passes as a shaft's interior: by colour (grey
+    /// against redder tissue on both sides; under haze half the colour contrast is enough where
+    /// the luma step is clear), or, when haze has washed the colour out of the tissue on both
+    /// sides, by a clear luma step of the same sign on both sides (the interior no redder than
+    /// the outside); `None` when neither.
+    fn colour_mode(&self, c: &profile::Interior) -> Option<Evidence> {
         let cfg = &self.cfg;
-        c.outside.iter().zip(c.near).zip(c.luma_outside).all(|((&out, near), luma_out)| {
+        let colour = c.outside.iter().zip(c.near).zip(c.luma_outside).all(|((&out, near), luma_out)| {
             let inside = c.inside.max(near);
-            // Under haze the colour contrast fades: half of it is enough where the luma
-            // contrast is clear.
             let luma = (c.luma_inside - luma_out).abs() >= cfg.min_luma_contrast;
             let need = if luma { 0.5 * cfg.min_chroma_contrast } else { cfg.min_chroma_contrast };
             out - inside >= need && inside <= cfg.max_interior_chroma_ratio * out
-        })
+        });
+        if colour {
+            return Some(Evidence::Colour);
+        }
+        let washed_out = c.outside.iter().all(|&out| out < cfg.min_chroma_contrast);
+        let steps = c.luma_outside.map(|out| c.luma_inside - out);
+        let sign = steps[0].signum();
+        let luma = steps.iter().all(|d| d * sign >= 1.5 * cfg.min_luma_contrast)
+            && c.inside.max(c.near[0]).max(c.near[1]) <= c.outside[0].max(c.outside[1]) + 3.0;
+        (washed_out && luma).then_some(Evidence::Luma(sign))
     }
 
     /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
@@ -834,11 +876,16 @@ impl OursDetector {
                 }
                 // Coarse colour test on the hypotheses.
                 let Some(c) = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col) else { continue };
-                if !self.colour_ok(&c) {
+                let Some(mode) = self.colour_mode(&c) else {
                     continue;
-                }
+                };
                 // Rank by support and by how grey the interior is against the outsides.
-                let grey = (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0);
+                let grey = match mode {
+                    Evidence::Colour => {
+                        (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0)
+                    }
+                    Evidence::Luma(_) => 0.5,
+                };
                 out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
             }
         }

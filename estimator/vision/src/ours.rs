@@ -501,7 +501,12 @@ impl OursDetector {
         let len = (cand.ends[1][0] - o[0]) * t[0] + (cand.ends[1][1] - o[1]) * t[1];
         let full = self.line_range(o, t);
         let core = [0.0f64.max(full[0]), len.min(full[1])];
-        let c = self.refine(sampler, cand.line, o, t, core, full, 0);
+        // Where haze has washed the colour out, the contour is a luma edge: retry with luma
+        // at full weight.
+        let c = self.refine(sampler, cand.line, o, t, core, full, 0).or_else(|| {
+            let luma = Sampler { luma_weight: 1.0, ..*sampler };
+            self.refine(&luma, cand.line, o, t, core, full, 0)
+        });
         let pts = &mut self.cache_pts[idx];
         pts.clear();
         pts.extend(self.samp[0].iter().map(|(_, p)| *p));

@@ -7,6 +7,7 @@ use super::lens::Lens;
 use crate::detect::RgbView;
 
 /// Bilinear samples of the measured image at undistorted positions.
+#[derive(Clone, Copy)]
 pub(crate) struct Sampler<'a> {
     pub(crate) image: &'a RgbView<'a>,
     pub(crate) lens: &'a Lens,

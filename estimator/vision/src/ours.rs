@@ -33,8 +33,12 @@
 //!    min_chroma_contrast` and `C_in ≤ max_interior_chroma_ratio · C_out`, with `C_in` the
 //!    upper quartile across the strip and also the median just inside each line (a vessel is
 //!    redder inside; a contour paired with an unrelated tissue edge or fold has tissue in part
-//!    of the strip; a fold's highlight stays pink). Pairs are ranked by length × support ×
-//!    greyness of the interior.
+//!    of the strip; a fold's highlight stays pink). Under haze half the colour contrast is
+//!    enough on a side with a clear luma step (`min_luma_contrast`); where the haze has washed
+//!    the colour out of the tissue on both sides, a luma step of the same sign on both sides
+//!    (1.5 × `min_luma_contrast`) stands in for the colour, all the way through (the span's
+//!    stations and the final test use the same evidence). Pairs are ranked by length ×
+//!    support × greyness of the interior.
 //! 4. **Sub-pixel contours** in the full-resolution measured image, each Hough line once per
 //!    frame: profiles across the contour, sampled at undistorted positions mapped through the
 //!    lens (so each edge found is directly an undistorted point on the straight contour), two
@@ -45,7 +49,8 @@
 //!    staircase: its centroid is the middle instant). Two rounds over the Hough support
 //!    (gates ±3 px then ±1.5 px), each with a Tukey-biweight IRLS line fit; then the contour is
 //!    followed outwards along the line while edges keep coming, and refitted; from the second
-//!    round on, an edge must be at least a third of the contour's median strength.
+//!    round on, an edge must be at least a third of the contour's median strength. A contour
+//!    that yields too few edges is retried with luma at full weight (a hazy luma-only edge).
 //! 5. **The visible span**: stations every 2 px where both contours have an inlier edge and
 //!    the interior is grey against both outsides (or one edge and a clearly grey interior);
 //!    the run with the most good stations (gaps up to 64 px, a crossing instrument) is the

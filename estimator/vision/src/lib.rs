@@ -18,6 +18,8 @@
 #![warn(missing_docs)]
 
 pub mod detect;
+pub mod edlines;
+pub mod paper;
 pub mod shaft;
 
 pub use detect::{DetectError, ImageError, RgbView, Segment, ShaftDetection, ShaftDetector};

@@ -303,9 +303,13 @@ type BoxedPairing = Box<dyn Fn(&[vision::Segment]) -> Option<vision::ShaftDetect
 
 /// The detectors under test, in report order, and the paper's pairing for the peers.
 fn shaft_detectors(
-    _k: &estimator::calib::Intrinsics,
+    k: &estimator::calib::Intrinsics,
 ) -> Result<(Vec<Box<dyn vision::ShaftDetector>>, Option<BoxedPairing>), String> {
-    Ok((Vec::new(), None))
+    let ours = vision::ours::OursDetector::new(*k, vision::ours::OursConfig::default()).map_err(|e| e.to_string())?;
+    let paper = vision::paper::PaperDetector::new(*k);
+    let k = *k;
+    let pairing: BoxedPairing = Box::new(move |s| vision::paper::pair_shaft(&k, s));
+    Ok((vec![Box::new(ours), Box::new(paper)], Some(pairing)))
 }
 
 fn run_loop(a: &LoopArgs) -> Result<RunSummary, String> {

@@ -13,13 +13,21 @@
 //! - [`detect`]: the contract every shaft detector meets ([`ShaftDetector`]): an sRGB image
 //!   in, the shafts out, best first, or none.
 //!
+//! - [`ours`]: our shaft detector (colour edgels, undistorted lines, cylinder physics,
+//!   sub-pixel contours, the exact perspective axis).
+//!
+//! - [`synth`]: synthetic test images (analytic cylinders over textured tissue, with lens
+//!   distortion) with exact ground truth, for the detectors' tests and benches.
+//!
 //! Units: pixels of the undistorted (ideal pinhole) image, OpenCV's convention (the centre of
 //! the top-left pixel is `(0, 0)`); camera frame: x right, y down, z forward.
 #![warn(missing_docs)]
 
 pub mod detect;
 pub mod edlines;
+pub mod ours;
 pub mod paper;
 pub mod shaft;
+pub mod synth;
 
 pub use detect::{DetectError, ImageError, RgbView, Segment, ShaftDetection, ShaftDetector};

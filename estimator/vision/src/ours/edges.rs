@@ -1,0 +1,158 @@
+//! Stage 1: edgels on a half-resolution image, located in undistorted pixels.
+//!
+//! Two channels per 2×2 block (its mean): luma (BT.601) and the red opponent
+//! `C = 2R − G − B` (grey metal ≈ 0, pink/red tissue ≫ 0). The gradient of the pair is
+//! Di Zenzo's: the largest eigenvalue of the 2×2 structure tensor summed over both channels
+//! (Sobel on each), so an edge seen in either channel counts, whatever its polarity in each.
+//! Non-maximum suppression along the gradient, a threshold, then each edgel's position and
+//! normal direction are mapped to undistorted pixels through the precomputed table.
+
+use super::lens::HalfResTable;
+use crate::detect::RgbView;
+
+/// One edgel, undistorted full-resolution pixels.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Edgel {
+    /// Position `[u, v]`, undistorted pixels.
+    pub(crate) p: [f32; 2],
+    /// Unit normal (gradient direction modulo π: `ny ≥ 0`, or `nx > 0` when `ny = 0`).
+    pub(crate) n: [f32; 2],
+}
+
+/// The working buffers of stage 1 (kept between frames).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct EdgeBuffers {
+    chroma: Vec<f32>,
+    luma: Vec<f32>,
+    mag2: Vec<f32>,
+    dir: Vec<u8>,
+    eig: Vec<[f32; 2]>,
+    pub(crate) edgels: Vec<Edgel>,
+}
+
+impl EdgeBuffers {
+    /// Fills `self.edgels`. `image` has the table's camera size (checked by the caller);
+    /// `threshold` is on the gradient magnitude (channel units per half-resolution pixel);
+    /// `luma_weight` scales the luma channel against the chroma channel.
+    pub(crate) fn run(&mut self, image: &RgbView<'_>, table: &HalfResTable, threshold: f32, luma_weight: f32) {
+        self.edgels.clear();
+        let (w2, h2) = (table.w2, table.h2);
+        if w2 < 3 || h2 < 3 {
+            return;
+        }
+        let n = w2 * h2;
+        self.chroma.resize(n, 0.0);
+        self.luma.resize(n, 0.0);
+        self.mag2.clear();
+        self.mag2.resize(n, 0.0);
+        self.dir.clear();
+        self.dir.resize(n, 0);
+        self.eig.resize(n, [0.0; 2]);
+        let w = image.width();
+        let data = image.data();
+        // Half-resolution means.
+        for i in 0..h2 {
+            let r0 = &data[3 * (2 * i) * w..3 * (2 * i + 1) * w];
+            let r1 = &data[3 * (2 * i + 1) * w..3 * (2 * i + 2) * w];
+            let crow = &mut self.chroma[i * w2..(i + 1) * w2];
+            let lrow = &mut self.luma[i * w2..(i + 1) * w2];
+            for j in 0..w2 {
+                let a = &r0[6 * j..6 * j + 6];
+                let b = &r1[6 * j..6 * j + 6];
+                let r = u32::from(a[0]) + u32::from(a[3]) + u32::from(b[0]) + u32::from(b[3]);
+                let g = u32::from(a[1]) + u32::from(a[4]) + u32::from(b[1]) + u32::from(b[4]);
+                let bl = u32::from(a[2]) + u32::from(a[5]) + u32::from(b[2]) + u32::from(b[5]);
+                let (r, g, bl) = (r as f32, g as f32, bl as f32);
+                crow[j] = 0.25 * (2.0 * r - g - bl);
+                lrow[j] = 0.25 * luma_weight * (0.299 * r + 0.587 * g + 0.114 * bl);
+            }
+        }
+        // Di Zenzo gradient (Sobel / 8 on both channels), quantised direction for the NMS.
+        let t2 = threshold * threshold;
+        let tan22 = 0.414_213_56_f32;
+        for i in 1..h2 - 1 {
+            for j in 1..w2 - 1 {
+                let (a, c, b) = {
+                    let mut acc = (0.0f32, 0.0f32, 0.0f32);
+                    for ch in [&self.chroma, &self.luma] {
+                        let at = |ii: usize, jj: usize| ch[ii * w2 + jj];
+                        let gx = (at(i - 1, j + 1) + 2.0 * at(i, j + 1) + at(i + 1, j + 1))
+                            - (at(i - 1, j - 1) + 2.0 * at(i, j - 1) + at(i + 1, j - 1));
+                        let gy = (at(i + 1, j - 1) + 2.0 * at(i + 1, j) + at(i + 1, j + 1))
+                            - (at(i - 1, j - 1) + 2.0 * at(i - 1, j) + at(i - 1, j + 1));
+                        let (gx, gy) = (gx * 0.125, gy * 0.125);
+                        acc.0 += gx * gx;
+                        acc.1 += gy * gy;
+                        acc.2 += gx * gy;
+                    }
+                    acc
+                };
+                let tr = a + c;
+                if tr < t2 {
+                    continue;
+                }
+                let disc = ((a - c) * (a - c) + 4.0 * b * b).sqrt();
+                let lam = 0.5 * (tr + disc);
+                let idx = i * w2 + j;
+                self.mag2[idx] = lam;
+                if lam < t2 {
+                    continue;
+                }
+                // Eigenvector of the largest eigenvalue.
+                let (ex, ey) = if a >= c { (lam - c, b) } else { (b, lam - a) };
+                let norm = (ex * ex + ey * ey).sqrt();
+                if !(norm > 0.0) {
+                    continue;
+                }
+                let (ex, ey) = (ex / norm, ey / norm);
+                self.eig[idx] = [ex, ey];
+                let (ax, ay) = (ex.abs(), ey.abs());
+                // 1: horizontal neighbours, 2: vertical, 3: diagonal (+,+), 4: diagonal (+,−).
+                self.dir[idx] = if ay <= tan22 * ax {
+                    1
+                } else if ax <= tan22 * ay {
+                    2
+                } else if (ex > 0.0) == (ey > 0.0) {
+                    3
+                } else {
+                    4
+                };
+            }
+        }
+        // Non-maximum suppression and mapping to undistorted pixels.
+        for i in 1..h2 - 1 {
+            for j in 1..w2 - 1 {
+                let idx = i * w2 + j;
+                let d = self.dir[idx];
+                if d == 0 {
+                    continue;
+                }
+                let m = self.mag2[idx];
+                let (p, q) = match d {
+                    1 => (idx - 1, idx + 1),
+                    2 => (idx - w2, idx + w2),
+                    3 => (idx - w2 - 1, idx + w2 + 1),
+                    _ => (idx - w2 + 1, idx + w2 - 1),
+                };
+                if !(m > self.mag2[p] && m >= self.mag2[q]) {
+                    continue;
+                }
+                let [ex, ey] = self.eig[idx];
+                // The edge's tangent, mapped; the undistorted normal is its perpendicular.
+                let (pos, tan) = table.map(j, i, -ey, ex);
+                let (mut nx, mut ny) = (tan[1], -tan[0]);
+                let nn = (nx * nx + ny * ny).sqrt();
+                if !(nn > 0.0) {
+                    continue;
+                }
+                nx /= nn;
+                ny /= nn;
+                if ny < 0.0 || (ny == 0.0 && nx < 0.0) {
+                    nx = -nx;
+                    ny = -ny;
+                }
+                self.edgels.push(Edgel { p: pos, n: [nx, ny] });
+            }
+        }
+    }
+}

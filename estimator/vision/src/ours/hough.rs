@@ -1,0 +1,167 @@
+//! Stage 2: straight-line hypotheses from the edgels (undistorted pixels, where the contours
+//! are straight): an orientation-guided Hough transform (each edgel votes once, at its own
+//! normal direction, so the cost is linear in the edgels), peaks on a 5 × 3 box sum, then each
+//! peak's edgels are gathered and refitted by total least squares, and the supported span is
+//! found along the line.
+
+use super::edges::Edgel;
+use super::geom::{Line, fit_line};
+
+/// Angle bins over `[0, π)`.
+const N_THETA: usize = 180;
+/// Width of a distance bin, pixels.
+const RHO_STEP: f32 = 2.0;
+
+/// A line hypothesis with the edgels that support it.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LineCand {
+    /// The line, undistorted pixels.
+    pub(crate) line: Line,
+    /// The two ends of the supported span, undistorted pixels.
+    pub(crate) ends: [[f64; 2]; 2],
+    /// Number of supporting edgels (half-resolution).
+    pub(crate) count: usize,
+}
+
+/// The working buffers of stage 2.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Hough {
+    acc: Vec<u16>,
+    n_rho: usize,
+    rho0: usize,
+    centre: [f32; 2],
+    peaks: Vec<(u32, usize, usize)>,
+    members: Vec<[f64; 2]>,
+    s_buf: Vec<f64>,
+    pub(crate) lines: Vec<LineCand>,
+}
+
+impl Hough {
+    /// An accumulator for an undistorted image region of radius `radius_px` around `centre`.
+    pub(crate) fn new(centre: [f32; 2], radius_px: f32) -> Self {
+        let rho0 = (radius_px / RHO_STEP).ceil().max(1.0) as usize + 2;
+        let n_rho = 2 * rho0 + 1;
+        Self { acc: vec![0; N_THETA * n_rho], n_rho, rho0, centre, ..Default::default() }
+    }
+
+    fn cell(&self, tb: isize, rb: isize) -> u32 {
+        let (mut t, mut r) = (tb, rb);
+        if t < 0 {
+            t += N_THETA as isize;
+            r = 2 * self.rho0 as isize - r;
+        } else if t >= N_THETA as isize {
+            t -= N_THETA as isize;
+            r = 2 * self.rho0 as isize - r;
+        }
+        if r < 0 || r >= self.n_rho as isize {
+            return 0;
+        }
+        u32::from(self.acc[t as usize * self.n_rho + r as usize])
+    }
+
+    /// Fills `self.lines` (best supported first, at most `max_lines`) from `edgels`;
+    /// `min_votes` is the box sum a peak needs.
+    pub(crate) fn run(&mut self, edgels: &[Edgel], min_votes: u32, max_lines: usize) {
+        self.lines.clear();
+        self.peaks.clear();
+        self.acc.iter_mut().for_each(|a| *a = 0);
+        let [cx, cy] = self.centre;
+        for e in edgels {
+            let theta = e.n[1].atan2(e.n[0]);
+            let tb = ((theta * (N_THETA as f32 / std::f32::consts::PI)) as usize).min(N_THETA - 1);
+            let rho = (e.p[0] - cx) * e.n[0] + (e.p[1] - cy) * e.n[1];
+            let rb = (rho / RHO_STEP).round() as isize + self.rho0 as isize;
+            if rb < 0 || rb >= self.n_rho as isize {
+                continue;
+            }
+            let a = &mut self.acc[tb * self.n_rho + rb as usize];
+            *a = a.saturating_add(1);
+        }
+        // Peaks of the 5 (angle) × 3 (distance) box sum.
+        let seed = (min_votes / 8).max(2);
+        for tb in 0..N_THETA {
+            for rb in 0..self.n_rho {
+                if u32::from(self.acc[tb * self.n_rho + rb]) < seed {
+                    continue;
+                }
+                let mut s = 0;
+                for dt in -2..=2isize {
+                    for dr in -1..=1isize {
+                        s += self.cell(tb as isize + dt, rb as isize + dr);
+                    }
+                }
+                if s >= min_votes {
+                    self.peaks.push((s, tb, rb));
+                }
+            }
+        }
+        self.peaks.sort_unstable_by(|a, b| b.0.cmp(&a.0));
+        let mut kept: Vec<(usize, usize)> = Vec::new();
+        let peaks = std::mem::take(&mut self.peaks);
+        for &(_, tb, rb) in &peaks {
+            if kept.len() >= max_lines {
+                break;
+            }
+            let near = kept.iter().any(|&(t2, r2)| {
+                let dt = tb.abs_diff(t2);
+                if dt <= 3 {
+                    return rb.abs_diff(r2) <= 3;
+                }
+                if N_THETA - dt <= 3 {
+                    return (2 * self.rho0).abs_diff(rb).abs_diff(r2) <= 3;
+                }
+                false
+            });
+            if near {
+                continue;
+            }
+            kept.push((tb, rb));
+            let theta = (tb as f64 + 0.5) * std::f64::consts::PI / N_THETA as f64;
+            let rho = (rb as f64 - self.rho0 as f64) * f64::from(RHO_STEP);
+            let (n0, n1) = (theta.cos(), theta.sin());
+            let line = Line { n: [n0, n1], c: -(rho + n0 * f64::from(cx) + n1 * f64::from(cy)) };
+            if let Some(cand) = self.gather(edgels, line) {
+                self.lines.push(cand);
+            }
+        }
+        self.peaks = peaks;
+        self.lines.sort_by(|a, b| b.count.cmp(&a.count));
+    }
+
+    /// The edgels near `line` (twice: wide, then around the refit), the refit line and its
+    /// supported span.
+    fn gather(&mut self, edgels: &[Edgel], mut line: Line) -> Option<LineCand> {
+        for (tol_px, cos_tol) in [(3.5f64, 0.990f64), (2.0, 0.995)] {
+            self.members.clear();
+            for e in edgels {
+                let p = [f64::from(e.p[0]), f64::from(e.p[1])];
+                let cosang = (f64::from(e.n[0]) * line.n[0] + f64::from(e.n[1]) * line.n[1]).abs();
+                if cosang >= cos_tol && line.distance(p).abs() <= tol_px {
+                    self.members.push(p);
+                }
+            }
+            if self.members.len() < 6 {
+                return None;
+            }
+            line = fit_line(&self.members, None)?;
+        }
+        // Span along the line, isolated members trimmed off the ends.
+        let t = line.direction();
+        let o = line.foot();
+        self.s_buf.clear();
+        self.s_buf.extend(self.members.iter().map(|p| (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1]));
+        self.s_buf.sort_by(f64::total_cmp);
+        let max_gap = 24.0;
+        let s = &self.s_buf;
+        let (mut lo, mut hi) = (0, s.len() - 1);
+        // Trim ends with a gap to the next of more than max_gap, keeping at least the bulk.
+        while lo + 1 < hi && s[lo + 1] - s[lo] > max_gap {
+            lo += 1;
+        }
+        while hi > lo + 1 && s[hi] - s[hi - 1] > max_gap {
+            hi -= 1;
+        }
+        let ends = [[o[0] + s[lo] * t[0], o[1] + s[lo] * t[1]], [o[0] + s[hi] * t[0], o[1] + s[hi] * t[1]]];
+        Some(LineCand { line, ends, count: hi + 1 - lo })
+    }
+}

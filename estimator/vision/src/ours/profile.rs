@@ -1,0 +1,131 @@
+//! Stage 3's measurements in the full-resolution image: colour samples at undistorted
+//! positions (mapped to measured pixels through the lens, then bilinear), sub-pixel edge
+//! positions on profiles across a contour, and the interior/outside colour test.
+
+use super::geom::Line;
+use super::lens::Lens;
+use crate::detect::RgbView;
+
+/// Bilinear samples of the measured image at undistorted positions.
+pub(crate) struct Sampler<'a> {
+    pub(crate) image: &'a RgbView<'a>,
+    pub(crate) lens: &'a Lens,
+    pub(crate) luma_weight: f64,
+}
+
+impl Sampler<'_> {
+    /// `(chroma 2R − G − B, weighted luma)` at the undistorted pixel `(u, v)`; `None` outside
+    /// the measured image.
+    #[inline]
+    pub(crate) fn sample(&self, u: f64, v: f64) -> Option<(f64, f64)> {
+        let (x, y) = self.lens.distort_px(u, v);
+        let (w, h) = (self.image.width(), self.image.height());
+        if !(x >= 0.0 && y >= 0.0 && x < (w - 1) as f64 && y < (h - 1) as f64) {
+            return None;
+        }
+        let (x0, y0) = (x as usize, y as usize);
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let d = self.image.data();
+        let i = 3 * (y0 * w + x0);
+        let j = i + 3 * w;
+        let px = |k: usize| {
+            let (r, g, b) = (f64::from(d[k]), f64::from(d[k + 1]), f64::from(d[k + 2]));
+            (2.0 * r - g - b, 0.299 * r + 0.587 * g + 0.114 * b)
+        };
+        let (a, b, c, e) = (px(i), px(i + 3), px(j), px(j + 3));
+        let top = (a.0 + fx * (b.0 - a.0), a.1 + fx * (b.1 - a.1));
+        let bot = (c.0 + fx * (e.0 - c.0), c.1 + fx * (e.1 - c.1));
+        Some((top.0 + fy * (bot.0 - top.0), self.luma_weight * (top.1 + fy * (bot.1 - top.1))))
+    }
+
+    /// The edge across `line` at `p` (a point of the line, undistorted pixels): the sub-pixel
+    /// offset along the line's normal (pixels, within `±gate_px`) of the strongest combined
+    /// gradient `√(dC² + dL²)` (1-px samples, central differences, parabola through the peak),
+    /// and that strength; `None` when the profile leaves the image or the peak is on the
+    /// gate's border or below `min_strength`.
+    pub(crate) fn edge_offset(&self, line: &Line, p: [f64; 2], gate_px: f64, min_strength: f64) -> Option<(f64, f64)> {
+        const MAX_K: usize = 8;
+        let k_gate = (gate_px.ceil() as usize).clamp(1, MAX_K - 2);
+        let kk = k_gate + 1;
+        let mut vals = [(0.0f64, 0.0f64); 2 * MAX_K + 1];
+        for (idx, k) in (-(kk as isize)..=kk as isize).enumerate() {
+            let t = k as f64;
+            vals[idx] = self.sample(p[0] + t * line.n[0], p[1] + t * line.n[1])?;
+        }
+        let mut strength = [0.0f64; 2 * MAX_K + 1];
+        for idx in 1..2 * kk {
+            let dc = 0.5 * (vals[idx + 1].0 - vals[idx - 1].0);
+            let dl = 0.5 * (vals[idx + 1].1 - vals[idx - 1].1);
+            strength[idx] = (dc * dc + dl * dl).sqrt();
+        }
+        let mut best = 1;
+        for idx in 1..2 * kk {
+            if strength[idx] > strength[best] {
+                best = idx;
+            }
+        }
+        if best == 1 || best == 2 * kk - 1 || strength[best] < min_strength {
+            return None;
+        }
+        let (a, b, c) = (strength[best - 1], strength[best], strength[best + 1]);
+        let den = a - 2.0 * b + c;
+        let delta = if den < 0.0 { (0.5 * (a - c) / den).clamp(-0.5, 0.5) } else { 0.0 };
+        let off = best as f64 - kk as f64 + delta;
+        (off.abs() <= gate_px).then_some((off, b))
+    }
+}
+
+/// Medians of the chroma inside the strip between two contours and just outside each.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Interior {
+    pub(crate) inside: f64,
+    pub(crate) outside: [f64; 2],
+}
+
+/// Samples the strip between `c0` and `c1` at 16 stations of `o + s·t`, `s ∈ [s0, s1]`
+/// (undistorted pixels). `None` when too few samples fall in the image or the stations are not
+/// between the lines.
+pub(crate) fn interior(
+    sampler: &Sampler<'_>,
+    c: [&Line; 2],
+    o: [f64; 2],
+    t: [f64; 2],
+    s: [f64; 2],
+    buf: &mut [Vec<f64>; 3],
+) -> Option<Interior> {
+    buf.iter_mut().for_each(Vec::clear);
+    let d = [-t[1], t[0]];
+    let n_st = 16;
+    for k in 0..n_st {
+        let sk = s[0] + (s[1] - s[0]) * (k as f64 + 0.5) / n_st as f64;
+        let q = [o[0] + sk * t[0], o[1] + sk * t[1]];
+        let (Some(l0), Some(l1)) = (c[0].hit(q, d), c[1].hit(q, d)) else { continue };
+        let m = 0.5 * (l0 + l1);
+        let (h0, h1) = (l0 - m, l1 - m);
+        if h0 * h1 >= 0.0 {
+            return None;
+        }
+        let at = |lam: f64| sampler.sample(q[0] + (m + lam) * d[0], q[1] + (m + lam) * d[1]);
+        for f in [-0.5, 0.0, 0.5] {
+            if let Some((cv, _)) = at(f * h0.abs()) {
+                buf[0].push(cv);
+            }
+        }
+        for (side, h) in [h0, h1].into_iter().enumerate() {
+            let margin = 2.5 + 0.25 * h.abs();
+            if let Some((cv, _)) = at(h + h.signum() * margin) {
+                buf[1 + side].push(cv);
+            }
+        }
+    }
+    if buf.iter().any(|b| b.len() < 4) {
+        return None;
+    }
+    let mut med = [0.0; 3];
+    for (m, b) in med.iter_mut().zip(buf.iter_mut()) {
+        let mid = b.len() / 2;
+        b.select_nth_unstable_by(mid, f64::total_cmp);
+        *m = b[mid];
+    }
+    Some(Interior { inside: med[0], outside: [med[1], med[2]] })
+}

@@ -684,10 +684,11 @@ impl ShaftReport {
                     figures::draw_polyline(&mut img, &a.polyline_px, 1, figures::TRUTH_RGB);
                 }
             }
+            let n = o.centrelines.len();
             for (d, lines) in o.centrelines.iter().enumerate() {
                 let c = figures::DETECTOR_RGB[d.min(figures::DETECTOR_RGB.len() - 1)];
                 for l in lines {
-                    figures::draw_ideal_line(&mut img, &k, l, 0, c);
+                    figures::draw_ideal_line(&mut img, &k, l, 0, c, d, n);
                 }
             }
             let p = figures.join(format!("shaft_{}_{}_{}.png", o.level.key(), o.family, o.seed));

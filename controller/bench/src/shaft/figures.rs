@@ -44,9 +44,22 @@ pub fn draw_polyline(img: &mut EyeImage, pts: &[[f64; 2]], half: i64, c: [u8; 3]
     }
 }
 
+/// Length of one dash of the overlays' dashed lines, pixels along the line.
+pub const DASH_PX: f64 = 6.0;
+
 /// Draws the line `abc` (undistorted pixels) where it falls in the image, through the lens
-/// distortion of `k` (so a straight line in undistorted pixels may be drawn curved).
-pub fn draw_ideal_line(img: &mut EyeImage, k: &Intrinsics, abc: &[f64; 3], half: i64, c: [u8; 3]) {
+/// distortion of `k` (so a straight line in undistorted pixels may be drawn curved). Dashed
+/// as dash `index` of every `of` (dashes of [`DASH_PX`], counted from the foot of the
+/// principal point): the lines of `of` detectors on the same place all show, alternating.
+pub fn draw_ideal_line(
+    img: &mut EyeImage,
+    k: &Intrinsics,
+    abc: &[f64; 3],
+    half: i64,
+    c: [u8; 3],
+    index: usize,
+    of: usize,
+) {
     let n = abc[0].hypot(abc[1]);
     if !(n > 1e-12 && abc.iter().all(|v| v.is_finite())) {
         return;
@@ -62,6 +75,9 @@ pub fn draw_ideal_line(img: &mut EyeImage, k: &Intrinsics, abc: &[f64; 3], half:
     let steps = (4.0 * reach) as i64;
     for i in -steps..=steps {
         let s = i as f64 * 0.5;
+        if (s / DASH_PX).floor().rem_euclid(of.max(1) as f64) as usize != index {
+            continue;
+        }
         let (u, v) = (u0 + s * tu, v0 + s * tv);
         let ray = k_inv * Vector3::new(u, v, 1.0);
         // Far outside the image the distortion polynomial folds back: keep to rays within
@@ -145,14 +161,19 @@ mod tests {
         };
         let mut img = EyeImage { width: 640, height: 480, rgb: vec![0; 640 * 480 * 3], labels: vec![0; 640 * 480] };
         // v = 100.
-        draw_ideal_line(&mut img, &k, &[0.0, 2.0, -200.0], 0, [9, 9, 9]);
+        draw_ideal_line(&mut img, &k, &[0.0, 2.0, -200.0], 0, [9, 9, 9], 0, 1);
         for x in [0usize, 320, 639] {
             assert_eq!(img.rgb[3 * (100 * 640 + x)], 9, "{x}");
             assert_eq!(img.rgb[3 * (101 * 640 + x)], 0, "{x}");
         }
         // Not a line: nothing drawn.
         let before = img.rgb.clone();
-        draw_ideal_line(&mut img, &k, &[0.0, 0.0, 1.0], 0, [200, 9, 9]);
+        draw_ideal_line(&mut img, &k, &[0.0, 0.0, 1.0], 0, [200, 9, 9], 0, 1);
         assert_eq!(before, img.rgb);
+        // Dash 1 of 2: the second 6 px of every 12 from the foot (u = 319.5) along the line's
+        // direction (−b, a) = (−1, 0): pixel 316 (3.5 px along) stays, 310 (9.5 px) is drawn.
+        draw_ideal_line(&mut img, &k, &[0.0, 1.0, -200.0], 0, [7, 7, 7], 1, 2);
+        assert_eq!(img.rgb[3 * (200 * 640 + 316)], 0);
+        assert_eq!(img.rgb[3 * (200 * 640 + 310)], 7);
     }
 }

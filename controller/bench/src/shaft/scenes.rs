@@ -511,9 +511,10 @@ fn tool_near_view(view: &View, tip: &Vector3<f64>, d: &Vector3<f64>, len: f64, m
     })
 }
 
-/// An endoscope pose: yaw ±0.25 rad, pitch ±0.2 rad, insertion 5-60 mm, roll ±0.6 rad.
+/// An endoscope pose: yaw ±0.15 rad, pitch ±0.12 rad, insertion 5-60 mm, roll ±0.6 rad (the
+/// view stays on the 0.34 m tissue patch).
 fn endoscope(rng: &mut ChaCha8Rng) -> [f64; 4] {
-    [uniform(rng, (-0.25, 0.25)), uniform(rng, (-0.2, 0.2)), uniform(rng, (0.005, 0.06)), uniform(rng, (-0.6, 0.6))]
+    [uniform(rng, (-0.15, 0.15)), uniform(rng, (-0.12, 0.12)), uniform(rng, (0.005, 0.06)), uniform(rng, (-0.6, 0.6))]
 }
 
 /// The second instrument crossing the first in front of it (or, with no first in view,

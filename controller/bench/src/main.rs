@@ -301,10 +301,11 @@ fn shaft(a: &ShaftArgs) -> Result<String, String> {
 /// The shaft pairing the peers get: a segment list (measured pixels) to at most one shaft.
 type BoxedPairing = Box<dyn Fn(&[vision::Segment]) -> Option<vision::ShaftDetection>>;
 
+/// The shaft detectors of a run, in report order.
+type Detectors = Vec<Box<dyn vision::ShaftDetector>>;
+
 /// The detectors under test, in report order, and the paper's pairing for the peers.
-fn shaft_detectors(
-    k: &estimator::calib::Intrinsics,
-) -> Result<(Vec<Box<dyn vision::ShaftDetector>>, Option<BoxedPairing>), String> {
+fn shaft_detectors(k: &estimator::calib::Intrinsics) -> Result<(Detectors, Option<BoxedPairing>), String> {
     let ours = vision::ours::OursDetector::new(*k, vision::ours::OursConfig::default()).map_err(|e| e.to_string())?;
     let paper = vision::paper::PaperDetector::new(*k);
     let k = *k;

@@ -93,6 +93,9 @@ fn io_err(path: &Path, e: impl std::fmt::Display) -> ShaftBenchError {
     ShaftBenchError::Io { path: path.display().to_string(), message: e.to_string() }
 }
 
+/// A detector's detections on one frame and its time, milliseconds.
+type Timed = (Vec<ShaftDetection>, f64);
+
 /// The peers' pairing: a segment list (measured pixels) to at most one shaft.
 pub type Pairing<'a> = &'a dyn Fn(&[Segment]) -> Option<ShaftDetection>;
 
@@ -340,7 +343,7 @@ fn run_peers(
     level: ClutterLevel,
     frames: &[RenderedFrame],
     pairing: Pairing<'_>,
-) -> Result<(PeerOutput, Vec<[(Vec<ShaftDetection>, f64); 2]>), ShaftBenchError> {
+) -> Result<(PeerOutput, Vec<[Timed; 2]>), ShaftBenchError> {
     let dir = opts.work_dir.join(level.key());
     write_frames(&dir, frames)?;
     let json = opts.work_dir.join(format!("{}.json", level.key()));
@@ -419,7 +422,7 @@ pub fn run(
     for &level in &opts.levels {
         let frames = render_frames(opts.set, level, &specs, &tick)?;
         // Ours and the paper's: one frame after another on this thread, timed.
-        let mut results: Vec<Vec<(Vec<ShaftDetection>, f64)>> = vec![Vec::with_capacity(frames.len()); frames.len()];
+        let mut results: Vec<Vec<Timed>> = vec![Vec::with_capacity(frames.len()); frames.len()];
         for f_i in 0..frames.len() {
             for det in detectors.iter_mut() {
                 results[f_i].push(time_detect(det.as_mut(), &frames[f_i])?);
@@ -695,7 +698,7 @@ impl ShaftReport {
             write_png(&p, &img)?;
             written.push(p);
         }
-        let series = |pick: fn(&metrics::LineErrors) -> f64| -> Vec<(String, [u8; 3], Vec<f64>)> {
+        let series = |pick: fn(&metrics::LineErrors) -> f64| -> Vec<figures::Series> {
             self.detectors
                 .iter()
                 .enumerate()

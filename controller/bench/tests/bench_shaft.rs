@@ -18,8 +18,9 @@ struct Oracle {
     shift_px: f64,
 }
 
+/// A detection along `abc` (normalised, `a² + b² = 1`).
 fn detection(abc: [f64; 3]) -> ShaftDetection {
-    let c = ImageLine::new(abc).unwrap();
+    let c = ImageLine { abc };
     ShaftDetection { centreline: c, contours: [c, c], ends_px: [[0.0; 2]; 2], confidence: 1.0 }
 }
 

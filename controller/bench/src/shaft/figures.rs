@@ -92,12 +92,15 @@ pub fn draw_ideal_line(
     }
 }
 
-/// An empirical cumulative distribution per series (`(label, colour, values)`), `x` from 0
-/// to `x_max`: fraction of values ≤ x.
-pub fn cdf_panels(
-    panels: &[(&str, &str, f64, Vec<(String, [u8; 3], Vec<f64>)>)],
-    path: &Path,
-) -> Result<(), PlotError> {
+/// One series of a CDF panel: label, colour, values.
+pub type Series = (String, [u8; 3], Vec<f64>);
+
+/// One CDF panel: title, x-axis description, largest x, the series.
+pub type Panel<'a> = (&'a str, &'a str, f64, Vec<Series>);
+
+/// An empirical cumulative distribution per series, `x` from 0 to `x_max`: fraction of
+/// values ≤ x; one panel beside the other.
+pub fn cdf_panels(panels: &[Panel<'_>], path: &Path) -> Result<(), PlotError> {
     let err = |e: &dyn std::fmt::Display| PlotError { path: path.display().to_string(), message: e.to_string() };
     let root = SVGBackend::new(path, (1100, 440)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;

@@ -511,8 +511,30 @@ fn tool_near_view(view: &View, tip: &Vector3<f64>, d: &Vector3<f64>, len: f64, m
     })
 }
 
-/// An endoscope pose: yaw ±0.15 rad, pitch ±0.12 rad, insertion 5-60 mm, roll ±0.6 rad (the
-/// view stays on the 0.34 m tissue patch).
+/// True when every ray through the image border (corners and edge midpoints, undistorted)
+/// meets the tissue's mean plane inside its patch with 5 mm to spare: no frame sees past the
+/// patch's straight edge into the empty background.
+fn view_on_tissue(view: &View, tissue: &sim::endoscope::config::TissueConfig) -> bool {
+    let (w, h) = (f64::from(view.k.width) - 1.0, f64::from(view.k.height) - 1.0);
+    let half = tissue.extent_m / 2.0 - 0.005;
+    let c = view.centre();
+    [[0.0, 0.0], [w / 2.0, 0.0], [w, 0.0], [w, h / 2.0], [w, h], [w / 2.0, h], [0.0, h], [0.0, h / 2.0]].iter().all(
+        |&[u, v]| {
+            let ideal = view.k.undistort_px(&Vector2::new(u, v));
+            let p = view.unproject([ideal.x, ideal.y], 1.0);
+            let d = p - c;
+            if d.z <= 1e-9 {
+                return false;
+            }
+            let t = (tissue.plane_z_m - c.z) / d.z;
+            let hit = c + d * t;
+            t > 0.0 && hit.x.abs() < half && hit.y.abs() < half
+        },
+    )
+}
+
+/// An endoscope pose: yaw ±0.15 rad, pitch ±0.12 rad, insertion 5-60 mm, roll ±0.6 rad (kept
+/// only when the view stays on the tissue patch).
 fn endoscope(rng: &mut ChaCha8Rng) -> [f64; 4] {
     [uniform(rng, (-0.15, 0.15)), uniform(rng, (-0.12, 0.12)), uniform(rng, (0.005, 0.06)), uniform(rng, (-0.6, 0.6))]
 }
@@ -551,7 +573,7 @@ fn second_tool(rng: &mut ChaCha8Rng, view: &View, first: Option<(&Vector3<f64>, 
         let a = view.ideal_px(tip)? - view.ideal_px(&(tip - d * 0.01))?;
         let b = view.ideal_px(&c)? - view.ideal_px(&(c - d2 * 0.01))?;
         let cos = (a.dot(&b) / (a.norm() * b.norm())).abs();
-        if !(cos < 20f64.to_radians().cos()) {
+        if cos.is_nan() || cos >= 20f64.to_radians().cos() {
             return None;
         }
     }
@@ -569,6 +591,9 @@ pub fn draw_scene(family: &Family, family_index: usize, seed: u64, cfg: &Endosco
     for _ in 0..TRIES {
         let ecm = endoscope(&mut rng);
         let view = View { t_e_c: camera_pose(&ecm, &hand_eye), k };
+        if !view_on_tissue(&view, &cfg.tissue) {
+            continue;
+        }
         let (region, depth, angle, speed) = match family.placement {
             Placement::InView { region, depth_m, angle_deg, speed_rad_s } => (region, depth_m, angle_deg, speed_rad_s),
             Placement::Retracted => (TipRegion::Central, (0.05, 0.12), (25.0, 65.0), SLOW),
@@ -652,6 +677,7 @@ mod tests {
             for seed in [1u64, 2, 3] {
                 let s = draw_scene(fam, fi, seed, &cfg).unwrap();
                 let view = View { t_e_c: camera_pose(&s.ecm_joints, &hand_eye), k: cfg.camera.intrinsics };
+                assert!(view_on_tissue(&view, &cfg.tissue), "{}: view off the tissue", fam.key);
                 let inst = &s.instrument;
                 let rcm = Vector3::from(inst.rcm_m);
                 let r = rcm.norm();
@@ -675,6 +701,17 @@ mod tests {
                 assert!((st.instrument.pose_world.rotation * Vector3::z() - d).norm() < 1e-12);
             }
         }
+    }
+
+    #[test]
+    fn a_view_past_the_tissue_patch_is_refused() {
+        let cfg = EndoscopeConfig::default();
+        let hand_eye = cfg.camera.hand_eye.isometry().unwrap();
+        let k = cfg.camera.intrinsics;
+        let straight = View { t_e_c: camera_pose(&[0.0, 0.0, 0.03, 0.0], &hand_eye), k };
+        assert!(view_on_tissue(&straight, &cfg.tissue));
+        let askew = View { t_e_c: camera_pose(&[0.5, 0.0, 0.03, 0.0], &hand_eye), k };
+        assert!(!view_on_tissue(&askew, &cfg.tissue));
     }
 
     #[test]

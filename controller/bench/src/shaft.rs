@@ -317,6 +317,16 @@ pub struct ShaftReport {
     pub overlays: Vec<Overlay>,
     /// Wall time of the run, seconds.
     pub elapsed_s: f64,
+    /// `/proc/loadavg` (1, 5, 15 min) at the start and the end of the run (the machine is
+    /// shared: times are only as quiet as it was).
+    pub load_average: [String; 2],
+}
+
+/// The first three fields of `/proc/loadavg` (empty when unreadable).
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_default()
 }
 
 fn time_detect(
@@ -387,6 +397,7 @@ pub fn run(
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<ShaftReport, ShaftBenchError> {
     let started = Instant::now();
+    let load_start = load_average();
     let cfg0 = endoscope_config(opts.set, ClutterLevel::Clean);
     let specs = frame_specs(opts.set, opts.frames_per_family, &cfg0)?;
     let peer_opts = match (&opts.peers, pairing) {
@@ -495,6 +506,7 @@ pub fn run(
         records,
         overlays,
         elapsed_s: started.elapsed().as_secs_f64(),
+        load_average: [load_start, load_average()],
     })
 }
 
@@ -617,7 +629,8 @@ impl ShaftReport {
             "Seed set: **{}** (seeds {}..={}, {} per family; tissue texture seed {}). Families: {} \
              (tuning families: {}; held out: {}). Left eye, 640×480, {} frames per level. Eligible: ≥ {} px of the \
              instrument's axis visible in the mask; a match: ≤ {}° and ≤ {} px from the midpoint of the true visible \
-             segment; errors over matched eligible frames. Wall time {:.0} s.\n",
+             segment; errors over matched eligible frames. Wall time {:.0} s; load average (1, 5, 15 min) {} at the \
+             start, {} at the end.\n",
             self.set.key(),
             self.seeds.first().copied().unwrap_or(0),
             self.seeds.last().copied().unwrap_or(0),
@@ -631,6 +644,8 @@ impl ShaftReport {
             metrics::MATCH_ANGLE_DEG,
             metrics::MATCH_OFFSET_PX,
             self.elapsed_s,
+            self.load_average[0],
+            self.load_average[1],
         );
         match &self.peers {
             PeerStatus::NotRequested => {

@@ -670,6 +670,10 @@ impl ShaftReport {
                 m.push_str(&table_row(level.key(), name, &self.level_cell(level, d)));
             }
         }
+        if let Some(t) = self.targets_markdown() {
+            let _ = writeln!(m, "\n### Issue 17's targets for ours\n");
+            m.push_str(&t);
+        }
         let _ = writeln!(m, "\n### Per family (every level)\n");
         m.push_str(&table_header("family"));
         for fam in fams {
@@ -679,6 +683,48 @@ impl ShaftReport {
             }
         }
         m
+    }
+
+    /// Issue 17's targets for the detector named `ours`, per level: detection ≥ 95 % of the
+    /// eligible frames, median angle ≤ 0.1°, median offset ≤ 0.3 px, no false detection on
+    /// instrument-free frames, smaller median angle and offset than every other detector,
+    /// median time ≤ 5 ms. `None` without a detector named `ours`.
+    pub fn targets_markdown(&self) -> Option<String> {
+        let ours = self.detectors.iter().position(|d| d == "ours")?;
+        let yn = |ok: Option<bool>| match ok {
+            Some(true) => "yes",
+            Some(false) => "**no**",
+            None => "–",
+        };
+        let mut m = String::from(
+            "| level | detected ≥ 95 % | angle median ≤ 0.1° | offset median ≤ 0.3 px | 0 false on instrument-free              frames | angle and offset medians below every other detector's | time median ≤ 5 ms |\n|---|---|---|---|\
+             ---|---|---|\n",
+        );
+        for &level in &self.levels {
+            let c = self.level_cell(level, ours);
+            let others: Vec<Cell> =
+                (0..self.detectors.len()).filter(|&d| d != ours).map(|d| self.level_cell(level, d)).collect();
+            let better = |pick: fn(&Cell) -> Option<f64>| {
+                let mine = pick(&c)?;
+                Some(others.iter().all(|o| pick(o).is_none_or(|x| mine < x)))
+            };
+            let more_accurate = match (better(|x| x.angle_deg[0]), better(|x| x.offset_px[0])) {
+                (Some(a), Some(b)) => Some(a && b),
+                _ => None,
+            };
+            let _ = writeln!(
+                m,
+                "| {} | {} | {} | {} | {} | {} | {} |",
+                level.key(),
+                yn(c.rate().map(|r| r >= 0.95)),
+                yn(c.angle_deg[0].map(|a| a <= 0.1)),
+                yn(c.offset_px[0].map(|o| o <= 0.3)),
+                yn((c.free_frames > 0).then_some(c.false_on_free == 0)),
+                yn(more_accurate),
+                yn(c.ms[0].map(|t| t <= 5.0)),
+            );
+        }
+        Some(m)
     }
 
     /// Writes `table.md`, `results.json` into `out`, and the overlay PNGs and
@@ -738,5 +784,85 @@ impl ShaftReport {
         )?;
         written.push(svg);
         Ok(written)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use metrics::LineErrors;
+
+    fn result(name: &str, matched: Option<(f64, f64)>, false_detections: usize, ms: f64) -> DetectorResult {
+        DetectorResult {
+            detector: name.into(),
+            score: FrameScore {
+                matched: matched.map(|(a, o)| LineErrors { angle_deg: a, offset_mid_px: o, offset_max_px: o }),
+                false_detections,
+                ..Default::default()
+            },
+            ms,
+            centrelines: vec![],
+        }
+    }
+
+    fn record(eligible: bool, in_view: bool, results: Vec<DetectorResult>) -> FrameRecord {
+        FrameRecord {
+            level: ClutterLevel::Clean,
+            family: "mid",
+            tuned_family: true,
+            seed: 1,
+            segment_px: 200.0,
+            visible_px: if eligible { 200.0 } else { 50.0 },
+            crossed_fraction: 0.0,
+            eligible,
+            instrument_in_view: in_view,
+            second_in_view: false,
+            results,
+        }
+    }
+
+    #[test]
+    fn cells_aggregate_and_the_targets_compare_ours_with_every_other_detector() {
+        let records = vec![
+            record(
+                true,
+                true,
+                vec![result("ours", Some((0.05, 0.1)), 0, 2.0), result("peer", Some((0.2, 0.5)), 1, 9.0)],
+            ),
+            record(true, true, vec![result("ours", Some((0.07, 0.3)), 0, 4.0), result("peer", None, 0, 9.0)]),
+            record(false, false, vec![result("ours", None, 0, 1.0), result("peer", None, 2, 9.0)]),
+        ];
+        let c = cell(records.iter(), 1);
+        assert_eq!(
+            (c.frames, c.eligible, c.detected, c.false_detections, c.free_frames, c.false_on_free),
+            (3, 2, 1, 3, 1, 2)
+        );
+        assert_eq!(c.rate(), Some(0.5));
+        let c = cell(records.iter(), 0);
+        assert_eq!(c.rate(), Some(1.0));
+        assert!((c.offset_px[0].unwrap() - 0.2).abs() < 1e-12);
+        assert_eq!(c.ms[0], Some(2.0));
+        let report = ShaftReport {
+            set: SeedSet::Report,
+            frames_per_family: 1,
+            seeds: vec![1],
+            levels: vec![ClutterLevel::Clean],
+            detectors: vec!["ours".into(), "peer".into()],
+            peers: PeerStatus::NotRequested,
+            records,
+            overlays: vec![],
+            elapsed_s: 0.0,
+            load_average: [String::new(), String::new()],
+        };
+        let t = report.targets_markdown().unwrap();
+        // Detected 100 %, angle 0.06°, offset 0.2 px, no false, better than the peer, 2 ms.
+        assert!(t.contains("| clean | yes | yes | yes | yes | yes | yes |"), "{t}");
+        let mut worse = report.clone();
+        worse.records[0].results[0].score.matched =
+            Some(LineErrors { angle_deg: 0.5, offset_mid_px: 0.9, offset_max_px: 1.0 });
+        let t = worse.targets_markdown().unwrap();
+        assert!(t.contains("| clean | yes | **no** | **no** | yes | **no** | yes |"), "{t}");
+        let md = report.markdown();
+        assert!(md.contains("| clean | ours | 2 (0) | 100.0 % (2) | 0 / 0 (1) |"), "{md}");
     }
 }

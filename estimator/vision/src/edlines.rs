@@ -471,7 +471,11 @@ impl EdLines {
             while let Some((p, s, parent)) = b.stack.pop() {
                 let id = b.walks.len() as u32;
                 let start = b.walk_px.len() as u32;
-                let turn = walk(&mut b.mark, &b.grad, &b.dir, &mut b.walk_px, w, p as usize, step_from(s));
+                // A turn's second walk starts on the pixel its first drew: its chain keeps that
+                // pixel; the anchor's second walk does not repeat the anchor.
+                let keep_start = parent != NO_WALK || roots[0] == NO_WALK;
+                let turn =
+                    walk(&mut b.mark, &b.grad, &b.dir, &mut b.walk_px, w, (p as usize, step_from(s)), keep_start);
                 b.walks.push(WalkRec {
                     start,
                     end: b.walk_px.len() as u32,
@@ -678,15 +682,25 @@ fn step_from(s: u8) -> Step {
 }
 
 /// One walk of the smart routing from pixel `p` in direction `s`; pixels drawn are appended
-/// to `px`. Returns the pixel where the edge turns to the other direction, if it does.
+/// to `px` (the start pixel too if it was drawn already and `keep_start`). Returns the pixel where the edge turns to the other direction, if it does.
 ///
 /// Every pixel walked on has an edge direction, so it lies inside the one-pixel frame and
 /// its eight neighbours exist.
-fn walk(mark: &mut [u8], grad: &[f32], dir: &[u8], px: &mut Vec<u32>, w: usize, p: usize, s: Step) -> Option<usize> {
+fn walk(
+    mark: &mut [u8],
+    grad: &[f32],
+    dir: &[u8],
+    px: &mut Vec<u32>,
+    w: usize,
+    (p, s): (usize, Step),
+    keep_start: bool,
+) -> Option<usize> {
     let along = if matches!(s, Step::Left | Step::Right) { DIR_HORIZONTAL } else { DIR_VERTICAL };
     let mut p = p;
     if mark[p] != MARK_EDGE {
         mark[p] = MARK_EDGE;
+        px.push(p as u32);
+    } else if keep_start {
         px.push(p as u32);
     }
     loop {
@@ -874,6 +888,55 @@ mod tests {
         assert!((f.distance(4.0, 6.0) - 1.0 / 1.25f64.sqrt()).abs() < 1e-9);
         let [u, v] = f.project(0.0, 4.0);
         assert!((v - (3.0 + 0.5 * u)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_routing_draws_connected_chains_around_a_disc() {
+        let (w, h) = (120usize, 100usize);
+        let (cx, cy, r) = (60.3, 48.8, 30.0);
+        let luma: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f64, (i / w) as f64);
+                // 4×4 supersampled disc: 200 inside, 60 outside.
+                let mut cover = 0.0;
+                for s in 0..16 {
+                    let (u, v) = (x + ((s % 4) as f64 - 1.5) / 4.0, y + ((s / 4) as f64 - 1.5) / 4.0);
+                    if (u - cx).hypot(v - cy) <= r {
+                        cover += 1.0 / 16.0;
+                    }
+                }
+                (60.0 + 140.0 * cover) as f32
+            })
+            .collect();
+        let mut ed = EdLines::paper();
+        ed.detect(&luma, w, h).unwrap();
+        let b = &ed.buffers;
+        let mut drawn = 0;
+        for &(s, e) in &b.chains {
+            let px = &b.chain_px[s as usize..e as usize];
+            for pair in px.windows(2) {
+                let (p, q) = (pair[0] as usize, pair[1] as usize);
+                let (dx, dy) = ((p % w).abs_diff(q % w), (p / w).abs_diff(q / w));
+                assert!(dx.max(dy) == 1, "chain jumps from {p} to {q}");
+            }
+            let mut sorted = px.to_vec();
+            sorted.sort_unstable();
+            sorted.dedup();
+            assert_eq!(sorted.len(), px.len(), "a pixel twice in one chain");
+            for &p in px {
+                let d = ((p as usize % w) as f64 - cx).hypot((p as usize / w) as f64 - cy);
+                assert!((d - r).abs() < 1.5, "chain pixel {d} px from the centre");
+            }
+            drawn += px.len();
+        }
+        // The circumference (≈ 2πr / 1.1 pixels of an 8-connected digital circle) is drawn.
+        assert!(drawn as f64 > 0.8 * 2.0 * std::f64::consts::PI * r / 1.2, "{drawn}");
+        // A circle is no line: whatever lines were kept are short chords within a pixel.
+        for l in ed.lines() {
+            for p in [l.segment.a, l.segment.b] {
+                assert!(((p[0] - cx).hypot(p[1] - cy) - r).abs() < 1.5);
+            }
+        }
     }
 
     #[test]

@@ -168,9 +168,20 @@ fn band_image(w: usize, h: usize, centre: &dyn Fn(f64, f64) -> f64, half_width: 
 #[test]
 fn the_middle_line_of_a_band_is_its_centre_line() {
     let (w, h) = (320, 240);
-    for (deg, level, half) in [(80.0f64, 220.0, 18.0), (65.0, 20.0, 25.0), (100.0, 200.0, 12.0), (20.0, 30.0, 20.0)] {
+    // (direction, band level, half width, a point of the centre line); the last two have
+    // their edges half-way between pixel centres, where ED's chain hesitates between two
+    // rows or columns.
+    let bands = [
+        (80.0f64, 220.0, 18.0, [161.2, 118.7]),
+        (65.0, 20.0, 25.0, [161.2, 118.7]),
+        (100.0, 200.0, 12.0, [161.2, 118.7]),
+        (20.0, 30.0, 20.0, [161.2, 118.7]),
+        (90.0, 210.0, 20.0, [119.5, 0.0]),
+        (0.0, 40.0, 15.0, [0.0, 100.0]),
+    ];
+    for (deg, level, half, point) in bands {
         let d = [deg.to_radians().cos(), deg.to_radians().sin()];
-        let centre = line_through([161.2, 118.7], d);
+        let centre = line_through(point, d);
         let bytes = band_image(w, h, &centre, half, level, 5);
         let image = RgbView::new(w, h, &bytes).unwrap();
         let mut det = PaperDetector::new(camera(w, h, [0.0; 5]));

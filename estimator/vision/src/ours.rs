@@ -21,7 +21,7 @@
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
 //!    undistortion per frame): there the contours are straight lines.
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform (each edgel votes
-//!    once at its own normal, 1° × 2 px bins, peaks of a 5 × 3 box sum), then each peak's
+//!    once at its own normal, 1° × 2 px bins, peaks of a 9 × 3 box sum), then each peak's
 //!    edgels are gathered and refitted (total least squares) and its supported span found.
 //! 3. **Pairs with physics**: two lines are the contours of one cylinder of radius `r` only
 //!    if they are nearly parallel, overlap along their length, and the angle `θ` between their
@@ -92,8 +92,13 @@ pub struct OursConfig {
     /// Edgel threshold on the half-resolution Di Zenzo gradient magnitude (chroma units
     /// `2R − G − B` per half-resolution pixel, 8-bit values; default 6).
     pub edge_threshold: f64,
-    /// Weight of luma against the chroma `2R − G − B` in the gradients (default 1).
+    /// Weight of luma against the chroma `2R − G − B` in the half-resolution gradients that
+    /// find the lines (default 1).
     pub luma_weight: f64,
+    /// Weight of luma against the chroma in the full-resolution profiles that place the
+    /// contours (default 0.3: the silhouette is where the colour changes; a metal shaft's dark
+    /// rim and highlights are luma edges just inside it).
+    pub profile_luma_weight: f64,
     /// Most line hypotheses kept (default 40).
     pub max_lines: usize,
     /// Most shafts returned (default 2).
@@ -103,10 +108,20 @@ pub struct OursConfig {
     pub min_chroma_contrast: f64,
     /// Largest interior chroma as a fraction of the chroma outside, both sides (default 0.5).
     pub max_interior_chroma_ratio: f64,
-    /// Largest robust residual scale of a contour's fit, pixels (default 0.8).
+    /// Largest robust residual scale of a contour's fit, pixels (default 2; defocus and
+    /// motion blur on a noisy image scatter single edge points by about a pixel).
     pub max_residual_px: f64,
     /// Least fraction of the visible span with an inlier edge on each contour (default 0.5).
     pub min_support: f64,
+    /// A visible shaft shorter than `long_span_px` must reach this close to the image border,
+    /// measured pixels (default 24): a shaft comes through a trocar and runs out of the view,
+    /// while a tapered tip or a pair of jaws (which can pass for a farther cylinder) lies
+    /// inside it. Infinite to switch the test off.
+    pub border_margin_px: f64,
+    /// Visible length from which the border test is waived, undistorted pixels (default 200;
+    /// a long span with straight parallel edges and a grey interior is a shaft, and its end
+    /// at the border may be lost in a vignetted, hazy corner).
+    pub long_span_px: f64,
 }
 
 impl Default for OursConfig {
@@ -118,12 +133,15 @@ impl Default for OursConfig {
             min_length_px: 80.0,
             edge_threshold: 6.0,
             luma_weight: 1.0,
+            profile_luma_weight: 0.3,
             max_lines: 40,
             max_detections: 2,
             min_chroma_contrast: 12.0,
             max_interior_chroma_ratio: 0.5,
-            max_residual_px: 0.8,
+            max_residual_px: 2.0,
             min_support: 0.5,
+            border_margin_px: 24.0,
+            long_span_px: 200.0,
         }
     }
 }
@@ -166,6 +184,11 @@ impl OursConfig {
         check(pos(self.min_length_px), "min_length_px", "finite and > 0")?;
         check(pos(self.edge_threshold), "edge_threshold", "finite and > 0")?;
         check(self.luma_weight.is_finite() && self.luma_weight >= 0.0, "luma_weight", "finite and ≥ 0")?;
+        check(
+            self.profile_luma_weight.is_finite() && self.profile_luma_weight >= 0.0,
+            "profile_luma_weight",
+            "finite and ≥ 0",
+        )?;
         check((1..=10_000).contains(&self.max_lines), "max_lines", "1 ..= 10000")?;
         check(self.max_detections >= 1, "max_detections", "≥ 1")?;
         check(
@@ -180,6 +203,8 @@ impl OursConfig {
         )?;
         check(pos(self.max_residual_px), "max_residual_px", "finite and > 0")?;
         check((0.0..=1.0).contains(&self.min_support), "min_support", "in [0, 1]")?;
+        check(!self.border_margin_px.is_nan() && self.border_margin_px >= 0.0, "border_margin_px", "≥ 0 (infinite: off)")?;
+        check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
         Ok(())
     }
 }
@@ -205,10 +230,15 @@ pub struct OursDetector {
     edges: EdgeBuffers,
     hough: Hough,
     pts: Vec<[f64; 2]>,
-    ss: Vec<f64>,
     w: Vec<f64>,
     res: Vec<f64>,
-    col: [Vec<f64>; 3],
+    col: [Vec<f64>; 5],
+    samp: [Vec<(f64, [f64; 2])>; 2],
+    /// Bounding box of the undistorted image, pixels: `(min, max)`.
+    bounds: ([f64; 2], [f64; 2]),
+    has: Vec<u8>,
+    margin: Vec<f64>,
+    cands: Vec<Found>,
     found: Vec<Found>,
 }
 
@@ -217,9 +247,6 @@ pub struct OursDetector {
 struct Contour {
     line: Line,
     sigma: f64,
-    /// Span of the inlier edges along the pair's direction, pixels from the pair's origin.
-    span: [f64; 2],
-    inliers: usize,
 }
 
 impl OursDetector {
@@ -232,8 +259,16 @@ impl OursDetector {
         cfg.validate()?;
         let table = HalfResTable::new(&k);
         let (mut rmax, c) = (1.0f32, [k.cx as f32, k.cy as f32]);
+        let mut bounds = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for p in &table.uv {
             rmax = rmax.max((p[0] - c[0]).hypot(p[1] - c[1]));
+            for i in 0..2 {
+                bounds.0[i] = bounds.0[i].min(f64::from(p[i]) - 2.0);
+                bounds.1[i] = bounds.1[i].max(f64::from(p[i]) + 2.0);
+            }
+        }
+        if table.uv.is_empty() {
+            bounds = ([0.0; 2], [0.0; 2]);
         }
         let hough = Hough::new(c, rmax + 4.0);
         Ok(Self {
@@ -245,10 +280,14 @@ impl OursDetector {
             edges: EdgeBuffers::default(),
             hough,
             pts: Vec::new(),
-            ss: Vec::new(),
             w: Vec::new(),
             res: Vec::new(),
             col: Default::default(),
+            samp: Default::default(),
+            bounds,
+            has: Vec::new(),
+            margin: Vec::new(),
+            cands: Vec::new(),
             found: Vec::new(),
         })
     }
@@ -274,6 +313,40 @@ impl OursDetector {
         (half > 0.0).then(|| r / half)
     }
 
+    /// The depth (camera z, metres) at which the ray of the undistorted pixel `px` meets the
+    /// axis of the cylinder (radius from the settings) whose contours are `a` and `b`
+    /// (`interior` a pixel between them): the axis is along `n₀ × n₁`, at distance
+    /// `d = r / sin(θ/2)` from the optical centre towards `n₀ + n₁` (the plane normals
+    /// oriented with the inside positive). `None` when degenerate.
+    fn axis_depth_at(&self, a: &Line, b: &Line, interior: [f64; 2], px: [f64; 2]) -> Option<f64> {
+        let plane = |l: &Line| {
+            let s = if l.distance(interior) >= 0.0 { 1.0 } else { -1.0 };
+            let n = self.kmat.transpose() * Vector3::new(s * l.n[0], s * l.n[1], s * l.c);
+            let norm = n.norm();
+            (norm > 0.0).then(|| n / norm)
+        };
+        let (na, nb) = (plane(a)?, plane(b)?);
+        let dist = self.axis_distance(a, b, interior)?;
+        let d = na.cross(&nb);
+        let m = na + nb;
+        let (dn, mn) = (d.norm(), m.norm());
+        if !(dn > 1e-12 && mn > 1e-12) {
+            return None;
+        }
+        let (d, p0) = (d / dn, m * (dist / mn));
+        let r = self.k.k_inv() * Vector3::new(px[0], px[1], 1.0);
+        // Closest points of t·r and p0 + λ·d.
+        let (rr, rd) = (r.dot(&r), r.dot(&d));
+        let (rp, dp) = (r.dot(&p0), d.dot(&p0));
+        let den = rr - rd * rd;
+        if den.abs() < 1e-15 {
+            return None;
+        }
+        let lam = (rd * rp - rr * dp) / den;
+        let z = (p0 + lam * d).z;
+        z.is_finite().then_some(z)
+    }
+
     /// The pair's frame: an origin on `a`'s span and a unit direction along `a`.
     fn pair_frame(a: &LineCand) -> ([f64; 2], [f64; 2]) {
         let o = a.ends[0];
@@ -283,44 +356,190 @@ impl OursDetector {
         (o, t)
     }
 
-    /// Refines one contour along `s ∈ range` of the frame `(o, t)`.
-    fn refine(&mut self, sampler: &Sampler<'_>, start: Line, o: [f64; 2], t: [f64; 2], range: [f64; 2]) -> Option<Contour> {
+    /// Refines one contour: two rounds of profiles (gates ±3 px every 2 px, then ±1.5 px
+    /// every pixel) over `core` (the Hough support, `s` along the frame `(o, t)`), each
+    /// followed by a robust fit; then the contour is followed outwards to `full` (the line
+    /// inside the image) as long as edges keep coming within 1.5 px of the line, and refitted.
+    /// Its inlier edge points (with their `s`, sorted) are left in `self.samp[which]`.
+    #[allow(clippy::too_many_arguments)]
+    fn refine(
+        &mut self,
+        sampler: &Sampler<'_>,
+        start: Line,
+        o: [f64; 2],
+        t: [f64; 2],
+        core: [f64; 2],
+        full: [f64; 2],
+        which: usize,
+    ) -> Option<Contour> {
         let mut line = start;
-        let mut fit = None;
-        for (gate, step) in [(3.0, 2.0), (1.5, 1.0)] {
-            self.pts.clear();
-            // Walk the line itself: the foot of o on it, along its own direction (aligned with t).
+        let mut min_strength = 0.75 * self.cfg.edge_threshold;
+        // The walk along the line: the foot of o on it, its own direction aligned with t.
+        let frame = |line: &Line| {
             let lt = line.direction();
             let lt = if lt[0] * t[0] + lt[1] * t[1] >= 0.0 { lt } else { [-lt[0], -lt[1]] };
             let dist = line.distance(o);
-            let o_l = [o[0] - dist * line.n[0], o[1] - dist * line.n[1]];
-            let n_steps = ((range[1] - range[0]) / step).floor().max(0.0) as usize;
+            ([o[0] - dist * line.n[0], o[1] - dist * line.n[1]], lt)
+        };
+        for (gate, step) in [(3.0, 2.0), (1.5, 1.0)] {
+            self.pts.clear();
+            self.res.clear();
+            let (o_l, lt) = frame(&line);
+            let n_steps = ((core[1] - core[0]) / step).floor().max(0.0) as usize;
             for k in 0..=n_steps {
-                let s = range[0] + k as f64 * step;
+                let s = core[0] + k as f64 * step;
                 let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
-                if let Some((off, _)) = sampler.edge_offset(&line, p, gate, 0.75 * self.cfg.edge_threshold) {
+                if let Some((off, st)) = sampler.edge_offset(&line, p, gate, min_strength) {
                     self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
+                    self.res.push(st);
                 }
             }
             if self.pts.len() < 8 {
                 return None;
             }
+            // From now on, an edge must be at least a third of this contour's typical one
+            // (weak tissue texture along the line is not the contour).
+            let mid = self.res.len() / 2;
+            self.res.select_nth_unstable_by(mid, f64::total_cmp);
+            min_strength = min_strength.max(self.res[mid] / 3.0);
             let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
+            if std::env::var_os("OURS_DEBUG").is_some() {
+                let txt: String = self.pts.iter().zip(&self.w).map(|(p, w)| format!("{:.0}:{:.2}:{:.1} ", (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], line.distance(*p), w)).collect();
+                eprintln!("  round{gate} {which} core {core:?} {txt}");
+            }
             line = f.line;
-            fit = Some(f);
         }
-        let f = fit?;
-        // Span of the inliers along t (isolated ends trimmed).
-        self.ss.clear();
-        for (p, w) in self.pts.iter().zip(&self.w) {
-            if *w > 0.0 {
-                self.ss.push((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1]);
+        // Follow the contour outwards from both ends of the core.
+        let (o_l, lt) = frame(&line);
+        for dir in [-1.0f64, 1.0] {
+            let (from, to) = if dir < 0.0 { (core[0], full[0]) } else { (core[1], full[1]) };
+            let mut misses = 0u32;
+            let mut s = from + dir;
+            while (to - s) * dir > 0.0 && misses < 40 {
+                let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
+                match sampler.edge_offset(&line, p, 2.0, min_strength) {
+                    Some((off, _)) if off.abs() <= 1.5 => {
+                        self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
+                        misses = misses.saturating_sub(1);
+                    }
+                    _ => misses += 2,
+                }
+                s += dir;
             }
         }
-        self.ss.sort_by(f64::total_cmp);
-        let span = trimmed_span(&self.ss, 16.0, 6)?;
-        let inliers = self.ss.iter().filter(|s| **s >= span[0] && **s <= span[1]).count();
-        Some(Contour { line, sigma: f.sigma, span, inliers })
+        let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
+        let line = f.line;
+        if std::env::var_os("OURS_DEBUG").is_some() {
+            let txt: String = self.pts.iter().zip(&self.w).map(|(p, w)| format!("{:.0}:{:.2}:{:.1} ", (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], line.distance(*p), w)).collect();
+            eprintln!("  samples{which} {txt}");
+        }
+        let samp = &mut self.samp[which];
+        samp.clear();
+        for (p, w) in self.pts.iter().zip(&self.w) {
+            if *w > 0.0 {
+                samp.push(((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p));
+            }
+        }
+        samp.sort_by(|x, y| x.0.total_cmp(&y.0));
+        Some(Contour { line, sigma: f.sigma })
+    }
+
+    /// The visible span of the pair: stations every 2 px along `t` over `range` are good where
+    /// both contours have an inlier edge within 2 px and the interior (mean of three samples)
+    /// is less red than both outsides by half the colour contrast (smoothed over 5 stations),
+    /// or one contour has one and the contrast is full; the span is the run of good stations
+    /// (gaps up to 64 px: a crossing instrument) with
+    /// the most good stations. Returns the span and the fraction of good stations in it.
+    fn visible_span(
+        &mut self,
+        sampler: &Sampler<'_>,
+        c: [&Line; 2],
+        o: [f64; 2],
+        t: [f64; 2],
+        range: [f64; 2],
+    ) -> Option<([f64; 2], f64)> {
+        const STEP: f64 = 2.0;
+        let n = ((range[1] - range[0]) / STEP).floor().max(0.0) as usize + 1;
+        self.has.clear();
+        self.has.resize(n, 0);
+        for (bit, samp) in self.samp.iter().enumerate() {
+            for (s, _) in samp {
+                let i = ((s - range[0]) / STEP).round();
+                if i >= 0.0 && (i as usize) < n {
+                    let i = i as usize;
+                    for j in i.saturating_sub(1)..=(i + 1).min(n - 1) {
+                        self.has[j] |= 1 << bit;
+                    }
+                }
+            }
+        }
+        self.margin.clear();
+        self.margin.resize(n, f64::NAN);
+        let d = [-t[1], t[0]];
+        for i in 0..n {
+            if self.has[i] == 0 {
+                continue;
+            }
+            let s = range[0] + i as f64 * STEP;
+            let q = [o[0] + s * t[0], o[1] + s * t[1]];
+            let (Some(l0), Some(l1)) = (c[0].hit(q, d), c[1].hit(q, d)) else { continue };
+            let m = 0.5 * (l0 + l1);
+            let h = 0.5 * (l1 - l0);
+            let at = |lam: f64| sampler.sample(q[0] + lam * d[0], q[1] + lam * d[1]).map(|v| v.0);
+            let (Some(i0), Some(i1), Some(i2)) = (at(m - 0.3 * h), at(m), at(m + 0.3 * h)) else { continue };
+            let margin = 4.0 * h.signum();
+            let (Some(out0), Some(out1)) = (at(l0 - margin), at(l1 + margin)) else { continue };
+            let inside = (i0 + i1 + i2) / 3.0;
+            self.margin[i] = (out0 - inside).min(out1 - inside);
+        }
+        if std::env::var_os("OURS_DEBUG").is_some() {
+            let line: String = (0..n).step_by(4).map(|i| format!("{}:{}:{:.0} ", range[0] + i as f64 * STEP, self.has[i], self.margin[i])).collect();
+            eprintln!("  stations {line}");
+        }
+        let need = 0.5 * self.cfg.min_chroma_contrast;
+        let mut best: Option<(usize, usize, usize)> = None;
+        let mut run: Option<(usize, usize, usize)> = None;
+        let max_gap = (64.0 / STEP) as usize;
+        for i in 0..n {
+            let (lo, hi) = (i.saturating_sub(2), (i + 2).min(n - 1));
+            let (mut sum, mut cnt) = (0.0, 0);
+            for m in &self.margin[lo..=hi] {
+                if m.is_finite() {
+                    sum += m;
+                    cnt += 1;
+                }
+            }
+            // Both edges and a grey interior; or one edge (the other may fade against bright
+            // fat or in a hazy corner) and a clearly grey interior.
+            let mean = if cnt >= 2 { sum / cnt as f64 } else { f64::NEG_INFINITY };
+            let good = (self.has[i] == 3 && mean >= need) || (self.has[i] != 0 && mean >= 2.0 * need);
+            if !good {
+                continue;
+            }
+            run = match run {
+                Some((start, last, count)) if i - last <= max_gap => Some((start, i, count + 1)),
+                _ => Some((i, i, 1)),
+            };
+            if let Some(r) = run {
+                if best.is_none_or(|b| r.2 > b.2) {
+                    best = Some(r);
+                }
+            }
+        }
+        let (start, last, count) = best?;
+        let span = [range[0] + start as f64 * STEP, range[0] + last as f64 * STEP];
+        Some((span, count as f64 / (last - start + 1) as f64))
+    }
+
+    /// Refits contour `which` with its inlier points inside `span`.
+    fn refit_in_span(&mut self, which: usize, start: Line, span: [f64; 2]) -> Option<Contour> {
+        self.pts.clear();
+        self.pts.extend(self.samp[which].iter().filter(|(s, _)| *s >= span[0] && *s <= span[1]).map(|(_, p)| *p));
+        if self.pts.len() < 8 {
+            return None;
+        }
+        let f = robust_fit(&self.pts, start, &mut self.w, &mut self.res)?;
+        Some(Contour { line: f.line, sigma: f.sigma })
     }
 
     /// Checks and refines the pair `(ia, ib)` of line hypotheses.
@@ -328,7 +547,7 @@ impl OursDetector {
         let (a, b) = (self.hough.lines[ia], self.hough.lines[ib]);
         let cfg = self.cfg;
         let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: cfg.luma_weight };
+        let sampler = Sampler { image, lens: &lens, luma_weight: cfg.profile_luma_weight };
         let (o, t) = Self::pair_frame(&a);
         let proj = |p: [f64; 2]| (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1];
         let sa = [proj(a.ends[0]), proj(a.ends[1])];
@@ -341,22 +560,75 @@ impl OursDetector {
             dbg_reject(1); return None;
         }
         // Refine both contours over the union of the spans, a little extended.
-        let range = [sa[0].min(sb[0]) - 12.0, sa[1].max(sb[1]) + 12.0];
-        let Some(ca) = self.refine(&sampler, a.line, o, t, range) else { dbg_reject(21); return None; };
-        let Some(cb) = self.refine(&sampler, b.line, o, t, range) else { dbg_reject(22); return None; };
-        if std::env::var_os("OURS_DEBUG").is_some() { eprintln!("  ca {ca:?}\n  cb {cb:?}"); }
-        let span = [ca.span[0].max(cb.span[0]), ca.span[1].min(cb.span[1])];
+        // Refine both contours over the whole line inside the image (the Hough spans may stop
+        // short of the border in the vignetted corners).
+        let range = {
+            let (lo, hi) = self.bounds;
+            let mut r = [f64::INFINITY, f64::NEG_INFINITY];
+            for c in [[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]] {
+                let sc = proj(c);
+                r = [r[0].min(sc), r[1].max(sc)];
+            }
+            r
+        };
+        let core_a = [sa[0].max(range[0]), sa[1].min(range[1])];
+        let core_b = [sb[0].max(range[0]), sb[1].min(range[1])];
+        let Some(ca) = self.refine(&sampler, a.line, o, t, core_a, range, 0) else { dbg_reject(21); return None; };
+        let Some(cb) = self.refine(&sampler, b.line, o, t, core_b, range, 1) else { dbg_reject(22); return None; };
+        let Some((span, support)) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range) else {
+            dbg_reject(23);
+            return None;
+        };
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
             dbg_reject(3); return None;
         }
+        if support < cfg.min_support {
+            dbg_reject(5); return None;
+        }
+        let Some(mut ca) = self.refit_in_span(0, ca.line, span) else { dbg_reject(24); return None; };
+        let Some(mut cb) = self.refit_in_span(1, cb.line, span) else { dbg_reject(25); return None; };
+        // Trim ends where either contour leaves its line systematically (the wrist, a bent or
+        // thinner link, a tapered tip), then refit.
+        let mut span = span;
+        for _ in 0..24 {
+            const WIN: f64 = 16.0;
+            let off = |samp: &[(f64, [f64; 2])], line: &Line, lo: f64, hi: f64| {
+                let (mut sum, mut n) = (0.0, 0);
+                for (s, p) in samp {
+                    if *s >= lo && *s <= hi {
+                        sum += line.distance(*p);
+                        n += 1;
+                    }
+                }
+                if n >= 4 { (sum / n as f64).abs() } else { 0.0 }
+            };
+            let thr = 0.35;
+            let head = off(&self.samp[0], &ca.line, span[0], span[0] + WIN).max(off(&self.samp[1], &cb.line, span[0], span[0] + WIN));
+            let tail = off(&self.samp[0], &ca.line, span[1] - WIN, span[1]).max(off(&self.samp[1], &cb.line, span[1] - WIN, span[1]));
+            if head <= thr && tail <= thr {
+                break;
+            }
+            if head > thr {
+                span[0] += 0.5 * WIN;
+            }
+            if tail > thr {
+                span[1] -= 0.5 * WIN;
+            }
+            if span[1] - span[0] < cfg.min_length_px {
+                dbg_reject(26); return None;
+            }
+            let (Some(na), Some(nb)) = (self.refit_in_span(0, ca.line, span), self.refit_in_span(1, cb.line, span)) else {
+                dbg_reject(27);
+                return None;
+            };
+            (ca, cb) = (na, nb);
+        }
+        let len = span[1] - span[0];
+        if std::env::var_os("OURS_DEBUG").is_some() { eprintln!("  ca {ca:?}\n  cb {cb:?}\n  span {span:?} support {support}"); }
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
             dbg_reject(4); return None;
-        }
-        let support = (ca.inliers.min(cb.inliers) as f64 / (len + 1.0)).min(1.0);
-        if support < cfg.min_support {
-            dbg_reject(5); return None;
         }
         // Interior point: middle of the two contours at the span's middle.
         let sm = 0.5 * (span[0] + span[1]);
@@ -368,6 +640,15 @@ impl OursDetector {
         let dist = self.axis_distance(&ca.line, &cb.line, inside)?;
         if !(dist >= cfg.min_depth_m && dist <= cfg.max_depth_m) {
             dbg_reject(6); return None;
+        }
+        // The axis's depth at both ends of the visible span must be plausible too (a tapered
+        // tip seen as a cylinder would reach far beyond the range towards its apex).
+        for e in span {
+            let p = [o[0] + e * t[0], o[1] + e * t[1]];
+            let z = self.axis_depth_at(&ca.line, &cb.line, inside, p).unwrap_or(f64::NAN);
+            if !(z >= 0.5 * cfg.min_depth_m && z <= cfg.max_depth_m) {
+                dbg_reject(8); return None;
+            }
         }
         let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
         if !self.colour_ok(&fine) {
@@ -386,6 +667,13 @@ impl OursDetector {
             let (x, y) = self.lens.distort_px(f[0], f[1]);
             *e = [x, y];
         }
+        if cfg.border_margin_px.is_finite() && len < cfg.long_span_px {
+            let (w, h) = (f64::from(self.k.width) - 1.0, f64::from(self.k.height) - 1.0);
+            let near = |p: &[f64; 2]| p[0].min(p[1]).min(w - p[0]).min(h - p[1]) <= cfg.border_margin_px;
+            if !ends_px.iter().any(near) {
+                dbg_reject(9); return None;
+            }
+        }
         let contrast = (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside);
         let confidence = support / (1.0 + (sigma / 0.5).powi(2))
             * (contrast / (3.0 * cfg.min_chroma_contrast.max(1e-9))).clamp(0.0, 1.0);
@@ -401,15 +689,16 @@ impl OursDetector {
     }
 
     fn colour_ok(&self, c: &profile::Interior) -> bool {
-        c.outside.iter().all(|&out| {
-            out - c.inside >= self.cfg.min_chroma_contrast && c.inside <= self.cfg.max_interior_chroma_ratio * out
+        c.outside.iter().zip(c.near).all(|(&out, near)| {
+            let inside = c.inside.max(near);
+            out - inside >= self.cfg.min_chroma_contrast && inside <= self.cfg.max_interior_chroma_ratio * out
         })
     }
 
     /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
     fn pairs(&mut self, image: &RgbView<'_>) -> Vec<(f64, usize, usize)> {
         let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.luma_weight };
+        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
         let mut col = std::mem::take(&mut self.col);
         let lines = &self.hough.lines;
         let cfg = self.cfg;
@@ -456,29 +745,15 @@ impl OursDetector {
                 if !self.colour_ok(&c) {
                     continue;
                 }
-                out.push((len * (a.count.min(b.count) as f64), i, j));
+                // Rank by support and by how grey the interior is against the outsides.
+                let grey = (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0);
+                out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
             }
         }
         self.col = col;
         out.sort_by(|a, b| b.0.total_cmp(&a.0));
         out
     }
-}
-
-/// The extent of the sorted `s` after trimming, at each end, points with fewer than
-/// `min_count` points within `window` towards the bulk; `None` when nothing is left.
-fn trimmed_span(s: &[f64], window: f64, min_count: usize) -> Option<[f64; 2]> {
-    let n = s.len();
-    let dense = |i: usize, fwd: bool| {
-        if fwd {
-            s[i..].iter().take_while(|&&x| x <= s[i] + window).count() >= min_count
-        } else {
-            s[..=i].iter().rev().take_while(|&&x| x >= s[i] - window).count() >= min_count
-        }
-    };
-    let lo = (0..n).find(|&i| dense(i, true))?;
-    let hi = (lo..n).rev().find(|&i| dense(i, false))?;
-    (hi > lo).then(|| [s[lo], s[hi]])
 }
 
 impl ShaftDetector for OursDetector {
@@ -499,6 +774,8 @@ impl ShaftDetector for OursDetector {
         let pairs = self.pairs(image);
         if std::env::var_os("OURS_DEBUG").is_some() {
             eprintln!("edgels {} lines {} pairs {}", self.edges.edgels.len(), self.hough.lines.len(), pairs.len());
+            let txt: String = self.edges.edgels.iter().map(|e| format!("{} {} {} {}\n", e.p[0], e.p[1], e.n[0], e.n[1])).collect();
+            let _ = std::fs::write("/tmp/ours_edgels.txt", txt);
             for l in &self.hough.lines {
                 eprintln!("  line n={:?} c={:.1} ends={:?} count={}", l.line.n, l.line.c, l.ends, l.count);
             }
@@ -506,21 +783,26 @@ impl ShaftDetector for OursDetector {
                 eprintln!("  pair {p:?}");
             }
         }
+        // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
+        // sharing a line, a contour or the axis with a better one is dropped).
+        self.cands.clear();
+        let budget = 4 * cfg.max_detections + 4;
+        for &(_, i, j) in pairs.iter().take(budget) {
+            if let Some(f) = self.verify(image, i, j) {
+                self.cands.push(f);
+            }
+        }
+        self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
         self.found.clear();
-        let mut tried = 0;
-        for &(_, i, j) in &pairs {
-            if self.found.len() >= cfg.max_detections || tried >= 4 * cfg.max_detections + 4 {
+        for f in &self.cands {
+            if self.found.len() >= cfg.max_detections {
                 break;
             }
-            if self.found.iter().any(|f| f.lines.contains(&i) || f.lines.contains(&j)) {
-                continue;
-            }
-            tried += 1;
-            if let Some(f) = self.verify(image, i, j) {
-                let dup = self.found.iter().any(|g| same_axis(g, &f));
-                if !dup {
-                    self.found.push(f);
-                }
+            let clash = self.found.iter().any(|g| {
+                g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f)
+            });
+            if !clash {
+                self.found.push(*f);
             }
         }
         self.found.sort_by(|a, b| b.score.total_cmp(&a.score));
@@ -543,4 +825,16 @@ fn dbg_reject(why: u32) {
     if std::env::var_os("OURS_DEBUG").is_some() {
         eprintln!("  reject {why}");
     }
+}
+
+/// True when two detections share a contour (within 1° and 2 px at the other's span middle).
+fn shares_contour(a: &Found, b: &Found) -> bool {
+    a.det.contours.iter().any(|ca| {
+        b.det.contours.iter().any(|cb| {
+            let cos = (ca.abc[0] * cb.abc[0] + ca.abc[1] * cb.abc[1]).abs();
+            cos > 1f64.to_radians().cos()
+                && (ca.distance_px(b.mid[0], b.mid[1]).abs() - cb.distance_px(b.mid[0], b.mid[1]).abs()).abs() < 2.0
+                && (ca.distance_px(a.mid[0], a.mid[1]).abs() - cb.distance_px(a.mid[0], a.mid[1]).abs()).abs() < 2.0
+        })
+    })
 }

@@ -1,6 +1,6 @@
 //! Stage 2: straight-line hypotheses from the edgels (undistorted pixels, where the contours
 //! are straight): an orientation-guided Hough transform (each edgel votes once, at its own
-//! normal direction, so the cost is linear in the edgels), peaks on a 5 × 3 box sum, then each
+//! normal direction, so the cost is linear in the edgels), peaks on a 9 × 3 box sum (edgel normals at half resolution scatter by a few degrees), then each
 //! peak's edgels are gathered and refitted by total least squares, and the supported span is
 //! found along the line.
 
@@ -77,7 +77,7 @@ impl Hough {
             let a = &mut self.acc[tb * self.n_rho + rb as usize];
             *a = a.saturating_add(1);
         }
-        // Peaks of the 5 (angle) × 3 (distance) box sum.
+        // Peaks of the 9 (angle) × 3 (distance) box sum.
         let seed = (min_votes / 8).max(2);
         for tb in 0..N_THETA {
             for rb in 0..self.n_rho {
@@ -85,7 +85,7 @@ impl Hough {
                     continue;
                 }
                 let mut s = 0;
-                for dt in -2..=2isize {
+                for dt in -4..=4isize {
                     for dr in -1..=1isize {
                         s += self.cell(tb as isize + dt, rb as isize + dr);
                     }
@@ -104,10 +104,10 @@ impl Hough {
             }
             let near = kept.iter().any(|&(t2, r2)| {
                 let dt = tb.abs_diff(t2);
-                if dt <= 3 {
+                if dt <= 4 {
                     return rb.abs_diff(r2) <= 3;
                 }
-                if N_THETA - dt <= 3 {
+                if N_THETA - dt <= 4 {
                     return (2 * self.rho0).abs_diff(rb).abs_diff(r2) <= 3;
                 }
                 false
@@ -121,7 +121,17 @@ impl Hough {
             let (n0, n1) = (theta.cos(), theta.sin());
             let line = Line { n: [n0, n1], c: -(rho + n0 * f64::from(cx) + n1 * f64::from(cy)) };
             if let Some(cand) = self.gather(edgels, line) {
-                self.lines.push(cand);
+                // Two peaks may refit to the same line: keep the better supported.
+                let mid = [0.5 * (cand.ends[0][0] + cand.ends[1][0]), 0.5 * (cand.ends[0][1] + cand.ends[1][1])];
+                let same = |l: &LineCand| {
+                    (l.line.n[0] * cand.line.n[0] + l.line.n[1] * cand.line.n[1]).abs() > 0.99985
+                        && l.line.distance(mid).abs() < 2.0
+                };
+                match self.lines.iter().position(same) {
+                    Some(i) if self.lines[i].count < cand.count => self.lines[i] = cand,
+                    Some(_) => {}
+                    None => self.lines.push(cand),
+                }
             }
         }
         self.peaks = peaks;

@@ -11,8 +11,8 @@ product: it needs the `opencv-contrib-python-headless` wheel (EdgeDrawing is in 
 Output (JSON): the OpenCV version, the exact parameters, and per image (sorted by file name)
 each detector's segments `[x1, y1, x2, y2]` in measured (distorted) pixels of the image as
 given, the centre of the top-left pixel at (0, 0), and its time in milliseconds: the grey
-conversion plus the detection, file reading and decoding excluded (time.perf_counter, one
-thread: cv2.setNumThreads(1)).
+conversion plus the detection, file reading and decoding excluded, the shortest of REPEATS
+runs (time.perf_counter, one thread: cv2.setNumThreads(1)).
 """
 
 import json
@@ -61,6 +61,11 @@ LSD_PARAMS = {
 }
 
 
+# Each image is detected this many times and the shortest time kept (as the harness does for
+# ours and the paper's: the shared machine's other tenants only ever add time).
+REPEATS = 3
+
+
 def make_ed():
     ed = cv2.ximgproc.createEdgeDrawing()
     p = cv2.ximgproc.EdgeDrawing.Params()
@@ -96,18 +101,21 @@ def main():
         if bgr is None:
             sys.stderr.write(f"opencv_lines.py: cannot read {name}\n")
             return 1
-        t0 = time.perf_counter()
-        grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
-        ed.detectEdges(grey)
-        ed_lines = ed.detectLines()
-        t1 = time.perf_counter()
-        grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
-        lsd_lines = lsd.detect(grey)[0]
-        t2 = time.perf_counter()
+        ed_ms, lsd_ms = float("inf"), float("inf")
+        for _ in range(REPEATS):
+            t0 = time.perf_counter()
+            grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+            ed.detectEdges(grey)
+            ed_lines = ed.detectLines()
+            t1 = time.perf_counter()
+            grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+            lsd_lines = lsd.detect(grey)[0]
+            t2 = time.perf_counter()
+            ed_ms, lsd_ms = min(ed_ms, (t1 - t0) * 1e3), min(lsd_ms, (t2 - t1) * 1e3)
         images.append({
             "file": name,
-            "ed": {"segments": segments(ed_lines), "ms": (t1 - t0) * 1e3},
-            "lsd": {"segments": segments(lsd_lines), "ms": (t2 - t1) * 1e3},
+            "ed": {"segments": segments(ed_lines), "ms": ed_ms},
+            "lsd": {"segments": segments(lsd_lines), "ms": lsd_ms},
         })
     out = {
         "opencv_version": cv2.__version__,

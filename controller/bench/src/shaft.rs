@@ -223,8 +223,9 @@ pub struct DetectorResult {
     pub detector: String,
     /// The score.
     pub score: FrameScore,
-    /// Time for the frame, milliseconds (ours and the paper's: `detect`, measured here;
-    /// peers: the script's grey conversion and detection plus the pairing here).
+    /// Time for the frame, milliseconds, the shortest of [`TIMING_REPEATS`] (ours and the
+    /// paper's: `detect`, measured here; peers: the script's grey conversion and detection,
+    /// plus the pairing here).
     pub ms: f64,
     /// The returned centrelines, best first, `[a, b, c]` undistorted pixels.
     pub centrelines: Vec<[f64; 3]>,
@@ -329,15 +330,23 @@ fn load_average() -> String {
         .unwrap_or_default()
 }
 
-fn time_detect(
-    det: &mut dyn ShaftDetector,
-    frame: &RenderedFrame,
-) -> Result<(Vec<ShaftDetection>, f64), ShaftBenchError> {
+/// Each frame's detection is timed this many times and the shortest kept (the shared
+/// machine's other tenants only ever add time); the peers' script does the same.
+pub const TIMING_REPEATS: usize = 3;
+
+/// The detections of the first call and the shortest of [`TIMING_REPEATS`] times.
+fn time_detect(det: &mut dyn ShaftDetector, frame: &RenderedFrame) -> Result<Timed, ShaftBenchError> {
     let view = frame.view()?;
-    let t0 = Instant::now();
-    let out =
-        det.detect(&view).map_err(|source| ShaftBenchError::Detect { detector: det.name().to_owned(), source })?;
-    Ok((out, t0.elapsed().as_secs_f64() * 1e3))
+    let mut first = None;
+    let mut best = f64::INFINITY;
+    for _ in 0..TIMING_REPEATS {
+        let t0 = Instant::now();
+        let out =
+            det.detect(&view).map_err(|source| ShaftBenchError::Detect { detector: det.name().to_owned(), source })?;
+        best = best.min(t0.elapsed().as_secs_f64() * 1e3);
+        first.get_or_insert(out);
+    }
+    Ok((first.unwrap_or_default(), best))
 }
 
 /// Writes the frames as `NNNNN.png` into `dir` (created), in parallel.
@@ -659,9 +668,13 @@ impl ShaftReport {
                     m,
                     "Peers: OpenCV {opencv_version} (opencv-contrib-python-headless, {threads} thread), EdgeDrawing \
                      parameters `{ed_params}`, LSD parameters `{lsd_params}`; their time is the script's grey \
-                     conversion and detection plus the pairing.\n"
+                     conversion and detection plus the pairing. Times: the shortest of {TIMING_REPEATS} runs per \
+                     frame.\n"
                 );
             }
+        }
+        if matches!(self.peers, PeerStatus::NotRequested | PeerStatus::Skipped(_)) {
+            let _ = writeln!(m, "Times: the shortest of {TIMING_REPEATS} runs per frame.\n");
         }
         let _ = writeln!(m, "### Per clutter level\n");
         m.push_str(&table_header("level"));
@@ -697,7 +710,8 @@ impl ShaftReport {
             None => "–",
         };
         let mut m = String::from(
-            "| level | detected ≥ 95 % | angle median ≤ 0.1° | offset median ≤ 0.3 px | 0 false on instrument-free              frames | angle and offset medians below every other detector's | time median ≤ 5 ms |\n|---|---|---|---|\
+            "| level | detected ≥ 95 % | angle median ≤ 0.1° | offset median ≤ 0.3 px | 0 false on instrument-free \
+             frames | angle and offset medians below every other detector's | time median ≤ 5 ms |\n|---|---|---|---|\
              ---|---|---|\n",
         );
         for &level in &self.levels {

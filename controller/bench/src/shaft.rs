@@ -784,7 +784,7 @@ impl ShaftReport {
                         .filter(|r| r.eligible)
                         .filter_map(|r| r.results.get(d).and_then(|x| x.score.matched).map(|e| pick(&e)))
                         .collect();
-                    (name.clone(), figures::DETECTOR_RGB[d.min(figures::DETECTOR_RGB.len() - 1)], v)
+                    (name.clone(), figures::PLOT_RGB[d.min(figures::PLOT_RGB.len() - 1)], v)
                 })
                 .collect()
         };

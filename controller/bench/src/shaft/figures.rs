@@ -17,6 +17,9 @@ pub const TRUTH_RGB: [u8; 3] = [40, 230, 40];
 /// yellow, magenta, cyan, then white.
 pub const DETECTOR_RGB: [[u8; 3]; 5] = [[255, 40, 40], [255, 220, 0], [255, 0, 255], [0, 230, 255], [255, 255, 255]];
 
+/// The same hues, darker, for the SVG on white: red, ochre, magenta, teal, then grey.
+pub const PLOT_RGB: [[u8; 3]; 5] = [[220, 20, 20], [190, 140, 0], [190, 0, 190], [0, 140, 190], [90, 90, 90]];
+
 /// Sets the pixels within `half` px of `(x, y)` (a square brush) to `c`.
 fn dot(img: &mut EyeImage, x: f64, y: f64, half: i64, c: [u8; 3]) {
     let (w, h) = (i64::from(img.width), i64::from(img.height));

@@ -106,7 +106,9 @@ fn value_noise(seed: u64, x: f64, y: f64, cell: f64) -> f64 {
     let (fx, fy) = (gx - x0, gy - y0);
     let (sx, sy) = (fx * fx * (3.0 - 2.0 * fx), fy * fy * (3.0 - 2.0 * fy));
     let v = |i: f64, j: f64| {
-        let h = hash(seed ^ ((i as i64 as u64).wrapping_mul(0x9e37_79b9) ^ (j as i64 as u64).wrapping_mul(0x85eb_ca6b) << 1));
+        let h = hash(
+            seed ^ ((i as i64 as u64).wrapping_mul(0x9e37_79b9) ^ (j as i64 as u64).wrapping_mul(0x85eb_ca6b) << 1),
+        );
         2.0 * unit(h) - 1.0
     };
     let top = v(x0, y0) + sx * (v(x0 + 1.0, y0) - v(x0, y0));
@@ -156,11 +158,11 @@ pub fn render(k: &Intrinsics, scene: &Scene) -> Vec<u8> {
         let r = k_inv * Vector3::new(p.x, p.y, 1.0);
         let mut best: Option<(f64, [f64; 3])> = None;
         for c in &scene.shafts {
-            if let Some((t, q)) = c.hit(&r) {
-                if best.is_none_or(|b| t < b.0) {
-                    let lit = c.albedo * (0.25 + 0.75 * (1.0 - q * q).max(0.0).sqrt()) * 255.0;
-                    best = Some((t, [lit, lit, lit * 1.03]));
-                }
+            if let Some((t, q)) = c.hit(&r)
+                && best.is_none_or(|b| t < b.0)
+            {
+                let lit = c.albedo * (0.25 + 0.75 * (1.0 - q * q).max(0.0).sqrt()) * 255.0;
+                best = Some((t, [lit, lit, lit * 1.03]));
             }
         }
         best.map(|b| b.1)
@@ -194,7 +196,8 @@ pub fn render(k: &Intrinsics, scene: &Scene) -> Vec<u8> {
                 }
             }
             for (ch, c) in col.iter().enumerate() {
-                let nz = scene.noise * (2.0 * unit(hash(scene.seed ^ ((i * 3 + ch) as u64).wrapping_mul(0x2545_f491))) - 1.0);
+                let nz = scene.noise
+                    * (2.0 * unit(hash(scene.seed ^ ((i * 3 + ch) as u64).wrapping_mul(0x2545_f491))) - 1.0);
                 out[3 * i + ch] = (c + nz).round().clamp(0.0, 255.0) as u8;
             }
         }

@@ -2,6 +2,7 @@
 //! with a truth list (`OURS_EVAL_DIR/list.txt`: per line the `.rgb` file, then per instrument
 //! `label a b c x0 y0 x1 y1`, the true axis and its visible segment, undistorted pixels).
 //! `OURS_EVAL_DIR=DIR cargo test --release -p vision --test ours_eval -- --ignored --nocapture`
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
 use std::time::Instant;
@@ -33,6 +34,18 @@ fn evaluate_on_rendered_frames() {
     }
     if let Some(v) = env("OURS_LUMA_W") {
         cfg.luma_weight = v;
+    }
+    if let Some(v) = env("OURS_LONG_SPAN") {
+        cfg.long_span_px = v;
+    }
+    if let Some(v) = env("OURS_MIN_LC") {
+        cfg.min_luma_contrast = v;
+    }
+    if let Some(v) = env("OURS_MIN_CC") {
+        cfg.min_chroma_contrast = v;
+    }
+    if let Some(v) = env("OURS_CC_RATIO") {
+        cfg.max_interior_chroma_ratio = v;
     }
     if let Some(v) = env("OURS_PLUMA_W") {
         cfg.profile_luma_weight = v;
@@ -72,6 +85,9 @@ fn evaluate_on_rendered_frames() {
             }
             if let Some((i, _, _)) = best {
                 matched[i] = true;
+                if std::env::var_os("OURS_EVAL_CONF").is_some() {
+                    println!("matched conf {:.3}", dets[i].confidence);
+                }
             }
             if len >= 100.0 {
                 eligible += 1;
@@ -89,7 +105,11 @@ fn evaluate_on_rendered_frames() {
         }
         let extra = matched.iter().filter(|m| !**m).count();
         if extra > 0 && verbose {
-            println!("{file}: {extra} unmatched detections");
+            for (d, m) in dets.iter().zip(&matched) {
+                if !m {
+                    println!("{file}: unmatched detection ends {:?} conf {:.2}", d.ends_px, d.confidence);
+                }
+            }
         }
         false_det += extra;
     }

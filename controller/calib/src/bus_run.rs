@@ -164,7 +164,7 @@ pub struct BusRunData {
     /// The scenario's true trocars, metres, `{b}` (the run's ground truth; for the report).
     pub trocars_b: Vec<Vector3<f64>>,
     /// Truth lines per frame index and eye (measured-pixel segment), from the renderer.
-    pub truth_lines: Vec<[Option<([[f64; 2]; 2], vision::shaft::ImageLine)>; 2]>,
+    pub truth_lines: Vec<crate::pixels::EyeLines>,
 }
 
 /// Reads a `simrobot generate --frames` directory and matches the bus to the frames.

@@ -284,7 +284,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
         Command::FromRun { run, config, every, sigma_px, out_dir } => {
             use comanip_calib::bus_run::{read_run, to_pixel_run};
             use comanip_calib::detect::make_detector;
-            use comanip_calib::pixels::{calibrate_all, detection_stats};
+            use comanip_calib::pixels::calibrate_all;
             let cfg = match &config {
                 Some(p) => {
                     let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
@@ -332,32 +332,12 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 "| detector | truth lines | detected | angle median / p95 (°) | offset median / p95 (px) | ms per image (median) |"
             );
             let _ = writeln!(md, "|---|---|---|---|---|---|");
-            for (name, n, found, a50, a95, o50, o95, ms) in detection_stats(&pr) {
-                let _ = writeln!(
-                    md,
-                    "| {name} | {n} | {found} ({:.1} %) | {a50:.3} / {a95:.3} | {o50:.3} / {o95:.3} | {ms:.2} |",
-                    100.0 * found as f64 / n.max(1) as f64
-                );
-            }
+            md.push_str(&comanip_calib::pixels::detection_rows(&pr));
             let _ = writeln!(
                 md,
                 "\n| lines | eyes | observations | paper pipeline | our pipeline |\n|---|---|---|---|---|"
             );
-            let cell = |r: &Result<(f64, f64), String>| match r {
-                Ok((t, a)) => format!("{t:.3} mm / {a:.4}°"),
-                Err(e) => format!("failed: {e}"),
-            };
-            for r in &rows {
-                let _ = writeln!(
-                    md,
-                    "| {} | {} | {} | {} | {} |",
-                    r.source,
-                    r.eyes,
-                    r.observations,
-                    cell(&r.paper),
-                    cell(&r.ours)
-                );
-            }
+            md.push_str(&comanip_calib::pixels::calibration_rows(&rows));
             std::fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
             let path = out_dir.join("from-run.md");
             std::fs::write(&path, &md).map_err(|e| format!("{}: {e}", path.display()))?;

@@ -94,6 +94,29 @@ pub enum PixelsError {
     Write(String),
 }
 
+/// One eye's line: its two ends (measured pixels) and the line (undistorted pixels).
+pub type EyeLine = ([[f64; 2]; 2], ImageLine);
+
+/// The left and the right eye's lines of one pose (`None`: no line in that eye).
+pub type EyeLines = [Option<EyeLine>; 2];
+
+/// One detector's accuracy on a run's frames (see [`detection_stats`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DetectionStats {
+    /// The detector's name.
+    pub name: String,
+    /// Truth lines (eyes with enough shaft visible).
+    pub truth_lines: usize,
+    /// Of those, the eyes where the detector found a shaft.
+    pub detected: usize,
+    /// Angle error, degrees: median and p95.
+    pub angle_deg: [f64; 2],
+    /// Offset at the truth segment's middle, pixels: median and p95.
+    pub offset_px: [f64; 2],
+    /// Median detection time per image, milliseconds.
+    pub ms: f64,
+}
+
 /// One pose of the grid, rendered, with its lines.
 #[derive(Clone, Debug)]
 pub struct PoseLines {
@@ -103,10 +126,10 @@ pub struct PoseLines {
     pub psm_joints: [f64; 3],
     /// Per eye (left, right): the truth line's two ends (measured pixels) and its ideal line,
     /// when at least [`MIN_SHAFT_PX`] of the shaft is visible.
-    pub truth: [Option<([[f64; 2]; 2], ImageLine)>; 2],
+    pub truth: EyeLines,
     /// Per detector, per eye: the best detection's two ends (measured pixels) and centreline
     /// (undistorted pixels).
-    pub detected: Vec<[Option<([[f64; 2]; 2], ImageLine)>; 2]>,
+    pub detected: Vec<EyeLines>,
 }
 
 /// The rendered grid.
@@ -320,11 +343,7 @@ pub fn observations(run: &PixelRun, source: LineSource, both_eyes: bool) -> Vec<
 
 /// Angle (degrees) and offset (pixels, at the truth segment's middle) of a detected
 /// centreline against the truth line; `None` without both.
-pub fn line_error(
-    truth: &([[f64; 2]; 2], ImageLine),
-    detected: &ImageLine,
-    k: &estimator::calib::Intrinsics,
-) -> (f64, f64) {
+pub fn line_error(truth: &EyeLine, detected: &ImageLine, k: &estimator::calib::Intrinsics) -> (f64, f64) {
     let (t, d) = (truth.1.abc, detected.abc);
     let cos = (t[0] * d[0] + t[1] * d[1]).abs().min(1.0);
     let angle = cos.acos().to_degrees();
@@ -379,9 +398,8 @@ pub fn calibrate_all(run: &PixelRun) -> Vec<CalibRow> {
 }
 
 /// Detection accuracy of each detector on the run's frames against the truth lines (both
-/// eyes): `(name, truth lines, detected among them, median angle °, p95 angle °, median
-/// offset px, p95 offset px, median ms)`.
-pub fn detection_stats(run: &PixelRun) -> Vec<(String, usize, usize, f64, f64, f64, f64, f64)> {
+/// eyes).
+pub fn detection_stats(run: &PixelRun) -> Vec<DetectionStats> {
     let k = &run.setup.intrinsics;
     let mut out = Vec::new();
     for (i, name) in run.detectors.iter().enumerate() {
@@ -402,16 +420,14 @@ pub fn detection_stats(run: &PixelRun) -> Vec<(String, usize, usize, f64, f64, f
             v.sort_by(f64::total_cmp);
             if v.is_empty() { f64::NAN } else { v[((v.len() - 1) as f64 * f).round() as usize] }
         };
-        out.push((
-            (*name).to_string(),
-            n,
-            found,
-            q(&mut ang, 0.5),
-            q(&mut ang, 0.95),
-            q(&mut off, 0.5),
-            q(&mut off, 0.95),
-            run.detect_ms.get(i).copied().unwrap_or(f64::NAN),
-        ));
+        out.push(DetectionStats {
+            name: (*name).to_string(),
+            truth_lines: n,
+            detected: found,
+            angle_deg: [q(&mut ang, 0.5), q(&mut ang, 0.95)],
+            offset_px: [q(&mut off, 0.5), q(&mut off, 0.95)],
+            ms: run.detect_ms.get(i).copied().unwrap_or(f64::NAN),
+        });
     }
     out
 }
@@ -444,24 +460,11 @@ pub fn report_markdown(p: &PixelProtocol, run: &PixelRun, rows: &[CalibRow], com
         "| detector | truth lines | detected | angle median / p95 (°) | offset median / p95 (px) | ms per image (median) |"
     );
     let _ = writeln!(s, "|---|---|---|---|---|---|");
-    for (name, n, found, a50, a95, o50, o95, ms) in detection_stats(run) {
-        let _ = writeln!(
-            s,
-            "| {name} | {n} | {found} ({:.1} %) | {a50:.3} / {a95:.3} | {o50:.3} / {o95:.3} | {ms:.2} |",
-            100.0 * found as f64 / n.max(1) as f64
-        );
-    }
+    s.push_str(&detection_rows(run));
     let _ = writeln!(s, "\nCalibration (e_t mm / e_R °, against the truth `T_e_t`):\n");
     let _ = writeln!(s, "| lines | eyes | observations | paper pipeline | our pipeline |");
     let _ = writeln!(s, "|---|---|---|---|---|");
-    let cell = |r: &Result<(f64, f64), String>| match r {
-        Ok((t, a)) => format!("{t:.3} mm / {a:.4}°"),
-        Err(e) => format!("failed: {e}"),
-    };
-    for r in rows {
-        let _ =
-            writeln!(s, "| {} | {} | {} | {} | {} |", r.source, r.eyes, r.observations, cell(&r.paper), cell(&r.ours));
-    }
+    s.push_str(&calibration_rows(rows));
     s
 }
 
@@ -500,4 +503,41 @@ pub fn write_datasets(run: &PixelRun, p: &PixelProtocol, dir: &std::path::Path) 
         wrong_lines: vec![],
     };
     write("truth.json".into(), to_json(&t))
+}
+
+/// The rows of the detection table (Markdown, one per detector, after the header).
+pub fn detection_rows(run: &PixelRun) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    for d in detection_stats(run) {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} ({:.1} %) | {:.3} / {:.3} | {:.3} / {:.3} | {:.2} |",
+            d.name,
+            d.truth_lines,
+            d.detected,
+            100.0 * d.detected as f64 / d.truth_lines.max(1) as f64,
+            d.angle_deg[0],
+            d.angle_deg[1],
+            d.offset_px[0],
+            d.offset_px[1],
+            d.ms
+        );
+    }
+    s
+}
+
+/// The rows of the calibration table (Markdown, one per line source and eye set).
+pub fn calibration_rows(rows: &[CalibRow]) -> String {
+    use std::fmt::Write;
+    let cell = |r: &Result<(f64, f64), String>| match r {
+        Ok((t, a)) => format!("{t:.3} mm / {a:.4}°"),
+        Err(e) => format!("failed: {e}"),
+    };
+    let mut s = String::new();
+    for r in rows {
+        let _ =
+            writeln!(s, "| {} | {} | {} | {} | {} |", r.source, r.eyes, r.observations, cell(&r.paper), cell(&r.ours));
+    }
+    s
 }

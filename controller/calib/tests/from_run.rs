@@ -74,16 +74,10 @@ fn bus_joints_match_the_frames_truth_and_the_report_is_written() {
     for f in &data.frames {
         let t = truth.iter().find(|t| t["index"].as_u64() == Some(f.index as u64)).unwrap();
         let ecm = arr(&t["ecm_joints"]);
-        for k in 0..4 {
+        for (k, (got, want)) in f.ecm_joints.iter().zip(&ecm).enumerate() {
             // Encoder resolution plus at most 10 ms of interpolation of a slow arm.
             let tol = if k == 2 { 2e-4 } else { 2e-3 };
-            assert!(
-                (f.ecm_joints[k] - ecm[k]).abs() < tol,
-                "frame {}: ecm joint {k}: {} vs {}",
-                f.index,
-                f.ecm_joints[k],
-                ecm[k]
-            );
+            assert!((got - want).abs() < tol, "frame {}: ecm joint {k}: {got} vs {want}", f.index);
         }
         let q: [f64; 6] = arr(&t["tool_joints"]).try_into().unwrap();
         let axis = arm.forward(&q).unwrap().axis_base;

@@ -53,6 +53,15 @@ fn evaluate_on_rendered_frames() {
     if let Some(v) = env("OURS_CC_RATIO") {
         cfg.max_interior_chroma_ratio = v;
     }
+    if let Some(v) = env("OURS_BORDER") {
+        cfg.border_margin_px = v;
+    }
+    if let Some(v) = env("OURS_MIN_SUPPORT") {
+        cfg.min_support = v;
+    }
+    if let Some(v) = env("OURS_MAX_DEPTH") {
+        cfg.max_depth_m = v;
+    }
     if let Some(v) = env("OURS_PLUMA_W") {
         cfg.profile_luma_weight = v;
     }

@@ -112,7 +112,9 @@ pub struct OursConfig {
     /// Farthest plausible distance from the optical centre to the shaft's axis, metres
     /// (default 0.300).
     pub max_depth_m: f64,
-    /// Shortest visible shaft (both contours), undistorted pixels (default 80).
+    /// Shortest visible shaft (both contours), undistorted pixels (default 40: in the twin's
+    /// recorded runs the tool arm's shaft is often only 50–100 px visible from the image
+    /// border; a span shorter than `long_span_px` must reach the border anyway).
     pub min_length_px: f64,
     /// Edgel threshold on the half-resolution Di Zenzo gradient magnitude (chroma units
     /// `2R − G − B` per half-resolution pixel, 8-bit values; default 6).
@@ -124,7 +126,9 @@ pub struct OursConfig {
     /// contours (default 0.3: the silhouette is where the colour changes; a metal shaft's dark
     /// rim and highlights are luma edges just inside it).
     pub profile_luma_weight: f64,
-    /// Most line hypotheses kept (default 40).
+    /// Most line hypotheses kept (default 40; a shaft only 40–80 px long has fewer votes than
+    /// the long edges of bright folds and may miss the list on heavily folded tissue: 100
+    /// finds it there, at 2–3× the time).
     pub max_lines: usize,
     /// Most shafts returned (default 2).
     pub max_detections: usize,
@@ -159,7 +163,7 @@ impl Default for OursConfig {
             shaft_diameter_m: 0.008,
             min_depth_m: 0.010,
             max_depth_m: 0.300,
-            min_length_px: 80.0,
+            min_length_px: 40.0,
             edge_threshold: 6.0,
             luma_weight: 1.0,
             profile_luma_weight: 0.3,

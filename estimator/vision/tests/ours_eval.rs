@@ -2,6 +2,12 @@
 //! with a truth list (`OURS_EVAL_DIR/list.txt`: per line the `.rgb` file, then per instrument
 //! `label a b c x0 y0 x1 y1`, the true axis and its visible segment, undistorted pixels).
 //! `OURS_EVAL_DIR=DIR cargo test --release -p vision --test ours_eval -- --ignored --nocapture`
+//!
+//! Files ending in `.png` are decoded (so `simrobot generate --frames` runs are scored in
+//! place); `OURS_EVAL_LIST` names the list file instead of `DIR/list.txt`, and
+//! `OURS_EVAL_MIN_VIS` the visible length (undistorted pixels, default 100) from which a shaft
+//! counts as eligible. A frame whose list line has no instrument counts towards the false
+//! detections (any detection there is unmatched).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
@@ -47,11 +53,23 @@ fn evaluate_on_rendered_frames() {
     if let Some(v) = env("OURS_CC_RATIO") {
         cfg.max_interior_chroma_ratio = v;
     }
+    if let Some(v) = env("OURS_BORDER") {
+        cfg.border_margin_px = v;
+    }
+    if let Some(v) = env("OURS_MIN_SUPPORT") {
+        cfg.min_support = v;
+    }
+    if let Some(v) = env("OURS_MAX_DEPTH") {
+        cfg.max_depth_m = v;
+    }
     if let Some(v) = env("OURS_PLUMA_W") {
         cfg.profile_luma_weight = v;
     }
     let mut det = OursDetector::new(k, cfg).unwrap();
-    let list = std::fs::read_to_string(dir.join("list.txt")).unwrap();
+    let list_path = std::env::var_os("OURS_EVAL_LIST").map_or_else(|| dir.join("list.txt"), std::path::PathBuf::from);
+    let list = std::fs::read_to_string(list_path).unwrap();
+    let min_vis = env("OURS_EVAL_MIN_VIS").unwrap_or(100.0);
+    let mut empty_frames_with_det = 0;
     let (mut angles, mut offsets, mut times) = (Vec::new(), Vec::new(), Vec::new());
     let (mut eligible, mut found, mut false_det, mut frames) = (0, 0, 0, 0);
     let verbose = std::env::var_os("OURS_EVAL_VERBOSE").is_some();
@@ -62,7 +80,11 @@ fn evaluate_on_rendered_frames() {
             continue;
         }
         let nums: Vec<f64> = it.map(|s| s.parse().unwrap()).collect();
-        let bytes = std::fs::read(dir.join(file)).unwrap();
+        let bytes = if file.ends_with(".png") {
+            image::open(dir.join(file)).unwrap().to_rgb8().into_raw()
+        } else {
+            std::fs::read(dir.join(file)).unwrap()
+        };
         let view = RgbView::new(640, 480, &bytes).unwrap();
         let t0 = Instant::now();
         let dets = det.detect(&view).unwrap();
@@ -89,7 +111,7 @@ fn evaluate_on_rendered_frames() {
                     println!("matched conf {:.3}", dets[i].confidence);
                 }
             }
-            if len >= 100.0 {
+            if len >= min_vis {
                 eligible += 1;
                 if let Some((_, ang, off)) = best {
                     found += 1;
@@ -112,6 +134,9 @@ fn evaluate_on_rendered_frames() {
             }
         }
         false_det += extra;
+        if nums.is_empty() && !dets.is_empty() {
+            empty_frames_with_det += 1;
+        }
     }
     let med = |v: &mut Vec<f64>| {
         v.sort_by(f64::total_cmp);
@@ -120,7 +145,7 @@ fn evaluate_on_rendered_frames() {
     let p90 = |v: &Vec<f64>| if v.is_empty() { f64::NAN } else { v[(v.len() * 9) / 10] };
     let (ma, mo, mt) = (med(&mut angles), med(&mut offsets), med(&mut times));
     println!(
-        "frames {frames}: detected {found}/{eligible} eligible shafts ({:.1} %), median angle {ma:.4}° (p90 {:.4}), median offset {mo:.3} px (p90 {:.3}), unmatched detections {false_det}, median time {mt:.2} ms (max {:.2})",
+        "frames {frames}: detected {found}/{eligible} eligible shafts ({:.1} %), median angle {ma:.4}° (p90 {:.4}), median offset {mo:.3} px (p90 {:.3}), unmatched detections {false_det} (frames without instrument but with a detection: {empty_frames_with_det}), median time {mt:.2} ms (max {:.2})",
         100.0 * found as f64 / eligible.max(1) as f64,
         p90(&angles),
         p90(&offsets),

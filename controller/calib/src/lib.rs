@@ -6,8 +6,11 @@
 //! - [`residual_plot`]: the residual figure of `calibrate --plot` (SVG).
 //! - [`sweep`]: the paper's simulation protocol sweeps (σ, n_e × n_t, random initial
 //!   quaternions) to a Markdown table and SVG box plots.
+//! - [`generalise`]: the generalisation protocol on random scene geometries
+//!   (`sweep --geometries N`), tuning and held-out sets.
 
 pub mod convert;
+pub mod generalise;
 pub mod residual_plot;
 pub mod run;
 pub mod sweep;

@@ -54,8 +54,8 @@ pub struct PreparedSet {
     pub hand_eye_inv_adjoint: Matrix6<f64>,
     /// The camera intrinsics (pixels; image size for the border guard).
     pub intrinsics: super::Intrinsics,
-    /// [`Setup::min_shaft_px`](super::Setup::min_shaft_px), pixels.
-    pub min_shaft_px: f64,
+    /// [`Setup::selection`](super::Setup::selection): the detector's acceptance rule.
+    pub selection: super::SelectionRule,
     /// Distinct views of robot 1 (distinct optical centres), counted up to the first 2.
     pub views: usize,
     /// Distinct orientations of robot 2's tool, counted up to the first 3.
@@ -88,9 +88,9 @@ pub enum PrepareError {
         /// What is wrong with the line.
         source: LineError,
     },
-    /// The selection's minimum visible shaft is negative or not finite.
-    #[error("min_shaft_px must be finite and ≥ 0 (got {0})")]
-    MinShaft(f64),
+    /// The selection rule's lengths are negative or not finite.
+    #[error("selection rule: min_visible_shaft_px and border_margin_px must be finite and ≥ 0 (got {0:?})")]
+    Selection(super::SelectionRule),
     /// Degenerate: robot 1 (the endoscope) was seen from fewer than two views, so the depth
     /// of robot 2's RCM cannot be recovered.
     #[error(
@@ -126,8 +126,8 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
     if !finite_iso(&setup.hand_eye) {
         return Err(PrepareError::HandEye);
     }
-    if !(setup.min_shaft_px.is_finite() && setup.min_shaft_px >= 0.0) {
-        return Err(PrepareError::MinShaft(setup.min_shaft_px));
+    if !setup.selection.is_valid() {
+        return Err(PrepareError::Selection(setup.selection));
     }
     let k_inv = setup.intrinsics.k_inv();
     let mut obs = Vec::with_capacity(observations.len());
@@ -171,7 +171,7 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
         hand_eye: setup.hand_eye,
         hand_eye_inv_adjoint: inverse_adjoint(&setup.hand_eye),
         intrinsics: setup.intrinsics,
-        min_shaft_px: setup.min_shaft_px,
+        selection: setup.selection,
         views,
         orientations,
     })

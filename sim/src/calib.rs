@@ -374,7 +374,8 @@ pub struct RandomGeometryError {
 ///   scope axis at a random azimuth, aimed at a working point 80-260 mm deep on the scope
 ///   axis, with a random twist about the tool axis;
 /// - a 640×480 camera with a 60-90° horizontal field of view, radial/tangential distortion
-///   when `distortion` (k1 −0.3..−0.05, k2 0..0.1, p1, p2 ±0.002), a random small hand-eye;
+///   when `distortion` (k1 −0.3..−0.05, k2 0..0.1, p1, p2 ±0.002; redrawn unless the
+///   undistortion converges over the whole image), a random small hand-eye;
 /// - joint ranges: ECM yaw/pitch ±4° up to ±30 % of the half field of view, roll ±10-30°,
 ///   insertion putting the camera 40-120 mm from the working point; PSM yaw/pitch ±5-12°;
 ///   kept only when the tool stays in view (below);
@@ -458,6 +459,18 @@ pub fn random_geometry(seed: u64, distortion: bool) -> Result<GeometryDraw, Rand
             psm_insertion_m: reach,
             selection: SelectionRule { min_visible_shaft_px: 40.0, border_margin_px: 0.0, require_tip_in_view: false },
         };
+        // The lens model must be invertible over the whole image (undistortion converges).
+        let k = &geometry.intrinsics;
+        let invertible = [(0.0, 0.0), (639.0, 0.0), (0.0, 479.0), (639.0, 479.0), (319.5, 0.0), (0.0, 239.5)]
+            .iter()
+            .all(|&(u, v)| {
+                let p = Vector2::new(u, v);
+                let back = k.distort_px(&k.undistort_px(&p));
+                (back - p).norm() < 1e-3
+            });
+        if !invertible {
+            continue;
+        }
         let clean = generate_calibration(&CalibProtocol {
             geometry,
             n_e: 3,

@@ -159,9 +159,9 @@ fn calibrate_with_opencv_intrinsics_and_one_pipeline() {
     let r = parse_result(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
     assert_eq!(r.results.len(), 1);
     assert_eq!(r.results[0].pipeline, "ours");
-    assert!(r.results[0].ambiguity_ratio.unwrap() > 1.0);
+    assert!(r.results[0].log_likelihood_ratio.unwrap() > 1.0 && r.results[0].ambiguity_ratio.is_none());
     // The dataset carries its noise model and selection: the selection-aware stage ran.
-    assert!(d.noise_model.is_some() && d.min_shaft_px > 0.0);
+    assert!(d.noise_model.is_some() && d.selection.is_some() && d.min_shaft_px.is_none());
     let stage = r.results[0].selection_stage.as_ref().expect("selection stage recorded");
     assert!(stage.applied && stage.refused.is_none(), "{stage:?}");
     assert_eq!(stage.selected + stage.plain + stage.left_out, d.observations.len());

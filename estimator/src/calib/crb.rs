@@ -191,7 +191,7 @@ pub fn selected_bound(
         let (m, s4) = line_tip_noise(&set, o, &r, &t, &tp, noise);
         let TipGivenLine { srr_inv, stt, gain, cond } = tip_given_line(&s4).ok_or(CrbError::Singular)?;
         fisher0 += jr.transpose() * srr_inv * jr;
-        let (lo, hi) = kept_box(&set, &tp.dir_px);
+        let (lo, hi) = kept_box(&set, &tp.dir_px, &tp.pixel.px);
         let (lo0, hi0) = (lo - tp.pixel.px, hi - tp.pixel.px);
         // Kept ⇔ e(pose) ∈ [lo − û(pose), hi − û(pose)] = [lo0, hi0] + jt Δ.
         let p0 = box_probability(&stt, &lo0, &hi0);

@@ -320,6 +320,39 @@ fn refine(
     Refined { r, t, whiten, scale, iterations }
 }
 
+/// True when `pose` is within `sigmas` standard deviations (Mahalanobis, `fit`'s covariance)
+/// of `fit`'s pose.
+fn within(fit: &OursResult, pose: &Isometry3<f64>, sigmas: f64) -> bool {
+    let mut d = Vector6::zeros();
+    d.fixed_rows_mut::<3>(0).copy_from(&(pose.translation.vector - fit.pose.translation.vector));
+    d.fixed_rows_mut::<3>(3).copy_from(&(pose.rotation * fit.pose.rotation.inverse()).scaled_axis());
+    match fit.covariance.try_inverse() {
+        Some(info) => d.dot(&(info * d)).max(0.0).sqrt() <= sigmas,
+        None => false,
+    }
+}
+
+/// At most this many other minima of Eq. 10 are refined as extra starts.
+const MAX_EXTRA_STARTS: usize = 3;
+
+/// The 24 rotations of the cube (signed permutation matrices with determinant +1).
+fn cube_group() -> Vec<Matrix3<f64>> {
+    let perms = [[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]];
+    let mut out = Vec::with_capacity(24);
+    for p in perms {
+        for signs in 0..8u8 {
+            let mut m = Matrix3::zeros();
+            for (row, col) in p.iter().enumerate() {
+                m[(row, *col)] = if signs & (1 << row) != 0 { -1.0 } else { 1.0 };
+            }
+            if m.determinant() > 0.0 {
+                out.push(m);
+            }
+        }
+    }
+    out
+}
+
 fn pose_of(r: &Matrix3<f64>, t: &Vector3<f64>) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::from(*t), UnitQuaternion::from_matrix(r))
 }
@@ -495,6 +528,9 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         kept_before = obs.len();
         let sub = PreparedSet { obs, ..set.clone() };
         match solve_once(&sub, cfg, Some(&result.pose)) {
+            // A guarded refit must stay within the full fit's confidence region (the guard
+            // removes a bias, it does not find another solution); else the guard stops.
+            Ok(next) if !within(&result, &next.pose, SelectionConfig::default().max_shift_sigmas) => break,
             Ok(mut next) => {
                 next.guard_kept = sub.obs.len();
                 next.alternative = result.alternative;
@@ -574,6 +610,24 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         }
         starts.push(UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner());
     }
+    // The other minima of Eq. 10 (cheap: four parameters): polished from the 24 rotations of
+    // the cube group applied to the linear start, kept when distinct, by increasing cost; the
+    // linear start alone can sit in the wrong basin when the tool's directions span a narrow
+    // cone.
+    let mut extra: Vec<Matrix3<f64>> = Vec::new();
+    if let Some(r_lin) = &linear {
+        let mut minima: Vec<(f64, Matrix3<f64>)> = Vec::new();
+        for g in cube_group() {
+            let (q, cost, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_matrix(&(g * r_lin))));
+            let r = q.to_rotation_matrix().into_inner();
+            let seen = |m: &Matrix3<f64>| Rotation3::from_matrix_unchecked(m.transpose() * r).angle() < DISTINCT_SOLUTION_RAD;
+            if cost.is_finite() && !seen(r_lin) && !minima.iter().any(|(_, m)| seen(m)) {
+                minima.push((cost, r));
+            }
+        }
+        minima.sort_by(|a, b| a.0.total_cmp(&b.0));
+        extra = minima.into_iter().take(MAX_EXTRA_STARTS).map(|(_, r)| r).collect();
+    }
     match linear {
         Some(r) => starts.push(r),
         None if starts.is_empty() => {
@@ -583,7 +637,6 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         }
         None => {}
     }
-    // Each start and its mirror: 180° about the mean line of sight to robot 2's RCM.
     // Each start and its 180° turns about the line of sight to robot 2's RCM and about the
     // three axes of the mean tool direction's frame (the tool axis, its component across the
     // line of sight, their normal): a line cannot tell the tool's direction from its opposite,
@@ -609,6 +662,7 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     let candidates: Vec<Refined> = starts
         .iter()
         .flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) })
+        .chain(extra.iter().copied())
         .map(|r0| {
             let first = refine(set, cfg, w0.clone(), r0, t0);
             if cfg.noise.is_none() {

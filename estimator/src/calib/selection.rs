@@ -145,12 +145,12 @@ pub fn tip_well_inside(
     if !set.selection.require_tip_in_view {
         // The rule's region is not a box: kept with at least the probability of k standard
         // deviations on one side.
-        let (lo, hi) = kept_box(set, &tp.dir_px);
+        let (lo, hi) = kept_box(set, &tp.dir_px, &tp.pixel.px);
         let p = swept_box_probability(&cov, &(lo - tp.pixel.px), &(hi - tp.pixel.px), &tp.dir_px);
         return p >= normal_mass(-40.0, k);
     }
     let (u, v) = (tp.pixel.px.x, tp.pixel.px.y);
-    let (lo, hi) = kept_box(set, &Vector2::zeros());
+    let (lo, hi) = kept_box(set, &Vector2::zeros(), &tp.pixel.px);
     let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
     u - su >= lo.x && v - sv >= lo.y && u + su <= hi.x && v + sv <= hi.y
 }
@@ -166,11 +166,30 @@ pub fn relative_depth_sd(tp: &TipProjection, noise: &KinematicNoise) -> f64 {
 /// The box (ideal pixels, `(lo, hi)`) of points from which, along image direction `dir_px`
 /// (unit, from the tip toward robot 2's RCM), `min_visible_shaft_px` of shaft lies inside the
 /// image shrunk by `border_margin_px`: with `require_tip_in_view`, where the tip must lie.
-pub fn kept_box(set: &PreparedSet, dir_px: &Vector2<f64>) -> (Vector2<f64>, Vector2<f64>) {
+///
+/// With lens distortion the image border is curved in ideal pixels: each edge is placed where
+/// the border crosses the row or column of `near` (ideal pixels, typically the predicted tip,
+/// clamped into the image), a local approximation.
+pub fn kept_box(set: &PreparedSet, dir_px: &Vector2<f64>, near: &Vector2<f64>) -> (Vector2<f64>, Vector2<f64>) {
+    let k = &set.intrinsics;
     let m = set.selection.border_margin_px;
-    let (w, h) = (set.intrinsics.width as f64 - 1.0 - m, set.intrinsics.height as f64 - 1.0 - m);
+    let (w, h) = (k.width as f64 - 1.0 - m, k.height as f64 - 1.0 - m);
+    let (mut lo, mut hi) = (Vector2::new(m, m), Vector2::new(w, h));
+    if !k.is_undistorted() {
+        let d = k.distort_px(near);
+        let d = Vector2::new(d.x.clamp(m, w), d.y.clamp(m, h));
+        let edges = [
+            k.undistort_px(&Vector2::new(m, d.y)).x,
+            k.undistort_px(&Vector2::new(d.x, m)).y,
+            k.undistort_px(&Vector2::new(w, d.y)).x,
+            k.undistort_px(&Vector2::new(d.x, h)).y,
+        ];
+        if edges.iter().all(|e| e.is_finite()) && edges[0] < edges[2] && edges[1] < edges[3] {
+            (lo, hi) = (Vector2::new(edges[0], edges[1]), Vector2::new(edges[2], edges[3]));
+        }
+    }
     let s = dir_px * set.selection.min_visible_shaft_px;
-    (Vector2::new(m.max(m - s.x), m.max(m - s.y)), Vector2::new(w.min(w - s.x), h.min(h - s.y)))
+    (Vector2::new(lo.x.max(lo.x - s.x), lo.y.max(lo.y - s.y)), Vector2::new(hi.x.min(hi.x - s.x), hi.y.min(hi.y - s.y)))
 }
 
 /// Probability that `x ~ N(0, s)` (2-D, pixels²) lies in the box `[lo, hi]` swept backward
@@ -543,12 +562,12 @@ fn model_at(
     }
     let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
     let Some(TipGivenLine { srr_inv, stt, gain, cond }) = tip_given_line(&s4) else { return Model::Out };
-    let (lo, hi) = kept_box(set, &tp.dir_px);
+    let (lo, hi) = kept_box(set, &tp.dir_px, &tp.pixel.px);
     let Some(mut u) = (o.px[1] - o.px[0]).try_normalize(1e-12) else { return Model::Plain(srr_inv) };
     if u.dot(&tp.dir_px) < 0.0 {
         u = -u;
     }
-    let (blo, bhi) = kept_box(set, &u);
+    let (blo, bhi) = kept_box(set, &u, &tp.pixel.px);
     match clip_line_to_box(&o.px[0], &u, &blo, &bhi) {
         // Without the tip in view, the tip may be anywhere on the line before the box.
         Some((s_lo, s_hi)) => {

@@ -101,6 +101,15 @@ pub enum OursError {
         /// Smallest over largest eigenvalue of Eq. 5's normal matrix.
         ratio: f64,
     },
+    /// Degenerate: the observed lines form one pencil (see
+    /// [`PaperError::LinesFormOnePencil`](super::paper::PaperError::LinesFormOnePencil)).
+    #[error(
+        "degenerate data: the observed lines form a single pencil (identical, parallel or concurrent; eigenvalue ratio of the plane normals {ratio:.1e}); check the line detector"
+    )]
+    LinesFormOnePencil {
+        /// Smallest over largest eigenvalue of `Σ n_c n_cᵀ` (camera frame).
+        ratio: f64,
+    },
     /// Degenerate: no initial rotation can be formed (tool orientations coplanar or each
     /// seen from a single view).
     #[error("degenerate data: the tool rotation is unobservable from these orientations ({detail})")]
@@ -584,6 +593,7 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         Some(p) => p.translation.vector,
         None => linear_translation(set).map_err(|e| match e {
             PaperError::ViewsCollinear { ratio } => OursError::ViewsCollinear { ratio },
+            PaperError::LinesFormOnePencil { ratio } => OursError::LinesFormOnePencil { ratio },
             _ => OursError::Singular,
         })?,
     };

@@ -737,7 +737,11 @@ mod tests {
             hand_eye: TransformJson { translation_m: [0.0, 0.0, 0.001], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] },
             noise_model: None,
             min_shaft_px: None,
-            selection: Some(SelectionRule { min_visible_shaft_px: 40.0, border_margin_px: 2.0, require_tip_in_view: false }),
+            selection: Some(SelectionRule {
+                min_visible_shaft_px: 40.0,
+                border_margin_px: 2.0,
+                require_tip_in_view: false,
+            }),
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],
                 psm_joints: [0.0, 0.1, 0.1],
@@ -833,12 +837,18 @@ mod tests {
         // Both, a negative length, an unknown rule key: named errors.
         let mut both = d.clone();
         both.min_shaft_px = Some(1.0);
-        assert!(matches!(parse_dataset(&to_json(&both)), Err(CalibFileError::Field { field, .. }) if field == "min_shaft_px"));
+        assert!(
+            matches!(parse_dataset(&to_json(&both)), Err(CalibFileError::Field { field, .. }) if field == "min_shaft_px")
+        );
         let mut neg = d.clone();
         neg.selection = Some(SelectionRule { min_visible_shaft_px: -1.0, ..SelectionRule::default() });
-        assert!(matches!(parse_dataset(&to_json(&neg)), Err(CalibFileError::Field { field, .. }) if field == "selection"));
+        assert!(
+            matches!(parse_dataset(&to_json(&neg)), Err(CalibFileError::Field { field, .. }) if field == "selection")
+        );
         let unknown = text.replacen("\"require_tip_in_view\"", "\"tip_colour\": 1, \"require_tip_in_view\"", 1);
-        assert!(matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("tip_colour")));
+        assert!(
+            matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("tip_colour"))
+        );
     }
 
     #[test]
@@ -847,7 +857,11 @@ mod tests {
             format: RESULT_FORMAT.into(),
             version: CALIB_FILE_VERSION,
             results: vec![],
-            failures: vec![PipelineFailureJson { pipeline: "ours".into(), kind: "ambiguous".into(), error: "x".into() }],
+            failures: vec![PipelineFailureJson {
+                pipeline: "ours".into(),
+                kind: "ambiguous".into(),
+                error: "x".into(),
+            }],
         };
         let text = to_json(&r);
         assert!(text.contains("\"failures\""), "{text}");

@@ -488,7 +488,12 @@ pub fn random_geometry(seed: u64, distortion: bool) -> Result<GeometryDraw, Rand
             }
         }
         if clean.observations.len() * 2 >= clean.generated && orientations.len() == 9 {
-            return Ok(GeometryDraw { geometry, rcm_distance_m: dist, tool_scope_angle_rad: theta, distorted: distortion });
+            return Ok(GeometryDraw {
+                geometry,
+                rcm_distance_m: dist,
+                tool_scope_angle_rad: theta,
+                distorted: distortion,
+            });
         }
     }
     Err(RandomGeometryError { attempts: ATTEMPTS, seed })

@@ -103,7 +103,8 @@ fn the_visible_shaft_region_probability_matches_sampling() {
         let n = 200_000;
         let mut inside = 0;
         for _ in 0..n {
-            let z = Vector2::new(rng.sample::<f64, _>(rand_distr::StandardNormal), rng.sample(rand_distr::StandardNormal));
+            let z =
+                Vector2::new(rng.sample::<f64, _>(rand_distr::StandardNormal), rng.sample(rand_distr::StandardNormal));
             let x = ch * z;
             // In the swept box: the ray x + a d, a ≥ 0, meets the box.
             let hit = estimator::calib::selection::clip_line_to_box(&x, &d, &lo, &hi).is_some_and(|(_, b)| b >= 0.0);

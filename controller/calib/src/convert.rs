@@ -27,10 +27,9 @@ pub fn transform_json(t: &Isometry3<f64>) -> TransformJson {
 /// selection rule, [`DatasetFile::selection_rule`], checked by `parse_dataset`; an invalid one
 /// here falls back to the default and is refused by `prepare`).
 pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoise>) {
-    let selection = d.selection_rule().unwrap_or(estimator::calib::SelectionRule {
-        min_visible_shaft_px: f64::NAN,
-        ..Default::default()
-    });
+    let selection = d
+        .selection_rule()
+        .unwrap_or(estimator::calib::SelectionRule { min_visible_shaft_px: f64::NAN, ..Default::default() });
     let setup = Setup { intrinsics: d.intrinsics, hand_eye: isometry(&d.hand_eye), selection };
     let obs = d
         .observations

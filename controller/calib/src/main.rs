@@ -104,7 +104,7 @@ enum Command {
         #[arg(long, default_value_t = 1000)]
         seed: u64,
         /// Run the generalisation protocol instead: this many random scene geometries per set
-        /// (tuning seeds 7000.., held-out seeds 9000..), `--trials` each, writing
+        /// (tuning seeds 9000.., held-out seeds 7000..), `--trials` each, writing
         /// generalisation.md.
         #[arg(long)]
         geometries: Option<usize>,

@@ -10,8 +10,7 @@ use estimator::calib::prepare::{PrepareError, prepare};
 use estimator::calib::{PoseErrors, pose_errors};
 use hw_io::calib_files::{
     CALIB_FILE_VERSION, CalibFileError, IntrinsicsFileError, PipelineFailureJson, RESULT_FORMAT, ResultFile,
-    TRUTH_FORMAT, TruthFile,
-    parse_dataset, parse_intrinsics_yaml, parse_truth, to_json,
+    TRUTH_FORMAT, TruthFile, parse_dataset, parse_intrinsics_yaml, parse_truth, to_json,
 };
 use sim::calib::{CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, corrupt_lines, generate_calibration};
 
@@ -254,7 +253,13 @@ pub fn calibrate(
     let mut failures = Vec::new();
     let mut fail = |name: &'static str, kind: &str, error: String, summaries: &mut Vec<CalibrateSummary>, ms: f64| {
         failures.push(PipelineFailureJson { pipeline: name.into(), kind: kind.into(), error: error.clone() });
-        summaries.push(CalibrateSummary { pipeline: name, errors: None, solve_ms: ms, warning: None, failure: Some(error) });
+        summaries.push(CalibrateSummary {
+            pipeline: name,
+            errors: None,
+            solve_ms: ms,
+            warning: None,
+            failure: Some(error),
+        });
     };
     let set = match prepare(&setup, &obs) {
         Ok(set) => Some(set),
@@ -313,9 +318,21 @@ pub fn calibrate(
                                 kind: "selection_refused".into(),
                                 error: msg.clone(),
                             });
-                            summaries.push(CalibrateSummary { pipeline: "ours", errors, solve_ms: ms, warning: None, failure: Some(msg) });
+                            summaries.push(CalibrateSummary {
+                                pipeline: "ours",
+                                errors,
+                                solve_ms: ms,
+                                warning: None,
+                                failure: Some(msg),
+                            });
                         }
-                        warning => summaries.push(CalibrateSummary { pipeline: "ours", errors, solve_ms: ms, warning, failure: None }),
+                        warning => summaries.push(CalibrateSummary {
+                            pipeline: "ours",
+                            errors,
+                            solve_ms: ms,
+                            warning,
+                            failure: None,
+                        }),
                     }
                 }
                 Err(e) => fail("ours", ours_kind(&e), format!("our pipeline: {e}"), &mut summaries, ms),

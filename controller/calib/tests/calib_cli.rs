@@ -244,7 +244,12 @@ fn quick_sweep_writes_table_and_plots() {
     }
 }
 
-fn calibrate(dir: &Path, dataset: &str, pipeline: &str, extra: &[&str]) -> (std::process::Output, hw_io::calib_files::ResultFile) {
+fn calibrate(
+    dir: &Path,
+    dataset: &str,
+    pipeline: &str,
+    extra: &[&str],
+) -> (std::process::Output, hw_io::calib_files::ResultFile) {
     let out = bin()
         .arg("calibrate")
         .arg("--dataset")

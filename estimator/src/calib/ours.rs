@@ -128,9 +128,9 @@ pub enum OursError {
     )]
     Ambiguous {
         /// The best candidate.
-        best: Candidate,
+        best: Box<Candidate>,
         /// The runner-up.
-        runner_up: Candidate,
+        runner_up: Box<Candidate>,
         /// `runner_up.nll − best.nll` (natural log, ≥ 0, finite).
         log_likelihood_ratio: f64,
         /// The configured minimum.
@@ -411,7 +411,8 @@ fn runner_up(
     nll_of: &dyn Fn(&Matrix3<f64>, &Vector3<f64>) -> f64,
 ) -> (Isometry3<f64>, f64) {
     let best = &candidates[ib];
-    let distinct = |r: &Matrix3<f64>| Rotation3::from_matrix_unchecked(best.r.transpose() * r).angle() > DISTINCT_SOLUTION_RAD;
+    let distinct =
+        |r: &Matrix3<f64>| Rotation3::from_matrix_unchecked(best.r.transpose() * r).angle() > DISTINCT_SOLUTION_RAD;
     let alt = (0..candidates.len())
         .filter(|i| *i != ib && costs[*i].is_finite() && distinct(&candidates[*i].r))
         .min_by(|a, b| costs[*a].total_cmp(&costs[*b]));
@@ -630,7 +631,8 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         for g in cube_group() {
             let (q, cost, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_matrix(&(g * r_lin))));
             let r = q.to_rotation_matrix().into_inner();
-            let seen = |m: &Matrix3<f64>| Rotation3::from_matrix_unchecked(m.transpose() * r).angle() < DISTINCT_SOLUTION_RAD;
+            let seen =
+                |m: &Matrix3<f64>| Rotation3::from_matrix_unchecked(m.transpose() * r).angle() < DISTINCT_SOLUTION_RAD;
             if cost.is_finite() && !seen(r_lin) && !minima.iter().any(|(_, m)| seen(m)) {
                 minima.push((cost, r));
             }
@@ -707,8 +709,8 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     let best_pose = pose_of(&best.r, &best.t);
     if from.is_none() && llr < cfg.min_log_likelihood_ratio {
         return Err(OursError::Ambiguous {
-            best: Candidate { pose: best_pose, nll: c_best },
-            runner_up: Candidate { pose: alt_pose, nll: c_alt },
+            best: Box::new(Candidate { pose: best_pose, nll: c_best }),
+            runner_up: Box::new(Candidate { pose: alt_pose, nll: c_alt }),
             log_likelihood_ratio: llr,
             min: cfg.min_log_likelihood_ratio,
             angle_deg: (best_pose.rotation.inverse() * alt_pose.rotation).angle().to_degrees(),

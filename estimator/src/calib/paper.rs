@@ -97,7 +97,7 @@ pub fn linear_translation(set: &PreparedSet) -> Result<Vector3<f64>, PaperError>
     if ratio.is_nan() || ratio <= RANK_TOLERANCE {
         return Err(PaperError::ViewsCollinear { ratio });
     }
-    if !(set.pencil_ratio >= super::prepare::PENCIL_TOLERANCE) {
+    if set.pencil_ratio.is_nan() || set.pencil_ratio < super::prepare::PENCIL_TOLERANCE {
         return Err(PaperError::LinesFormOnePencil { ratio: set.pencil_ratio });
     }
     // Solve through the eigen-decomposition (already computed, well conditioned here).

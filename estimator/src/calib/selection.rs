@@ -207,11 +207,13 @@ pub fn swept_box_probability(s: &Matrix2<f64>, lo: &Vector2<f64>, hi: &Vector2<f
     }
     let sd_w = sww.sqrt();
     let cond_sd = (saa - saw * saw / sww).max(1e-18).sqrt();
-    let corners = [Vector2::new(lo.x, lo.y), Vector2::new(hi.x, lo.y), Vector2::new(lo.x, hi.y), Vector2::new(hi.x, hi.y)];
+    let corners =
+        [Vector2::new(lo.x, lo.y), Vector2::new(hi.x, lo.y), Vector2::new(lo.x, hi.y), Vector2::new(hi.x, hi.y)];
     let ws: [f64; 4] = corners.map(|c| n.dot(&c));
-    let (wmin, wmax) = (ws.iter().copied().fold(f64::INFINITY, f64::min), ws.iter().copied().fold(f64::NEG_INFINITY, f64::max));
+    let (wmin, wmax) =
+        (ws.iter().copied().fold(f64::INFINITY, f64::min), ws.iter().copied().fold(f64::NEG_INFINITY, f64::max));
     let (a, b) = (wmin.max(-7.0 * sd_w), wmax.min(7.0 * sd_w));
-    if !(a < b) {
+    if a.is_nan() || b.is_nan() || a >= b {
         return 0.0;
     }
     let mut cuts: heapless::Vec<f64, 16> = heapless::Vec::new();

@@ -1,5 +1,11 @@
 //! Calibration on random scene geometries: the generator, no mirror from a linear start in the
 //! wrong basin, the typed ambiguity, degenerate lines, the visible-shaft selection region.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    reason = "test code (helpers too): a panic is a failed test"
+)]
 
 use estimator::calib::ours::{DEFAULT_MIN_LOG_LIKELIHOOD_RATIO, OursConfig, OursError, solve_ours_prepared};
 use estimator::calib::paper::{PaperConfig, PaperError, solve_paper_prepared};

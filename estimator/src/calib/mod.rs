@@ -24,10 +24,12 @@
 //! - [`residual`]: the residual model (image distances in pixels, their Jacobians and
 //!   covariance, the damped step), shared by what follows.
 //! - [`paper`]: the paper's pipeline, faithful (Eq. 5, Eq. 7-9, Eq. 10).
-//! - [`selection`]: the selection of observations (a line is recorded only when the tool tip
-//!   is in view) as a likelihood, and our pipeline's final, selection-aware stage.
-//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, the
-//!   near-180° ambiguity detected and resolved; ends with the selection stage.
+//! - [`selection`]: the detector's acceptance rule ([`SelectionRule`]: visible shaft length,
+//!   border margin, tip in view or not) as a likelihood, and our pipeline's final,
+//!   selection-aware stage.
+//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, candidates
+//!   compared by their likelihood with a typed refusal when the runner-up cannot be ruled out;
+//!   ends with the selection stage.
 //! - [`crb`]: the Cramér-Rao bounds for a geometry and a kinematic noise model, without and
 //!   with the selection.
 //!

@@ -341,6 +341,12 @@ fn within(fit: &OursResult, pose: &Isometry3<f64>, sigmas: f64) -> bool {
     }
 }
 
+/// Candidates more than this (natural log, 10× the default ambiguity threshold) less likely
+/// than the best after the first pass skip the second pass: the whitening refresh moves a
+/// candidate's negative log-likelihood by far less, so they can be neither the result nor a
+/// runner-up close enough to matter.
+const SECOND_PASS_MARGIN_NATS: f64 = 10.0 * DEFAULT_MIN_LOG_LIKELIHOOD_RATIO;
+
 /// At most this many other minima of Eq. 10 are refined as extra starts.
 const MAX_EXTRA_STARTS: usize = 3;
 
@@ -671,25 +677,41 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     // Whitening is held fixed while candidates are refined (the same weights for all); it is
     // refreshed once at each candidate's solution for a second pass.
     let w0 = whitening(set, cfg, starts.last().unwrap_or(&Matrix3::identity()), &t0);
-    let candidates: Vec<Refined> = starts
+    let firsts: Vec<Refined> = starts
         .iter()
         .flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) })
         .chain(extra.iter().copied())
-        .map(|r0| {
-            let first = refine(set, cfg, w0.clone(), r0, t0);
-            if cfg.noise.is_none() {
-                return first;
-            }
-            // Second pass with the whitening refreshed at this candidate's solution.
-            let w1 = whitening(set, cfg, &first.r, &first.t);
-            let second = refine(set, cfg, w1, first.r, first.t);
-            Refined { whiten: w0.clone(), ..second }
-        })
+        .map(|r0| refine(set, cfg, w0.clone(), r0, t0))
         .collect();
+    let finite = |x: &Refined| x.t.iter().chain(x.r.iter()).all(|v| v.is_finite());
+    let candidates: Vec<Refined> = if cfg.noise.is_none() {
+        firsts
+    } else {
+        // A second pass with the whitening refreshed at each candidate's solution, for the
+        // candidates within [`SECOND_PASS_MARGIN_NATS`] of the best after the first pass (the
+        // others keep their first-pass pose and are compared as they are).
+        let s0 = firsts.iter().filter(|x| finite(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
+        let nll0: Vec<f64> = firsts
+            .iter()
+            .map(|x| if finite(x) && s0.is_finite() { candidate_nll(set, cfg, &x.r, &x.t, s0) } else { f64::INFINITY })
+            .collect();
+        let best0 = nll0.iter().copied().fold(f64::INFINITY, f64::min);
+        firsts
+            .into_iter()
+            .zip(nll0)
+            .map(|(first, c)| {
+                if c > best0 + SECOND_PASS_MARGIN_NATS {
+                    return first;
+                }
+                let w1 = whitening(set, cfg, &first.r, &first.t);
+                let second = refine(set, cfg, w1, first.r, first.t);
+                Refined { whiten: w0.clone(), ..second }
+            })
+            .collect()
+    };
     // Candidates are compared by their likelihood on all observations, each with its own
     // residual covariance (the log-determinant keeps a pose from winning by inflating its
     // own predicted noise), at one common robust scale. Nothing depends on the scene's scale.
-    let finite = |x: &Refined| x.t.iter().chain(x.r.iter()).all(|v| v.is_finite());
     let s_ref = candidates.iter().filter(|x| finite(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
     if !s_ref.is_finite() {
         return Err(OursError::NoConvergence);

@@ -11,6 +11,8 @@ use serde::{Deserialize, Serialize};
 /// estimator's own type, so that no field is copied across.
 pub use estimator::calib::Eye;
 pub use estimator::calib::Intrinsics as CameraIntrinsics;
+/// The line detector's acceptance rule in a dataset: the estimator's own type.
+pub use estimator::calib::SelectionRule;
 
 /// Why an intrinsics YAML file was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -229,11 +231,16 @@ pub struct DatasetFile {
     /// Optional kinematic noise model (weights our pipeline).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_model: Option<NoiseJson>,
-    /// How observations were selected: recorded only when the tool tip is in the image and
-    /// at least this much shaft (pixels, ≥ 0) is visible from it; default 0 (the tip in the
-    /// image only). Our pipeline models the selection.
-    #[serde(default)]
-    pub min_shaft_px: f64,
+    /// Legacy (version-1 files before `selection`): the tip in the image and at least this much
+    /// shaft (pixels) visible from it, i.e. `selection` with `require_tip_in_view: true`. Read,
+    /// never written; refused together with `selection`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_shaft_px: Option<f64>,
+    /// The line detector's acceptance rule, which our pipeline models (see
+    /// `estimator::calib::SelectionRule`); absent: `min_shaft_px`'s rule if given, else the
+    /// default rule (visible shaft only, tip not required).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub selection: Option<SelectionRule>,
     /// The observations.
     pub observations: Vec<ObservationJson>,
 }
@@ -303,8 +310,14 @@ pub struct PipelineResultJson {
     /// Covariance of `(tx, ty, tz m, φx, φy, φz rad)` (left rotation increment in robot 1's
     /// RCM frame), row-major 6×6; `null` for the paper pipeline.
     pub covariance: Option<[[f64; 6]; 6]>,
-    /// Cost of the mirrored (≈180°) candidate over the chosen one (ours only).
+    /// Legacy (before `log_likelihood_ratio`): cost ratio of the mirrored candidate. Read,
+    /// never written.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ambiguity_ratio: Option<f64>,
+    /// Ours: negative log-likelihood of the runner-up (typically the mirror) minus the
+    /// result's (natural log, finite, ≥ 0; large = unambiguous).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub log_likelihood_ratio: Option<f64>,
     /// Solve time, milliseconds.
     pub solve_ms: f64,
     /// Ours with a noise model: what its selection-aware stage did (absent otherwise).
@@ -340,8 +353,24 @@ pub struct ResultFile {
     pub format: String,
     /// Always [`CALIB_FILE_VERSION`].
     pub version: u32,
-    /// One entry per pipeline run.
+    /// One entry per pipeline that produced a pose (a pipeline listed in `failures` too
+    /// produced only an unrefined estimate the user did not accept).
     pub results: Vec<PipelineResultJson>,
+    /// One entry per requested pipeline that failed (absent when none did).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub failures: Vec<PipelineFailureJson>,
+}
+
+/// A pipeline's failure in a result file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PipelineFailureJson {
+    /// `"paper"` or `"ours"`.
+    pub pipeline: String,
+    /// A stable name of the failure (e.g. `ambiguous`, `degenerate`, `selection_refused`).
+    pub kind: String,
+    /// The error message.
+    pub error: String,
 }
 
 /// Why a calibration JSON file (dataset, truth, result) was refused.
@@ -451,6 +480,7 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
             problem: "\"right\" needs the dataset's right_eye transform".into(),
         });
     }
+    d.selection_rule()?;
     if let Some(n) = &d.noise_model {
         let v = [n.rot_rad, n.trans_m, n.pixel_px];
         if !v.iter().all(|x| x.is_finite() && *x >= 0.0) || v.iter().all(|x| *x == 0.0) {
@@ -536,6 +566,31 @@ pub fn parse_lines(text: &str) -> Result<LinesFile, CalibFileError> {
     let l: LinesFile = json(text)?;
     check_header(&l.format, l.version, LINES_FORMAT)?;
     Ok(l)
+}
+
+impl DatasetFile {
+    /// The dataset's selection rule: `selection`, else the legacy `min_shaft_px` (tip in view),
+    /// else the default; refused when both are given or a length is negative or not finite.
+    pub fn selection_rule(&self) -> Result<SelectionRule, CalibFileError> {
+        let rule = match (self.selection, self.min_shaft_px) {
+            (Some(_), Some(_)) => {
+                return Err(CalibFileError::Field {
+                    field: "min_shaft_px".into(),
+                    problem: "give either `selection` or the legacy `min_shaft_px`, not both".into(),
+                });
+            }
+            (Some(r), None) => r,
+            (None, Some(px)) => SelectionRule::tip_in_view(px),
+            (None, None) => SelectionRule::default(),
+        };
+        if !rule.is_valid() {
+            return Err(CalibFileError::Field {
+                field: if self.selection.is_some() { "selection".into() } else { "min_shaft_px".into() },
+                problem: "lengths must be finite and ≥ 0".into(),
+            });
+        }
+        Ok(rule)
+    }
 }
 
 /// Parses a truth file.
@@ -763,7 +818,12 @@ mod tests {
             hand_eye: TransformJson { translation_m: [0.0, 0.0, 0.001], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] },
             right_eye: None,
             noise_model: None,
-            min_shaft_px: 40.0,
+            min_shaft_px: None,
+            selection: Some(SelectionRule {
+                min_visible_shaft_px: 40.0,
+                border_margin_px: 2.0,
+                require_tip_in_view: false,
+            }),
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],
                 psm_joints: [0.0, 0.1, 0.1],
@@ -838,13 +898,60 @@ mod tests {
     }
 
     #[test]
-    fn the_selection_key_is_optional_and_round_trips() {
-        let text = to_json(&dataset());
-        assert!(text.contains("\"min_shaft_px\": 40.0"), "{text}");
-        assert_eq!(parse_dataset(&text).unwrap().min_shaft_px, 40.0);
-        let without = text.replace("\"min_shaft_px\": 40.0,", "");
-        assert_ne!(without, text);
-        assert_eq!(parse_dataset(&without).unwrap().min_shaft_px, 0.0);
+    fn the_selection_rule_round_trips_and_old_files_keep_their_meaning() {
+        let d = dataset();
+        let text = to_json(&d);
+        assert!(text.contains("\"require_tip_in_view\": false"), "{text}");
+        assert!(!text.contains("min_shaft_px"), "{text}");
+        let back = parse_dataset(&text).unwrap();
+        assert_eq!(back.selection_rule().unwrap(), d.selection.unwrap());
+        // A version-1 file with the legacy key: the tip-in-view rule it meant.
+        let mut old = d.clone();
+        old.selection = None;
+        old.min_shaft_px = Some(25.0);
+        let old_text = to_json(&old);
+        assert!(old_text.contains("\"min_shaft_px\": 25.0") && !old_text.contains("\"selection\""));
+        assert_eq!(parse_dataset(&old_text).unwrap().selection_rule().unwrap(), SelectionRule::tip_in_view(25.0));
+        // Neither: the default rule (visible shaft only).
+        old.min_shaft_px = None;
+        let none = parse_dataset(&to_json(&old)).unwrap();
+        assert_eq!(none.selection_rule().unwrap(), SelectionRule::default());
+        assert!(!SelectionRule::default().require_tip_in_view);
+        // Both, a negative length, an unknown rule key: named errors.
+        let mut both = d.clone();
+        both.min_shaft_px = Some(1.0);
+        assert!(
+            matches!(parse_dataset(&to_json(&both)), Err(CalibFileError::Field { field, .. }) if field == "min_shaft_px")
+        );
+        let mut neg = d.clone();
+        neg.selection = Some(SelectionRule { min_visible_shaft_px: -1.0, ..SelectionRule::default() });
+        assert!(
+            matches!(parse_dataset(&to_json(&neg)), Err(CalibFileError::Field { field, .. }) if field == "selection")
+        );
+        let unknown = text.replacen("\"require_tip_in_view\"", "\"tip_colour\": 1, \"require_tip_in_view\"", 1);
+        assert!(
+            matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("tip_colour"))
+        );
+    }
+
+    #[test]
+    fn result_files_record_failures_and_read_old_ambiguity_ratios() {
+        let r = ResultFile {
+            format: RESULT_FORMAT.into(),
+            version: CALIB_FILE_VERSION,
+            results: vec![],
+            failures: vec![PipelineFailureJson {
+                pipeline: "ours".into(),
+                kind: "ambiguous".into(),
+                error: "x".into(),
+            }],
+        };
+        let text = to_json(&r);
+        assert!(text.contains("\"failures\""), "{text}");
+        assert_eq!(parse_result(&text).unwrap(), r);
+        let none = ResultFile { failures: vec![], ..r };
+        assert!(!to_json(&none).contains("failures"));
+        assert_eq!(parse_result(&to_json(&none)).unwrap(), none);
     }
 
     #[test]

@@ -10,14 +10,19 @@
 //! `φ` is in radians; `ρ` in millimetres or metres ([`NoiseUnits`]) — the paper does not say.
 //!
 //! The observed line: the actual shaft from the tool tip back toward the RCM, clipped to the
-//! part in front of the camera and inside the image; its two end points (pixels) are the
-//! observation. An observation whose tip is out of view or whose visible shaft is shorter
-//! than [`CalibGeometry::min_visible_px`] is dropped and counted.
+//! part in front of the camera and inside the image (shrunk by the rule's margin); its two end
+//! points (pixels) are the observation. The detector's acceptance rule
+//! ([`CalibGeometry::selection`], [`SelectionRule`]) decides which lines are recorded: enough
+//! visible shaft, and the tip in view when the rule requires it; the others are dropped and
+//! counted.
+//!
+//! [`random_geometry`] draws valid scenes for the generalisation protocol (RCM-to-RCM distance,
+//! tool-to-scope angle, twist, joint ranges that keep the tool in view, lens distortion).
 //!
 //! Deterministic: the same protocol and seed give the same dataset (ChaCha8).
 
 use estimator::calib::rcm_arms::{ecm_frames, psm_frames, se3_exp};
-use estimator::calib::{Eye, Intrinsics, KinematicNoise, Observation, Setup};
+use estimator::calib::{Eye, Intrinsics, KinematicNoise, Observation, SelectionRule, Setup};
 use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -75,15 +80,15 @@ pub struct CalibGeometry {
     pub psm_pitch_rad: [f64; 2],
     /// PSM insertion (fixed), metres.
     pub psm_insertion_m: f64,
-    /// Shortest visible shaft kept, pixels.
-    pub min_visible_px: f64,
+    /// The line detector's acceptance rule (pixels as measured).
+    pub selection: SelectionRule,
 }
 
 impl Default for CalibGeometry {
     /// The documented default scene (`docs/calibration.md`): 640×480 camera, f = 320 px
     /// (90° × 74° field of view, a wide-angle laparoscope);
     /// robot 2's RCM 136 mm from robot 1's; ±15° arm motions, ECM insertion 40-120 mm,
-    /// PSM insertion 120 mm.
+    /// PSM insertion 120 mm; the original protocol's rule: the tip in view and 40 px of shaft.
     fn default() -> Self {
         let deg = core::f64::consts::PI / 180.0;
         let t = Vector3::new(0.100, 0.020, 0.090);
@@ -115,7 +120,7 @@ impl Default for CalibGeometry {
             psm_yaw_rad: [-15.0 * deg, 15.0 * deg],
             psm_pitch_rad: [-15.0 * deg, 15.0 * deg],
             psm_insertion_m: 0.120,
-            min_visible_px: 40.0,
+            selection: SelectionRule::tip_in_view(40.0),
         }
     }
 }
@@ -232,7 +237,9 @@ fn draw(rng: &mut ChaCha8Rng, sigma: f64, rho_m: f64) -> Isometry3<f64> {
 }
 
 /// The observed line of the actual shaft (tip `tip_e`, unit direction `back_e` toward the
-/// RCM, both in `{e}`) seen by camera `cam` (`T_e_c`): end points in pixels, or `None`.
+/// RCM, both in `{e}`) seen by camera `cam` (`T_e_c`): the end points (pixels) of its part in
+/// front of the camera and inside the image shrunk by the rule's margin, or `None` when the
+/// rule rejects it (too little visible shaft, or the tip out of view when required).
 pub fn observe_shaft(
     g: &CalibGeometry,
     cam: &Isometry3<f64>,
@@ -242,24 +249,39 @@ pub fn observe_shaft(
 ) -> Option<[Vector2<f64>; 2]> {
     let inv = cam.inverse();
     let k = &g.intrinsics;
+    let rule = &g.selection;
+    let m = rule.border_margin_px;
     let see = |s: f64| -> Option<Vector2<f64>> {
         let p = inv * nalgebra::Point3::from(tip_e + back_e * s);
         if p.z < 0.005 {
             return None;
         }
         let px = k.project(&p.coords);
-        k.in_image(&px).then_some(px)
+        let inside = px.x >= m && px.y >= m && px.x <= k.width as f64 - 1.0 - m && px.y <= k.height as f64 - 1.0 - m;
+        inside.then_some(px)
     };
-    let first = see(0.0)?;
-    let steps = 200;
-    let mut last = first;
-    for i in 1..=steps {
-        match see(length_m * i as f64 / steps as f64) {
-            Some(px) => last = px,
-            None => break,
-        }
+    // The visible part is one interval of the shaft (a segment in front of the camera projects
+    // to a segment, the image is convex): find it on a fine grid, then sharpen its ends.
+    let steps = 400;
+    let at = |i: usize| length_m * i as f64 / steps as f64;
+    let first = (0..=steps).find(|&i| see(at(i)).is_some())?;
+    if rule.require_tip_in_view && first != 0 {
+        return None;
     }
-    ((last - first).norm() >= g.min_visible_px).then_some([first, last])
+    let last = (first..=steps).take_while(|&i| see(at(i)).is_some()).last().unwrap_or(first);
+    // Bisection between an outside and an inside sample.
+    let sharpen = |inside: f64, outside: f64| -> f64 {
+        let (mut a, mut b) = (inside, outside);
+        for _ in 0..30 {
+            let c = 0.5 * (a + b);
+            if see(c).is_some() { a = c } else { b = c }
+        }
+        a
+    };
+    let s0 = if first == 0 { 0.0 } else { sharpen(at(first), at(first - 1)) };
+    let s1 = if last == steps { length_m } else { sharpen(at(last), at(last + 1)) };
+    let (a, b) = (see(s0)?, see(s1)?);
+    ((b - a).norm() >= rule.min_visible_shaft_px.max(1e-6)).then_some([a, b])
 }
 
 /// Runs the protocol: every grid combination, perturbed, projected, kept when in view.
@@ -316,18 +338,166 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
     }
     let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: p.pixel_sigma_px };
     Ok(CalibDataset {
-        setup: Setup {
-            intrinsics: g.intrinsics,
-            hand_eye: g.hand_eye,
-            right_eye: None,
-            min_shaft_px: g.min_visible_px,
-        },
+        setup: Setup { intrinsics: g.intrinsics, hand_eye: g.hand_eye, right_eye: None, selection: g.selection },
         truth: g.truth,
         observations,
         generated,
         dropped,
         noise: noise.is_valid().then_some(noise),
     })
+}
+
+/// What [`random_geometry`] drew, for grouping results by geometry class.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GeometryDraw {
+    /// The scene.
+    pub geometry: CalibGeometry,
+    /// Distance between the two RCMs, metres.
+    pub rcm_distance_m: f64,
+    /// Angle between the tool axis (at zero joints) and the scope axis, radians.
+    pub tool_scope_angle_rad: f64,
+    /// Whether the lens has distortion.
+    pub distorted: bool,
+}
+
+/// Why no valid scene was drawn.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[error("no valid scene geometry after {attempts} draws (seed {seed})")]
+pub struct RandomGeometryError {
+    /// Draws tried.
+    pub attempts: usize,
+    /// The seed.
+    pub seed: u64,
+}
+
+/// Draws a valid random scene (ChaCha8 from `seed`), for the generalisation protocol:
+/// - robot 2's RCM 80-250 mm from robot 1's, the tool axis (zero joints) 20-70° from the
+///   scope axis at a random azimuth, aimed at a working point 80-260 mm deep on the scope
+///   axis, with a random twist about the tool axis;
+/// - a 640×480 camera with a 60-90° horizontal field of view, radial/tangential distortion
+///   when `distortion` (k1 −0.3..−0.05, k2 0..0.1, p1, p2 ±0.002; redrawn unless the
+///   undistortion converges over the whole image), a random small hand-eye;
+/// - joint ranges: ECM yaw/pitch ±4° up to ±30 % of the half field of view, roll ±10-30°,
+///   insertion putting the camera 40-120 mm from the working point; PSM yaw/pitch ±5-12°;
+///   kept only when the tool stays in view (below);
+/// - the detector's rule: 40 px of visible shaft, tip not required, no margin.
+///
+/// Valid: at least 50 % of the noiseless 3⁴×3² grid's lines recorded and all nine tool
+/// orientations among them; otherwise redrawn (at most 200 times).
+pub fn random_geometry(seed: u64, distortion: bool) -> Result<GeometryDraw, RandomGeometryError> {
+    let deg = core::f64::consts::PI / 180.0;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x4745_4f4d_4554_5259); // "GEOMETRY"
+    const ATTEMPTS: usize = 200;
+    for _ in 0..ATTEMPTS {
+        let dist = rng.random_range(0.080..=0.250);
+        let theta = rng.random_range(20.0 * deg..=70.0 * deg);
+        let azimuth = rng.random_range(0.0..core::f64::consts::TAU);
+        let d_max = (dist / theta.sin() * 0.999).min(0.26);
+        if d_max < 0.08 {
+            continue;
+        }
+        let depth = rng.random_range(0.08..=d_max);
+        let reach = depth * theta.cos() + (dist * dist - (depth * theta.sin()).powi(2)).max(0.0).sqrt();
+        let axis = Vector3::new(theta.sin() * azimuth.cos(), theta.sin() * azimuth.sin(), theta.cos());
+        let t = Vector3::new(0.0, 0.0, depth) - axis * reach;
+        let twist = rng.random_range(0.0..core::f64::consts::TAU);
+        let r = UnitQuaternion::rotation_between(&Vector3::z(), &axis).unwrap_or_else(UnitQuaternion::identity)
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), twist);
+        let fov = rng.random_range(60.0 * deg..=90.0 * deg);
+        let f = 320.0 / (0.5 * fov).tan();
+        let dist_coeffs = if distortion {
+            [
+                rng.random_range(-0.3..=-0.05),
+                rng.random_range(0.0..=0.1),
+                rng.random_range(-0.002..=0.002),
+                rng.random_range(-0.002..=0.002),
+                0.0,
+            ]
+        } else {
+            [0.0; 5]
+        };
+        // The camera 40-120 mm from the working point.
+        let ins_hi = depth - 0.04;
+        let ins_lo = (depth - 0.12).max(0.0);
+        if ins_hi <= ins_lo + 0.02 {
+            continue;
+        }
+        let half = 0.5 * fov;
+        let ecm_angle = rng.random_range(4.0 * deg..=(0.3 * half).max(4.5 * deg));
+        let roll = rng.random_range(10.0 * deg..=30.0 * deg);
+        let psm_angle = rng.random_range(5.0 * deg..=12.0 * deg);
+        let he = Isometry3::from_parts(
+            Translation3::new(
+                rng.random_range(-0.003..=0.003),
+                rng.random_range(-0.003..=0.003),
+                rng.random_range(0.0..=0.002),
+            ),
+            UnitQuaternion::from_euler_angles(
+                rng.random_range(-3.0 * deg..=3.0 * deg),
+                rng.random_range(-3.0 * deg..=3.0 * deg),
+                rng.random_range(-3.0 * deg..=3.0 * deg),
+            ),
+        );
+        let geometry = CalibGeometry {
+            intrinsics: Intrinsics {
+                fx: f,
+                fy: f,
+                cx: 319.5,
+                cy: 239.5,
+                skew: 0.0,
+                width: 640,
+                height: 480,
+                distortion: dist_coeffs,
+            },
+            hand_eye: he,
+            truth: Isometry3::from_parts(Translation3::from(t), r),
+            ecm_yaw_rad: [-ecm_angle, ecm_angle],
+            ecm_pitch_rad: [-ecm_angle, ecm_angle],
+            ecm_insertion_m: [ins_lo, ins_hi],
+            ecm_roll_rad: [-roll, roll],
+            psm_yaw_rad: [-psm_angle, psm_angle],
+            psm_pitch_rad: [-psm_angle, psm_angle],
+            psm_insertion_m: reach,
+            selection: SelectionRule { min_visible_shaft_px: 40.0, border_margin_px: 0.0, require_tip_in_view: false },
+        };
+        // The lens model must be invertible over the whole image (undistortion converges).
+        let k = &geometry.intrinsics;
+        let invertible = [(0.0, 0.0), (639.0, 0.0), (0.0, 479.0), (639.0, 479.0), (319.5, 0.0), (0.0, 239.5)]
+            .iter()
+            .all(|&(u, v)| {
+                let p = Vector2::new(u, v);
+                let back = k.distort_px(&k.undistort_px(&p));
+                (back - p).norm() < 1e-3
+            });
+        if !invertible {
+            continue;
+        }
+        let clean = generate_calibration(&CalibProtocol {
+            geometry,
+            n_e: 3,
+            n_t: 3,
+            sigma: 0.0,
+            units: NoiseUnits::Millimetre,
+            pixel_sigma_px: 0.0,
+            seed: 0,
+        });
+        let Ok(clean) = clean else { continue };
+        let mut orientations: Vec<[f64; 3]> = Vec::new();
+        for o in &clean.observations {
+            if !orientations.iter().any(|q| q[0] == o.psm_joints[0] && q[1] == o.psm_joints[1]) {
+                orientations.push(o.psm_joints);
+            }
+        }
+        if clean.observations.len() * 2 >= clean.generated && orientations.len() == 9 {
+            return Ok(GeometryDraw {
+                geometry,
+                rcm_distance_m: dist,
+                tool_scope_angle_rad: theta,
+                distorted: distortion,
+            });
+        }
+    }
+    Err(RandomGeometryError { attempts: ATTEMPTS, seed })
 }
 
 /// A uniformly distributed random unit quaternion `[w, x, y, z]` (Shoemake), for the

@@ -3,6 +3,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::crb::cramer_rao_bound;
+use estimator::calib::ours::DEFAULT_MIN_LOG_LIKELIHOOD_RATIO;
 use estimator::calib::ours::{OursConfig, OursError, solve_ours, solve_ours_prepared};
 use estimator::calib::paper::{
     PaperConfig, PaperError, eq10_w, kronecker_row, project_to_so3, refine_quaternion, solve_paper, wxyz,
@@ -36,7 +37,11 @@ fn noiseless_data_are_recovered_exactly_by_both_pipelines() {
         let e = pose_errors(&o.pose, &d.truth);
         assert!(e.translation_m < 1e-9 && e.rotation_rad < 1e-9, "ours {e:?}");
         assert!(o.residuals.rms_px < 1e-6, "{:?}", o.residuals);
-        assert!(o.ambiguity_ratio > 100.0, "noiseless data are unambiguous: {}", o.ambiguity_ratio);
+        assert!(
+            o.log_likelihood_ratio.is_finite() && o.log_likelihood_ratio > 10.0 * DEFAULT_MIN_LOG_LIKELIHOOD_RATIO,
+            "noiseless data are unambiguous: {}",
+            o.log_likelihood_ratio
+        );
     }
 }
 
@@ -182,7 +187,7 @@ fn the_mirrored_solution_is_detected_and_resolved() {
     let d = data(3, 3, 0.01, NoiseUnits::Millimetre, 3);
     let set = prepare(&d.setup, &d.observations).unwrap();
     let good = solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() }).unwrap();
-    assert!(good.ambiguity_ratio > 1.5, "ratio {}", good.ambiguity_ratio);
+    assert!(good.log_likelihood_ratio >= DEFAULT_MIN_LOG_LIKELIHOOD_RATIO, "{}", good.log_likelihood_ratio);
     // The mirror: 180° about the line of sight to robot 2's RCM.
     let flip_deg = (good.alternative.rotation.inverse() * good.pose.rotation).angle().to_degrees();
     assert!(flip_deg > 150.0, "alternative {flip_deg}° away");

@@ -365,7 +365,7 @@ pub fn to_pixel_run(
             intrinsics: data.intrinsics,
             hand_eye: data.hand_eye,
             right_eye: Some(right),
-            min_shaft_px: crate::pixels::MIN_SHAFT_PX,
+            selection: crate::pixels::selection_rule(),
         },
         truth,
         noise: noise.is_valid().then_some(noise),

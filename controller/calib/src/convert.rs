@@ -23,13 +23,18 @@ pub fn transform_json(t: &Isometry3<f64>) -> TransformJson {
     TransformJson { translation_m: t.translation.vector.into(), quaternion_wxyz: [q.w, q.i, q.j, q.k] }
 }
 
-/// A parsed dataset file → setup, observations and optional noise model.
+/// A parsed dataset file → setup, observations and optional noise model (the file's
+/// selection rule, [`DatasetFile::selection_rule`], checked by `parse_dataset`; an invalid one
+/// here falls back to the default and is refused by `prepare`).
 pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoise>) {
+    let selection = d
+        .selection_rule()
+        .unwrap_or(estimator::calib::SelectionRule { min_visible_shaft_px: f64::NAN, ..Default::default() });
     let setup = Setup {
         intrinsics: d.intrinsics,
         hand_eye: isometry(&d.hand_eye),
         right_eye: d.right_eye.as_ref().map(isometry),
-        min_shaft_px: d.min_shaft_px,
+        selection,
     };
     let obs = d
         .observations
@@ -49,7 +54,8 @@ pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicN
         hand_eye: transform_json(&setup.hand_eye),
         right_eye: setup.right_eye.as_ref().map(transform_json),
         noise_model: noise.map(|n| NoiseJson { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px }),
-        min_shaft_px: setup.min_shaft_px,
+        min_shaft_px: None,
+        selection: Some(setup.selection),
         observations: obs
             .iter()
             .map(|o| ObservationJson {
@@ -122,7 +128,8 @@ pub fn result_json(
             }
             c
         }),
-        ambiguity_ratio: ours.map(|o| if o.ambiguity_ratio.is_finite() { o.ambiguity_ratio } else { f64::MAX }),
+        ambiguity_ratio: None,
+        log_likelihood_ratio: ours.map(|o| o.log_likelihood_ratio),
         solve_ms,
         selection_stage: ours.and_then(selection_json),
     }

@@ -11,10 +11,13 @@
 //!   next to the same poses with exact lines.
 //! - [`sweep`]: the paper's simulation protocol sweeps (σ, n_e × n_t, random initial
 //!   quaternions) to a Markdown table and SVG box plots.
+//! - [`generalise`]: the generalisation protocol on random scene geometries
+//!   (`sweep --geometries N`), tuning and held-out sets.
 
 pub mod bus_run;
 pub mod convert;
 pub mod detect;
+pub mod generalise;
 pub mod pixels;
 pub mod residual_plot;
 pub mod run;

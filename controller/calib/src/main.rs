@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use comanip_calib::detect::{DetectorChoice, detect_dir};
-use comanip_calib::run::{Pipeline, calibrate, default_protocol, generate};
+use comanip_calib::run::{Pipeline, all_failed, calibrate, default_protocol, generate};
 use comanip_calib::sweep::{SweepOptions, run_sweep};
 use sim::calib::NoiseUnits;
 
@@ -59,6 +59,12 @@ enum Command {
         wrong_lines: f64,
     },
     /// Calibrate: dataset → result file.
+    ///
+    /// Exit status: 0 when at least one requested pipeline produced a result, 1 when every
+    /// requested pipeline failed (or an input is unreadable). A pipeline fails on degenerate
+    /// or ambiguous data, and ours also when its selection-aware stage cannot model the data,
+    /// unless --accept-unrefined. The result file lists every requested pipeline's result or
+    /// its failure (`failures`), and is written in every case.
     Calibrate {
         /// Dataset file (JSON).
         #[arg(long)]
@@ -76,9 +82,13 @@ enum Command {
         /// their distance to the calibrated tool axis, and each pipeline's histogram.
         #[arg(long)]
         plot: Option<PathBuf>,
-        /// Pipeline(s) to run.
+        /// Pipeline(s) to run (`both`: each runs whatever the other does).
         #[arg(long, value_enum, default_value = "both")]
         pipeline: Pipeline,
+        /// Accept our pipeline's unrefined (border-guarded) estimate when its selection-aware
+        /// stage cannot model the data (otherwise that is a failure of our pipeline).
+        #[arg(long)]
+        accept_unrefined: bool,
     },
     /// Detect the instrument shaft's lines in a directory of images; write them as JSON.
     Detect {
@@ -161,6 +171,14 @@ enum Command {
         /// Base seed.
         #[arg(long, default_value_t = 1000)]
         seed: u64,
+        /// Run the generalisation protocol instead: this many random scene geometries per set
+        /// (tuning seeds 9000.., held-out seeds 7000..), `--trials` each, writing
+        /// generalisation.md.
+        #[arg(long)]
+        geometries: Option<usize>,
+        /// With --geometries: only the held-out set.
+        #[arg(long)]
+        held_out_only: bool,
     },
 }
 
@@ -203,9 +221,17 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 truth.display()
             )?;
         }
-        Command::Calibrate { dataset, intrinsics, truth, out, plot, pipeline } => {
-            let s = calibrate(&dataset, intrinsics.as_deref(), truth.as_deref(), &out, plot.as_deref(), pipeline)?;
-            for r in s {
+        Command::Calibrate { dataset, intrinsics, truth, out, plot, pipeline, accept_unrefined } => {
+            let s = calibrate(
+                &dataset,
+                intrinsics.as_deref(),
+                truth.as_deref(),
+                &out,
+                plot.as_deref(),
+                pipeline,
+                accept_unrefined,
+            )?;
+            for r in &s {
                 match r.errors {
                     Some(e) => hw_io::outln!(
                         "{}: e_t = {:.3} % ({:.3} mm), e_R = {:.4}°, {:.2} ms",
@@ -218,12 +244,18 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                     None => hw_io::outln!("{}: {:.2} ms", r.pipeline, r.solve_ms)?,
                 }
                 if let Some(w) = &r.warning {
-                    eprintln!("comanip-calib: warning: {}: {w}", r.pipeline);
+                    eprintln!("comanip-calib: warning: {}: {w} (accepted by --accept-unrefined)", r.pipeline);
+                }
+                if let Some(f) = &r.failure {
+                    eprintln!("comanip-calib: error: {f}");
                 }
             }
             hw_io::outln!("wrote {}", out.display())?;
             if let Some(p) = &plot {
                 hw_io::outln!("wrote {}", p.display())?;
+            }
+            if all_failed(&s) {
+                return Err("every requested pipeline failed (see the result file's `failures`)".into());
             }
         }
         Command::Detect { images, camera, out, overlay, detector, right } => {
@@ -344,7 +376,16 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             hw_io::outln!("{md}")?;
             hw_io::outln!("wrote {}", path.display())?;
         }
-        Command::Sweep { out_dir, trials, quick, seed } => {
+        Command::Sweep { out_dir, trials, geometries: Some(n), held_out_only, seed, .. } => {
+            let mut opts = comanip_calib::generalise::GeneralisationOptions::full(n);
+            opts.trials = trials;
+            opts.trial_seed = seed;
+            opts.held_out_only = held_out_only;
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            comanip_calib::generalise::run_generalisation(&opts, &out_dir, &command)?;
+            hw_io::outln!("wrote {}", out_dir.join("generalisation.md").display())?;
+        }
+        Command::Sweep { out_dir, trials, quick, seed, geometries: None, .. } => {
             let mut opts = SweepOptions::full();
             opts.trials = trials;
             opts.seed = seed;

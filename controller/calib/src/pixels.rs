@@ -38,6 +38,17 @@ use vision::{RgbView, ShaftDetector};
 /// selection (`sim::calib::CalibGeometry::min_visible_px`).
 pub const MIN_SHAFT_PX: f64 = 40.0;
 
+/// The selection rule of the lines in these datasets (`estimator::calib::SelectionRule`): at
+/// least [`MIN_SHAFT_PX`] of shaft visible, tip in view or not, no border margin (what a
+/// line detector reports).
+pub fn selection_rule() -> estimator::calib::SelectionRule {
+    estimator::calib::SelectionRule {
+        min_visible_shaft_px: MIN_SHAFT_PX,
+        border_margin_px: 0.0,
+        require_tip_in_view: false,
+    }
+}
+
 /// The run's parameters.
 #[derive(Clone, Debug)]
 pub struct PixelProtocol {
@@ -283,7 +294,7 @@ pub fn render_and_detect(
     let detect_ms = times.iter_mut().map(|t| median(t)).collect();
     let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: 0.0 };
     Ok(PixelRun {
-        setup: Setup { intrinsics: k, hand_eye, right_eye: Some(right), min_shaft_px: MIN_SHAFT_PX },
+        setup: Setup { intrinsics: k, hand_eye, right_eye: Some(right), selection: selection_rule() },
         truth,
         noise: noise.is_valid().then_some(noise),
         detectors: detectors.iter().map(|d| d.name()).collect(),

@@ -9,8 +9,8 @@ use estimator::calib::paper::{PaperConfig, PaperError, solve_paper_prepared};
 use estimator::calib::prepare::{PrepareError, prepare};
 use estimator::calib::{PoseErrors, pose_errors};
 use hw_io::calib_files::{
-    CALIB_FILE_VERSION, CalibFileError, IntrinsicsFileError, RESULT_FORMAT, ResultFile, TRUTH_FORMAT, TruthFile,
-    parse_dataset, parse_intrinsics_yaml, parse_truth, to_json,
+    CALIB_FILE_VERSION, CalibFileError, IntrinsicsFileError, PipelineFailureJson, RESULT_FORMAT, ResultFile,
+    TRUTH_FORMAT, TruthFile, parse_dataset, parse_intrinsics_yaml, parse_truth, to_json,
 };
 use sim::calib::{CalibGeometry, CalibProtocol, CalibProtocolError, NoiseUnits, corrupt_lines, generate_calibration};
 
@@ -165,13 +165,45 @@ pub enum CalibrateError {
 pub struct CalibrateSummary {
     /// `"paper"` / `"ours"`.
     pub pipeline: &'static str,
-    /// Errors against the truth file, when one was given.
+    /// Errors against the truth file, when one was given and the pipeline produced a pose.
     pub errors: Option<PoseErrors>,
     /// Solve time, milliseconds.
     pub solve_ms: f64,
-    /// Why our selection-aware stage was refused, when it was (the result is then the
-    /// border-guarded robust fit).
+    /// Why our selection-aware stage was refused when the user accepted the unrefined
+    /// (border-guarded) estimate (`--accept-unrefined`).
     pub warning: Option<String>,
+    /// Why the pipeline failed (also in the result file's `failures`).
+    pub failure: Option<String>,
+}
+
+/// The stable name of a failure in the result file.
+fn paper_kind(e: &PaperError) -> &'static str {
+    match e {
+        PaperError::Prepare(p) => prepare_kind(p),
+        _ => "degenerate",
+    }
+}
+
+fn prepare_kind(e: &PrepareError) -> &'static str {
+    match e {
+        PrepareError::TooFewViews { .. } | PrepareError::TooFewToolOrientations { .. } => "degenerate",
+        _ => "input",
+    }
+}
+
+fn ours_kind(e: &OursError) -> &'static str {
+    match e {
+        OursError::Prepare(p) => prepare_kind(p),
+        OursError::Ambiguous { .. } => "ambiguous",
+        OursError::NoConvergence => "no_convergence",
+        OursError::NoiseModel => "input",
+        _ => "degenerate",
+    }
+}
+
+/// True when every requested pipeline failed: `calibrate`'s exit rule (non-zero then only).
+pub fn all_failed(summaries: &[CalibrateSummary]) -> bool {
+    summaries.iter().all(|s| s.failure.is_some())
 }
 
 fn read(path: &Path) -> Result<String, CalibrateError> {
@@ -179,8 +211,14 @@ fn read(path: &Path) -> Result<String, CalibrateError> {
 }
 
 /// Reads a dataset (optionally overriding its intrinsics from a YAML file), runs the
-/// pipeline(s), writes the result file (and the residual figure to `plot`, SVG, when given),
-/// and compares with a truth file if given.
+/// requested pipeline(s), writes the result file (each pipeline's result or its failure; and
+/// the residual figure to `plot`, SVG, when given), and compares with a truth file if given.
+///
+/// A pipeline fails when it returns an error (degenerate data, ambiguity, ...) and, for ours,
+/// when its selection-aware stage cannot model the data unless `accept_unrefined` (the
+/// unrefined estimate is then written, with the refusal in its `selection_stage`). `Err` only
+/// for unreadable or malformed inputs and unwritable outputs; the caller decides the exit code
+/// from the summaries ([`all_failed`]).
 pub fn calibrate(
     dataset: &Path,
     intrinsics: Option<&Path>,
@@ -188,6 +226,7 @@ pub fn calibrate(
     out: &Path,
     plot: Option<&Path>,
     pipeline: Pipeline,
+    accept_unrefined: bool,
 ) -> Result<Vec<CalibrateSummary>, CalibrateError> {
     let text = read(dataset)?;
     let file = parse_dataset(&text).map_err(|source| CalibrateError::File { path: dataset.to_owned(), source })?;
@@ -203,47 +242,106 @@ pub fn calibrate(
         )),
         None => None,
     };
-    let set = prepare(&setup, &obs)?;
+    let wanted: Vec<&'static str> = match pipeline {
+        Pipeline::Paper => vec!["paper"],
+        Pipeline::Ours => vec!["ours"],
+        Pipeline::Both => vec!["paper", "ours"],
+    };
     let mut results = Vec::new();
     let mut summaries = Vec::new();
     let mut residuals = Vec::new();
-    // Per-observation residuals, only when a figure is asked for.
-    let per_observation = |pose: &nalgebra::Isometry3<f64>| -> Vec<f64> {
-        if plot.is_none() {
-            return Vec::new();
-        }
-        observation_residuals(&set, pose).iter().map(|r| r[0].abs().max(r[1].abs())).collect()
-    };
-    if matches!(pipeline, Pipeline::Paper | Pipeline::Both) {
-        let started = Instant::now();
-        let r = solve_paper_prepared(&set, &PaperConfig::default())?;
-        let ms = started.elapsed().as_secs_f64() * 1e3;
-        let stats = estimator::calib::ours::residual_stats(&set, &r.pose);
-        results.push(convert::result_json("paper", &r.pose, &stats, None, ms));
-        residuals.push(PipelineResiduals { name: "paper", residuals_px: per_observation(&r.pose) });
+    let mut failures = Vec::new();
+    let mut fail = |name: &'static str, kind: &str, error: String, summaries: &mut Vec<CalibrateSummary>, ms: f64| {
+        failures.push(PipelineFailureJson { pipeline: name.into(), kind: kind.into(), error: error.clone() });
         summaries.push(CalibrateSummary {
-            pipeline: "paper",
-            errors: truth.map(|t| pose_errors(&r.pose, &t)),
+            pipeline: name,
+            errors: None,
             solve_ms: ms,
             warning: None,
+            failure: Some(error),
         });
+    };
+    let set = match prepare(&setup, &obs) {
+        Ok(set) => Some(set),
+        Err(e) => {
+            for name in &wanted {
+                fail(name, prepare_kind(&e), e.to_string(), &mut summaries, 0.0);
+            }
+            None
+        }
+    };
+    if let Some(set) = &set {
+        // Per-observation residuals, only when a figure is asked for.
+        let per_observation = |pose: &nalgebra::Isometry3<f64>| -> Vec<f64> {
+            if plot.is_none() {
+                return Vec::new();
+            }
+            observation_residuals(set, pose).iter().map(|r| r[0].abs().max(r[1].abs())).collect()
+        };
+        if wanted.contains(&"paper") {
+            let started = Instant::now();
+            let r = solve_paper_prepared(set, &PaperConfig::default());
+            let ms = started.elapsed().as_secs_f64() * 1e3;
+            match r {
+                Ok(r) => {
+                    let stats = estimator::calib::ours::residual_stats(set, &r.pose);
+                    results.push(convert::result_json("paper", &r.pose, &stats, None, ms));
+                    residuals.push(PipelineResiduals { name: "paper", residuals_px: per_observation(&r.pose) });
+                    summaries.push(CalibrateSummary {
+                        pipeline: "paper",
+                        errors: truth.map(|t| pose_errors(&r.pose, &t)),
+                        solve_ms: ms,
+                        warning: None,
+                        failure: None,
+                    });
+                }
+                Err(e) => fail("paper", paper_kind(&e), format!("paper pipeline: {e}"), &mut summaries, ms),
+            }
+        }
+        if wanted.contains(&"ours") {
+            let started = Instant::now();
+            let r = solve_ours_prepared(set, &OursConfig { noise, ..OursConfig::default() });
+            let ms = started.elapsed().as_secs_f64() * 1e3;
+            match r {
+                Ok(r) => {
+                    results.push(convert::result_json("ours", &r.pose, &r.residuals, Some(&r), ms));
+                    residuals.push(PipelineResiduals { name: "ours", residuals_px: per_observation(&r.pose) });
+                    let refused = r.selection_refused.map(|e| {
+                        format!("our pipeline: the selection-aware stage cannot model the data ({e}); the result is the unrefined (border-guarded) estimate")
+                    });
+                    let errors = truth.map(|t| pose_errors(&r.pose, &t));
+                    match refused {
+                        Some(msg) if !accept_unrefined => {
+                            let msg = format!("{msg}; pass --accept-unrefined to accept it");
+                            failures.push(PipelineFailureJson {
+                                pipeline: "ours".into(),
+                                kind: "selection_refused".into(),
+                                error: msg.clone(),
+                            });
+                            summaries.push(CalibrateSummary {
+                                pipeline: "ours",
+                                errors,
+                                solve_ms: ms,
+                                warning: None,
+                                failure: Some(msg),
+                            });
+                        }
+                        warning => summaries.push(CalibrateSummary {
+                            pipeline: "ours",
+                            errors,
+                            solve_ms: ms,
+                            warning,
+                            failure: None,
+                        }),
+                    }
+                }
+                Err(e) => fail("ours", ours_kind(&e), format!("our pipeline: {e}"), &mut summaries, ms),
+            }
+        }
     }
-    if matches!(pipeline, Pipeline::Ours | Pipeline::Both) {
-        let started = Instant::now();
-        let r = solve_ours_prepared(&set, &OursConfig { noise, ..OursConfig::default() })?;
-        let ms = started.elapsed().as_secs_f64() * 1e3;
-        results.push(convert::result_json("ours", &r.pose, &r.residuals, Some(&r), ms));
-        residuals.push(PipelineResiduals { name: "ours", residuals_px: per_observation(&r.pose) });
-        summaries.push(CalibrateSummary {
-            pipeline: "ours",
-            errors: truth.map(|t| pose_errors(&r.pose, &t)),
-            solve_ms: ms,
-            warning: r.selection_refused.map(|e| format!("selection-aware stage not applied: {e}")),
-        });
-    }
-    let file = ResultFile { format: RESULT_FORMAT.into(), version: CALIB_FILE_VERSION, results };
+    let file = ResultFile { format: RESULT_FORMAT.into(), version: CALIB_FILE_VERSION, results, failures };
     std::fs::write(out, to_json(&file)).map_err(|source| CalibrateError::Write { path: out.to_owned(), source })?;
-    if let Some(plot) = plot {
+    if let (Some(plot), Some(set)) = (plot, &set) {
         let lines: Vec<[nalgebra::Vector2<f64>; 2]> = set.obs.iter().map(|o| o.px).collect();
         residual_figure(plot, &set.intrinsics, &lines, &residuals)?;
     }

@@ -159,9 +159,9 @@ fn calibrate_with_opencv_intrinsics_and_one_pipeline() {
     let r = parse_result(&std::fs::read_to_string(dir.path().join("r.json")).unwrap()).unwrap();
     assert_eq!(r.results.len(), 1);
     assert_eq!(r.results[0].pipeline, "ours");
-    assert!(r.results[0].ambiguity_ratio.unwrap() > 1.0);
+    assert!(r.results[0].log_likelihood_ratio.unwrap() > 1.0 && r.results[0].ambiguity_ratio.is_none());
     // The dataset carries its noise model and selection: the selection-aware stage ran.
-    assert!(d.noise_model.is_some() && d.min_shaft_px > 0.0);
+    assert!(d.noise_model.is_some() && d.selection.is_some() && d.min_shaft_px.is_none());
     let stage = r.results[0].selection_stage.as_ref().expect("selection stage recorded");
     assert!(stage.applied && stage.refused.is_none(), "{stage:?}");
     assert_eq!(stage.selected + stage.plain + stage.left_out, d.observations.len());
@@ -242,4 +242,90 @@ fn quick_sweep_writes_table_and_plots() {
         let svg = std::fs::read_to_string(dir.path().join(f)).unwrap();
         assert!(svg.starts_with("<svg") && svg.contains("ours"), "{f}");
     }
+}
+
+fn calibrate(
+    dir: &Path,
+    dataset: &str,
+    pipeline: &str,
+    extra: &[&str],
+) -> (std::process::Output, hw_io::calib_files::ResultFile) {
+    let out = bin()
+        .arg("calibrate")
+        .arg("--dataset")
+        .arg(dir.join(dataset))
+        .arg("--out")
+        .arg(dir.join("r.json"))
+        .args(["--pipeline", pipeline])
+        .args(extra)
+        .output()
+        .unwrap();
+    let r = parse_result(&std::fs::read_to_string(dir.join("r.json")).unwrap()).unwrap();
+    (out, r)
+}
+
+#[test]
+fn both_writes_each_result_or_failure_and_exits_non_zero_only_when_all_failed() {
+    let dir = tempfile::tempdir().unwrap();
+    run_ok(
+        bin()
+            .args(["generate", "--n-e", "2", "--n-t", "3", "--sigma", "0.01", "--seed", "4"])
+            .arg("--dataset")
+            .arg(dir.path().join("d.json"))
+            .arg("--truth")
+            .arg(dir.path().join("t.json")),
+    );
+    let mut d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
+    // Three tool orientations: Eq. 8 is rank-deficient (the paper fails), ours still solves.
+    let mut orientations: Vec<[f64; 3]> = Vec::new();
+    for o in &d.observations {
+        if !orientations.contains(&o.psm_joints) {
+            orientations.push(o.psm_joints);
+        }
+    }
+    let three: Vec<[f64; 3]> = vec![orientations[0], orientations[4], orientations[8]];
+    let mut three_d = d.clone();
+    three_d.observations.retain(|o| three.contains(&o.psm_joints));
+    std::fs::write(dir.path().join("three.json"), to_json(&three_d)).unwrap();
+    let (out, r) = calibrate(dir.path(), "three.json", "both", &[]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(r.results.iter().map(|p| p.pipeline.as_str()).collect::<Vec<_>>(), ["ours"]);
+    assert_eq!(r.failures.len(), 1);
+    assert_eq!((r.failures[0].pipeline.as_str(), r.failures[0].kind.as_str()), ("paper", "degenerate"));
+    // The paper alone on the same data: every requested pipeline failed, non-zero, recorded.
+    let (out, r) = calibrate(dir.path(), "three.json", "paper", &[]);
+    assert!(!out.status.success());
+    assert!(r.results.is_empty() && r.failures.len() == 1);
+    // Degenerate lines (all identical): both fail, typed, non-zero, both recorded.
+    let first = d.observations[0].line_px;
+    for o in &mut d.observations {
+        o.line_px = first;
+    }
+    std::fs::write(dir.path().join("same.json"), to_json(&d)).unwrap();
+    let (out, r) = calibrate(dir.path(), "same.json", "both", &[]);
+    assert!(!out.status.success());
+    assert!(r.results.is_empty());
+    assert_eq!(r.failures.iter().map(|f| f.kind.as_str()).collect::<Vec<_>>(), ["degenerate", "degenerate"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("single pencil"), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn a_selection_stage_that_cannot_model_the_data_fails_loudly_unless_accepted() {
+    let dir = tempfile::tempdir().unwrap();
+    generate(dir.path(), "0.01");
+    let mut d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
+    // A noise model of 1 m per frame: no tip's pixel can be modelled to first order.
+    d.noise_model.as_mut().unwrap().trans_m = 1.0;
+    std::fs::write(dir.path().join("wild.json"), to_json(&d)).unwrap();
+    let (out, r) = calibrate(dir.path(), "wild.json", "ours", &[]);
+    assert!(!out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
+    assert_eq!(r.failures.len(), 1);
+    assert_eq!((r.failures[0].pipeline.as_str(), r.failures[0].kind.as_str()), ("ours", "selection_refused"));
+    // The unrefined estimate is still in the file, marked.
+    assert_eq!(r.results.len(), 1);
+    assert!(r.results[0].selection_stage.as_ref().is_some_and(|s| !s.applied && s.refused.is_some()));
+    let (out, r) = calibrate(dir.path(), "wild.json", "ours", &["--accept-unrefined"]);
+    assert!(out.status.success());
+    assert!(r.failures.is_empty() && r.results.len() == 1);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("accept-unrefined"));
 }

@@ -93,6 +93,17 @@ impl Intrinsics {
         Vector2::new(self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
     }
 
+    /// Ideal (undistorted) pixel → measured (distorted) pixel: the inverse of
+    /// [`Self::undistort_px`].
+    pub fn distort_px(&self, px: &Vector2<f64>) -> Vector2<f64> {
+        if self.is_undistorted() {
+            return *px;
+        }
+        let n = self.k_inv() * Vector3::new(px.x, px.y, 1.0);
+        let (xd, yd) = self.distort(n.x, n.y);
+        Vector2::new(self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy)
+    }
+
     fn distort(&self, x: f64, y: f64) -> (f64, f64) {
         let [k1, k2, p1, p2, k3] = self.distortion;
         let r2 = x * x + y * y;

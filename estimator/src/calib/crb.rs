@@ -35,6 +35,9 @@ pub enum CrbError {
     /// The noise model has a negative, non-finite or all-zero standard deviation.
     #[error("invalid noise model: standard deviations must be finite, ≥ 0, not all zero")]
     NoiseModel,
+    /// The selected bound is only implemented for rules that require the tip in view.
+    #[error("the bound of the kept lines needs a selection rule with the tip in view")]
+    UnsupportedRule,
     /// The Fisher information is singular: the pose is not observable from this geometry.
     #[error("singular Fisher information: the pose is not observable from this geometry")]
     Singular,
@@ -134,7 +137,8 @@ pub struct SelectedCrb {
 /// `configs` (`([ECM joints], [PSM joints])`) of the grid contributes its probability of being
 /// kept times the Fisher information of a kept line, at `truth` (`T_e_t`, metres) under
 /// `noise` and the selection of [`super::selection`] (the tip in the box of
-/// [`super::selection::kept_box`], `setup.min_shaft_px`).
+/// [`super::selection::kept_box`], `setup.selection`; a rule without the tip in view is
+/// refused, [`CrbError::UnsupportedRule`]).
 ///
 /// To first order the line residuals `r` and the unmeasured tip `e` are jointly Gaussian;
 /// a kept line's likelihood is `N(r; 0, Σ_r) · P(e ∈ B | r) / P(e ∈ B)`. Its Fisher
@@ -162,6 +166,9 @@ pub fn selected_bound(
     if !noise.is_valid() {
         return Err(CrbError::NoiseModel);
     }
+    if !setup.selection.require_tip_in_view {
+        return Err(CrbError::UnsupportedRule);
+    }
     let predicted: Vec<Observation> =
         configs.iter().filter_map(|(e, p)| predicted_observation(setup, e, p, truth)).collect();
     let set = prepare(setup, &predicted)?;
@@ -184,7 +191,7 @@ pub fn selected_bound(
         let (m, s4) = line_tip_noise(&set, o, &r, &t, &tp, noise);
         let TipGivenLine { srr_inv, stt, gain, cond } = tip_given_line(&s4).ok_or(CrbError::Singular)?;
         fisher0 += jr.transpose() * srr_inv * jr;
-        let (lo, hi) = kept_box(&set, &tp.dir_px);
+        let (lo, hi) = kept_box(&set, &tp.dir_px, &tp.pixel.px);
         let (lo0, hi0) = (lo - tp.pixel.px, hi - tp.pixel.px);
         // Kept ⇔ e(pose) ∈ [lo − û(pose), hi − û(pose)] = [lo0, hi0] + jt Δ.
         let p0 = box_probability(&stt, &lo0, &hi0);
@@ -238,7 +245,7 @@ pub fn selected_bound(
 /// The noise-free observation of joint configuration `(ecm_joints, psm_joints)` at `truth`
 /// (`T_e_t`, metres), as the protocol records it: the predicted tip (ideal pixels; possibly
 /// outside the image) and the point where the shaft leaves the image, or a point
-/// `max(min_shaft_px, 40)` pixels along the shaft when the tip is outside or leaves sooner.
+/// `max(min_visible_shaft_px, 40)` pixels along the shaft when the tip is outside or leaves sooner.
 /// `None` when the tip is behind the camera or the shaft is seen end-on.
 fn predicted_observation(
     setup: &Setup,
@@ -273,7 +280,8 @@ fn predicted_observation(
         }
     };
     let len = if k.in_image(&tip) { exit(tip.x, dir.x, w).min(exit(tip.y, dir.y, h)) } else { 0.0 };
-    let len = if len >= setup.min_shaft_px.max(1.0) { len } else { setup.min_shaft_px.max(40.0) };
+    let min = setup.selection.min_visible_shaft_px;
+    let len = if len >= min.max(1.0) { len } else { min.max(40.0) };
     let far = tip + dir * len;
     Some(Observation {
         ecm_joints: *ecm_joints,

@@ -24,10 +24,12 @@
 //! - [`residual`]: the residual model (image distances in pixels, their Jacobians and
 //!   covariance, the damped step), shared by what follows.
 //! - [`paper`]: the paper's pipeline, faithful (Eq. 5, Eq. 7-9, Eq. 10).
-//! - [`selection`]: the selection of observations (a line is recorded only when the tool tip
-//!   is in view) as a likelihood, and our pipeline's final, selection-aware stage.
-//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, the
-//!   near-180° ambiguity detected and resolved; ends with the selection stage.
+//! - [`selection`]: the detector's acceptance rule ([`SelectionRule`]: visible shaft length,
+//!   border margin, tip in view or not) as a likelihood, and our pipeline's final,
+//!   selection-aware stage.
+//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, candidates
+//!   compared by their likelihood with a typed refusal when the runner-up cannot be ruled out;
+//!   ends with the selection stage.
 //! - [`crb`]: the Cramér-Rao bounds for a geometry and a kinematic noise model, without and
 //!   with the selection.
 //!
@@ -90,11 +92,45 @@ pub struct Setup {
     /// stereo endoscope a translation of the baseline along `x`). `None`: a single camera
     /// (observations from the right eye are refused).
     pub right_eye: Option<Isometry3<f64>>,
-    /// How observations were selected: one is recorded only when the tool tip is inside the
-    /// image and at least this much shaft (pixels, ≥ 0) is visible from the tip toward robot
-    /// 2's RCM. Our pipeline models this selection ([`selection`]); 0: the tip inside the
-    /// image is the only condition.
-    pub min_shaft_px: f64,
+    /// How the line detector selected the observations (its acceptance rule); our pipeline's
+    /// selection-aware stage models exactly this rule ([`selection`]).
+    pub selection: SelectionRule,
+}
+
+/// The line detector's acceptance rule: which shaft images become observations. Stated in
+/// the dataset; our pipeline models it ([`selection`]). Pixels are ideal (undistorted) for
+/// the model; the simulator applies it on measured pixels.
+///
+/// A line is recorded when the part of the tool shaft (from its tip back toward robot 2's
+/// RCM) that is in front of the camera and at least `border_margin_px` inside the image is
+/// at least `min_visible_shaft_px` long, and, when `require_tip_in_view`, starts at the tip
+/// (the tip itself is in view). The default is the plain line detector's rule: enough
+/// visible shaft, tip or not, no margin, no minimum length.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SelectionRule {
+    /// Shortest visible shaft recorded, pixels (≥ 0).
+    #[serde(default)]
+    pub min_visible_shaft_px: f64,
+    /// The shaft counts as visible only this far inside the image border, pixels (≥ 0).
+    #[serde(default)]
+    pub border_margin_px: f64,
+    /// True: a line is recorded only when the tool tip is in view (inside the margin).
+    #[serde(default)]
+    pub require_tip_in_view: bool,
+}
+
+impl SelectionRule {
+    /// The rule of the original protocol and of version-1 datasets' `min_shaft_px`: the tip in
+    /// the image and at least `min_shaft_px` of shaft visible from it.
+    pub fn tip_in_view(min_shaft_px: f64) -> Self {
+        Self { min_visible_shaft_px: min_shaft_px, border_margin_px: 0.0, require_tip_in_view: true }
+    }
+
+    /// True when both lengths are finite and ≥ 0.
+    pub fn is_valid(&self) -> bool {
+        [self.min_visible_shaft_px, self.border_margin_px].iter().all(|v| v.is_finite() && *v >= 0.0)
+    }
 }
 
 impl Setup {

@@ -30,12 +30,22 @@ use super::KinematicNoise;
 use super::paper::{PaperError, kronecker_rotation, linear_translation, refine_quaternion, wxyz};
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::residual::{damped_step, residual_and_jacobian, residual_covariance};
-use super::selection::{SelectionConfig, SelectionError, refine_selected, tip_well_inside};
+use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected, tip_well_inside};
 use super::{Observation, Setup};
 
 /// Two refined candidates whose rotations differ by more than this (radians, 10°) are
 /// different solutions for the ambiguity check.
 pub const DISTINCT_SOLUTION_RAD: f64 = 0.1745;
+
+/// The default of [`OursConfig::min_log_likelihood_ratio`]: `ln 1000`. The runner-up is
+/// refused as an explanation of the data only when it is at least 1000 times less likely than
+/// the best candidate (its posterior probability under equal priors below 0.1 %).
+pub const DEFAULT_MIN_LOG_LIKELIHOOD_RATIO: f64 = 6.907_755_278_982_137;
+
+/// A whitened residual norm that is not finite, or above this many Huber thresholds, counts as
+/// this many thresholds in a candidate's negative log-likelihood: every candidate's cost, and
+/// so the reported log-likelihood ratio, is finite by construction.
+pub const RESIDUAL_CAP_THRESHOLDS: f64 = 1e6;
 
 /// Options of our pipeline.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -46,9 +56,11 @@ pub struct OursConfig {
     pub huber_k: f64,
     /// Levenberg-Marquardt iterations per pass (two passes with a noise model).
     pub max_iterations: usize,
-    /// Refuse the result when the mirrored (≈180°) solution's cost is less than this
-    /// factor above the best one (the two cannot be told apart).
-    pub min_ambiguity_ratio: f64,
+    /// Refuse the result ([`OursError::Ambiguous`]) when the runner-up candidate (a distinct
+    /// solution, typically the mirror ≈180° about the line of sight) has a negative
+    /// log-likelihood less than this above the best one (natural log, dimensionless; see
+    /// [`DEFAULT_MIN_LOG_LIKELIHOOD_RATIO`]).
+    pub min_log_likelihood_ratio: f64,
     /// Border guard (with a noise model only): keep observations whose predicted tool tip is
     /// at least this many standard deviations inside the image; 0 disables it.
     pub border_guard_sigmas: f64,
@@ -66,7 +78,7 @@ impl Default for OursConfig {
             noise: None,
             huber_k: 3.0,
             max_iterations: 50,
-            min_ambiguity_ratio: 1.05,
+            min_log_likelihood_ratio: DEFAULT_MIN_LOG_LIKELIHOOD_RATIO,
             border_guard_sigmas: 2.0,
             initial_quaternion: None,
             selection: Some(SelectionConfig::default()),
@@ -89,6 +101,15 @@ pub enum OursError {
         /// Smallest over largest eigenvalue of Eq. 5's normal matrix.
         ratio: f64,
     },
+    /// Degenerate: the observed lines form one pencil (see
+    /// [`PaperError::LinesFormOnePencil`](super::paper::PaperError::LinesFormOnePencil)).
+    #[error(
+        "degenerate data: the observed lines form a single pencil (identical, parallel or concurrent; eigenvalue ratio of the plane normals {ratio:.1e}); check the line detector"
+    )]
+    LinesFormOnePencil {
+        /// Smallest over largest eigenvalue of `Σ n_c n_cᵀ` (camera frame).
+        ratio: f64,
+    },
     /// Degenerate: no initial rotation can be formed (tool orientations coplanar or each
     /// seen from a single view).
     #[error("degenerate data: the tool rotation is unobservable from these orientations ({detail})")]
@@ -99,18 +120,28 @@ pub enum OursError {
     /// The noise model has a negative, non-finite or all-zero standard deviation.
     #[error("invalid noise model: standard deviations must be finite, ≥ 0, not all zero")]
     NoiseModel,
-    /// The true and the mirrored (≈180° about the line of sight) solutions fit equally well.
+    /// The data cannot tell the best candidate from the runner-up (typically the mirror
+    /// ≈180° about the line of sight): their negative log-likelihoods differ by less than
+    /// [`OursConfig::min_log_likelihood_ratio`].
     #[error(
-        "ambiguous rotation: the mirrored (≈180°) solution fits almost as well (cost ratio {ratio:.3} < {min:.3}); widen the endoscope's motion"
+        "ambiguous solution: the runner-up ({angle_deg:.1}° from the best, {distance_mm:.1} mm away) is only exp({log_likelihood_ratio:.2}) times less likely than the best (need exp({min:.2})); widen the endoscope's and the tool's motions"
     )]
     Ambiguous {
-        /// Cost of the mirrored solution over the best one.
-        ratio: f64,
+        /// The best candidate.
+        best: Box<Candidate>,
+        /// The runner-up.
+        runner_up: Box<Candidate>,
+        /// `runner_up.nll − best.nll` (natural log, ≥ 0, finite).
+        log_likelihood_ratio: f64,
         /// The configured minimum.
         min: f64,
+        /// Rotation between the two, degrees.
+        angle_deg: f64,
+        /// Translation between the two, millimetres.
+        distance_mm: f64,
     },
-    /// Both candidates ran away from the linear initial estimate.
-    #[error("the refinement diverged from the linear initial estimate (both candidates)")]
+    /// Every candidate ended with a non-finite pose.
+    #[error("the refinement diverged: no candidate ended with a finite pose")]
     NoConvergence,
     /// The normal matrix at the solution is singular (no covariance).
     #[error("the normal matrix at the solution is singular: the pose is not locally observable")]
@@ -144,10 +175,14 @@ pub struct OursResult {
     /// Robust scale of the (whitened) residual norms at the solution (≈1 when the noise
     /// model is right; pixels without a noise model).
     pub scale: f64,
-    /// The mirrored candidate (≈180° about the line of sight), refined.
+    /// The runner-up: the most likely candidate that is a distinct solution (more than
+    /// [`DISTINCT_SOLUTION_RAD`] away in rotation), typically the mirror; when every start
+    /// converged to the best, the best's mirror (180° about the line of sight to robot 2's
+    /// RCM), refined if that converges elsewhere.
     pub alternative: Isometry3<f64>,
-    /// Robust cost of the alternative over the chosen solution (≥ 1; large = unambiguous).
-    pub ambiguity_ratio: f64,
+    /// Negative log-likelihood of the runner-up minus that of the result (natural log, ≥ 0,
+    /// finite by construction; large = unambiguous). See [`Candidate::nll`].
+    pub log_likelihood_ratio: f64,
     /// Levenberg-Marquardt iterations, all candidates.
     pub iterations: usize,
     /// Observations kept by the border guard (all of them when the guard is off or did not
@@ -157,6 +192,21 @@ pub struct OursResult {
     pub selection: Option<SelectionSummary>,
     /// Why the selection-aware stage was not applied (the pose is then the guarded fit).
     pub selection_refused: Option<SelectionError>,
+}
+
+/// One candidate solution and its negative log-likelihood.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Candidate {
+    /// `T_e_t`, metres.
+    pub pose: Isometry3<f64>,
+    /// Negative log-likelihood of all observations (natural log, up to a constant common to
+    /// all candidates): `Σ_i ρ(|Σ_i^{-1/2} r_i|) / ŝ² + ½ ln det Σ_i − ln P(kept_i | r_i)`, with
+    /// `ρ` Huber's function at `huber_k · ŝ`, `ŝ` the smallest robust scale over the
+    /// candidates, `Σ_i` the residual covariance at this candidate (identity pixels² without a
+    /// noise model), and `P(kept_i | r_i)` the probability, under the detector's rule, that the
+    /// line was recorded given where this candidate puts the tool tip (with a noise model only;
+    /// [`super::selection::kept_given_line_ln`]).
+    pub nll: f64,
 }
 
 /// What the selection-aware stage did with the observations.
@@ -279,6 +329,116 @@ fn refine(
     Refined { r, t, whiten, scale, iterations }
 }
 
+/// True when `pose` is within `sigmas` standard deviations (Mahalanobis, `fit`'s covariance)
+/// of `fit`'s pose.
+fn within(fit: &OursResult, pose: &Isometry3<f64>, sigmas: f64) -> bool {
+    let mut d = Vector6::zeros();
+    d.fixed_rows_mut::<3>(0).copy_from(&(pose.translation.vector - fit.pose.translation.vector));
+    d.fixed_rows_mut::<3>(3).copy_from(&(pose.rotation * fit.pose.rotation.inverse()).scaled_axis());
+    match fit.covariance.try_inverse() {
+        Some(info) => d.dot(&(info * d)).max(0.0).sqrt() <= sigmas,
+        None => false,
+    }
+}
+
+/// Candidates more than this (natural log, 10× the default ambiguity threshold) less likely
+/// than the best after the first pass skip the second pass: the whitening refresh moves a
+/// candidate's negative log-likelihood by far less, so they can be neither the result nor a
+/// runner-up close enough to matter.
+const SECOND_PASS_MARGIN_NATS: f64 = 10.0 * DEFAULT_MIN_LOG_LIKELIHOOD_RATIO;
+
+/// At most this many other minima of Eq. 10 are refined as extra starts.
+const MAX_EXTRA_STARTS: usize = 3;
+
+/// The 24 rotations of the cube (signed permutation matrices with determinant +1).
+fn cube_group() -> Vec<Matrix3<f64>> {
+    let perms = [[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]];
+    let mut out = Vec::with_capacity(24);
+    for p in perms {
+        for signs in 0..8u8 {
+            let mut m = Matrix3::zeros();
+            for (row, col) in p.iter().enumerate() {
+                m[(row, *col)] = if signs & (1 << row) != 0 { -1.0 } else { 1.0 };
+            }
+            if m.determinant() > 0.0 {
+                out.push(m);
+            }
+        }
+    }
+    out
+}
+
+fn pose_of(r: &Matrix3<f64>, t: &Vector3<f64>) -> Isometry3<f64> {
+    Isometry3::from_parts(Translation3::from(*t), UnitQuaternion::from_matrix(r))
+}
+
+/// A candidate's negative log-likelihood ([`Candidate::nll`], plus with a noise model the
+/// term of the detector's rule, [`kept_given_line_ln`]) at robust scale `s_ref`
+/// (whitened units; pixels without a noise model). Finite by construction
+/// ([`RESIDUAL_CAP_THRESHOLDS`]; a covariance whose determinant is not positive and finite
+/// contributes no log-determinant).
+fn candidate_nll(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>, s_ref: f64) -> f64 {
+    let c = cfg.huber_k * s_ref;
+    let cap = RESIDUAL_CAP_THRESHOLDS * c;
+    let s2 = s_ref * s_ref;
+    let mut total = 0.0;
+    for o in &set.obs {
+        let res = residual_and_jacobian(set, o, r, t).0;
+        let (e, logdet) = match &cfg.noise {
+            Some(noise) => {
+                let cov = residual_covariance(set, o, r, t, noise);
+                let det = cov.determinant();
+                let logdet = if det.is_finite() && det > 0.0 { det.ln() } else { 0.0 };
+                ((whitener(&cov) * res).norm(), logdet)
+            }
+            None => (res.norm(), 0.0),
+        };
+        let n = if e.is_finite() { e.min(cap) } else { cap };
+        total += huber(n, c) / s2 + 0.5 * logdet;
+        // With a noise model: that this line was recorded at all, given where this pose puts
+        // the tool (the detector's rule; −ln P(kept | line), 0 where the first-order model
+        // does not apply, a bounded penalty for a tip behind the camera).
+        if let Some(noise) = &cfg.noise {
+            total -= kept_given_line_ln(set, o, r, t, noise, &SelectionConfig::default());
+        }
+    }
+    total
+}
+
+/// The runner-up of the candidates (`costs` their [`candidate_nll`], `ib` the best): the most
+/// likely distinct solution; when there is none, the best's mirror, refined (kept refined only
+/// if that converges to a distinct solution). Returns its pose and negative log-likelihood.
+fn runner_up(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    candidates: &[Refined],
+    costs: &[f64],
+    ib: usize,
+    nll_of: &dyn Fn(&Matrix3<f64>, &Vector3<f64>) -> f64,
+) -> (Isometry3<f64>, f64) {
+    let best = &candidates[ib];
+    let distinct =
+        |r: &Matrix3<f64>| Rotation3::from_matrix_unchecked(best.r.transpose() * r).angle() > DISTINCT_SOLUTION_RAD;
+    let alt = (0..candidates.len())
+        .filter(|i| *i != ib && costs[*i].is_finite() && distinct(&candidates[*i].r))
+        .min_by(|a, b| costs[*a].total_cmp(&costs[*b]));
+    if let Some(i) = alt {
+        return (pose_of(&candidates[i].r, &candidates[i].t), costs[i]);
+    }
+    // Every start went to the best: its mirror about the mean line of sight to the best RCM.
+    let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / set.obs.len().max(1) as f64;
+    let sight = (best.t - mean_c).try_normalize(1e-12).unwrap_or_else(Vector3::z);
+    let flip = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(sight), core::f64::consts::PI).into_inner();
+    let r_m = flip * best.r;
+    let refined = refine(set, cfg, whitening(set, cfg, &r_m, &best.t), r_m, best.t);
+    let ok = refined.t.iter().chain(refined.r.iter()).all(|v| v.is_finite()) && distinct(&refined.r);
+    if ok {
+        let c = nll_of(&refined.r, &refined.t);
+        return (pose_of(&refined.r, &refined.t), c);
+    }
+    (pose_of(&r_m, &best.t), nll_of(&r_m, &best.t))
+}
+
 /// Whitening matrices `Σ_i^{-1/2}` at `(r, t)` (identity without a noise model).
 fn whitening(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<Matrix2<f64>> {
     match &cfg.noise {
@@ -384,10 +544,13 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         kept_before = obs.len();
         let sub = PreparedSet { obs, ..set.clone() };
         match solve_once(&sub, cfg, Some(&result.pose)) {
+            // A guarded refit must stay within the full fit's confidence region (the guard
+            // removes a bias, it does not find another solution); else the guard stops.
+            Ok(next) if !within(&result, &next.pose, SelectionConfig::default().max_shift_sigmas) => break,
             Ok(mut next) => {
                 next.guard_kept = sub.obs.len();
                 next.alternative = result.alternative;
-                next.ambiguity_ratio = result.ambiguity_ratio;
+                next.log_likelihood_ratio = result.log_likelihood_ratio;
                 result = next;
             }
             Err(_) => break,
@@ -437,6 +600,7 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         Some(p) => p.translation.vector,
         None => linear_translation(set).map_err(|e| match e {
             PaperError::ViewsCollinear { ratio } => OursError::ViewsCollinear { ratio },
+            PaperError::LinesFormOnePencil { ratio } => OursError::LinesFormOnePencil { ratio },
             _ => OursError::Singular,
         })?,
     };
@@ -463,6 +627,25 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         }
         starts.push(UnitQuaternion::from_quaternion(q).to_rotation_matrix().into_inner());
     }
+    // The other minima of Eq. 10 (cheap: four parameters): polished from the 24 rotations of
+    // the cube group applied to the linear start, kept when distinct, by increasing cost; the
+    // linear start alone can sit in the wrong basin when the tool's directions span a narrow
+    // cone.
+    let mut extra: Vec<Matrix3<f64>> = Vec::new();
+    if let Some(r_lin) = &linear {
+        let mut minima: Vec<(f64, Matrix3<f64>)> = Vec::new();
+        for g in cube_group() {
+            let (q, cost, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_matrix(&(g * r_lin))));
+            let r = q.to_rotation_matrix().into_inner();
+            let seen =
+                |m: &Matrix3<f64>| Rotation3::from_matrix_unchecked(m.transpose() * r).angle() < DISTINCT_SOLUTION_RAD;
+            if cost.is_finite() && !seen(r_lin) && !minima.iter().any(|(_, m)| seen(m)) {
+                minima.push((cost, r));
+            }
+        }
+        minima.sort_by(|a, b| a.0.total_cmp(&b.0));
+        extra = minima.into_iter().take(MAX_EXTRA_STARTS).map(|(_, r)| r).collect();
+    }
     match linear {
         Some(r) => starts.push(r),
         None if starts.is_empty() => {
@@ -472,70 +655,89 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         }
         None => {}
     }
-    // Each start and its mirror: 180° about the mean line of sight to robot 2's RCM.
+    // Each start and its 180° turns about the line of sight to robot 2's RCM and about the
+    // three axes of the mean tool direction's frame (the tool axis, its component across the
+    // line of sight, their normal): a line cannot tell the tool's direction from its opposite,
+    // so a narrow cone of tool directions leaves these turns nearly unobservable from lines.
     let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / set.obs.len() as f64;
     let sight = (t0 - mean_c).try_normalize(1e-12).unwrap_or_else(Vector3::z);
-    let flip = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(sight), core::f64::consts::PI).into_inner();
-    // Whitening is held fixed while candidates are refined and compared (the same weights
-    // for all: a weight that follows the estimate would favour poses that inflate their own
-    // predicted noise); it is refreshed once at the winner for a final pass.
+    let mean_m = set.obs.iter().map(|o| o.m_t).sum::<Vector3<f64>>() / set.obs.len() as f64;
+    let turns = |r0: &Matrix3<f64>| -> Vec<Matrix3<f64>> {
+        let a = (r0 * mean_m).try_normalize(1e-12).unwrap_or_else(Vector3::z);
+        let b = (sight - a * a.dot(&sight)).try_normalize(1e-9).unwrap_or_else(|| a.cross(&Vector3::x()).normalize());
+        let c = a.cross(&b);
+        let mut v = vec![*r0];
+        for axis in [sight, a, b, c] {
+            let flip =
+                Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), core::f64::consts::PI).into_inner();
+            v.push(flip * r0);
+        }
+        v
+    };
+    // Whitening is held fixed while candidates are refined (the same weights for all); it is
+    // refreshed once at each candidate's solution for a second pass.
     let w0 = whitening(set, cfg, starts.last().unwrap_or(&Matrix3::identity()), &t0);
-    let candidates: Vec<Refined> = starts
+    let firsts: Vec<Refined> = starts
         .iter()
-        .flat_map(|r0| if from.is_some() { vec![*r0] } else { vec![*r0, flip * r0] })
-        .map(|r0| {
-            let first = refine(set, cfg, w0.clone(), r0, t0);
-            if cfg.noise.is_none() {
-                return first;
-            }
-            // Second pass with the whitening refreshed at this candidate's solution.
-            let w1 = whitening(set, cfg, &first.r, &first.t);
-            let second = refine(set, cfg, w1, first.r, first.t);
-            Refined { whiten: w0.clone(), ..second }
-        })
+        .flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) })
+        .chain(extra.iter().copied())
+        .map(|r0| refine(set, cfg, w0.clone(), r0, t0))
         .collect();
-    // A candidate that ran away (moved more than twice as far as robot 2's RCM is from
-    // robot 1's, per the linear estimate) failed.
-    let sane = |x: &Refined| (x.t - t0).norm() <= 2.0 * t0.norm().max(1e-3) && x.t.iter().all(|v| v.is_finite());
-    let s_ref = candidates.iter().filter(|x| sane(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
+    let finite = |x: &Refined| x.t.iter().chain(x.r.iter()).all(|v| v.is_finite());
+    let candidates: Vec<Refined> = if cfg.noise.is_none() {
+        firsts
+    } else {
+        // A second pass with the whitening refreshed at each candidate's solution, for the
+        // candidates within [`SECOND_PASS_MARGIN_NATS`] of the best after the first pass (the
+        // others keep their first-pass pose and are compared as they are).
+        let s0 = firsts.iter().filter(|x| finite(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
+        let nll0: Vec<f64> = firsts
+            .iter()
+            .map(|x| if finite(x) && s0.is_finite() { candidate_nll(set, cfg, &x.r, &x.t, s0) } else { f64::INFINITY })
+            .collect();
+        let best0 = nll0.iter().copied().fold(f64::INFINITY, f64::min);
+        firsts
+            .into_iter()
+            .zip(nll0)
+            .map(|(first, c)| {
+                if c > best0 + SECOND_PASS_MARGIN_NATS {
+                    return first;
+                }
+                let w1 = whitening(set, cfg, &first.r, &first.t);
+                let second = refine(set, cfg, w1, first.r, first.t);
+                Refined { whiten: w0.clone(), ..second }
+            })
+            .collect()
+    };
+    // Candidates are compared by their likelihood on all observations, each with its own
+    // residual covariance (the log-determinant keeps a pose from winning by inflating its
+    // own predicted noise), at one common robust scale. Nothing depends on the scene's scale.
+    let s_ref = candidates.iter().filter(|x| finite(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
     if !s_ref.is_finite() {
         return Err(OursError::NoConvergence);
     }
-    let c_ref = cfg.huber_k * s_ref;
-    let costs: Vec<f64> = candidates
-        .iter()
-        .map(|x| {
-            if sane(x) {
-                whitened_norms(set, &x.whiten, &x.r, &x.t).iter().map(|n| huber(*n, c_ref)).sum()
-            } else {
-                f64::INFINITY
-            }
-        })
-        .collect();
+    let nll_of = |r: &Matrix3<f64>, t: &Vector3<f64>| candidate_nll(set, cfg, r, t, s_ref);
+    let costs: Vec<f64> =
+        candidates.iter().map(|x| if finite(x) { nll_of(&x.r, &x.t) } else { f64::INFINITY }).collect();
     let ib = (0..candidates.len()).min_by(|a, b| costs[*a].total_cmp(&costs[*b])).unwrap_or(0);
     let best = &candidates[ib];
     let c_best = costs[ib];
-    // The ambiguity: the best candidate that is a different solution, i.e. more than
-    // [`DISTINCT_SOLUTION_RAD`] away in rotation (not the same minimum reached from another
-    // start, which differs only by the convergence tolerance).
-    let distinct =
-        |x: &Refined| Rotation3::from_matrix_unchecked(best.r.transpose() * x.r).angle() > DISTINCT_SOLUTION_RAD;
-    let alt_idx = (0..candidates.len())
-        .filter(|i| *i != ib && distinct(&candidates[*i]))
-        .min_by(|a, b| costs[*a].total_cmp(&costs[*b]));
-    let (alt, c_alt) = match alt_idx {
-        Some(i) => (&candidates[i], costs[i]),
-        None => (best, f64::INFINITY),
-    };
-    let ratio = if c_best > 0.0 {
-        c_alt / c_best
-    } else if c_alt > 0.0 {
-        f64::INFINITY
+    let (alt_pose, c_alt) = if from.is_some() {
+        (pose_of(&best.r, &best.t), c_best)
     } else {
-        1.0
+        runner_up(set, cfg, &candidates, &costs, ib, &nll_of)
     };
-    if ratio < cfg.min_ambiguity_ratio {
-        return Err(OursError::Ambiguous { ratio, min: cfg.min_ambiguity_ratio });
+    let llr = (c_alt - c_best).max(0.0);
+    let best_pose = pose_of(&best.r, &best.t);
+    if from.is_none() && llr < cfg.min_log_likelihood_ratio {
+        return Err(OursError::Ambiguous {
+            best: Box::new(Candidate { pose: best_pose, nll: c_best }),
+            runner_up: Box::new(Candidate { pose: alt_pose, nll: c_alt }),
+            log_likelihood_ratio: llr,
+            min: cfg.min_log_likelihood_ratio,
+            angle_deg: (best_pose.rotation.inverse() * alt_pose.rotation).angle().to_degrees(),
+            distance_mm: (best_pose.translation.vector - alt_pose.translation.vector).norm() * 1e3,
+        });
     }
     // The winner's own whitening for its covariance.
     let best = &Refined { whiten: whitening(set, cfg, &best.r, &best.t), ..*best };
@@ -571,8 +773,8 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         covariance: cov,
         residuals,
         scale: best.scale,
-        alternative: Isometry3::from_parts(Translation3::from(alt.t), UnitQuaternion::from_matrix(&alt.r)),
-        ambiguity_ratio: ratio,
+        alternative: alt_pose,
+        log_likelihood_ratio: llr,
         iterations: candidates.iter().map(|c| c.iterations).sum(),
         guard_kept: set.obs.len(),
         selection: None,

@@ -36,6 +36,18 @@ pub enum PaperError {
         /// Smallest over largest eigenvalue of Eq. 5's normal matrix.
         ratio: f64,
     },
+    /// Degenerate: every observed line passes through one image point (or all are parallel or
+    /// identical), which a tool pivoting about a fixed RCM seen from two or more views not
+    /// collinear with it cannot produce: Eq. 1's normals span fewer than three dimensions and
+    /// the lines carry no information on the pose.
+    #[error(
+        "degenerate data: the observed lines form a single pencil (identical, parallel or concurrent; eigenvalue ratio of the plane normals {ratio:.1e} < {tol:.0e}); check the line detector",
+        tol = super::prepare::PENCIL_TOLERANCE
+    )]
+    LinesFormOnePencil {
+        /// Smallest over largest eigenvalue of `Σ n_c n_cᵀ` (camera frame).
+        ratio: f64,
+    },
     /// Degenerate: Eq. 8's null space is more than one-dimensional (for the linear step the
     /// tool needs four orientations in general position, three are enough only for Eq. 10).
     #[error(
@@ -69,6 +81,8 @@ pub struct PaperResult {
 }
 
 /// Eq. 5: `eO_t = argmin Σ (nₑᵀ x − nₑᵀ eO_c)²` (metres, `{e}`), with `nₑ = e_cR n_c`.
+/// Refused when its normal matrix is rank-deficient ([`PaperError::ViewsCollinear`]) or when
+/// the lines it rests on form one pencil ([`PaperError::LinesFormOnePencil`]).
 pub fn linear_translation(set: &PreparedSet) -> Result<Vector3<f64>, PaperError> {
     let mut ata = Matrix3::zeros();
     let mut atb = Vector3::zeros();
@@ -82,6 +96,9 @@ pub fn linear_translation(set: &PreparedSet) -> Result<Vector3<f64>, PaperError>
     let ratio = if max > 0.0 { min / max } else { 0.0 };
     if ratio.is_nan() || ratio <= RANK_TOLERANCE {
         return Err(PaperError::ViewsCollinear { ratio });
+    }
+    if set.pencil_ratio.is_nan() || set.pencil_ratio < super::prepare::PENCIL_TOLERANCE {
+        return Err(PaperError::LinesFormOnePencil { ratio: set.pencil_ratio });
     }
     // Solve through the eigen-decomposition (already computed, well conditioned here).
     let mut x = Vector3::zeros();

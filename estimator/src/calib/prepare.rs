@@ -14,6 +14,11 @@ use super::{Observation, Setup};
 
 /// Camera centres closer than this (metres) are the same view of robot 1.
 pub const SAME_VIEW_M: f64 = 1e-6;
+/// The observed lines form one pencil (all through one image point, possibly at infinity:
+/// identical, concurrent or parallel lines) when the smallest eigenvalue of `Σ n_c n_cᵀ`
+/// (Eq. 1's unit normals in the camera frame) is below this fraction of the largest. Valid
+/// protocol data sit above 0.05 at every noise level simulated, pencils below 1e-8.
+pub const PENCIL_TOLERANCE: f64 = 1e-4;
 /// Tool directions closer than this (radians) are the same orientation of robot 2.
 pub const SAME_ORIENTATION_RAD: f64 = 1e-6;
 
@@ -54,8 +59,12 @@ pub struct PreparedSet {
     pub hand_eye: Isometry3<f64>,
     /// The camera intrinsics (pixels; image size for the border guard).
     pub intrinsics: super::Intrinsics,
-    /// [`Setup::min_shaft_px`](super::Setup::min_shaft_px), pixels.
-    pub min_shaft_px: f64,
+    /// [`Setup::selection`](super::Setup::selection): the detector's acceptance rule.
+    pub selection: super::SelectionRule,
+    /// Smallest over largest eigenvalue of `Σ n_c n_cᵀ` (Eq. 1's unit normals in the camera
+    /// frame): below [`PENCIL_TOLERANCE`] the lines form one pencil (checked by Eq. 5's step,
+    /// [`super::paper::linear_translation`]).
+    pub pencil_ratio: f64,
     /// Distinct views of robot 1 (distinct optical centres), counted up to the first 2.
     pub views: usize,
     /// Distinct orientations of robot 2's tool, counted up to the first 3.
@@ -94,9 +103,9 @@ pub enum PrepareError {
         /// What is wrong with the line.
         source: LineError,
     },
-    /// The selection's minimum visible shaft is negative or not finite.
-    #[error("min_shaft_px must be finite and ≥ 0 (got {0})")]
-    MinShaft(f64),
+    /// The selection rule's lengths are negative or not finite.
+    #[error("selection rule: min_visible_shaft_px and border_margin_px must be finite and ≥ 0 (got {0:?})")]
+    Selection(super::SelectionRule),
     /// Degenerate: robot 1 (the endoscope) was seen from fewer than two views, so the depth
     /// of robot 2's RCM cannot be recovered.
     #[error(
@@ -134,8 +143,8 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
     }
     let left_ad = inverse_adjoint(&setup.hand_eye);
     let right = setup.hand_eye_of(super::Eye::Right).map(|x| (x, inverse_adjoint(&x)));
-    if !(setup.min_shaft_px.is_finite() && setup.min_shaft_px >= 0.0) {
-        return Err(PrepareError::MinShaft(setup.min_shaft_px));
+    if !setup.selection.is_valid() {
+        return Err(PrepareError::Selection(setup.selection));
     }
     let k_inv = setup.intrinsics.k_inv();
     let mut obs = Vec::with_capacity(observations.len());
@@ -178,12 +187,17 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
     if orientations < 3 {
         return Err(PrepareError::TooFewToolOrientations { orientations });
     }
+    let normals = obs.iter().fold(Matrix3::zeros(), |acc, p| acc + p.n_c * p.n_c.transpose());
+    let eig = normals.symmetric_eigen();
+    let (lmin, lmax) = (eig.eigenvalues.min(), eig.eigenvalues.max());
+    let pencil_ratio = if lmax > 0.0 { lmin.max(0.0) / lmax } else { 0.0 };
     Ok(PreparedSet {
+        pencil_ratio,
         obs,
         k_inv_t: k_inv.transpose(),
         hand_eye: setup.hand_eye,
         intrinsics: setup.intrinsics,
-        min_shaft_px: setup.min_shaft_px,
+        selection: setup.selection,
         views,
         orientations,
     })

@@ -1,8 +1,9 @@
 //! The selection of observations as a likelihood, and our pipeline's selection-aware stage.
 //!
 //! ## Why
-//! A line is only recorded when the tool tip is in view (and enough shaft is visible from it,
-//! [`Setup::min_shaft_px`](super::Setup::min_shaft_px)). Near the image border, the kept lines
+//! A line is only recorded when the detector's acceptance rule holds
+//! ([`SelectionRule`](super::SelectionRule): enough shaft visible inside the image margin, and
+//! the tip in view if the rule says so). Near the image border, the kept lines
 //! are those whose noise pushed the tip inward: their residuals are no longer zero-mean, and a
 //! least-squares fit, however well weighted, is biased. The bound of the kept lines
 //! ([`super::crb::selected_bound`]) shows that the information is there; this stage recovers
@@ -11,8 +12,12 @@
 //! ## Model (first order in the 18 frame perturbations, at the current pose)
 //! The two line residuals `r` (pixels, [`super::residual::residual_and_jacobian`]) and the tip
 //! `e` (the actual tip's pixel minus its prediction `û`) are jointly Gaussian,
-//! `(r, e) ~ N(0, Σ)`. Kept when the tip is in the box `B` (ideal pixels) where both the tip
-//! and the point `min_shaft_px` further along the shaft are in the image ([`kept_box`]). The
+//! `(r, e) ~ N(0, Σ)`. With the shaft's image direction `d` held at its prediction, the rule
+//! is a region `B` of the tip's pixel (ideal pixels): with `require_tip_in_view`, the box
+//! where both the tip and the point `min_visible_shaft_px` further along the shaft are inside
+//! the margin ([`kept_box`]); without, that box swept backward along `−d` (the tip may be
+//! anywhere from which the shaft enters the image and runs that far inside it;
+//! [`swept_box_probability`]). The
 //! likelihood of a kept line is `N(r; 0, Σ_r) · P(tip ∈ B | r) / P(tip ∈ B)`:
 //! - `P(tip ∈ B)`: a bivariate normal box probability ([`box_probability`]).
 //! - `P(tip ∈ B | r)`: the tip lies on the observed line; along it, it is normal with the
@@ -124,9 +129,9 @@ pub fn tip_pixel_covariance(tp: &TipProjection, noise: &KinematicNoise) -> Matri
     noise.propagate(&(tp.pixel.proj * tp.dp_noise))
 }
 
-/// Standard deviation of the tip's depth under `noise` over its depth (dimensionless): how
-/// True when the tool tip of `o`, predicted at `(R, t)`, lies `k` standard deviations (of
-/// its pixel position under `noise`) inside the image.
+/// True when the tool tip of `o`, predicted at `(R, t)`, is safely inside the rule's region:
+/// with `require_tip_in_view`, `k` standard deviations (of its pixel position under `noise`)
+/// inside the image's margin; without, kept with probability at least `Φ(k)`.
 pub fn tip_well_inside(
     set: &PreparedSet,
     o: &Prepared,
@@ -137,12 +142,20 @@ pub fn tip_well_inside(
 ) -> bool {
     let Some(tp) = tip_projection(set, o, r, t) else { return false };
     let cov = tip_pixel_covariance(&tp, noise);
+    if !set.selection.require_tip_in_view {
+        // The rule's region is not a box: kept with at least the probability of k standard
+        // deviations on one side.
+        let (lo, hi) = kept_box(set, &tp.dir_px, &tp.pixel.px);
+        let p = swept_box_probability(&cov, &(lo - tp.pixel.px), &(hi - tp.pixel.px), &tp.dir_px);
+        return p >= normal_mass(-40.0, k);
+    }
     let (u, v) = (tp.pixel.px.x, tp.pixel.px.y);
-    let cam = &set.intrinsics;
+    let (lo, hi) = kept_box(set, &Vector2::zeros(), &tp.pixel.px);
     let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
-    u - su >= 0.0 && v - sv >= 0.0 && u + su <= cam.width as f64 - 1.0 && v + sv <= cam.height as f64 - 1.0
+    u - su >= lo.x && v - sv >= lo.y && u + su <= hi.x && v + sv <= hi.y
 }
 
+/// Standard deviation of the tip's depth under `noise` over its depth (dimensionless): how
 /// far from linear its projection is.
 pub fn relative_depth_sd(tp: &TipProjection, noise: &KinematicNoise) -> f64 {
     let row = tp.dp_noise.row(2);
@@ -150,13 +163,122 @@ pub fn relative_depth_sd(tp: &TipProjection, noise: &KinematicNoise) -> f64 {
     var.sqrt() / tp.pixel.p_c.z
 }
 
-/// The box (ideal pixels, `(lo, hi)`) the tip must lie in for its observation to be recorded,
-/// for a shaft with image direction `dir_px` (unit, from the tip toward robot 2's RCM): the
-/// tip and the point `min_shaft_px` further along the shaft both inside the image.
-pub fn kept_box(set: &PreparedSet, dir_px: &Vector2<f64>) -> (Vector2<f64>, Vector2<f64>) {
-    let (w, h) = (set.intrinsics.width as f64 - 1.0, set.intrinsics.height as f64 - 1.0);
-    let s = dir_px * set.min_shaft_px;
-    (Vector2::new(0.0f64.max(-s.x), 0.0f64.max(-s.y)), Vector2::new(w.min(w - s.x), h.min(h - s.y)))
+/// The box (ideal pixels, `(lo, hi)`) of points from which, along image direction `dir_px`
+/// (unit, from the tip toward robot 2's RCM), `min_visible_shaft_px` of shaft lies inside the
+/// image shrunk by `border_margin_px`: with `require_tip_in_view`, where the tip must lie.
+///
+/// With lens distortion the image border is curved in ideal pixels: each edge is placed where
+/// the border crosses the row or column of `near` (ideal pixels, typically the predicted tip,
+/// clamped into the image), a local approximation.
+pub fn kept_box(set: &PreparedSet, dir_px: &Vector2<f64>, near: &Vector2<f64>) -> (Vector2<f64>, Vector2<f64>) {
+    let k = &set.intrinsics;
+    let m = set.selection.border_margin_px;
+    let (w, h) = (k.width as f64 - 1.0 - m, k.height as f64 - 1.0 - m);
+    let (mut lo, mut hi) = (Vector2::new(m, m), Vector2::new(w, h));
+    if !k.is_undistorted() {
+        let d = k.distort_px(near);
+        let d = Vector2::new(d.x.clamp(m, w), d.y.clamp(m, h));
+        let edges = [
+            k.undistort_px(&Vector2::new(m, d.y)).x,
+            k.undistort_px(&Vector2::new(d.x, m)).y,
+            k.undistort_px(&Vector2::new(w, d.y)).x,
+            k.undistort_px(&Vector2::new(d.x, h)).y,
+        ];
+        if edges.iter().all(|e| e.is_finite()) && edges[0] < edges[2] && edges[1] < edges[3] {
+            (lo, hi) = (Vector2::new(edges[0], edges[1]), Vector2::new(edges[2], edges[3]));
+        }
+    }
+    let s = dir_px * set.selection.min_visible_shaft_px;
+    (Vector2::new(lo.x.max(lo.x - s.x), lo.y.max(lo.y - s.y)), Vector2::new(hi.x.min(hi.x - s.x), hi.y.min(hi.y - s.y)))
+}
+
+/// Probability that `x ~ N(0, s)` (2-D, pixels²) lies in the box `[lo, hi]` swept backward
+/// along the unit direction `d`, `{x : x + a·d ∈ [lo, hi] for some a ≥ 0}`: where the tip may
+/// be when only the visible shaft counts. Gauss-Legendre (8 nodes per piece) over the
+/// coordinate across `d`, split at the box corners and every 3.5 standard deviations within
+/// ±7, of the closed-form conditional probability along `d`. `d` zero (shaft seen end-on) or
+/// `s` singular along `d`'s normal: the box probability.
+pub fn swept_box_probability(s: &Matrix2<f64>, lo: &Vector2<f64>, hi: &Vector2<f64>, d: &Vector2<f64>) -> f64 {
+    let Some(d) = d.try_normalize(1e-12) else { return box_probability(s, lo, hi) };
+    let n = Vector2::new(-d.y, d.x);
+    let (saa, sww, saw) = (d.dot(&(s * d)), n.dot(&(s * n)), d.dot(&(s * n)));
+    if !(sww > 0.0 && saa >= 0.0) {
+        return box_probability(s, lo, hi);
+    }
+    let sd_w = sww.sqrt();
+    let cond_sd = (saa - saw * saw / sww).max(1e-18).sqrt();
+    let corners =
+        [Vector2::new(lo.x, lo.y), Vector2::new(hi.x, lo.y), Vector2::new(lo.x, hi.y), Vector2::new(hi.x, hi.y)];
+    let ws: [f64; 4] = corners.map(|c| n.dot(&c));
+    let (wmin, wmax) =
+        (ws.iter().copied().fold(f64::INFINITY, f64::min), ws.iter().copied().fold(f64::NEG_INFINITY, f64::max));
+    let (a, b) = (wmin.max(-7.0 * sd_w), wmax.min(7.0 * sd_w));
+    if a.is_nan() || b.is_nan() || a >= b {
+        return 0.0;
+    }
+    let mut cuts: heapless::Vec<f64, 16> = heapless::Vec::new();
+    let _ = cuts.push(a);
+    let _ = cuts.push(b);
+    for x in ws.iter().copied().chain((-1..=1).map(|k| 3.5 * k as f64 * sd_w)) {
+        if x > a && x < b {
+            let _ = cuts.push(x);
+        }
+    }
+    cuts.sort_unstable_by(|x, y| x.total_cmp(y));
+    let mut p = 0.0;
+    for win in cuts.windows(2) {
+        let (mid, half) = (0.5 * (win[0] + win[1]), 0.5 * (win[1] - win[0]));
+        if half <= 0.0 {
+            continue;
+        }
+        for &(xi, wi) in &GAUSS_LEGENDRE_8 {
+            for w in [mid - half * xi, mid + half * xi] {
+                // The farthest point of the box along d on the line n·x = w.
+                let Some((_, amax)) = clip_line_to_box(&(n * w), &d, lo, hi) else { continue };
+                let mean = saw / sww * w;
+                let hi_z = ((amax - mean) / cond_sd).clamp(-40.0, 40.0);
+                p += wi * half * pdf(w / sd_w) / sd_w * normal_mass(-40.0, hi_z);
+            }
+        }
+    }
+    p.clamp(0.0, 1.0)
+}
+
+/// The probability that the tip offset `e ~ N(0, s)` (pixels²) falls in the region of the
+/// rule for shaft direction `d` (unit, tip toward robot 2's RCM), the region being `[lo, hi]`
+/// relative to the predicted tip: [`box_probability`] when the tip must be in view, else
+/// [`swept_box_probability`].
+pub fn region_probability(
+    set: &PreparedSet,
+    s: &Matrix2<f64>,
+    lo: &Vector2<f64>,
+    hi: &Vector2<f64>,
+    d: &Vector2<f64>,
+) -> f64 {
+    if set.selection.require_tip_in_view { box_probability(s, lo, hi) } else { swept_box_probability(s, lo, hi, d) }
+}
+
+/// `∂P/∂c` of [`region_probability`] for the region shifted by `−c` (pixels⁻¹): closed form
+/// for the box, central differences for the swept box.
+pub fn region_probability_gradient(
+    set: &PreparedSet,
+    s: &Matrix2<f64>,
+    lo: &Vector2<f64>,
+    hi: &Vector2<f64>,
+    d: &Vector2<f64>,
+) -> Vector2<f64> {
+    if set.selection.require_tip_in_view {
+        return box_probability_gradient(s, lo, hi);
+    }
+    let h = 1e-4 * s.trace().max(1e-12).sqrt();
+    let mut g = Vector2::zeros();
+    for k in 0..2 {
+        let mut e = Vector2::zeros();
+        e[k] = h;
+        g[k] = (swept_box_probability(s, &(lo - e), &(hi - e), d) - swept_box_probability(s, &(lo + e), &(hi + e), d))
+            / (2.0 * h);
+    }
+    g
 }
 
 const INV_SQRT_2PI: f64 = 0.398_942_280_401_432_7;
@@ -346,6 +468,8 @@ enum Model {
         lo: Vector2<f64>,
         /// Upper corner.
         hi: Vector2<f64>,
+        /// The predicted shaft's unit image direction (tip toward robot 2's RCM).
+        dir: Vector2<f64>,
         /// The observed line's unit direction (oriented like the predicted shaft) and the end
         /// of the observed segment along it inside the box of the observed direction:
         /// `(u, s_lo, s_hi)` about the first line point.
@@ -440,20 +564,51 @@ fn model_at(
     }
     let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
     let Some(TipGivenLine { srr_inv, stt, gain, cond }) = tip_given_line(&s4) else { return Model::Out };
-    let (lo, hi) = kept_box(set, &tp.dir_px);
+    let (lo, hi) = kept_box(set, &tp.dir_px, &tp.pixel.px);
     let Some(mut u) = (o.px[1] - o.px[0]).try_normalize(1e-12) else { return Model::Plain(srr_inv) };
     if u.dot(&tp.dir_px) < 0.0 {
         u = -u;
     }
-    let (blo, bhi) = kept_box(set, &u);
+    let (blo, bhi) = kept_box(set, &u, &tp.pixel.px);
     match clip_line_to_box(&o.px[0], &u, &blo, &bhi) {
-        Some((s_lo, s_hi)) => Model::Selected { srr_inv, stt, gain, cond, lo, hi, segment: (u, s_lo, s_hi) },
+        // Without the tip in view, the tip may be anywhere on the line before the box.
+        Some((s_lo, s_hi)) => {
+            let s_lo = if set.selection.require_tip_in_view { s_lo } else { f64::NEG_INFINITY };
+            Model::Selected { srr_inv, stt, gain, cond, lo, hi, dir: tp.dir_px, segment: (u, s_lo, s_hi) }
+        }
         None => Model::Plain(srr_inv),
     }
 }
 
 /// Probabilities below this are taken as this (a log-likelihood term is at most ~30).
 const P_FLOOR: f64 = 1e-13;
+
+/// `ln P(kept | r)` of observation `o` at pose `(R, t)` (`T_e_t`) under `noise` and the rule:
+/// the probability that the tip, on the observed line where the pose and the line residuals
+/// put it, lies where the detector records the line. 0 (no information) for a plain line
+/// (first-order model not trusted, [`SelectionConfig::depth_ratio`]) and `ln 1e-13` for a tip
+/// behind the camera. Used to compare candidate solutions (a mirror puts the tips elsewhere).
+pub fn kept_given_line_ln(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    cfg: &SelectionConfig,
+) -> f64 {
+    match model_at(set, o, r, t, noise, cfg) {
+        Model::Out => P_FLOOR.ln(),
+        Model::Plain(_) => 0.0,
+        Model::Selected { gain, cond, segment: (u, s_lo, s_hi), .. } => {
+            let Some(tp) = tip_pixel(set, o, r, t) else { return P_FLOOR.ln() };
+            let res = residual_and_jacobian(set, o, r, t).0;
+            let s_mean = (tp.px + gain * res - o.px[0]).dot(&u);
+            let s_sd = u.dot(&(cond * u)).max(1e-12).sqrt();
+            let p = normal_mass(((s_lo - s_mean) / s_sd).max(-40.0), ((s_hi - s_mean) / s_sd).min(40.0));
+            p.max(P_FLOOR).ln()
+        }
+    }
+}
 
 /// One observation's negative log-likelihood and, when `want_grad`, its gradient w.r.t.
 /// `(t, δφ)` and the Gauss-Newton matrix of its Gaussian part.
@@ -478,11 +633,11 @@ fn term(
     let mut f = 0.5 * res.dot(&w);
     let mut g = if want_grad { jr.transpose() * w } else { Vector6::zeros() };
     let mut h = if want_grad { jr.transpose() * srr_inv * jr } else { Matrix6::zeros() };
-    if let Some(Model::Selected { stt, gain, cond, lo, hi, segment: (u, s_lo, s_hi), .. }) = rest {
+    if let Some(Model::Selected { stt, gain, cond, lo, hi, dir, segment: (u, s_lo, s_hi), .. }) = rest {
         let tp = tip_pixel(set, o, r, t)?;
         // Normaliser: P(e ∈ [lo − û, hi − û]).
         let (blo, bhi) = (lo - tp.px, hi - tp.px);
-        let p_box = box_probability(stt, &blo, &bhi);
+        let p_box = region_probability(set, stt, &blo, &bhi, dir);
         // The tip along the observed line: mean û + gain r projected, variance uᵀ cond u.
         let s_mean = (tp.px + gain * res - o.px[0]).dot(u);
         let s_sd = u.dot(&(cond * u)).max(1e-12).sqrt();
@@ -498,7 +653,7 @@ fn term(
             }
             if p_box > P_FLOOR {
                 // e ∈ [lo − û, hi − û] ⇔ e + û ∈ [lo, hi]: the shift is û.
-                let dp = box_probability_gradient(stt, &blo, &bhi);
+                let dp = region_probability_gradient(set, stt, &blo, &bhi, dir);
                 gs += (dpx.transpose() * dp) / p_box;
             }
             // The selection terms' curvature, approximated by their gradient's outer product.

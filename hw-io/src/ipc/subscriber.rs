@@ -11,6 +11,7 @@ use iceoryx2::prelude::ipc;
 
 use super::continuity::{Continuity, ContinuityTracker};
 use super::service::{self, OpenError, PublisherOptions, Services};
+use super::message::InvalidMessage;
 use super::{FulcrumSample, Message};
 
 /// Longest single sleep inside [`Subscriber::wait`]: a safety net that re-checks the
@@ -36,7 +37,8 @@ pub struct SubscriberCounters {
     pub missed: u64,
     /// Publisher (daemon) restarts seen ([`Continuity::Restart`]).
     pub restarts: u64,
-    /// Messages refused for another layout version ([`RecvError::VersionMismatch`]).
+    /// Messages refused for another layout version ([`RecvError::VersionMismatch`]) or a
+    /// broken invariant ([`RecvError::Invalid`]).
     pub rejected: u64,
 }
 
@@ -73,6 +75,16 @@ pub enum RecvError {
         found: u32,
         /// [`Message::VERSION`] of this program.
         expected: u32,
+    },
+    /// A message of the right version broke its own invariants ([`Message::check`]: for a
+    /// [`FulcrumSample`], a valid state with a non-finite float or an invalidating flag). It was
+    /// dropped and counted ([`SubscriberCounters::rejected`]); continuity is unaffected.
+    #[error("{type_name} refused: {broken}")]
+    Invalid {
+        /// The message type's [`Message::TYPE_NAME`].
+        type_name: &'static str,
+        /// The invariant broken.
+        broken: InvalidMessage,
     },
 }
 
@@ -116,8 +128,51 @@ pub struct Subscriber<M: Message> {
     subscriber: IoxSubscriber<ipc::Service, M, ()>,
     listener: Listener<ipc::Service>,
     _node: Node<ipc::Service>,
+    check: ReceiveCheck,
+}
+
+/// The subscriber side's check of each message taken from shared memory, without the transport:
+/// the layout version, then the continuity of `(run_id, sequence)` and the counters.
+/// [`Subscriber::try_recv`] runs every message through it; it is public so that the check can
+/// be tested (and fuzzed) on arbitrary bytes shaped as a message.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ReceiveCheck {
     tracker: ContinuityTracker,
     counters: SubscriberCounters,
+}
+
+impl ReceiveCheck {
+    /// Checks `sample`, as [`Subscriber::try_recv`] does: a message of another layout version
+    /// is refused ([`RecvError::VersionMismatch`], counted as rejected, continuity unchanged),
+    /// and so is one that breaks its own invariants ([`Message::check`]:
+    /// [`RecvError::Invalid`]); any other is returned with its [`Continuity`] and counted. Counters saturate.
+    pub fn check<M: Message>(&mut self, sample: M) -> Result<Received<M>, RecvError> {
+        if sample.version() != M::VERSION {
+            self.counters.rejected = self.counters.rejected.saturating_add(1);
+            return Err(RecvError::VersionMismatch {
+                type_name: M::TYPE_NAME,
+                found: sample.version(),
+                expected: M::VERSION,
+            });
+        }
+        if let Err(broken) = sample.check() {
+            self.counters.rejected = self.counters.rejected.saturating_add(1);
+            return Err(RecvError::Invalid { type_name: M::TYPE_NAME, broken });
+        }
+        let event = self.tracker.observe(sample.run_id(), sample.sequence());
+        self.counters.received = self.counters.received.saturating_add(1);
+        match event {
+            Continuity::Gap { missed } => self.counters.missed = self.counters.missed.saturating_add(missed),
+            Continuity::Restart => self.counters.restarts = self.counters.restarts.saturating_add(1),
+            Continuity::First | Continuity::InOrder => {}
+        }
+        Ok(Received { sample, event })
+    }
+
+    /// What this check has seen so far.
+    pub fn counters(&self) -> SubscriberCounters {
+        self.counters
+    }
 }
 
 /// A client of fulcrumd's output: [`FulcrumSample`]s, once per control cycle.
@@ -164,8 +219,7 @@ impl<M: Message> Subscriber<M> {
             subscriber,
             listener,
             _node: node,
-            tracker: ContinuityTracker::default(),
-            counters: SubscriberCounters::default(),
+            check: ReceiveCheck::default(),
         })
     }
 
@@ -176,22 +230,7 @@ impl<M: Message> Subscriber<M> {
         };
         let sample = *loaned.payload();
         drop(loaned); // give the slot back to the publisher at once
-        if sample.version() != M::VERSION {
-            self.counters.rejected += 1;
-            return Err(RecvError::VersionMismatch {
-                type_name: M::TYPE_NAME,
-                found: sample.version(),
-                expected: M::VERSION,
-            });
-        }
-        let event = self.tracker.observe(sample.run_id(), sample.sequence());
-        self.counters.received += 1;
-        match event {
-            Continuity::Gap { missed } => self.counters.missed += missed,
-            Continuity::Restart => self.counters.restarts += 1,
-            Continuity::First | Continuity::InOrder => {}
-        }
-        Ok(Some(Received { sample, event }))
+        self.check.check(sample).map(Some)
     }
 
     /// The next message, blocking (on the event listener: the thread sleeps) for at most
@@ -215,6 +254,6 @@ impl<M: Message> Subscriber<M> {
 
     /// What this subscriber has seen since it connected.
     pub fn counters(&self) -> SubscriberCounters {
-        self.counters
+        self.check.counters()
     }
 }

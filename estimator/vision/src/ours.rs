@@ -142,7 +142,22 @@ pub enum OursConfigError {
         /// What it must be.
         why: &'static str,
     },
+    /// The undistorted image region is unbounded or far larger than the image: the distortion
+    /// does not invert over the image (a polynomial that folds back before the corners).
+    #[error("the distortion does not invert over the image: undistorted radius {radius_px} px (limit {limit_px} px)")]
+    Undistortion {
+        /// Largest distance of an undistorted half-resolution pixel from the principal point,
+        /// undistorted pixels (infinite or NaN when the inversion diverged).
+        radius_px: f32,
+        /// [`MAX_UNDISTORTED_RADIUS_FACTOR`] × the image's diagonal, pixels.
+        limit_px: f32,
+    },
 }
+
+/// The undistorted image region may reach this many image diagonals from the principal point
+/// (a wide-angle lens: about 1); beyond, [`OursDetector::new`] refuses the camera
+/// ([`OursConfigError::Undistortion`]) instead of sizing its Hough accumulator on it.
+pub const MAX_UNDISTORTED_RADIUS_FACTOR: f32 = 8.0;
 
 impl OursConfig {
     /// Checks every setting's range.
@@ -233,7 +248,13 @@ impl OursDetector {
         let table = HalfResTable::new(&k);
         let (mut rmax, c) = (1.0f32, [k.cx as f32, k.cy as f32]);
         for p in &table.uv {
-            rmax = rmax.max((p[0] - c[0]).hypot(p[1] - c[1]));
+            // NaN when an undistortion diverged: kept (f32::max would drop it).
+            let r = (p[0] - c[0]).hypot(p[1] - c[1]);
+            rmax = if r.is_nan() { r } else { rmax.max(r) };
+        }
+        let limit_px = MAX_UNDISTORTED_RADIUS_FACTOR * (k.width as f32).hypot(k.height as f32);
+        if !(rmax <= limit_px) {
+            return Err(OursConfigError::Undistortion { radius_px: rmax, limit_px });
         }
         let hough = Hough::new(c, rmax + 4.0);
         Ok(Self {

@@ -199,3 +199,33 @@ fn dump_images() {
         std::fs::write(format!("/tmp/ours_{name}.ppm"), f).unwrap();
     }
 }
+
+#[test]
+fn a_distortion_that_does_not_invert_is_a_typed_error_not_a_panic() {
+    // Found by the `detectors` fuzz target (tests/fuzz/regressions/detectors/): a strong barrel
+    // polynomial folds back before this small image's corners, the undistortion diverges and
+    // the Hough accumulator was sized on an infinite radius (overflow, or an unbounded
+    // allocation for a large finite one).
+    let k = estimator::calib::Intrinsics {
+        fx: 0.9 * 33.0 + 1.0,
+        fy: 0.9 * 33.0 + 1.0,
+        cx: 16.5,
+        cy: 27.0,
+        skew: 0.0,
+        width: 33,
+        height: 54,
+        distortion: [-0.6, 0.4, 0.0, 0.0, -0.1],
+    };
+    match vision::ours::OursDetector::new(k, vision::ours::OursConfig::default()) {
+        Err(vision::ours::OursConfigError::Undistortion { radius_px, limit_px }) => {
+            assert!(!(radius_px <= limit_px), "{radius_px} {limit_px}");
+        }
+        other => panic!("{:?}", other.map(|_| ())),
+    }
+    // The same camera without distortion is accepted.
+    let ok = vision::ours::OursDetector::new(
+        estimator::calib::Intrinsics { distortion: [0.0; 5], ..k },
+        vision::ours::OursConfig::default(),
+    );
+    assert!(ok.is_ok());
+}

@@ -4,12 +4,15 @@
 //! - [`run`]: `generate` (simulated dataset + ground truth), `calibrate` (dataset → result
 //!   file, paper / ours / both).
 //! - [`residual_plot`]: the residual figure of `calibrate --plot` (SVG).
+//! - [`bus_run`]: `from-run`, the calibration from a recorded run: both arms' joints from
+//!   the candump log, matched to the stereo frames by time, lines detected in both eyes.
 //! - [`detect`]: `detect`, the shaft's lines in a directory of images (lines file, overlays).
 //! - [`pixels`]: `pixels`, the calibration from rendered stereo frames with detected lines,
 //!   next to the same poses with exact lines.
 //! - [`sweep`]: the paper's simulation protocol sweeps (σ, n_e × n_t, random initial
 //!   quaternions) to a Markdown table and SVG box plots.
 
+pub mod bus_run;
 pub mod convert;
 pub mod detect;
 pub mod pixels;

@@ -126,6 +126,27 @@ enum Command {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// Calibration from a recorded run (`simrobot generate --frames`): both arms' joints from
+    /// the candump log, matched to the stereo frames by time, the tool line detected in both
+    /// eyes; both pipelines on truth, paper-detected and ours-detected lines.
+    FromRun {
+        /// The run's directory (bus.log, truth.jsonl, frames/).
+        #[arg(long)]
+        run: PathBuf,
+        /// fulcrumd's configuration (TOML) for the tool arm's acquisition and estimation;
+        /// default: the built-in one.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Use every K-th usable frame (K ≥ 1).
+        #[arg(long, default_value_t = 1)]
+        every: usize,
+        /// Pixel noise σ of the lines for our pipeline's weights, pixels.
+        #[arg(long, default_value_t = 0.5)]
+        sigma_px: f64,
+        /// Output directory (from-run.md and the datasets).
+        #[arg(long, default_value = "docs/calibration/from-run")]
+        out_dir: PathBuf,
+    },
     /// Run the protocol sweeps; write sweep.md and SVG box plots into a directory.
     Sweep {
         /// Output directory.
@@ -257,6 +278,89 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             let path = out_dir.join("pixels.md");
             std::fs::write(&path, &md).map_err(|e| format!("{}: {e}", path.display()))?;
             comanip_calib::pixels::write_datasets(&run, &p, &out_dir)?;
+            hw_io::outln!("{md}")?;
+            hw_io::outln!("wrote {}", path.display())?;
+        }
+        Command::FromRun { run, config, every, sigma_px, out_dir } => {
+            use comanip_calib::bus_run::{read_run, to_pixel_run};
+            use comanip_calib::detect::make_detector;
+            use comanip_calib::pixels::{calibrate_all, detection_stats};
+            let cfg = match &config {
+                Some(p) => {
+                    let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+                    toml::from_str::<controller::config::Config>(&text).map_err(|e| format!("{}: {e}", p.display()))?
+                }
+                None => controller::config::Config::default(),
+            };
+            if every == 0 {
+                return Err("--every must be at least 1".into());
+            }
+            let mut data = read_run(&run, &cfg)?;
+            let usable = data.frames.len();
+            data.frames = data.frames.into_iter().step_by(every).collect();
+            let k = data.intrinsics;
+            let mut detectors = vec![make_detector(DetectorChoice::Paper, k)?, make_detector(DetectorChoice::Ours, k)?];
+            let bar = comanip_calib::sweep::progress_bar(0, "frames");
+            let (pr, trocar, f_ref) =
+                to_pixel_run(&data, &run.join("frames"), &mut detectors, sigma_px, |n, total| {
+                    bar.set_length(total as u64);
+                    bar.set_position(n as u64);
+                })?;
+            bar.finish_and_clear();
+            let rows = calibrate_all(&pr);
+            let mut md = String::new();
+            use std::fmt::Write as _;
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            let _ = writeln!(md, "<!-- written by `{command}` -->");
+            let _ = writeln!(
+                md,
+                "{} frames listed; {usable} with both arms' joints and the instrument inside a trocar (left out: {} without a cycle, {} without endoscope joints, {} outside); every {every}th used; trocar {trocar}: {} frames.\n",
+                data.listed,
+                data.no_cycle,
+                data.no_ecm,
+                data.outside,
+                pr.poses.len()
+            );
+            let nearest = data.trocars_b.iter().map(|t| (t - f_ref).norm()).fold(f64::INFINITY, f64::min);
+            let _ = writeln!(
+                md,
+                "The trocar's median fulcrum (fulcrumd's estimate) is {:.1} mm from the nearest true trocar; it is the origin of `{{t}}` and of the truth `T_e_t`.\n",
+                nearest * 1e3
+            );
+            let _ = writeln!(
+                md,
+                "| detector | truth lines | detected | angle median / p95 (°) | offset median / p95 (px) | ms per image (median) |"
+            );
+            let _ = writeln!(md, "|---|---|---|---|---|---|");
+            for (name, n, found, a50, a95, o50, o95, ms) in detection_stats(&pr) {
+                let _ = writeln!(
+                    md,
+                    "| {name} | {n} | {found} ({:.1} %) | {a50:.3} / {a95:.3} | {o50:.3} / {o95:.3} | {ms:.2} |",
+                    100.0 * found as f64 / n.max(1) as f64
+                );
+            }
+            let _ = writeln!(
+                md,
+                "\n| lines | eyes | observations | paper pipeline | our pipeline |\n|---|---|---|---|---|"
+            );
+            let cell = |r: &Result<(f64, f64), String>| match r {
+                Ok((t, a)) => format!("{t:.3} mm / {a:.4}°"),
+                Err(e) => format!("failed: {e}"),
+            };
+            for r in &rows {
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {} | {} | {} |",
+                    r.source,
+                    r.eyes,
+                    r.observations,
+                    cell(&r.paper),
+                    cell(&r.ours)
+                );
+            }
+            std::fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+            let path = out_dir.join("from-run.md");
+            std::fs::write(&path, &md).map_err(|e| format!("{}: {e}", path.display()))?;
             hw_io::outln!("{md}")?;
             hw_io::outln!("wrote {}", path.display())?;
         }

@@ -465,10 +465,13 @@ pub fn report_markdown(p: &PixelProtocol, run: &PixelRun, rows: &[CalibRow], com
     s
 }
 
-/// Writes, into `dir`, each line source's dataset with both eyes (`dataset_<source>.json`,
-/// readable by `comanip-calib calibrate`) and the ground truth (`truth.json`).
+/// Writes, into `dir/datasets/` (created), each line source's dataset with both eyes
+/// (`dataset_<source>.json`, readable by `comanip-calib calibrate`) and the ground truth
+/// (`truth.json`).
 pub fn write_datasets(run: &PixelRun, p: &PixelProtocol, dir: &std::path::Path) -> Result<(), PixelsError> {
     use hw_io::calib_files::{CALIB_FILE_VERSION, TRUTH_FORMAT, TruthFile, to_json};
+    let dir = &dir.join("datasets");
+    std::fs::create_dir_all(dir).map_err(|e| PixelsError::Write(format!("{}: {e}", dir.display())))?;
     let write = |name: String, text: String| {
         let path = dir.join(name);
         std::fs::write(&path, text).map_err(|e| PixelsError::Write(format!("{}: {e}", path.display())))

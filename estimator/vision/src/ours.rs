@@ -21,37 +21,62 @@
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
 //!    undistortion per frame): there the contours are straight lines.
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform (each edgel votes
-//!    once at its own normal, 1° × 2 px bins, peaks of a 5 × 3 box sum), then each peak's
+//!    once at its own normal, 1° × 2 px bins, peaks of a 9 × 3 box sum), then each peak's
 //!    edgels are gathered and refitted (total least squares) and its supported span found.
-//! 3. **Pairs with physics**: two lines are the contours of one cylinder of radius `r` only
-//!    if they are nearly parallel, overlap along their length, and the angle `θ` between their
-//!    planes through the optical centre (normals `Kᵀl`) gives a plausible distance of the
-//!    axis, `d = r / sin(θ/2)`, inside `[min_depth_m, max_depth_m]` (this is what rejects
-//!    vessels and creases: far too thin for a shaft at that distance). Then the **interior
-//!    colour test**: the strip between the lines must be clearly less red than the tissue just
-//!    outside on both sides (`C_out − C_in ≥ min_chroma_contrast` and `C_in ≤
-//!    max_interior_chroma_ratio · C_out`); a vessel is redder inside, a pair of unrelated
-//!    tissue edges has tissue inside, a fold's highlight stays pink.
-//! 4. **Sub-pixel refinement** of each contour in the full-resolution measured image: profiles
-//!    across the contour at every pixel along it, sampled at undistorted positions mapped
-//!    through the lens (so each found edge is directly an undistorted point on the straight
-//!    contour), the peak of `√(dC² + dL²)` located by a parabola, then a Tukey-biweight IRLS
-//!    line fit (the wrist, the jaws, a crossing instrument and specular spots become
-//!    outliers). Two rounds (gates ±3 px then ±1.5 px).
-//! 5. **The exact axis** from the two refined contours, [`crate::shaft::axis_from_contours`]
-//!    (the middle line is wrong by up to pixels under perspective), the distance gate and the
-//!    colour test again on the refined lines, then the visible span: the overlap of both
-//!    contours' inlier edges, projected on the axis and mapped back to measured pixels.
+//! 3. **Pairs with physics** (cheap tests on the hypotheses): two lines are the contours of
+//!    one cylinder of radius `r` only if they are within 25° of parallel, overlap along their
+//!    length, and the angle `θ` between their planes through the optical centre (normals
+//!    `Kᵀl`) gives a plausible distance of the axis, `d = r / sin(θ/2)`, inside
+//!    `[min_depth_m, max_depth_m]` (this rejects vessels and creases: far too thin for a shaft
+//!    at that distance). Then the **interior colour test**: the strip between the lines must
+//!    be clearly less red than the tissue just outside on both sides, `C_out − C_in ≥
+//!    min_chroma_contrast` and `C_in ≤ max_interior_chroma_ratio · C_out`, with `C_in` the
+//!    upper quartile across the strip and also the median just inside each line (a vessel is
+//!    redder inside; a contour paired with an unrelated tissue edge or fold has tissue in part
+//!    of the strip; a fold's highlight stays pink). Under haze half the colour contrast is
+//!    enough on a side with a clear luma step (`min_luma_contrast`); where the haze has washed
+//!    the colour out of the tissue on both sides, a luma step of the same sign on both sides
+//!    (1.5 × `min_luma_contrast`) stands in for the colour, all the way through (the span's
+//!    stations and the final test use the same evidence). Pairs are ranked by length ×
+//!    support × greyness of the interior.
+//! 4. **Sub-pixel contours** in the full-resolution measured image, each Hough line once per
+//!    frame: profiles across the contour, sampled at undistorted positions mapped through the
+//!    lens (so each edge found is directly an undistorted point on the straight contour), two
+//!    samples 1.5 px apart along the edge averaged, the combined gradient
+//!    `√(dC² + (w·dL)²)` (kernel `[1 2 0 −2 −1]/8`, `w = profile_luma_weight`: the silhouette is
+//!    where the colour changes, the dark rim and highlights of the metal are luma edges just
+//!    inside), its peak placed by the centroid of its upper half (a motion-blurred edge is a
+//!    staircase: its centroid is the middle instant). Two rounds over the Hough support
+//!    (gates ±3 px then ±1.5 px), each with a Tukey-biweight IRLS line fit; then the contour is
+//!    followed outwards along the line while edges keep coming, and refitted; from the second
+//!    round on, an edge must be at least a third of the contour's median strength. A contour
+//!    that yields too few edges is retried with luma at full weight (a hazy luma-only edge).
+//! 5. **The visible span**: stations every 2 px where both contours have an inlier edge and
+//!    the interior is grey against both outsides (or one edge and a clearly grey interior);
+//!    the run with the most good stations (gaps up to 64 px, a crossing instrument) is the
+//!    shaft. Its ends are trimmed while either contour leaves its line systematically (the
+//!    wrist, a bent link, the tapered jaws), and both contours are refitted on the span.
+//! 6. **The exact axis** from the two contours, [`crate::shaft::axis_from_contours`] (the
+//!    middle line is wrong by up to pixels under perspective); the distance gate again, the
+//!    axis's depth at both ends of the span (a tapered tip seen as a cylinder would reach far
+//!    beyond the range towards its apex), the colour test on the span; a span shorter than
+//!    `long_span_px` must reach the image border (a shaft runs out of the view, a pair of jaws
+//!    does not). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
 //!
-//! A second instrument is a second valid pair (both are returned, best first); pairs sharing a
-//! contour with a better one, or duplicating its axis, are dropped.
+//! The best-ranked pairs (`3 · max_detections + 2`) are verified; the best-scoring consistent
+//! set is returned (score: confidence × √length), so a second instrument is a second valid
+//! pair, and a pair sharing a Hough line, a contour or the axis with a better one is dropped.
+//!
+//! Cost (640×480, one core): about 1 ms for the half-resolution edgels, under 1 ms for the
+//! Hough stage, the rest in the profiles; no allocation per frame once warm, except the
+//! returned vector.
 //!
 //! ## Confidence
 //!
 //! `support × 1/(1 + (σ/0.5 px)²) × min(1, contrast / (3·min_chroma_contrast))`: `support` is
-//! the smaller of the two contours' fractions of the visible span with an inlier edge, `σ` the
-//! larger robust residual scale of the two fits (pixels), `contrast` the smaller interior/outside
-//! chroma difference.
+//! the fraction of good stations in the visible span, `σ` the larger robust residual scale of
+//! the two contour fits (pixels), `contrast` the smaller interior/outside chroma difference.
+//! Low under smoke (the colour contrast fades) even when the axis is right.
 //!
 //! Pixels: measured (distorted) images in, lines in undistorted pixels, `ends_px` measured.
 
@@ -92,8 +117,13 @@ pub struct OursConfig {
     /// Edgel threshold on the half-resolution Di Zenzo gradient magnitude (chroma units
     /// `2R − G − B` per half-resolution pixel, 8-bit values; default 6).
     pub edge_threshold: f64,
-    /// Weight of luma against the chroma `2R − G − B` in the gradients (default 1).
+    /// Weight of luma against the chroma `2R − G − B` in the half-resolution gradients that
+    /// find the lines (default 1).
     pub luma_weight: f64,
+    /// Weight of luma against the chroma in the full-resolution profiles that place the
+    /// contours (default 0.3: the silhouette is where the colour changes; a metal shaft's dark
+    /// rim and highlights are luma edges just inside it).
+    pub profile_luma_weight: f64,
     /// Most line hypotheses kept (default 40).
     pub max_lines: usize,
     /// Most shafts returned (default 2).
@@ -101,12 +131,26 @@ pub struct OursConfig {
     /// Least chroma drop from the tissue just outside to the shaft's interior, both sides
     /// (chroma units `2R − G − B`, default 12).
     pub min_chroma_contrast: f64,
+    /// Luma difference (8-bit) between the interior and the outside of a side from which half
+    /// of `min_chroma_contrast` is enough there (default 25: haze fades the colour, not the
+    /// brightness step of the metal).
+    pub min_luma_contrast: f64,
     /// Largest interior chroma as a fraction of the chroma outside, both sides (default 0.5).
     pub max_interior_chroma_ratio: f64,
-    /// Largest robust residual scale of a contour's fit, pixels (default 0.8).
+    /// Largest robust residual scale of a contour's fit, pixels (default 2; defocus and
+    /// motion blur on a noisy image scatter single edge points by about a pixel).
     pub max_residual_px: f64,
     /// Least fraction of the visible span with an inlier edge on each contour (default 0.5).
     pub min_support: f64,
+    /// A visible shaft shorter than `long_span_px` must reach this close to the image border,
+    /// measured pixels (default 24): a shaft comes through a trocar and runs out of the view,
+    /// while a tapered tip or a pair of jaws (which can pass for a farther cylinder) lies
+    /// inside it. Infinite to switch the test off.
+    pub border_margin_px: f64,
+    /// Visible length from which the border test is waived, undistorted pixels (default 200;
+    /// a long span with straight parallel edges and a grey interior is a shaft, and its end
+    /// at the border may be lost in a vignetted, hazy corner).
+    pub long_span_px: f64,
 }
 
 impl Default for OursConfig {
@@ -118,12 +162,16 @@ impl Default for OursConfig {
             min_length_px: 80.0,
             edge_threshold: 6.0,
             luma_weight: 1.0,
+            profile_luma_weight: 0.3,
             max_lines: 40,
             max_detections: 2,
             min_chroma_contrast: 12.0,
+            min_luma_contrast: 25.0,
             max_interior_chroma_ratio: 0.5,
-            max_residual_px: 0.8,
+            max_residual_px: 2.0,
             min_support: 0.5,
+            border_margin_px: 24.0,
+            long_span_px: 200.0,
         }
     }
 }
@@ -142,22 +190,7 @@ pub enum OursConfigError {
         /// What it must be.
         why: &'static str,
     },
-    /// The undistorted image region is unbounded or far larger than the image: the distortion
-    /// does not invert over the image (a polynomial that folds back before the corners).
-    #[error("the distortion does not invert over the image: undistorted radius {radius_px} px (limit {limit_px} px)")]
-    Undistortion {
-        /// Largest distance of an undistorted half-resolution pixel from the principal point,
-        /// undistorted pixels (infinite or NaN when the inversion diverged).
-        radius_px: f32,
-        /// [`MAX_UNDISTORTED_RADIUS_FACTOR`] × the image's diagonal, pixels.
-        limit_px: f32,
-    },
 }
-
-/// The undistorted image region may reach this many image diagonals from the principal point
-/// (a wide-angle lens: about 1); beyond, [`OursDetector::new`] refuses the camera
-/// ([`OursConfigError::Undistortion`]) instead of sizing its Hough accumulator on it.
-pub const MAX_UNDISTORTED_RADIUS_FACTOR: f32 = 8.0;
 
 impl OursConfig {
     /// Checks every setting's range.
@@ -181,11 +214,21 @@ impl OursConfig {
         check(pos(self.min_length_px), "min_length_px", "finite and > 0")?;
         check(pos(self.edge_threshold), "edge_threshold", "finite and > 0")?;
         check(self.luma_weight.is_finite() && self.luma_weight >= 0.0, "luma_weight", "finite and ≥ 0")?;
+        check(
+            self.profile_luma_weight.is_finite() && self.profile_luma_weight >= 0.0,
+            "profile_luma_weight",
+            "finite and ≥ 0",
+        )?;
         check((1..=10_000).contains(&self.max_lines), "max_lines", "1 ..= 10000")?;
         check(self.max_detections >= 1, "max_detections", "≥ 1")?;
         check(
             self.min_chroma_contrast.is_finite() && self.min_chroma_contrast >= 0.0,
             "min_chroma_contrast",
+            "finite and ≥ 0",
+        )?;
+        check(
+            self.min_luma_contrast.is_finite() && self.min_luma_contrast >= 0.0,
+            "min_luma_contrast",
             "finite and ≥ 0",
         )?;
         check(
@@ -195,8 +238,23 @@ impl OursConfig {
         )?;
         check(pos(self.max_residual_px), "max_residual_px", "finite and > 0")?;
         check((0.0..=1.0).contains(&self.min_support), "min_support", "in [0, 1]")?;
+        check(
+            !self.border_margin_px.is_nan() && self.border_margin_px >= 0.0,
+            "border_margin_px",
+            "≥ 0 (infinite: off)",
+        )?;
+        check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
         Ok(())
     }
+}
+
+/// What makes a strip between two lines a shaft's interior.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Evidence {
+    /// Grey against redder tissue.
+    Colour,
+    /// Haze washed the colour out: a luma step of this sign (+1 brighter inside) on both sides.
+    Luma(f64),
 }
 
 /// A verified shaft before it becomes a [`ShaftDetection`].
@@ -220,11 +278,21 @@ pub struct OursDetector {
     edges: EdgeBuffers,
     hough: Hough,
     pts: Vec<[f64; 2]>,
-    ss: Vec<f64>,
     w: Vec<f64>,
     res: Vec<f64>,
-    col: [Vec<f64>; 3],
+    col: [Vec<f64>; 8],
+    samp: [Vec<(f64, [f64; 2])>; 2],
+    /// Bounding box of the undistorted image, pixels: `(min, max)`.
+    bounds: ([f64; 2], [f64; 2]),
+    has: Vec<u8>,
+    margin: Vec<f64>,
+    cands: Vec<Found>,
     found: Vec<Found>,
+    pair_buf: Vec<(f64, usize, usize)>,
+    /// Per Hough line of the frame: its refined contour (`None`: not yet refined).
+    cache: Vec<Option<Option<Contour>>>,
+    /// Per Hough line: its refined contour's inlier points, undistorted pixels.
+    cache_pts: Vec<Vec<[f64; 2]>>,
 }
 
 /// A contour refined in the full-resolution image.
@@ -232,9 +300,6 @@ pub struct OursDetector {
 struct Contour {
     line: Line,
     sigma: f64,
-    /// Span of the inlier edges along the pair's direction, pixels from the pair's origin.
-    span: [f64; 2],
-    inliers: usize,
 }
 
 impl OursDetector {
@@ -247,14 +312,19 @@ impl OursDetector {
         cfg.validate()?;
         let table = HalfResTable::new(&k);
         let (mut rmax, c) = (1.0f32, [k.cx as f32, k.cy as f32]);
-        for p in &table.uv {
-            // NaN when an undistortion diverged: kept (f32::max would drop it).
-            let r = (p[0] - c[0]).hypot(p[1] - c[1]);
-            rmax = if r.is_nan() { r } else { rmax.max(r) };
+        let mut bounds = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        // A strong distortion may not invert everywhere (the table then holds far or
+        // non-finite positions): those pixels are ignored, and the accumulator is capped.
+        let cap = 4.0 * (k.width as f32 + k.height as f32);
+        for p in table.uv.iter().filter(|p| p.iter().all(|v| v.is_finite() && v.abs() < cap)) {
+            rmax = rmax.max((p[0] - c[0]).hypot(p[1] - c[1]));
+            for (i, pi) in p.iter().enumerate() {
+                bounds.0[i] = bounds.0[i].min(f64::from(*pi) - 2.0);
+                bounds.1[i] = bounds.1[i].max(f64::from(*pi) + 2.0);
+            }
         }
-        let limit_px = MAX_UNDISTORTED_RADIUS_FACTOR * (k.width as f32).hypot(k.height as f32);
-        if !(rmax <= limit_px) {
-            return Err(OursConfigError::Undistortion { radius_px: rmax, limit_px });
+        if !bounds.0.iter().chain(&bounds.1).all(|v| v.is_finite()) {
+            bounds = ([0.0; 2], [0.0; 2]);
         }
         let hough = Hough::new(c, rmax + 4.0);
         Ok(Self {
@@ -266,11 +336,18 @@ impl OursDetector {
             edges: EdgeBuffers::default(),
             hough,
             pts: Vec::new(),
-            ss: Vec::new(),
             w: Vec::new(),
             res: Vec::new(),
             col: Default::default(),
+            samp: Default::default(),
+            bounds,
+            has: Vec::new(),
+            margin: Vec::new(),
+            cands: Vec::new(),
             found: Vec::new(),
+            pair_buf: Vec::new(),
+            cache: Vec::new(),
+            cache_pts: Vec::new(),
         })
     }
 
@@ -295,6 +372,40 @@ impl OursDetector {
         (half > 0.0).then(|| r / half)
     }
 
+    /// The depth (camera z, metres) at which the ray of the undistorted pixel `px` meets the
+    /// axis of the cylinder (radius from the settings) whose contours are `a` and `b`
+    /// (`interior` a pixel between them): the axis is along `n₀ × n₁`, at distance
+    /// `d = r / sin(θ/2)` from the optical centre towards `n₀ + n₁` (the plane normals
+    /// oriented with the inside positive). `None` when degenerate.
+    fn axis_depth_at(&self, a: &Line, b: &Line, interior: [f64; 2], px: [f64; 2]) -> Option<f64> {
+        let plane = |l: &Line| {
+            let s = if l.distance(interior) >= 0.0 { 1.0 } else { -1.0 };
+            let n = self.kmat.transpose() * Vector3::new(s * l.n[0], s * l.n[1], s * l.c);
+            let norm = n.norm();
+            (norm > 0.0).then(|| n / norm)
+        };
+        let (na, nb) = (plane(a)?, plane(b)?);
+        let dist = self.axis_distance(a, b, interior)?;
+        let d = na.cross(&nb);
+        let m = na + nb;
+        let (dn, mn) = (d.norm(), m.norm());
+        if !(dn > 1e-12 && mn > 1e-12) {
+            return None;
+        }
+        let (d, p0) = (d / dn, m * (dist / mn));
+        let r = self.k.k_inv() * Vector3::new(px[0], px[1], 1.0);
+        // Closest points of t·r and p0 + λ·d.
+        let (rr, rd) = (r.dot(&r), r.dot(&d));
+        let (rp, dp) = (r.dot(&p0), d.dot(&p0));
+        let den = rr - rd * rd;
+        if den.abs() < 1e-15 {
+            return None;
+        }
+        let lam = (rd * rp - rr * dp) / den;
+        let z = (p0 + lam * d).z;
+        z.is_finite().then_some(z)
+    }
+
     /// The pair's frame: an origin on `a`'s span and a unit direction along `a`.
     fn pair_frame(a: &LineCand) -> ([f64; 2], [f64; 2]) {
         let o = a.ends[0];
@@ -304,51 +415,224 @@ impl OursDetector {
         (o, t)
     }
 
-    /// Refines one contour along `s ∈ range` of the frame `(o, t)`.
+    /// Refines one contour: two rounds of profiles (gates ±3 px every 3 px, then ±1.5 px
+    /// every pixel) over `core` (the Hough support, `s` along the frame `(o, t)`), each
+    /// followed by a robust fit; then the contour is followed outwards to `full` (the line
+    /// inside the image, every 2 px) as long as edges keep coming within 1.5 px of the line, and refitted.
+    /// Its inlier edge points (with their `s`, sorted) are left in `self.samp[which]`.
+    #[allow(clippy::too_many_arguments)]
     fn refine(
         &mut self,
         sampler: &Sampler<'_>,
         start: Line,
         o: [f64; 2],
         t: [f64; 2],
-        range: [f64; 2],
+        core: [f64; 2],
+        full: [f64; 2],
+        which: usize,
     ) -> Option<Contour> {
         let mut line = start;
-        let mut fit = None;
-        for (gate, step) in [(3.0, 2.0), (1.5, 1.0)] {
-            self.pts.clear();
-            // Walk the line itself: the foot of o on it, along its own direction (aligned with t).
+        let mut min_strength = 0.75 * self.cfg.edge_threshold;
+        // The walk along the line: the foot of o on it, its own direction aligned with t.
+        let frame = |line: &Line| {
             let lt = line.direction();
             let lt = if lt[0] * t[0] + lt[1] * t[1] >= 0.0 { lt } else { [-lt[0], -lt[1]] };
             let dist = line.distance(o);
-            let o_l = [o[0] - dist * line.n[0], o[1] - dist * line.n[1]];
-            let n_steps = ((range[1] - range[0]) / step).floor().max(0.0) as usize;
+            ([o[0] - dist * line.n[0], o[1] - dist * line.n[1]], lt)
+        };
+        for (gate, step) in [(3.0, 3.0), (1.5, 1.0)] {
+            self.pts.clear();
+            self.res.clear();
+            let (o_l, lt) = frame(&line);
+            let n_steps = ((core[1] - core[0]) / step).floor().max(0.0) as usize;
             for k in 0..=n_steps {
-                let s = range[0] + k as f64 * step;
+                let s = core[0] + k as f64 * step;
                 let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
-                if let Some((off, _)) = sampler.edge_offset(&line, p, gate, 0.75 * self.cfg.edge_threshold) {
+                if let Some((off, st)) = sampler.edge_offset(&line, p, gate, min_strength) {
                     self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
+                    self.res.push(st);
                 }
             }
             if self.pts.len() < 8 {
                 return None;
             }
+            // From now on, an edge must be at least a third of this contour's typical one
+            // (weak tissue texture along the line is not the contour).
+            let mid = self.res.len() / 2;
+            self.res.select_nth_unstable_by(mid, f64::total_cmp);
+            min_strength = min_strength.max(self.res[mid] / 3.0);
             let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
             line = f.line;
-            fit = Some(f);
         }
-        let f = fit?;
-        // Span of the inliers along t (isolated ends trimmed).
-        self.ss.clear();
-        for (p, w) in self.pts.iter().zip(&self.w) {
-            if *w > 0.0 {
-                self.ss.push((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1]);
+        // Follow the contour outwards from both ends of the core.
+        let (o_l, lt) = frame(&line);
+        for dir in [-1.0f64, 1.0] {
+            let (from, to) = if dir < 0.0 { (core[0], full[0]) } else { (core[1], full[1]) };
+            let mut misses = 0u32;
+            let mut s = from + 2.0 * dir;
+            while (to - s) * dir > 0.0 && misses < 24 {
+                let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
+                match sampler.edge_offset(&line, p, 2.0, min_strength) {
+                    Some((off, _)) if off.abs() <= 1.5 => {
+                        self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
+                        misses = misses.saturating_sub(1);
+                    }
+                    _ => misses += 2,
+                }
+                s += 2.0 * dir;
             }
         }
-        self.ss.sort_by(f64::total_cmp);
-        let span = trimmed_span(&self.ss, 16.0, 6)?;
-        let inliers = self.ss.iter().filter(|s| **s >= span[0] && **s <= span[1]).count();
-        Some(Contour { line, sigma: f.sigma, span, inliers })
+        let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
+        let line = f.line;
+        let samp = &mut self.samp[which];
+        samp.clear();
+        for (p, w) in self.pts.iter().zip(&self.w) {
+            if *w > 0.0 {
+                samp.push(((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p));
+            }
+        }
+        samp.sort_by(|x, y| x.0.total_cmp(&y.0));
+        Some(Contour { line, sigma: f.sigma })
+    }
+
+    /// The refined contour of Hough line `idx` (computed once per frame, in the line's own
+    /// frame), its inlier edge points left in `self.cache_pts[idx]`.
+    fn contour_of(&mut self, sampler: &Sampler<'_>, idx: usize) -> Option<Contour> {
+        if let Some(c) = self.cache[idx] {
+            return c;
+        }
+        let cand = self.hough.lines[idx];
+        let (o, t) = Self::pair_frame(&cand);
+        let len = (cand.ends[1][0] - o[0]) * t[0] + (cand.ends[1][1] - o[1]) * t[1];
+        let full = self.line_range(o, t);
+        let core = [0.0f64.max(full[0]), len.min(full[1])];
+        // Where haze has washed the colour out, the contour is a luma edge: retry with luma
+        // at full weight.
+        let c = self.refine(sampler, cand.line, o, t, core, full, 0).or_else(|| {
+            let luma = Sampler { luma_weight: 1.0, ..*sampler };
+            self.refine(&luma, cand.line, o, t, core, full, 0)
+        });
+        let pts = &mut self.cache_pts[idx];
+        pts.clear();
+        pts.extend(self.samp[0].iter().map(|(_, p)| *p));
+        self.cache[idx] = Some(c);
+        c
+    }
+
+    /// The extent along `t` (from `o`) of the undistorted image's bounding box.
+    fn line_range(&self, o: [f64; 2], t: [f64; 2]) -> [f64; 2] {
+        let (lo, hi) = self.bounds;
+        let mut r = [f64::INFINITY, f64::NEG_INFINITY];
+        for c in [[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]] {
+            let sc = (c[0] - o[0]) * t[0] + (c[1] - o[1]) * t[1];
+            r = [r[0].min(sc), r[1].max(sc)];
+        }
+        r
+    }
+
+    /// The visible span of the pair: stations every 2 px along `t` over `range` are good where
+    /// both contours have an inlier edge within 2 px and the interior (mean of three samples)
+    /// is less red than both outsides by half the colour contrast (smoothed over 5 stations),
+    /// or one contour has one and the contrast is full; the span is the run of good stations
+    /// (gaps up to 64 px: a crossing instrument) with
+    /// the most good stations. Returns the span and the fraction of good stations in it.
+    fn visible_span(
+        &mut self,
+        sampler: &Sampler<'_>,
+        c: [&Line; 2],
+        o: [f64; 2],
+        t: [f64; 2],
+        range: [f64; 2],
+        mode: Evidence,
+    ) -> Option<([f64; 2], f64)> {
+        const STEP: f64 = 2.0;
+        let n = ((range[1] - range[0]) / STEP).floor().max(0.0) as usize + 1;
+        self.has.clear();
+        self.has.resize(n, 0);
+        for (bit, samp) in self.samp.iter().enumerate() {
+            for (s, _) in samp {
+                let i = ((s - range[0]) / STEP).round();
+                if i >= 0.0 && (i as usize) < n {
+                    let i = i as usize;
+                    for j in i.saturating_sub(1)..=(i + 1).min(n - 1) {
+                        self.has[j] |= 1 << bit;
+                    }
+                }
+            }
+        }
+        self.margin.clear();
+        self.margin.resize(n, f64::NAN);
+        let d = [-t[1], t[0]];
+        for i in 0..n {
+            if self.has[i] == 0 {
+                continue;
+            }
+            let s = range[0] + i as f64 * STEP;
+            let q = [o[0] + s * t[0], o[1] + s * t[1]];
+            let (Some(l0), Some(l1)) = (c[0].hit(q, d), c[1].hit(q, d)) else { continue };
+            let m = 0.5 * (l0 + l1);
+            let h = 0.5 * (l1 - l0);
+            // The margin of the interior over the outsides: less red (colour), or the luma step
+            // in the pair's sign (luma).
+            let at = |lam: f64| {
+                sampler.sample(q[0] + lam * d[0], q[1] + lam * d[1]).map(|v| match mode {
+                    Evidence::Colour => v.0,
+                    Evidence::Luma(sign) => -sign * v.1,
+                })
+            };
+            let (Some(i0), Some(i1), Some(i2)) = (at(m - 0.3 * h), at(m), at(m + 0.3 * h)) else { continue };
+            let margin = 4.0 * h.signum();
+            let (Some(out0), Some(out1)) = (at(l0 - margin), at(l1 + margin)) else { continue };
+            let inside = (i0 + i1 + i2) / 3.0;
+            self.margin[i] = (out0 - inside).min(out1 - inside);
+        }
+        let need = match mode {
+            Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
+            Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
+        };
+        let mut best: Option<(usize, usize, usize)> = None;
+        let mut run: Option<(usize, usize, usize)> = None;
+        let max_gap = (64.0 / STEP) as usize;
+        for i in 0..n {
+            let (lo, hi) = (i.saturating_sub(2), (i + 2).min(n - 1));
+            let (mut sum, mut cnt) = (0.0, 0);
+            for m in &self.margin[lo..=hi] {
+                if m.is_finite() {
+                    sum += m;
+                    cnt += 1;
+                }
+            }
+            // Both edges and a grey interior; or one edge (the other may fade against bright
+            // fat or in a hazy corner) and a clearly grey interior.
+            let mean = if cnt >= 2 { sum / cnt as f64 } else { f64::NEG_INFINITY };
+            let good = (self.has[i] == 3 && mean >= need) || (self.has[i] != 0 && mean >= 2.0 * need);
+            if !good {
+                continue;
+            }
+            run = match run {
+                Some((start, last, count)) if i - last <= max_gap => Some((start, i, count + 1)),
+                _ => Some((i, i, 1)),
+            };
+            if let Some(r) = run
+                && best.is_none_or(|b| r.2 > b.2)
+            {
+                best = Some(r);
+            }
+        }
+        let (start, last, count) = best?;
+        let span = [range[0] + start as f64 * STEP, range[0] + last as f64 * STEP];
+        Some((span, count as f64 / (last - start + 1) as f64))
+    }
+
+    /// Refits contour `which` with its inlier points inside `span`.
+    fn refit_in_span(&mut self, which: usize, start: Line, span: [f64; 2]) -> Option<Contour> {
+        self.pts.clear();
+        self.pts.extend(self.samp[which].iter().filter(|(s, _)| *s >= span[0] && *s <= span[1]).map(|(_, p)| *p));
+        if self.pts.len() < 8 {
+            return None;
+        }
+        let f = robust_fit(&self.pts, start, &mut self.w, &mut self.res)?;
+        Some(Contour { line: f.line, sigma: f.sigma })
     }
 
     /// Checks and refines the pair `(ia, ib)` of line hypotheses.
@@ -356,7 +640,7 @@ impl OursDetector {
         let (a, b) = (self.hough.lines[ia], self.hough.lines[ib]);
         let cfg = self.cfg;
         let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: cfg.luma_weight };
+        let sampler = Sampler { image, lens: &lens, luma_weight: cfg.profile_luma_weight };
         let (o, t) = Self::pair_frame(&a);
         let proj = |p: [f64; 2]| (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1];
         let sa = [proj(a.ends[0]), proj(a.ends[1])];
@@ -366,36 +650,79 @@ impl OursDetector {
         };
         let ov = [sa[0].max(sb[0]), sa[1].min(sb[1])];
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
-            dbg_reject(1);
             return None;
         }
-        // Refine both contours over the union of the spans, a little extended.
-        let range = [sa[0].min(sb[0]) - 12.0, sa[1].max(sb[1]) + 12.0];
-        let Some(ca) = self.refine(&sampler, a.line, o, t, range) else {
-            dbg_reject(21);
-            return None;
-        };
-        let Some(cb) = self.refine(&sampler, b.line, o, t, range) else {
-            dbg_reject(22);
-            return None;
-        };
-        if std::env::var_os("OURS_DEBUG").is_some() {
-            eprintln!("  ca {ca:?}\n  cb {cb:?}");
+        let coarse = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut self.col)?;
+        let mode = self.colour_mode(&coarse)?;
+        // Both contours, refined once per frame each; their inlier points in the pair's frame.
+        let range = self.line_range(o, t);
+        let ca = self.contour_of(&sampler, ia)?;
+        let cb = self.contour_of(&sampler, ib)?;
+        for (which, idx) in [(0, ia), (1, ib)] {
+            let samp = &mut self.samp[which];
+            samp.clear();
+            samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
+            samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         }
-        let span = [ca.span[0].max(cb.span[0]), ca.span[1].min(cb.span[1])];
+        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode)?;
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
-            dbg_reject(3);
             return None;
         }
+        if support < cfg.min_support {
+            return None;
+        }
+        let mut ca = self.refit_in_span(0, ca.line, span)?;
+        let mut cb = self.refit_in_span(1, cb.line, span)?;
+        // Trim ends where either contour leaves its line systematically (the wrist, a bent or
+        // thinner link, a tapered tip), then refit.
+        let mut span = span;
+        for _ in 0..24 {
+            const WIN: f64 = 16.0;
+            let off = |samp: &[(f64, [f64; 2])], line: &Line, lo: f64, hi: f64| {
+                let (mut sum, mut n) = (0.0, 0);
+                for (s, p) in samp {
+                    if *s >= lo && *s <= hi {
+                        sum += line.distance(*p);
+                        n += 1;
+                    }
+                }
+                if n >= 4 { (sum / n as f64).abs() } else { 0.0 }
+            };
+            let thr = 0.35;
+            let head = off(&self.samp[0], &ca.line, span[0], span[0] + WIN).max(off(
+                &self.samp[1],
+                &cb.line,
+                span[0],
+                span[0] + WIN,
+            ));
+            let tail = off(&self.samp[0], &ca.line, span[1] - WIN, span[1]).max(off(
+                &self.samp[1],
+                &cb.line,
+                span[1] - WIN,
+                span[1],
+            ));
+            if head <= thr && tail <= thr {
+                break;
+            }
+            if head > thr {
+                span[0] += 0.5 * WIN;
+            }
+            if tail > thr {
+                span[1] -= 0.5 * WIN;
+            }
+            if span[1] - span[0] < cfg.min_length_px {
+                return None;
+            }
+            let (Some(na), Some(nb)) = (self.refit_in_span(0, ca.line, span), self.refit_in_span(1, cb.line, span))
+            else {
+                return None;
+            };
+            (ca, cb) = (na, nb);
+        }
+        let len = span[1] - span[0];
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
-            dbg_reject(4);
-            return None;
-        }
-        let support = (ca.inliers.min(cb.inliers) as f64 / (len + 1.0)).min(1.0);
-        if support < cfg.min_support {
-            dbg_reject(5);
             return None;
         }
         // Interior point: middle of the two contours at the span's middle.
@@ -407,12 +734,19 @@ impl OursDetector {
         let inside = [q[0] + mid * d[0], q[1] + mid * d[1]];
         let dist = self.axis_distance(&ca.line, &cb.line, inside)?;
         if !(dist >= cfg.min_depth_m && dist <= cfg.max_depth_m) {
-            dbg_reject(6);
             return None;
         }
+        // The axis's depth at both ends of the visible span must be plausible too (a tapered
+        // tip seen as a cylinder would reach far beyond the range towards its apex).
+        for e in span {
+            let p = [o[0] + e * t[0], o[1] + e * t[1]];
+            let z = self.axis_depth_at(&ca.line, &cb.line, inside, p).unwrap_or(f64::NAN);
+            if !(z >= 0.5 * cfg.min_depth_m && z <= cfg.max_depth_m) {
+                return None;
+            }
+        }
         let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
-        if !self.colour_ok(&fine) {
-            dbg_reject(7);
+        if self.colour_mode(&fine) != Some(mode) {
             return None;
         }
         let c0 = ImageLine::new(ca.line.abc()).ok()?;
@@ -428,9 +762,48 @@ impl OursDetector {
             let (x, y) = self.lens.distort_px(f[0], f[1]);
             *e = [x, y];
         }
-        let contrast = (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside);
-        let confidence = support / (1.0 + (sigma / 0.5).powi(2))
-            * (contrast / (3.0 * cfg.min_chroma_contrast.max(1e-9))).clamp(0.0, 1.0);
+        if cfg.border_margin_px.is_finite() && len < cfg.long_span_px {
+            let (w, h) = (f64::from(self.k.width) - 1.0, f64::from(self.k.height) - 1.0);
+            let near = |p: &[f64; 2]| p[0].min(p[1]).min(w - p[0]).min(h - p[1]) <= cfg.border_margin_px;
+            // The contours' edges may run on past the span's colour evidence (haze, vignetting):
+            // follow either contour's inlier edges from each end (gaps up to 32 px).
+            let mut reach = span;
+            for samp in &self.samp {
+                let (mut lo, mut hi) = (span[0], span[1]);
+                for (sv, _) in samp.iter().rev().filter(|(sv, _)| *sv < span[0]) {
+                    if lo - sv > 32.0 {
+                        break;
+                    }
+                    lo = *sv;
+                }
+                for (sv, _) in samp.iter().filter(|(sv, _)| *sv > span[1]) {
+                    if sv - hi > 32.0 {
+                        break;
+                    }
+                    hi = *sv;
+                }
+                reach = [reach[0].min(lo), reach[1].max(hi)];
+            }
+            let reach_px = reach.map(|sv| {
+                let p = [o[0] + sv * t[0], o[1] + sv * t[1]];
+                let (x, y) = self.lens.distort_px(p[0], p[1]);
+                [x, y]
+            });
+            if !reach_px.iter().any(near) {
+                return None;
+            }
+        }
+        let contrast = match mode {
+            Evidence::Colour => {
+                (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside)
+                    / (3.0 * cfg.min_chroma_contrast.max(1e-9))
+            }
+            Evidence::Luma(sign) => {
+                fine.luma_outside.iter().map(|o| sign * (fine.luma_inside - o)).fold(f64::INFINITY, f64::min)
+                    / (3.0 * cfg.min_luma_contrast.max(1e-9))
+            }
+        };
+        let confidence = support / (1.0 + (sigma / 0.5).powi(2)) * contrast.clamp(0.0, 1.0);
         Some(Found {
             det: ShaftDetection { centreline: axis, contours: [c0, c1], ends_px, confidence },
             mid: {
@@ -442,20 +815,38 @@ impl OursDetector {
         })
     }
 
-    fn colour_ok(&self, c: &profile::Interior) -> bool {
-        c.outside.iter().all(|&out| {
-            out - c.inside >= self.cfg.min_chroma_contrast && c.inside <= self.cfg.max_interior_chroma_ratio * out
-        })
+    /// How the strip between two contours passes as a shaft's interior: by colour (grey
+    /// against redder tissue on both sides; under haze half the colour contrast is enough where
+    /// the luma step is clear), or, when haze has washed the colour out of the tissue on both
+    /// sides, by a clear luma step of the same sign on both sides (the interior no redder than
+    /// the outside); `None` when neither.
+    fn colour_mode(&self, c: &profile::Interior) -> Option<Evidence> {
+        let cfg = &self.cfg;
+        let colour = c.outside.iter().zip(c.near).zip(c.luma_outside).all(|((&out, near), luma_out)| {
+            let inside = c.inside.max(near);
+            let luma = (c.luma_inside - luma_out).abs() >= cfg.min_luma_contrast;
+            let need = if luma { 0.5 * cfg.min_chroma_contrast } else { cfg.min_chroma_contrast };
+            out - inside >= need && inside <= cfg.max_interior_chroma_ratio * out
+        });
+        if colour {
+            return Some(Evidence::Colour);
+        }
+        let washed_out = c.outside.iter().all(|&out| out < cfg.min_chroma_contrast);
+        let steps = c.luma_outside.map(|out| c.luma_inside - out);
+        let sign = steps[0].signum();
+        let luma = steps.iter().all(|d| d * sign >= 1.5 * cfg.min_luma_contrast)
+            && c.inside.max(c.near[0]).max(c.near[1]) <= c.outside[0].max(c.outside[1]) + 3.0;
+        (washed_out && luma).then_some(Evidence::Luma(sign))
     }
 
     /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
-    fn pairs(&mut self, image: &RgbView<'_>) -> Vec<(f64, usize, usize)> {
+    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
         let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.luma_weight };
+        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
         let mut col = std::mem::take(&mut self.col);
         let lines = &self.hough.lines;
         let cfg = self.cfg;
-        let mut out = Vec::new();
+        out.clear();
         let cos_max = (25.0f64).to_radians().cos();
         for i in 0..lines.len() {
             for j in i + 1..lines.len() {
@@ -495,32 +886,23 @@ impl OursDetector {
                 }
                 // Coarse colour test on the hypotheses.
                 let Some(c) = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col) else { continue };
-                if !self.colour_ok(&c) {
+                let Some(mode) = self.colour_mode(&c) else {
                     continue;
-                }
-                out.push((len * (a.count.min(b.count) as f64), i, j));
+                };
+                // Rank by support and by how grey the interior is against the outsides.
+                let grey = match mode {
+                    Evidence::Colour => {
+                        (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0)
+                    }
+                    Evidence::Luma(_) => 0.5,
+                };
+                out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
             }
         }
         self.col = col;
         out.sort_by(|a, b| b.0.total_cmp(&a.0));
         out
     }
-}
-
-/// The extent of the sorted `s` after trimming, at each end, points with fewer than
-/// `min_count` points within `window` towards the bulk; `None` when nothing is left.
-fn trimmed_span(s: &[f64], window: f64, min_count: usize) -> Option<[f64; 2]> {
-    let n = s.len();
-    let dense = |i: usize, fwd: bool| {
-        if fwd {
-            s[i..].iter().take_while(|&&x| x <= s[i] + window).count() >= min_count
-        } else {
-            s[..=i].iter().rev().take_while(|&&x| x >= s[i] - window).count() >= min_count
-        }
-    };
-    let lo = (0..n).find(|&i| dense(i, true))?;
-    let hi = (lo..n).rev().find(|&i| dense(i, false))?;
-    (hi > lo).then(|| [s[lo], s[hi]])
 }
 
 impl ShaftDetector for OursDetector {
@@ -538,31 +920,36 @@ impl ShaftDetector for OursDetector {
         self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
         self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
-        let pairs = self.pairs(image);
-        if std::env::var_os("OURS_DEBUG").is_some() {
-            eprintln!("edgels {} lines {} pairs {}", self.edges.edgels.len(), self.hough.lines.len(), pairs.len());
-            for l in &self.hough.lines {
-                eprintln!("  line n={:?} c={:.1} ends={:?} count={}", l.line.n, l.line.c, l.ends, l.count);
-            }
-            for p in pairs.iter().take(10) {
-                eprintln!("  pair {p:?}");
+        let buf = std::mem::take(&mut self.pair_buf);
+        let pairs = self.pairs(image, buf);
+        let n_lines = self.hough.lines.len();
+        self.cache.clear();
+        self.cache.resize(n_lines, None);
+        if self.cache_pts.len() < n_lines {
+            self.cache_pts.resize_with(n_lines, Vec::new);
+        }
+        // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
+        // sharing a line, a contour or the axis with a better one is dropped).
+        self.cands.clear();
+        let budget = 3 * cfg.max_detections + 2;
+        for &(_, i, j) in pairs.iter().take(budget) {
+            if let Some(f) = self.verify(image, i, j) {
+                self.cands.push(f);
             }
         }
+        self.pair_buf = pairs;
+        self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
         self.found.clear();
-        let mut tried = 0;
-        for &(_, i, j) in &pairs {
-            if self.found.len() >= cfg.max_detections || tried >= 4 * cfg.max_detections + 4 {
+        for f in &self.cands {
+            if self.found.len() >= cfg.max_detections {
                 break;
             }
-            if self.found.iter().any(|f| f.lines.contains(&i) || f.lines.contains(&j)) {
-                continue;
-            }
-            tried += 1;
-            if let Some(f) = self.verify(image, i, j) {
-                let dup = self.found.iter().any(|g| same_axis(g, &f));
-                if !dup {
-                    self.found.push(f);
-                }
+            let clash = self
+                .found
+                .iter()
+                .any(|g| g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f));
+            if !clash {
+                self.found.push(*f);
             }
         }
         self.found.sort_by(|a, b| b.score.total_cmp(&a.score));
@@ -581,8 +968,14 @@ fn same_axis(a: &Found, b: &Found) -> bool {
     lb.distance_px(a.mid[0], a.mid[1]).abs() < 5.0 || la.distance_px(b.mid[0], b.mid[1]).abs() < 5.0
 }
 
-fn dbg_reject(why: u32) {
-    if std::env::var_os("OURS_DEBUG").is_some() {
-        eprintln!("  reject {why}");
-    }
+/// True when two detections share a contour (within 1° and 2 px at the other's span middle).
+fn shares_contour(a: &Found, b: &Found) -> bool {
+    a.det.contours.iter().any(|ca| {
+        b.det.contours.iter().any(|cb| {
+            let cos = (ca.abc[0] * cb.abc[0] + ca.abc[1] * cb.abc[1]).abs();
+            cos > 1f64.to_radians().cos()
+                && (ca.distance_px(b.mid[0], b.mid[1]).abs() - cb.distance_px(b.mid[0], b.mid[1]).abs()).abs() < 2.0
+                && (ca.distance_px(a.mid[0], a.mid[1]).abs() - cb.distance_px(a.mid[0], a.mid[1]).abs()).abs() < 2.0
+        })
+    })
 }

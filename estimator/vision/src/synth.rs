@@ -158,11 +158,11 @@ pub fn render(k: &Intrinsics, scene: &Scene) -> Vec<u8> {
         let r = k_inv * Vector3::new(p.x, p.y, 1.0);
         let mut best: Option<(f64, [f64; 3])> = None;
         for c in &scene.shafts {
-            if let Some((t, q)) = c.hit(&r) {
-                if best.is_none_or(|b| t < b.0) {
-                    let lit = c.albedo * (0.25 + 0.75 * (1.0 - q * q).max(0.0).sqrt()) * 255.0;
-                    best = Some((t, [lit, lit, lit * 1.03]));
-                }
+            if let Some((t, q)) = c.hit(&r)
+                && best.is_none_or(|b| t < b.0)
+            {
+                let lit = c.albedo * (0.25 + 0.75 * (1.0 - q * q).max(0.0).sqrt()) * 255.0;
+                best = Some((t, [lit, lit, lit * 1.03]));
             }
         }
         best.map(|b| b.1)

@@ -71,15 +71,17 @@ impl EdgeBuffers {
         let t2 = threshold * threshold;
         let tan22 = 0.414_213_56_f32;
         for i in 1..h2 - 1 {
+            fn rows(ch: &[f32], i: usize, w2: usize) -> (&[f32], &[f32], &[f32]) {
+                (&ch[(i - 1) * w2..i * w2], &ch[i * w2..(i + 1) * w2], &ch[(i + 1) * w2..(i + 2) * w2])
+            }
+            let (c0, c1, c2) = rows(&self.chroma, i, w2);
+            let (l0, l1, l2) = rows(&self.luma, i, w2);
             for j in 1..w2 - 1 {
                 let (a, c, b) = {
                     let mut acc = (0.0f32, 0.0f32, 0.0f32);
-                    for ch in [&self.chroma, &self.luma] {
-                        let at = |ii: usize, jj: usize| ch[ii * w2 + jj];
-                        let gx = (at(i - 1, j + 1) + 2.0 * at(i, j + 1) + at(i + 1, j + 1))
-                            - (at(i - 1, j - 1) + 2.0 * at(i, j - 1) + at(i + 1, j - 1));
-                        let gy = (at(i + 1, j - 1) + 2.0 * at(i + 1, j) + at(i + 1, j + 1))
-                            - (at(i - 1, j - 1) + 2.0 * at(i - 1, j) + at(i - 1, j + 1));
+                    for (u, m, d) in [(c0, c1, c2), (l0, l1, l2)] {
+                        let gx = (u[j + 1] + 2.0 * m[j + 1] + d[j + 1]) - (u[j - 1] + 2.0 * m[j - 1] + d[j - 1]);
+                        let gy = (d[j - 1] + 2.0 * d[j] + d[j + 1]) - (u[j - 1] + 2.0 * u[j] + u[j + 1]);
                         let (gx, gy) = (gx * 0.125, gy * 0.125);
                         acc.0 += gx * gx;
                         acc.1 += gy * gy;
@@ -101,7 +103,7 @@ impl EdgeBuffers {
                 // Eigenvector of the largest eigenvalue.
                 let (ex, ey) = if a >= c { (lam - c, b) } else { (b, lam - a) };
                 let norm = (ex * ex + ey * ey).sqrt();
-                if !(norm > 0.0) {
+                if norm <= 0.0 || norm.is_nan() {
                     continue;
                 }
                 let (ex, ey) = (ex / norm, ey / norm);
@@ -140,9 +142,12 @@ impl EdgeBuffers {
                 let [ex, ey] = self.eig[idx];
                 // The edge's tangent, mapped; the undistorted normal is its perpendicular.
                 let (pos, tan) = table.map(j, i, -ey, ex);
+                if !pos.iter().all(|v| v.is_finite()) {
+                    continue;
+                }
                 let (mut nx, mut ny) = (tan[1], -tan[0]);
                 let nn = (nx * nx + ny * ny).sqrt();
-                if !(nn > 0.0) {
+                if nn <= 0.0 || nn.is_nan() {
                     continue;
                 }
                 nx /= nn;

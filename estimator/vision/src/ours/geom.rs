@@ -52,7 +52,7 @@ pub(crate) fn fit_line(pts: &[[f64; 2]], w: Option<&[f64]>) -> Option<Line> {
         mx += wi * p[0];
         my += wi * p[1];
     }
-    if !(sw > 0.0) {
+    if sw <= 0.0 || sw.is_nan() {
         return None;
     }
     let (mx, my) = (mx / sw, my / sw);
@@ -67,7 +67,7 @@ pub(crate) fn fit_line(pts: &[[f64; 2]], w: Option<&[f64]>) -> Option<Line> {
     // Direction: the major eigenvector of the scatter matrix.
     let theta = 0.5 * (2.0 * sxy).atan2(sxx - syy);
     let (dx, dy) = (theta.cos(), theta.sin());
-    if !(sxx + syy > 0.0) {
+    if sxx + syy <= 0.0 || (sxx + syy).is_nan() {
         return None;
     }
     let n = [-dy, dx];

@@ -1,6 +1,6 @@
 //! Stage 2: straight-line hypotheses from the edgels (undistorted pixels, where the contours
 //! are straight): an orientation-guided Hough transform (each edgel votes once, at its own
-//! normal direction, so the cost is linear in the edgels), peaks on a 5 × 3 box sum, then each
+//! normal direction, so the cost is linear in the edgels), peaks on a 9 × 3 box sum (edgel normals at half resolution scatter by a few degrees), then each
 //! peak's edgels are gathered and refitted by total least squares, and the supported span is
 //! found along the line.
 
@@ -31,7 +31,16 @@ pub(crate) struct Hough {
     rho0: usize,
     centre: [f32; 2],
     peaks: Vec<(u32, usize, usize)>,
+    kept: Vec<(usize, usize)>,
     members: Vec<[f64; 2]>,
+    /// Per edgel, its angle bin.
+    tbs: Vec<u16>,
+    /// Start of each angle bin in `order` (prefix sums, `N_THETA + 1` entries).
+    bins: Vec<u32>,
+    /// Edgel indices sorted by angle bin.
+    order: Vec<u32>,
+    /// Scratch: next free slot per angle bin.
+    next: Vec<u32>,
     s_buf: Vec<f64>,
     pub(crate) lines: Vec<LineCand>,
 }
@@ -66,10 +75,18 @@ impl Hough {
         self.peaks.clear();
         self.acc.iter_mut().for_each(|a| *a = 0);
         let [cx, cy] = self.centre;
+        self.bins.clear();
+        self.bins.resize(N_THETA + 1, 0);
+        self.tbs.clear();
         for e in edgels {
             let theta = e.n[1].atan2(e.n[0]);
             let tb = ((theta * (N_THETA as f32 / std::f32::consts::PI)) as usize).min(N_THETA - 1);
+            self.tbs.push(tb as u16);
+            self.bins[tb + 1] += 1;
             let rho = (e.p[0] - cx) * e.n[0] + (e.p[1] - cy) * e.n[1];
+            if !rho.is_finite() || rho.abs() > RHO_STEP * self.rho0 as f32 {
+                continue;
+            }
             let rb = (rho / RHO_STEP).round() as isize + self.rho0 as isize;
             if rb < 0 || rb >= self.n_rho as isize {
                 continue;
@@ -77,7 +94,22 @@ impl Hough {
             let a = &mut self.acc[tb * self.n_rho + rb as usize];
             *a = a.saturating_add(1);
         }
-        // Peaks of the 5 (angle) × 3 (distance) box sum.
+        // Edgel indices sorted by angle bin (counting sort): a peak gathers from its bins only.
+        for i in 0..N_THETA {
+            self.bins[i + 1] += self.bins[i];
+        }
+        self.order.clear();
+        self.order.resize(edgels.len(), 0);
+        {
+            self.next.clear();
+            self.next.extend_from_slice(&self.bins);
+            for (i, &tb) in self.tbs.iter().enumerate() {
+                let slot = &mut self.next[tb as usize];
+                self.order[*slot as usize] = i as u32;
+                *slot += 1;
+            }
+        }
+        // Peaks of the 9 (angle) × 3 (distance) box sum.
         let seed = (min_votes / 8).max(2);
         for tb in 0..N_THETA {
             for rb in 0..self.n_rho {
@@ -85,7 +117,7 @@ impl Hough {
                     continue;
                 }
                 let mut s = 0;
-                for dt in -2..=2isize {
+                for dt in -4..=4isize {
                     for dr in -1..=1isize {
                         s += self.cell(tb as isize + dt, rb as isize + dr);
                     }
@@ -95,8 +127,9 @@ impl Hough {
                 }
             }
         }
-        self.peaks.sort_unstable_by(|a, b| b.0.cmp(&a.0));
-        let mut kept: Vec<(usize, usize)> = Vec::new();
+        self.peaks.sort_unstable_by_key(|p| std::cmp::Reverse(p.0));
+        let mut kept = std::mem::take(&mut self.kept);
+        kept.clear();
         let peaks = std::mem::take(&mut self.peaks);
         for &(_, tb, rb) in &peaks {
             if kept.len() >= max_lines {
@@ -104,10 +137,10 @@ impl Hough {
             }
             let near = kept.iter().any(|&(t2, r2)| {
                 let dt = tb.abs_diff(t2);
-                if dt <= 3 {
+                if dt <= 4 {
                     return rb.abs_diff(r2) <= 3;
                 }
-                if N_THETA - dt <= 3 {
+                if N_THETA - dt <= 4 {
                     return (2 * self.rho0).abs_diff(rb).abs_diff(r2) <= 3;
                 }
                 false
@@ -120,20 +153,37 @@ impl Hough {
             let rho = (rb as f64 - self.rho0 as f64) * f64::from(RHO_STEP);
             let (n0, n1) = (theta.cos(), theta.sin());
             let line = Line { n: [n0, n1], c: -(rho + n0 * f64::from(cx) + n1 * f64::from(cy)) };
-            if let Some(cand) = self.gather(edgels, line) {
-                self.lines.push(cand);
+            if let Some(cand) = self.gather(edgels, tb, line) {
+                // Two peaks may refit to the same line: keep the better supported.
+                let mid = [0.5 * (cand.ends[0][0] + cand.ends[1][0]), 0.5 * (cand.ends[0][1] + cand.ends[1][1])];
+                let same = |l: &LineCand| {
+                    (l.line.n[0] * cand.line.n[0] + l.line.n[1] * cand.line.n[1]).abs() > 0.99985
+                        && l.line.distance(mid).abs() < 2.0
+                };
+                match self.lines.iter().position(same) {
+                    Some(i) if self.lines[i].count < cand.count => self.lines[i] = cand,
+                    Some(_) => {}
+                    None => self.lines.push(cand),
+                }
             }
         }
         self.peaks = peaks;
-        self.lines.sort_by(|a, b| b.count.cmp(&a.count));
+        self.kept = kept;
+        self.lines.sort_by_key(|l| std::cmp::Reverse(l.count));
     }
 
     /// The edgels near `line` (twice: wide, then around the refit), the refit line and its
     /// supported span.
-    fn gather(&mut self, edgels: &[Edgel], mut line: Line) -> Option<LineCand> {
+    fn gather(&mut self, edgels: &[Edgel], tb: usize, mut line: Line) -> Option<LineCand> {
         for (tol_px, cos_tol) in [(3.5f64, 0.990f64), (2.0, 0.995)] {
             self.members.clear();
-            for e in edgels {
+            // The angle bins within ±9° (cos 0.990 is 8.1°), wrapping around π.
+            let candidates = (tb as isize - 9..=tb as isize + 9).flat_map(|b| {
+                let b = b.rem_euclid(N_THETA as isize) as usize;
+                self.order[self.bins[b] as usize..self.bins[b + 1] as usize].iter()
+            });
+            for &i in candidates {
+                let e = &edgels[i as usize];
                 let p = [f64::from(e.p[0]), f64::from(e.p[1])];
                 let cosang = (f64::from(e.n[0]) * line.n[0] + f64::from(e.n[1]) * line.n[1]).abs();
                 if cosang >= cos_tol && line.distance(p).abs() <= tol_px {

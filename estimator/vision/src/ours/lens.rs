@@ -11,6 +11,8 @@ use nalgebra::Vector2;
 pub(crate) struct Lens {
     fx: f64,
     fy: f64,
+    inv_fx: f64,
+    inv_fy: f64,
     cx: f64,
     cy: f64,
     skew: f64,
@@ -20,7 +22,17 @@ pub(crate) struct Lens {
 
 impl Lens {
     pub(crate) fn new(k: &Intrinsics) -> Self {
-        Self { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy, skew: k.skew, d: k.distortion, distorted: !k.is_undistorted() }
+        Self {
+            fx: k.fx,
+            fy: k.fy,
+            inv_fx: 1.0 / k.fx,
+            inv_fy: 1.0 / k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            skew: k.skew,
+            d: k.distortion,
+            distorted: !k.is_undistorted(),
+        }
     }
 
     /// Measured (distorted) pixel of the undistorted pixel `(u, v)`; the same arithmetic as
@@ -30,8 +42,8 @@ impl Lens {
         if !self.distorted {
             return (u, v);
         }
-        let y = (v - self.cy) / self.fy;
-        let x = (u - self.cx - self.skew * y) / self.fx;
+        let y = (v - self.cy) * self.inv_fy;
+        let x = (u - self.cx - self.skew * y) * self.inv_fx;
         let [k1, k2, p1, p2, k3] = self.d;
         let r2 = x * x + y * y;
         let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));

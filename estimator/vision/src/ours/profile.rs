@@ -7,6 +7,7 @@ use super::lens::Lens;
 use crate::detect::RgbView;
 
 /// Bilinear samples of the measured image at undistorted positions.
+#[derive(Clone, Copy)]
 pub(crate) struct Sampler<'a> {
     pub(crate) image: &'a RgbView<'a>,
     pub(crate) lens: &'a Lens,
@@ -14,7 +15,7 @@ pub(crate) struct Sampler<'a> {
 }
 
 impl Sampler<'_> {
-    /// `(chroma 2R − G − B, weighted luma)` at the undistorted pixel `(u, v)`; `None` outside
+    /// `(chroma 2R − G − B, luma)` (8-bit units) at the undistorted pixel `(u, v)`; `None` outside
     /// the measured image.
     #[inline]
     pub(crate) fn sample(&self, u: f64, v: f64) -> Option<(f64, f64)> {
@@ -35,7 +36,7 @@ impl Sampler<'_> {
         let (a, b, c, e) = (px(i), px(i + 3), px(j), px(j + 3));
         let top = (a.0 + fx * (b.0 - a.0), a.1 + fx * (b.1 - a.1));
         let bot = (c.0 + fx * (e.0 - c.0), c.1 + fx * (e.1 - c.1));
-        Some((top.0 + fy * (bot.0 - top.0), self.luma_weight * (top.1 + fy * (bot.1 - top.1))))
+        Some((top.0 + fy * (bot.0 - top.0), top.1 + fy * (bot.1 - top.1)))
     }
 
     /// The edge across `line` at `p` (a point of the line, undistorted pixels): the sub-pixel
@@ -45,41 +46,75 @@ impl Sampler<'_> {
     /// gate's border or below `min_strength`.
     pub(crate) fn edge_offset(&self, line: &Line, p: [f64; 2], gate_px: f64, min_strength: f64) -> Option<(f64, f64)> {
         const MAX_K: usize = 8;
-        let k_gate = (gate_px.ceil() as usize).clamp(1, MAX_K - 2);
-        let kk = k_gate + 1;
+        let k_gate = (gate_px.ceil() as usize).clamp(1, MAX_K - 3);
+        let kk = k_gate + 2;
         let mut vals = [(0.0f64, 0.0f64); 2 * MAX_K + 1];
+        let dir = line.direction();
         for (idx, k) in (-(kk as isize)..=kk as isize).enumerate() {
             let t = k as f64;
-            vals[idx] = self.sample(p[0] + t * line.n[0], p[1] + t * line.n[1])?;
+            let (x, y) = (p[0] + t * line.n[0], p[1] + t * line.n[1]);
+            // Two samples 1.5 px apart along the contour (each bilinear): averages the noise
+            // along the edge over about three pixels.
+            let a = self.sample(x - 0.75 * dir[0], y - 0.75 * dir[1])?;
+            let b = self.sample(x + 0.75 * dir[0], y + 0.75 * dir[1])?;
+            vals[idx] = (0.5 * (a.0 + b.0), 0.5 * (a.1 + b.1));
         }
         let mut strength = [0.0f64; 2 * MAX_K + 1];
-        for idx in 1..2 * kk {
-            let dc = 0.5 * (vals[idx + 1].0 - vals[idx - 1].0);
-            let dl = 0.5 * (vals[idx + 1].1 - vals[idx - 1].1);
+        // Derivative kernel [−1, −2, 0, 2, 1] / 8 (smooths blurred, noisy edges).
+        for idx in 2..2 * kk - 1 {
+            let d = |ch: fn(&(f64, f64)) -> f64| {
+                (2.0 * (ch(&vals[idx + 1]) - ch(&vals[idx - 1])) + ch(&vals[idx + 2]) - ch(&vals[idx - 2])) / 8.0
+            };
+            let (dc, dl) = (d(|v| v.0), self.luma_weight * d(|v| v.1));
             strength[idx] = (dc * dc + dl * dl).sqrt();
         }
-        let mut best = 1;
-        for idx in 1..2 * kk {
+        let mut best = 2;
+        for idx in 2..2 * kk - 1 {
             if strength[idx] > strength[best] {
                 best = idx;
             }
         }
-        if best == 1 || best == 2 * kk - 1 || strength[best] < min_strength {
+        if best == 2 || best == 2 * kk - 2 || strength[best] < min_strength {
             return None;
         }
-        let (a, b, c) = (strength[best - 1], strength[best], strength[best + 1]);
-        let den = a - 2.0 * b + c;
-        let delta = if den < 0.0 { (0.5 * (a - c) / den).clamp(-0.5, 0.5) } else { 0.0 };
-        let off = best as f64 - kk as f64 + delta;
+        // Sub-pixel: the centroid of the peak's upper half (a motion-blurred edge is a
+        // staircase of a few steps: its centroid is the middle instant's edge, where a
+        // parabola would lock onto the strongest step).
+        let peak = strength[best];
+        let half = 0.5 * peak;
+        let (mut sw, mut swx) = (0.0, 0.0);
+        let mut i = best;
+        while i >= 2 && strength[i] > half {
+            sw += strength[i] - half;
+            swx += (strength[i] - half) * i as f64;
+            i -= 1;
+        }
+        let mut i = best + 1;
+        while i <= 2 * kk - 2 && strength[i] > half {
+            sw += strength[i] - half;
+            swx += (strength[i] - half) * i as f64;
+            i += 1;
+        }
+        if sw <= 0.0 || sw.is_nan() {
+            return None;
+        }
+        let off = swx / sw - kk as f64;
+        let b = peak;
         (off.abs() <= gate_px).then_some((off, b))
     }
 }
 
-/// Medians of the chroma inside the strip between two contours and just outside each.
+/// The chroma inside the strip between two contours (upper quartile) and just outside each
+/// (medians).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Interior {
     pub(crate) inside: f64,
     pub(crate) outside: [f64; 2],
+    /// Just inside each contour (medians).
+    pub(crate) near: [f64; 2],
+    /// Luma: median inside, medians just outside each contour.
+    pub(crate) luma_inside: f64,
+    pub(crate) luma_outside: [f64; 2],
 }
 
 /// Samples the strip between `c0` and `c1` at 16 stations of `o + s·t`, `s ∈ [s0, s1]`
@@ -91,7 +126,7 @@ pub(crate) fn interior(
     o: [f64; 2],
     t: [f64; 2],
     s: [f64; 2],
-    buf: &mut [Vec<f64>; 3],
+    buf: &mut [Vec<f64>; 8],
 ) -> Option<Interior> {
     buf.iter_mut().for_each(Vec::clear);
     let d = [-t[1], t[0]];
@@ -106,26 +141,42 @@ pub(crate) fn interior(
             return None;
         }
         let at = |lam: f64| sampler.sample(q[0] + (m + lam) * d[0], q[1] + (m + lam) * d[1]);
-        for f in [-0.5, 0.0, 0.5] {
-            if let Some((cv, _)) = at(f * h0.abs()) {
+        for f in [-0.7, -0.35, 0.0, 0.35, 0.7] {
+            if let Some((cv, lv)) = at(f * h0.abs()) {
                 buf[0].push(cv);
+                buf[5].push(lv);
             }
         }
         for (side, h) in [h0, h1].into_iter().enumerate() {
-            let margin = 2.5 + 0.25 * h.abs();
-            if let Some((cv, _)) = at(h + h.signum() * margin) {
+            // Just outside: beyond a blurred edge, not as far as another structure; and just
+            // inside (the contour must bound the grey strip itself).
+            let margin = 4.0;
+            if let Some((cv, lv)) = at(h + h.signum() * margin) {
                 buf[1 + side].push(cv);
+                buf[6 + side].push(lv);
+            }
+            let inner = margin.min(0.4 * h.abs());
+            if let Some((cv, _)) = at(h - h.signum() * inner) {
+                buf[3 + side].push(cv);
             }
         }
     }
     if buf.iter().any(|b| b.len() < 4) {
         return None;
     }
-    let mut med = [0.0; 3];
-    for (m, b) in med.iter_mut().zip(buf.iter_mut()) {
-        let mid = b.len() / 2;
-        b.select_nth_unstable_by(mid, f64::total_cmp);
-        *m = b[mid];
+    // Inside: the upper quartile (nearly all of the strip must be grey, not just half of it);
+    // outside: the medians.
+    let mut med = [0.0; 8];
+    for (i, (m, b)) in med.iter_mut().zip(buf.iter_mut()).enumerate() {
+        let q = if i == 0 { (3 * b.len()) / 4 } else { b.len() / 2 };
+        b.select_nth_unstable_by(q, f64::total_cmp);
+        *m = b[q];
     }
-    Some(Interior { inside: med[0], outside: [med[1], med[2]] })
+    Some(Interior {
+        inside: med[0],
+        outside: [med[1], med[2]],
+        near: [med[3], med[4]],
+        luma_inside: med[5],
+        luma_outside: [med[6], med[7]],
+    })
 }

@@ -1,0 +1,129 @@
+//! Not a test: measures our detector on frames of `simrobot render` converted to raw RGB
+//! with a truth list (`OURS_EVAL_DIR/list.txt`: per line the `.rgb` file, then per instrument
+//! `label a b c x0 y0 x1 y1`, the true axis and its visible segment, undistorted pixels).
+//! `OURS_EVAL_DIR=DIR cargo test --release -p vision --test ours_eval -- --ignored --nocapture`
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
+
+use estimator::calib::Intrinsics;
+use std::time::Instant;
+use vision::ours::{OursConfig, OursDetector};
+use vision::{RgbView, ShaftDetector};
+
+#[test]
+#[ignore = "measurement on rendered frames (needs OURS_EVAL_DIR)"]
+fn evaluate_on_rendered_frames() {
+    let Some(dir) = std::env::var_os("OURS_EVAL_DIR") else { return };
+    let dir = std::path::PathBuf::from(dir);
+    let k = Intrinsics {
+        fx: 400.0,
+        fy: 400.0,
+        cx: 319.5,
+        cy: 239.5,
+        skew: 0.0,
+        width: 640,
+        height: 480,
+        distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
+    };
+    let mut cfg = OursConfig::default();
+    let env = |name: &str| std::env::var(name).ok().and_then(|v| v.parse::<f64>().ok());
+    if let Some(v) = env("OURS_EDGE_T") {
+        cfg.edge_threshold = v;
+    }
+    if let Some(v) = env("OURS_MIN_LEN") {
+        cfg.min_length_px = v;
+    }
+    if let Some(v) = env("OURS_LUMA_W") {
+        cfg.luma_weight = v;
+    }
+    if let Some(v) = env("OURS_LONG_SPAN") {
+        cfg.long_span_px = v;
+    }
+    if let Some(v) = env("OURS_MIN_LC") {
+        cfg.min_luma_contrast = v;
+    }
+    if let Some(v) = env("OURS_MIN_CC") {
+        cfg.min_chroma_contrast = v;
+    }
+    if let Some(v) = env("OURS_CC_RATIO") {
+        cfg.max_interior_chroma_ratio = v;
+    }
+    if let Some(v) = env("OURS_PLUMA_W") {
+        cfg.profile_luma_weight = v;
+    }
+    let mut det = OursDetector::new(k, cfg).unwrap();
+    let list = std::fs::read_to_string(dir.join("list.txt")).unwrap();
+    let (mut angles, mut offsets, mut times) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut eligible, mut found, mut false_det, mut frames) = (0, 0, 0, 0);
+    let verbose = std::env::var_os("OURS_EVAL_VERBOSE").is_some();
+    for line in list.lines() {
+        let mut it = line.split_whitespace();
+        let file = it.next().unwrap();
+        if std::env::var("OURS_EVAL_ONLY").is_ok_and(|only| only != file) {
+            continue;
+        }
+        let nums: Vec<f64> = it.map(|s| s.parse().unwrap()).collect();
+        let bytes = std::fs::read(dir.join(file)).unwrap();
+        let view = RgbView::new(640, 480, &bytes).unwrap();
+        let t0 = Instant::now();
+        let dets = det.detect(&view).unwrap();
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+        frames += 1;
+        let mut matched = vec![false; dets.len()];
+        for tr in nums.chunks(8) {
+            let [label, a, b, _c, x0, y0, x1, y1] = tr.try_into().unwrap();
+            let len = (x1 - x0).hypot(y1 - y0);
+            let (mx, my) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
+            // The detection nearest this axis.
+            let mut best: Option<(usize, f64, f64)> = None;
+            for (i, d) in dets.iter().enumerate() {
+                let l = d.centreline.abc;
+                let ang = (l[0] * b - l[1] * a).abs().min(1.0).asin().to_degrees();
+                let off = d.centreline.distance_px(mx, my).abs();
+                if ang < 3.0 && off < 10.0 && best.is_none_or(|bb| off < bb.2) {
+                    best = Some((i, ang, off));
+                }
+            }
+            if let Some((i, _, _)) = best {
+                matched[i] = true;
+                if std::env::var_os("OURS_EVAL_CONF").is_some() {
+                    println!("matched conf {:.3}", dets[i].confidence);
+                }
+            }
+            if len >= 100.0 {
+                eligible += 1;
+                if let Some((_, ang, off)) = best {
+                    found += 1;
+                    angles.push(ang);
+                    offsets.push(off);
+                    if verbose {
+                        println!("{file} label {label} len {len:.0}: angle {ang:.4} offset {off:.3}");
+                    }
+                } else if verbose {
+                    println!("{file} label {label} len {len:.0}: MISSED ({} detections)", dets.len());
+                }
+            }
+        }
+        let extra = matched.iter().filter(|m| !**m).count();
+        if extra > 0 && verbose {
+            for (d, m) in dets.iter().zip(&matched) {
+                if !m {
+                    println!("{file}: unmatched detection ends {:?} conf {:.2}", d.ends_px, d.confidence);
+                }
+            }
+        }
+        false_det += extra;
+    }
+    let med = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        if v.is_empty() { f64::NAN } else { v[v.len() / 2] }
+    };
+    let p90 = |v: &Vec<f64>| if v.is_empty() { f64::NAN } else { v[(v.len() * 9) / 10] };
+    let (ma, mo, mt) = (med(&mut angles), med(&mut offsets), med(&mut times));
+    println!(
+        "frames {frames}: detected {found}/{eligible} eligible shafts ({:.1} %), median angle {ma:.4}° (p90 {:.4}), median offset {mo:.3} px (p90 {:.3}), unmatched detections {false_det}, median time {mt:.2} ms (max {:.2})",
+        100.0 * found as f64 / eligible.max(1) as f64,
+        p90(&angles),
+        p90(&offsets),
+        times.last().copied().unwrap_or(f64::NAN)
+    );
+}

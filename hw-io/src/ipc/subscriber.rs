@@ -10,8 +10,8 @@ use iceoryx2::port::subscriber::{Subscriber as IoxSubscriber, SubscriberCreateEr
 use iceoryx2::prelude::ipc;
 
 use super::continuity::{Continuity, ContinuityTracker};
-use super::service::{self, OpenError, PublisherOptions, Services};
 use super::message::InvalidMessage;
+use super::service::{self, OpenError, PublisherOptions, Services};
 use super::{FulcrumSample, Message};
 
 /// Longest single sleep inside [`Subscriber::wait`]: a safety net that re-checks the
@@ -215,12 +215,7 @@ impl<M: Message> Subscriber<M> {
             .create()
             .map_err(ConnectError::Subscriber)?;
         let listener = event.listener_builder().create().map_err(ConnectError::Listener)?;
-        Ok(Self {
-            subscriber,
-            listener,
-            _node: node,
-            check: ReceiveCheck::default(),
-        })
+        Ok(Self { subscriber, listener, _node: node, check: ReceiveCheck::default() })
     }
 
     /// The next message if one is buffered, else `None` at once.
@@ -255,5 +250,49 @@ impl<M: Message> Subscriber<M> {
     /// What this subscriber has seen since it connected.
     pub fn counters(&self) -> SubscriberCounters {
         self.check.counters()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ipc::{HealthFlags, OutputState};
+
+    fn sample(state: OutputState, sequence: u64) -> FulcrumSample {
+        let mut s = FulcrumSample::invalid(HealthFlags::empty());
+        s.state = state.into();
+        s.sequence = sequence;
+        s.run_id = 7;
+        s
+    }
+
+    #[test]
+    fn a_valid_sample_with_a_nan_or_an_invalidating_flag_is_refused_and_counted() {
+        let mut check = ReceiveCheck::default();
+        let mut nan = sample(OutputState::Inside, 0);
+        nan.fulcrum_base_m[1] = f64::NAN;
+        assert!(matches!(check.check(nan), Err(RecvError::Invalid { .. })));
+        let mut flagged = sample(OutputState::Outside, 1);
+        flagged.health = HealthFlags::NODE2_STALE.bits();
+        assert!(matches!(check.check(flagged), Err(RecvError::Invalid { .. })));
+        // An invalid sample's floats mean nothing: accepted as it is.
+        let mut invalid = sample(OutputState::Invalid, 2);
+        invalid.wrist_base_m[0] = f64::INFINITY;
+        assert!(check.check(invalid).is_ok());
+        // The refused ones did not touch continuity: the accepted one is the first.
+        assert_eq!(check.counters(), SubscriberCounters { received: 1, missed: 0, restarts: 0, rejected: 2 });
+        assert_eq!(check.check(sample(OutputState::Outside, 3)).map(|r| r.event).ok(), Some(Continuity::InOrder));
+    }
+
+    #[test]
+    fn the_missed_counter_saturates() {
+        // Found while writing the `ipc_sample` fuzz target: two huge gaps overflowed `missed`.
+        let mut check = ReceiveCheck::default();
+        for (run, seq) in [(7, 0), (7, 1 << 63), (8, 0), (8, (1 << 63) + 5)] {
+            let mut s = sample(OutputState::Outside, seq);
+            s.run_id = run;
+            assert!(check.check(s).is_ok());
+        }
+        assert_eq!(check.counters().missed, u64::MAX);
     }
 }

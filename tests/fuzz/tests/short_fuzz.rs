@@ -34,7 +34,9 @@ fn rustup_nightly(args: &[&str]) -> Command {
     let mut c = Command::new("rustup");
     c.args(["run", "nightly"]).args(args);
     // The outer cargo's toolchain choice must not leak into the nightly one.
-    for v in ["RUSTUP_TOOLCHAIN", "RUSTC", "RUSTC_WRAPPER", "RUSTFLAGS", "CARGO_ENCODED_RUSTFLAGS", "CARGO_BUILD_RUSTFLAGS"] {
+    for v in
+        ["RUSTUP_TOOLCHAIN", "RUSTC", "RUSTC_WRAPPER", "RUSTFLAGS", "CARGO_ENCODED_RUSTFLAGS", "CARGO_BUILD_RUSTFLAGS"]
+    {
         c.env_remove(v);
     }
     c
@@ -75,16 +77,18 @@ fn every_target_runs_briefly_without_a_crash() {
         return;
     }
     ensure_cargo_fuzz();
-    let seconds: u64 = std::env::var("COMANIP_FUZZ_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(DEFAULT_SECONDS);
+    let seconds: u64 =
+        std::env::var("COMANIP_FUZZ_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(DEFAULT_SECONDS);
     let fuzz_target_dir = target_dir().join("fuzz");
     let t0 = Instant::now();
     // `--sanitizer none`: the targets are safe Rust over safe Rust (docs/fuzzing.md); debug
     // assertions (overflow checks) on.
-    let status = rustup_nightly(&["cargo", "fuzz", "build", "--sanitizer", "none", "--debug-assertions", "--target-dir"])
-        .arg(&fuzz_target_dir)
-        .current_dir(fuzz_dir())
-        .status()
-        .expect("cargo fuzz build");
+    let status =
+        rustup_nightly(&["cargo", "fuzz", "build", "--sanitizer", "none", "--debug-assertions", "--target-dir"])
+            .arg(&fuzz_target_dir)
+            .current_dir(fuzz_dir())
+            .status()
+            .expect("cargo fuzz build");
     assert!(status.success(), "cargo +nightly fuzz build failed");
     println!("fuzz build: {:.1} s", t0.elapsed().as_secs_f64());
     let host = rustup_nightly(&["rustc", "-vV"]).output().expect("rustc -vV");

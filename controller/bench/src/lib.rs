@@ -6,7 +6,8 @@
 //! - [`families`]: the motion-style families, tuning families marked, held-out reported;
 //! - [`bound`]: the motion-only bound of each true event;
 //! - [`report`]: aggregation, Markdown tables and the Table III consistency check;
-//! - [`plots`]: SVG figures (plotters).
+//! - [`plots`]: SVG figures (plotters);
+//! - [`shaft`]: the shaft-detector benchmark on rendered frames (paper, ours, OpenCV peers).
 
 pub mod bound;
 pub mod bus_loss;
@@ -15,4 +16,5 @@ pub mod families;
 pub mod ipc;
 pub mod plots;
 pub mod report;
+pub mod shaft;
 pub mod trace;

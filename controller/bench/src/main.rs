@@ -5,6 +5,9 @@
 //! - `comanip-bench detection [--seeds 11,12,13,14] [--cycles 90] [--config fulcrumd.toml]`
 //! - `comanip-bench loop [--seconds 60]` — the daemon on its in-process simulated robot.
 //! - `comanip-bench ipc [--samples 20000]` — iceoryx2 latency between two processes.
+//! - `comanip-bench shaft [--frames-per-family 14] [--tuning] [--peers] [--out DIR] [--figures DIR]`
+//!   — the shaft detectors (ours, the paper's, OpenCV peers) on rendered frames
+//!   (`docs/detection.md`).
 
 use std::fmt::Write as _;
 use std::io::IsTerminal;
@@ -48,6 +51,36 @@ enum Command {
     Families(FamiliesArgs),
     /// The daemon's stale-data policy under random TPDO loss and bursts of missing TPDOs.
     BusLoss(BusLossArgs),
+    /// Shaft detectors on rendered endoscope frames: ours, the paper's, OpenCV peers.
+    Shaft(ShaftArgs),
+}
+
+#[derive(clap::Args)]
+struct ShaftArgs {
+    /// Seeds per scenario family (9 families in the report set, 3 in the tuning set).
+    #[arg(long, default_value_t = 14)]
+    frames_per_family: usize,
+    /// Run the tuning set (tuning families, tuning seeds): the only frames to tune on.
+    #[arg(long)]
+    tuning: bool,
+    /// Clutter levels (clean, default, smoke, second, all); default: all five.
+    #[arg(long, value_delimiter = ',')]
+    levels: Option<Vec<String>>,
+    /// Also run the OpenCV peers (EdgeDrawing/EDLines and LSD, each with the paper's pairing).
+    #[arg(long)]
+    peers: bool,
+    /// Python interpreter of the peers.
+    #[arg(long, default_value = "python3")]
+    python: String,
+    /// The peers' script (default: controller/bench/peers/opencv_lines.py of this source tree).
+    #[arg(long)]
+    peers_script: Option<PathBuf>,
+    /// Directory of table.md and results.json (and the figures unless --figures).
+    #[arg(long, default_value = "target/shaft-bench")]
+    out: PathBuf,
+    /// Directory of the overlay PNGs and the SVG.
+    #[arg(long)]
+    figures: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -221,6 +254,63 @@ fn bus_loss(a: &BusLossArgs) -> Result<LossReport, String> {
     let r = run_bus_loss(&a.loss_seeds, a.loss_cycles, &|| bar.inc(1)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     Ok(r)
+}
+
+fn shaft(a: &ShaftArgs) -> Result<String, String> {
+    use comanip_bench::shaft::{self, PeerOptions, ShaftOptions, peers, scenes};
+    let levels = match &a.levels {
+        None => scenes::ClutterLevel::ALL.to_vec(),
+        Some(keys) => keys
+            .iter()
+            .map(|k| scenes::ClutterLevel::from_key(k).ok_or_else(|| format!("unknown clutter level {k}")))
+            .collect::<Result<_, _>>()?,
+    };
+    let work_dir = std::env::temp_dir().join(format!("comanip-shaft-{}", std::process::id()));
+    let opts = ShaftOptions {
+        set: if a.tuning { scenes::SeedSet::Tuning } else { scenes::SeedSet::Report },
+        frames_per_family: a.frames_per_family,
+        levels,
+        peers: a.peers.then(|| PeerOptions {
+            python: a.python.clone(),
+            script: a.peers_script.clone().unwrap_or_else(peers::default_script),
+            work_dir: work_dir.clone(),
+        }),
+    };
+    let k = shaft::intrinsics();
+    let (mut detectors, pairing) = shaft_detectors(&k)?;
+    let bar = if std::io::stderr().is_terminal() {
+        let b = indicatif::ProgressBar::new(0);
+        b.set_message("frames (render, detect)");
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let r = shaft::run(&opts, &mut detectors, pairing.as_deref(), &|done, total| {
+        bar.set_length(total);
+        bar.set_position(done);
+    });
+    bar.finish_and_clear();
+    let _ = std::fs::remove_dir_all(&work_dir);
+    let r = r.map_err(|e| e.to_string())?;
+    let figures = a.figures.clone().unwrap_or_else(|| a.out.clone());
+    let written = r.write(&a.out, &figures).map_err(|e| e.to_string())?;
+    eprintln!("comanip-bench shaft: wrote {} files under {} and {}", written.len(), a.out.display(), figures.display());
+    Ok(r.markdown())
+}
+
+/// The shaft pairing the peers get: a segment list (measured pixels) to at most one shaft.
+type BoxedPairing = Box<dyn Fn(&[vision::Segment]) -> Option<vision::ShaftDetection>>;
+
+/// The shaft detectors of a run, in report order.
+type Detectors = Vec<Box<dyn vision::ShaftDetector>>;
+
+/// The detectors under test, in report order, and the paper's pairing for the peers.
+fn shaft_detectors(k: &estimator::calib::Intrinsics) -> Result<(Detectors, Option<BoxedPairing>), String> {
+    let ours = vision::ours::OursDetector::new(*k, vision::ours::OursConfig::default()).map_err(|e| e.to_string())?;
+    let paper = vision::paper::PaperDetector::new(*k);
+    let k = *k;
+    let pairing: BoxedPairing = Box::new(move |s| vision::paper::pair_shaft(&k, s));
+    Ok((vec![Box::new(ours), Box::new(paper)], Some(pairing)))
 }
 
 fn run_loop(a: &LoopArgs) -> Result<RunSummary, String> {
@@ -397,6 +487,7 @@ fn main() -> ExitCode {
         Command::Ipc(a) => ipc::run(a.samples).map(|r| Some(ipc_markdown(&r))).map_err(|e| e.to_string()),
         Command::Families(a) => families(a).map(|r| Some(r.markdown())),
         Command::BusLoss(a) => bus_loss(a).map(|r| Some(r.markdown())),
+        Command::Shaft(a) => shaft(a).map(Some),
     };
     let printed = match &result {
         Ok(Some(report)) => hw_io::outln!("{report}"),

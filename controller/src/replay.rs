@@ -188,7 +188,7 @@ pub fn replay_candump(path: &Path, cfg: &Config) -> Result<LogReplay, ReplayErro
     })
 }
 
-/// [`replay_candump`] on any reader.
+/// [`replay_candump`] on any reader. Times past the year 2554 (nanoseconds beyond `u64`) saturate.
 pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogReplay, ReplayError> {
     let mut acq = Acquisition::new(&cfg.bus.encoder, cfg.health)?.with_other_nodes(&cfg.bus.other_node_ids);
     let mut est = estimation(cfg)?;
@@ -198,7 +198,7 @@ pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogRe
     // The open cycle's SYNC time, microseconds.
     let mut open: Option<u64> = None;
     let close = |acq: &mut Acquisition, est: &mut Estimation, sync_us: u64, end_us: u64, cycles: &mut Vec<LogCycle>| {
-        let input = acq.end_cycle(end_us * 1000, false);
+        let input = acq.end_cycle(end_us.saturating_mul(1000), false);
         let output = est.process(&input);
         cycles.push(LogCycle { sync_unix_us: sync_us, input, output });
     };
@@ -212,9 +212,9 @@ pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogRe
         let t = rec.timed.unix_time_us;
         let is_sync = !frame.is_extended() && frame.id().raw() == u32::from(SYNC_COB_ID);
         if let Some(sync_us) = open
-            && (is_sync || t > sync_us + deadline_us)
+            && (is_sync || t > sync_us.saturating_add(deadline_us))
         {
-            close(&mut acq, &mut est, sync_us, sync_us + deadline_us, &mut out.cycles);
+            close(&mut acq, &mut est, sync_us, sync_us.saturating_add(deadline_us), &mut out.cycles);
             open = None;
         }
         if is_sync {
@@ -224,17 +224,17 @@ pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogRe
         }
         match open {
             Some(sync_us) => {
-                acq.on_frame(&frame, t * 1000);
+                acq.on_frame(&frame, t.saturating_mul(1000));
                 if acq.is_complete() {
                     close(&mut acq, &mut est, sync_us, t, &mut out.cycles);
                     open = None;
                 }
             }
-            None => acq.on_frame_between_cycles(&frame, t * 1000),
+            None => acq.on_frame_between_cycles(&frame, t.saturating_mul(1000)),
         }
     }
     if let Some(sync_us) = open {
-        close(&mut acq, &mut est, sync_us, sync_us + deadline_us, &mut out.cycles);
+        close(&mut acq, &mut est, sync_us, sync_us.saturating_add(deadline_us), &mut out.cycles);
     }
     out.acquisition = *acq.stats();
     out.lines = reader.line_number();

@@ -254,3 +254,24 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn a_distortion_that_does_not_invert_is_no_panic() {
+    // Found by the `detectors` fuzz target (tests/fuzz/regressions/detectors/): a strong barrel
+    // polynomial folds back before this small image's corners and the undistortion diverges;
+    // the Hough accumulator was sized on an infinite radius (an overflow). Main's fix ignores
+    // the pixels that do not invert and caps the accumulator: the detector builds and runs.
+    let k = Intrinsics {
+        fx: 0.9 * 33.0 + 1.0,
+        fy: 0.9 * 33.0 + 1.0,
+        cx: 16.5,
+        cy: 27.0,
+        skew: 0.0,
+        width: 33,
+        height: 54,
+        distortion: [-0.6, 0.4, 0.0, 0.0, -0.1],
+    };
+    let mut d = OursDetector::new(k, OursConfig::default()).unwrap();
+    let image = vec![128u8; 33 * 54 * 3];
+    assert!(d.detect(&RgbView::new(33, 54, &image).unwrap()).is_ok());
+}

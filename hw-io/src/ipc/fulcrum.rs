@@ -15,6 +15,7 @@ use iceoryx2::prelude::ZeroCopySend;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 use super::Message;
+use super::message::InvalidMessage;
 
 /// Layout version of [`FulcrumSample`]. Bumped on any change of field, order or meaning.
 pub const FULCRUM_SAMPLE_VERSION: u32 = 1;
@@ -373,6 +374,30 @@ impl Message for FulcrumSample {
 
     fn run_id(&self) -> u64 {
         self.run_id
+    }
+
+    /// A valid sample (outside or inside) has every float finite and no invalidating flag
+    /// (fulcrumd downgrades such an estimate to invalid before it publishes). An invalid sample,
+    /// or one with an unknown state, is not checked: its floats mean nothing.
+    fn check(&self) -> Result<(), InvalidMessage> {
+        if !self.state().is_ok_and(OutputState::is_valid) {
+            return Ok(());
+        }
+        if self.health().intersects(HealthFlags::INVALIDATING) {
+            return Err(InvalidMessage { what: "valid state with an invalidating health flag" });
+        }
+        let finite = self
+            .fulcrum_base_m
+            .iter()
+            .chain(&[self.residual_m, self.fulcrum_std_m, self.conditioning])
+            .chain(&self.wrist_base_m)
+            .chain(&self.axis_base)
+            .chain(&self.joints_rad)
+            .all(|v| v.is_finite());
+        if !finite {
+            return Err(InvalidMessage { what: "valid state with a non-finite float" });
+        }
+        Ok(())
     }
 }
 

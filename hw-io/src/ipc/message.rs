@@ -71,4 +71,20 @@ pub trait Message: ZeroCopySend + Copy + Debug + 'static {
     fn sequence(&self) -> u64;
     /// The identifier of the publisher run that wrote the message (random per start).
     fn run_id(&self) -> u64;
+
+    /// The message's own invariants, checked by the subscriber after the version
+    /// ([`RecvError::Invalid`](super::RecvError::Invalid) when broken): what any publisher of
+    /// this program guarantees, so that a corrupt or foreign writer cannot hand a subscriber,
+    /// say, a NaN marked valid. The default accepts every message.
+    fn check(&self) -> Result<(), InvalidMessage> {
+        Ok(())
+    }
+}
+
+/// A broken invariant of a received message ([`Message::check`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{what}")]
+pub struct InvalidMessage {
+    /// Which invariant, in words.
+    pub what: &'static str,
 }

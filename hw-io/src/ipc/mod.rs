@@ -60,7 +60,9 @@ pub use fulcrum::{FULCRUM_SAMPLE_VERSION, FulcrumSample, HealthFlags, OutputStat
 /// `#[type_name("...")]`, `#[repr(C)]`).
 pub use iceoryx2::prelude::ZeroCopySend;
 pub use logging::route_iceoryx2_logs_to_tracing;
-pub use message::Message;
+pub use message::{InvalidMessage, Message};
 pub use publisher::{CreateError, FulcrumPublisher, PublishError, Publisher};
 pub use service::{OpenError, PublisherOptions};
-pub use subscriber::{ConnectError, FulcrumSubscriber, Received, RecvError, Subscriber, SubscriberCounters, WaitError};
+pub use subscriber::{
+    ConnectError, FulcrumSubscriber, ReceiveCheck, Received, RecvError, Subscriber, SubscriberCounters, WaitError,
+};

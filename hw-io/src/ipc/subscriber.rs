@@ -10,6 +10,7 @@ use iceoryx2::port::subscriber::{Subscriber as IoxSubscriber, SubscriberCreateEr
 use iceoryx2::prelude::ipc;
 
 use super::continuity::{Continuity, ContinuityTracker};
+use super::message::InvalidMessage;
 use super::service::{self, OpenError, PublisherOptions, Services};
 use super::{FulcrumSample, Message};
 
@@ -36,7 +37,8 @@ pub struct SubscriberCounters {
     pub missed: u64,
     /// Publisher (daemon) restarts seen ([`Continuity::Restart`]).
     pub restarts: u64,
-    /// Messages refused for another layout version ([`RecvError::VersionMismatch`]).
+    /// Messages refused for another layout version ([`RecvError::VersionMismatch`]) or a
+    /// broken invariant ([`RecvError::Invalid`]).
     pub rejected: u64,
 }
 
@@ -73,6 +75,16 @@ pub enum RecvError {
         found: u32,
         /// [`Message::VERSION`] of this program.
         expected: u32,
+    },
+    /// A message of the right version broke its own invariants ([`Message::check`]: for a
+    /// [`FulcrumSample`], a valid state with a non-finite float or an invalidating flag). It was
+    /// dropped and counted ([`SubscriberCounters::rejected`]); continuity is unaffected.
+    #[error("{type_name} refused: {broken}")]
+    Invalid {
+        /// The message type's [`Message::TYPE_NAME`].
+        type_name: &'static str,
+        /// The invariant broken.
+        broken: InvalidMessage,
     },
 }
 
@@ -116,8 +128,51 @@ pub struct Subscriber<M: Message> {
     subscriber: IoxSubscriber<ipc::Service, M, ()>,
     listener: Listener<ipc::Service>,
     _node: Node<ipc::Service>,
+    check: ReceiveCheck,
+}
+
+/// The subscriber side's check of each message taken from shared memory, without the transport:
+/// the layout version, then the continuity of `(run_id, sequence)` and the counters.
+/// [`Subscriber::try_recv`] runs every message through it; it is public so that the check can
+/// be tested (and fuzzed) on arbitrary bytes shaped as a message.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ReceiveCheck {
     tracker: ContinuityTracker,
     counters: SubscriberCounters,
+}
+
+impl ReceiveCheck {
+    /// Checks `sample`, as [`Subscriber::try_recv`] does: a message of another layout version
+    /// is refused ([`RecvError::VersionMismatch`], counted as rejected, continuity unchanged),
+    /// and so is one that breaks its own invariants ([`Message::check`]:
+    /// [`RecvError::Invalid`]); any other is returned with its [`Continuity`] and counted. Counters saturate.
+    pub fn check<M: Message>(&mut self, sample: M) -> Result<Received<M>, RecvError> {
+        if sample.version() != M::VERSION {
+            self.counters.rejected = self.counters.rejected.saturating_add(1);
+            return Err(RecvError::VersionMismatch {
+                type_name: M::TYPE_NAME,
+                found: sample.version(),
+                expected: M::VERSION,
+            });
+        }
+        if let Err(broken) = sample.check() {
+            self.counters.rejected = self.counters.rejected.saturating_add(1);
+            return Err(RecvError::Invalid { type_name: M::TYPE_NAME, broken });
+        }
+        let event = self.tracker.observe(sample.run_id(), sample.sequence());
+        self.counters.received = self.counters.received.saturating_add(1);
+        match event {
+            Continuity::Gap { missed } => self.counters.missed = self.counters.missed.saturating_add(missed),
+            Continuity::Restart => self.counters.restarts = self.counters.restarts.saturating_add(1),
+            Continuity::First | Continuity::InOrder => {}
+        }
+        Ok(Received { sample, event })
+    }
+
+    /// What this check has seen so far.
+    pub fn counters(&self) -> SubscriberCounters {
+        self.counters
+    }
 }
 
 /// A client of fulcrumd's output: [`FulcrumSample`]s, once per control cycle.
@@ -160,13 +215,7 @@ impl<M: Message> Subscriber<M> {
             .create()
             .map_err(ConnectError::Subscriber)?;
         let listener = event.listener_builder().create().map_err(ConnectError::Listener)?;
-        Ok(Self {
-            subscriber,
-            listener,
-            _node: node,
-            tracker: ContinuityTracker::default(),
-            counters: SubscriberCounters::default(),
-        })
+        Ok(Self { subscriber, listener, _node: node, check: ReceiveCheck::default() })
     }
 
     /// The next message if one is buffered, else `None` at once.
@@ -176,22 +225,7 @@ impl<M: Message> Subscriber<M> {
         };
         let sample = *loaned.payload();
         drop(loaned); // give the slot back to the publisher at once
-        if sample.version() != M::VERSION {
-            self.counters.rejected += 1;
-            return Err(RecvError::VersionMismatch {
-                type_name: M::TYPE_NAME,
-                found: sample.version(),
-                expected: M::VERSION,
-            });
-        }
-        let event = self.tracker.observe(sample.run_id(), sample.sequence());
-        self.counters.received += 1;
-        match event {
-            Continuity::Gap { missed } => self.counters.missed += missed,
-            Continuity::Restart => self.counters.restarts += 1,
-            Continuity::First | Continuity::InOrder => {}
-        }
-        Ok(Some(Received { sample, event }))
+        self.check.check(sample).map(Some)
     }
 
     /// The next message, blocking (on the event listener: the thread sleeps) for at most
@@ -215,6 +249,50 @@ impl<M: Message> Subscriber<M> {
 
     /// What this subscriber has seen since it connected.
     pub fn counters(&self) -> SubscriberCounters {
-        self.counters
+        self.check.counters()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ipc::{HealthFlags, OutputState};
+
+    fn sample(state: OutputState, sequence: u64) -> FulcrumSample {
+        let mut s = FulcrumSample::invalid(HealthFlags::empty());
+        s.state = state.into();
+        s.sequence = sequence;
+        s.run_id = 7;
+        s
+    }
+
+    #[test]
+    fn a_valid_sample_with_a_nan_or_an_invalidating_flag_is_refused_and_counted() {
+        let mut check = ReceiveCheck::default();
+        let mut nan = sample(OutputState::Inside, 0);
+        nan.fulcrum_base_m[1] = f64::NAN;
+        assert!(matches!(check.check(nan), Err(RecvError::Invalid { .. })));
+        let mut flagged = sample(OutputState::Outside, 1);
+        flagged.health = HealthFlags::NODE2_STALE.bits();
+        assert!(matches!(check.check(flagged), Err(RecvError::Invalid { .. })));
+        // An invalid sample's floats mean nothing: accepted as it is.
+        let mut invalid = sample(OutputState::Invalid, 2);
+        invalid.wrist_base_m[0] = f64::INFINITY;
+        assert!(check.check(invalid).is_ok());
+        // The refused ones did not touch continuity: the accepted one is the first.
+        assert_eq!(check.counters(), SubscriberCounters { received: 1, missed: 0, restarts: 0, rejected: 2 });
+        assert_eq!(check.check(sample(OutputState::Outside, 3)).map(|r| r.event).ok(), Some(Continuity::InOrder));
+    }
+
+    #[test]
+    fn the_missed_counter_saturates() {
+        // Found while writing the `ipc_sample` fuzz target: two huge gaps overflowed `missed`.
+        let mut check = ReceiveCheck::default();
+        for (run, seq) in [(7, 0), (7, 1 << 63), (8, 0), (8, (1 << 63) + 5)] {
+            let mut s = sample(OutputState::Outside, seq);
+            s.run_id = run;
+            assert!(check.check(s).is_ok());
+        }
+        assert_eq!(check.counters().missed, u64::MAX);
     }
 }

@@ -102,7 +102,7 @@ pub enum OursError {
         ratio: f64,
     },
     /// Degenerate: the observed lines form one pencil (see
-    /// [`PaperError::LinesFormOnePencil`](super::paper::PaperError::LinesFormOnePencil)).
+    /// [`PaperError::LinesFormOnePencil`]).
     #[error(
         "degenerate data: the observed lines form a single pencil (identical, parallel or concurrent; eigenvalue ratio of the plane normals {ratio:.1e}); check the line detector"
     )]

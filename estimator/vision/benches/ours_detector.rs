@@ -3,23 +3,13 @@
 //! a shaft (the "nothing found" path, where every hypothesis is checked and refused).
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use estimator::calib::Intrinsics;
 use std::hint::black_box;
 use vision::ours::{OursConfig, OursDetector};
 use vision::synth::{Cylinder, Scene, render};
 use vision::{RgbView, ShaftDetector};
 
 fn bench(c: &mut Criterion) {
-    let k = Intrinsics {
-        fx: 400.0,
-        fy: 400.0,
-        cx: 319.5,
-        cy: 239.5,
-        skew: 0.0,
-        width: 640,
-        height: 480,
-        distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
-    };
+    let k = vision::synth::endoscope_camera();
     let shaft = Cylinder {
         point_m: [-0.004, 0.002, 0.07],
         direction: [0.9, 0.35, 0.25],

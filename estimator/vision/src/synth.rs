@@ -14,6 +14,22 @@ use nalgebra::{Vector2, Vector3};
 
 use crate::shaft::{ImageLine, LineError};
 
+/// The simulated endoscope's default camera (`sim::endoscope::config::CameraConfig`'s
+/// default): 640×480 pixels, f = 400 px, principal point at the centre, mild barrel distortion
+/// (k1 = −0.08, k2 = 0.01). The camera of the detectors' tests and benches.
+pub fn endoscope_camera() -> Intrinsics {
+    Intrinsics {
+        fx: 400.0,
+        fy: 400.0,
+        cx: 319.5,
+        cy: 239.5,
+        skew: 0.0,
+        width: 640,
+        height: 480,
+        distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
+    }
+}
+
 /// A finite cylinder in the camera frame (metres; x right, y down, z forward).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Cylinder {

@@ -11,16 +11,7 @@ use vision::synth::{Cylinder, Scene, render};
 use vision::{DetectError, RgbView, ShaftDetection, ShaftDetector};
 
 fn camera() -> Intrinsics {
-    Intrinsics {
-        fx: 400.0,
-        fy: 400.0,
-        cx: 319.5,
-        cy: 239.5,
-        skew: 0.0,
-        width: 640,
-        height: 480,
-        distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
-    }
+    vision::synth::endoscope_camera()
 }
 
 /// A shaft whose distal end is at pixel `tip_px` (measured) at depth `z_m`, pointing away

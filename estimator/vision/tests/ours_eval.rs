@@ -10,7 +10,6 @@
 //! detections (any detection there is unmatched).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
-use estimator::calib::Intrinsics;
 use std::time::Instant;
 use vision::ours::{OursConfig, OursDetector};
 use vision::{RgbView, ShaftDetector};
@@ -20,16 +19,7 @@ use vision::{RgbView, ShaftDetector};
 fn evaluate_on_rendered_frames() {
     let Some(dir) = std::env::var_os("OURS_EVAL_DIR") else { return };
     let dir = std::path::PathBuf::from(dir);
-    let k = Intrinsics {
-        fx: 400.0,
-        fy: 400.0,
-        cx: 319.5,
-        cy: 239.5,
-        skew: 0.0,
-        width: 640,
-        height: 480,
-        distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
-    };
+    let k = vision::synth::endoscope_camera();
     let mut cfg = OursConfig::default();
     let env = |name: &str| std::env::var(name).ok().and_then(|v| v.parse::<f64>().ok());
     if let Some(v) = env("OURS_EDGE_T") {

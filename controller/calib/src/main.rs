@@ -25,6 +25,32 @@ enum Units {
     M,
 }
 
+impl From<Units> for NoiseUnits {
+    fn from(u: Units) -> Self {
+        match u {
+            Units::Mm => NoiseUnits::Millimetre,
+            Units::M => NoiseUnits::Metre,
+        }
+    }
+}
+
+/// The protocol's grid and kinematic noise (`generate`, `pixels`).
+#[derive(clap::Args)]
+struct GridArgs {
+    /// Values per ECM joint (n_e⁴ ECM poses).
+    #[arg(long, default_value_t = 3)]
+    n_e: usize,
+    /// Values per PSM joint (n_t² PSM poses).
+    #[arg(long, default_value_t = 3)]
+    n_t: usize,
+    /// Noise σ of δ = (ρ, φ).
+    #[arg(long, default_value_t = 0.01)]
+    sigma: f64,
+    /// Unit of ρ.
+    #[arg(long, value_enum, default_value = "mm")]
+    units: Units,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Simulate a dataset with the paper's protocol and write it with its ground truth.
@@ -35,18 +61,8 @@ enum Command {
         /// Ground-truth file to write (JSON).
         #[arg(long)]
         truth: PathBuf,
-        /// Values per ECM joint (n_e⁴ ECM poses).
-        #[arg(long, default_value_t = 3)]
-        n_e: usize,
-        /// Values per PSM joint (n_t² PSM poses).
-        #[arg(long, default_value_t = 3)]
-        n_t: usize,
-        /// Noise σ of δ = (ρ, φ).
-        #[arg(long, default_value_t = 0.01)]
-        sigma: f64,
-        /// Unit of ρ.
-        #[arg(long, value_enum, default_value = "mm")]
-        units: Units,
+        #[command(flatten)]
+        grid: GridArgs,
         /// Pixel noise σ on the line points.
         #[arg(long, default_value_t = 0.0)]
         pixel_sigma: f64,
@@ -120,18 +136,9 @@ enum Command {
         /// Output directory.
         #[arg(long, default_value = "docs/calibration/pixels")]
         out_dir: PathBuf,
-        /// Values per ECM joint (n_e⁴ endoscope poses), 1..=4.
-        #[arg(long, default_value_t = 3)]
-        n_e: usize,
-        /// Values per PSM joint (n_t² tool directions), 1..=8.
-        #[arg(long, default_value_t = 3)]
-        n_t: usize,
-        /// Noise σ of δ = (ρ, φ).
-        #[arg(long, default_value_t = 0.01)]
-        sigma: f64,
-        /// Unit of ρ.
-        #[arg(long, value_enum, default_value = "mm")]
-        units: Units,
+        /// The protocol's grid and noise (n_e 1..=4, n_t 1..=8 here).
+        #[command(flatten)]
+        grid: GridArgs,
         /// Seed of the kinematic noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
@@ -199,15 +206,12 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
     match cli.command {
-        Command::Generate { dataset, truth, n_e, n_t, sigma, units, pixel_sigma, seed, wrong_lines } => {
+        Command::Generate { dataset, truth, grid, pixel_sigma, seed, wrong_lines } => {
             let mut p = default_protocol();
-            p.n_e = n_e;
-            p.n_t = n_t;
-            p.sigma = sigma;
-            p.units = match units {
-                Units::Mm => NoiseUnits::Millimetre,
-                Units::M => NoiseUnits::Metre,
-            };
+            p.n_e = grid.n_e;
+            p.n_t = grid.n_t;
+            p.sigma = grid.sigma;
+            p.units = grid.units.into();
             p.pixel_sigma_px = pixel_sigma;
             p.seed = seed;
             let g = generate(&p, wrong_lines, &dataset, &truth)?;
@@ -281,17 +285,14 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 return Err(format!("{} image(s) could not be examined (listed in {})", s.failed, out.display()).into());
             }
         }
-        Command::Pixels { out_dir, n_e, n_t, sigma, units, seed } => {
+        Command::Pixels { out_dir, grid, seed } => {
             use comanip_calib::detect::make_detector;
             use comanip_calib::pixels::{PixelProtocol, calibrate_all, render_and_detect, report_markdown};
             let p = PixelProtocol {
-                n_e,
-                n_t,
-                sigma,
-                units: match units {
-                    Units::Mm => NoiseUnits::Millimetre,
-                    Units::M => NoiseUnits::Metre,
-                },
+                n_e: grid.n_e,
+                n_t: grid.n_t,
+                sigma: grid.sigma,
+                units: grid.units.into(),
                 seed,
                 ..PixelProtocol::default()
             };

@@ -162,9 +162,13 @@ fn unit_has_the_required_keys() {
     assert_eq!(one("PrivateTmp"), "no", "PrivateTmp would hide iceoryx2's /tmp/iceoryx2 from the subscribers");
     let rw_paths = one("ReadWritePaths");
     let rw: Vec<&str> = rw_paths.split_whitespace().collect();
-    for p in ["/var/lib/comanip", "/dev/shm", "/tmp/iceoryx2"] {
+    for p in ["/var/lib/comanip", "/dev/shm", "-/tmp/iceoryx2"] {
         assert!(rw.contains(&p), "ReadWritePaths lacks {p}: {rw:?}");
     }
+    // "-": /tmp/iceoryx2 may not exist yet when systemd sets up the namespace of ExecStartPre=,
+    // which creates it; without "-" the start fails with 226/NAMESPACE (found under a booted
+    // systemd 252, tests/hil/run-systemd-guest.sh).
+    assert_eq!(one("ExecStartPre"), "+/usr/bin/install -d -m 1777 /tmp/iceoryx2");
     assert_eq!(one("ProtectKernelTunables"), "yes");
     assert_eq!(one("ProtectControlGroups"), "yes");
     assert_eq!(one("RestrictAddressFamilies"), "AF_CAN AF_UNIX AF_NETLINK");

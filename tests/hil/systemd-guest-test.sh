@@ -1,0 +1,140 @@
+#!/bin/bash
+# systemd-guest-test.sh: the checks inside the systemd guest of run-systemd-guest.sh (do not run it
+# on a host: it installs a package, creates a user and kills services). Runs as the oneshot unit
+# comanip-guest-test.service under systemd as PID 1; /hilres is the host's results dir. Prints one
+# PASS/FAIL line per check, writes /hilres/rc (0 = all passed) and powers the guest off.
+# shellcheck disable=SC2317,SC2016,SC2001  # functions called through check/wait_for; awk and sed programs
+set -uo pipefail
+export PATH=/usr/sbin:/usr/bin:/sbin:/bin
+export SYSTEMD_PAGER='' SYSTEMD_COLORS=0
+fails=0
+t0=$(date +%s.%N)
+say() { printf '[%6.1f s] %s\n' "$(echo "$(date +%s.%N) - $t0" | bc)" "$*"; }
+check() { # check NAME COMMAND...: one PASS/FAIL line; returns the command's success
+    local name=$1
+    shift
+    if "$@"; then say "PASS $name"; else say "FAIL $name"; fails=$((fails + 1)); return 1; fi
+}
+finish() {
+    say "done: $fails failed"
+    echo "$fails" > /hilres/rc
+    sync
+    systemctl poweroff --force --force
+    exit 0
+}
+main_pid() { systemctl show -p MainPID --value fulcrumd; }
+wait_for() { # wait_for SECONDS COMMAND...: until COMMAND succeeds
+    local end=$((SECONDS + $1))
+    shift
+    until "$@"; do
+        ((SECONDS < end)) || return 1
+        sleep 0.2
+    done
+}
+new_pid_active() { local p; p=$(main_pid); [[ $p != 0 && $p != "$1" ]] && systemctl is-active -q fulcrumd; }
+
+say "systemd $(systemctl --version | head -n 1 | cut -d' ' -f2) as PID 1: $(ps -o comm= -p 1); kernel $(uname -r)"
+
+# --- install ---------------------------------------------------------------------------------
+check "dpkg -i comanip.deb" dpkg -i /hilres/comanip.deb
+check "user comanip exists" id comanip
+check "/var/lib/comanip owned by comanip, 0750" test "$(stat -c '%U %a' /var/lib/comanip)" = "comanip 750"
+check "units known to systemd" systemctl cat fulcrumd.service comanip-camera.service comanip.target > /dev/null
+check "nothing enabled by the package" test "$(systemctl is-enabled fulcrumd)" = disabled
+
+# --- start: READY only after the first valid cycle ---------------------------------------------
+# The shipped configuration: the built-in simulated robot (bus.iface = ""), recordings on.
+check "systemctl start fulcrumd (Type=notify)" timeout 120 systemctl start fulcrumd
+if ! check "fulcrumd active" systemctl is-active -q fulcrumd; then
+    systemctl status --no-pager -l fulcrumd | sed 's/^/    /'
+    journalctl -u fulcrumd -o cat --no-pager | tail -n 40 | sed 's/^/    /'
+    finish
+fi
+journalctl -u fulcrumd -o short-monotonic --no-hostname > /hilres/journal-start.txt
+ready_line=$(grep -n 'first valid cycle: READY=1 sent' /hilres/journal-start.txt | head -n 1 | cut -d: -f1)
+started_line=$(grep -n 'Started fulcrumd.service' /hilres/journal-start.txt | head -n 1 | cut -d: -f1)
+check "READY=1 logged after the first valid cycle, before systemd's 'Started'" \
+    test -n "$ready_line" -a -n "$started_line" -a "${ready_line:-0}" -lt "${started_line:-0}"
+status_text=$(systemctl show -p StatusText --value fulcrumd)
+say "STATUS=: $status_text"
+check "STATUS= line reports cycles" grep -q cycle <<< "$status_text"
+
+# --- unprivileged, real-time -------------------------------------------------------------------
+pid=$(main_pid)
+check "runs as comanip" test "$(ps -o user= -p "$pid")" = comanip
+check "no effective capabilities" grep -q '^CapEff:[[:space:]]*0000000000000000$' "/proc/$pid/status"
+check "no_new_privs" grep -q '^NoNewPrivs:[[:space:]]*1$' "/proc/$pid/status"
+check "seccomp filter" grep -q '^Seccomp:[[:space:]]*2$' "/proc/$pid/status"
+# The loop thread (fulcrumd-rt) is SCHED_FIFO at [realtime] sched_fifo_priority (80); the built-in
+# simulated robot's thread (fulcrumd-sim, only without bus.iface) one below; every other thread
+# stays SCHED_OTHER.
+rt_ok=1
+for t in /proc/"$pid"/task/*; do
+    comm=$(cat "$t/comm")
+    policy=$(chrt -p "${t##*/}" 2>/dev/null | tr '\n' ' ')
+    say "  thread ${t##*/} ($comm): $policy"
+    case $comm in
+        fulcrumd-rt) [[ $policy == *SCHED_FIFO*"priority: 80"* ]] || rt_ok=0 ;;
+        fulcrumd-sim) [[ $policy == *SCHED_FIFO* ]] || rt_ok=0 ;;
+        *) [[ $policy == *SCHED_OTHER* ]] || rt_ok=0 ;;
+    esac
+done
+check "loop thread SCHED_FIFO 80 as an unprivileged user, the others SCHED_OTHER" test "$rt_ok" = 1
+check "memory locked (VmLck > 0)" awk '/^VmLck:/ { exit !($2 > 0) }' "/proc/$pid/status"
+
+# --- sandbox: a probe with fulcrumd's unit (same keys, another ExecStart) -----------------------
+sed -e '/^Type=/d' -e '/^NotifyAccess=/d' -e '/^WatchdogSec=/d' -e '/^ExecStart=/d' -e '/^Restart=/d' \
+    /lib/systemd/system/fulcrumd.service > /etc/systemd/system/comanip-probe.service
+sed -i 's|^\[Service\]|[Service]\nType=oneshot\nExecStart=/bin/sh /hilres/probe.sh|' /etc/systemd/system/comanip-probe.service
+cat > /hilres/probe.sh <<'EOF'
+t() { if sh -c "$2" 2>/dev/null; then echo "probe $1: allowed"; else echo "probe $1: denied"; fi; }
+t write-etc 'echo x > /etc/comanip-probe'
+t write-usr 'echo x > /usr/comanip-probe'
+t write-home 'ls /root'
+t write-state 'echo x > /var/lib/comanip/probe && rm /var/lib/comanip/probe'
+t write-iceoryx2 'echo x > /tmp/iceoryx2/probe && rm /tmp/iceoryx2/probe'
+t write-shm 'echo x > /dev/shm/comanip-probe && rm /dev/shm/comanip-probe'
+t socket-inet "perl -e 'use Socket; socket(my \$s, PF_INET, SOCK_STREAM, 0) or exit 1'"
+t socket-inet6 "perl -e 'use Socket; socket(my \$s, PF_INET6, SOCK_DGRAM, 0) or exit 1'"
+t socket-can "perl -e 'socket(my \$s, 29, 3, 1) or exit 1'"
+t socket-unix "perl -e 'use Socket; socket(my \$s, PF_UNIX, SOCK_DGRAM, 0) or exit 1'"
+EOF
+systemctl daemon-reload
+systemctl start comanip-probe.service ||
+    journalctl -u comanip-probe -o cat --no-pager | tail -n 20 | sed 's/^/    /'
+probe=$(journalctl -u comanip-probe -o cat | grep '^probe ')
+echo "$probe" | sed 's/^/    /'
+for denied in write-etc write-usr write-home socket-inet socket-inet6; do
+    check "sandbox denies $denied" grep -q "probe $denied: denied" <<< "$probe"
+done
+for allowed in write-state write-iceoryx2 write-shm socket-can socket-unix; do
+    check "sandbox allows $allowed" grep -q "probe $allowed: allowed" <<< "$probe"
+done
+
+# --- watchdog: a stopped loop is killed and restarted ------------------------------------------
+pid=$(main_pid)
+kill -STOP "$pid"
+say "SIGSTOP to $pid"
+check "watchdog restart after SIGSTOP (new MainPID, active, within 30 s)" wait_for 30 new_pid_active "$pid"
+check "journal: watchdog timeout" bash -c "journalctl -u fulcrumd -o cat | grep -q 'Watchdog timeout'"
+
+# --- Restart=on-failure after SIGKILL, seen by a subscriber as a Restart ------------------------
+runuser -u comanip -- /usr/bin/fulcrumd monitor --duration-s 20 --summary-json /tmp/monitor.json > /hilres/monitor.log 2>&1 &
+mon=$!
+sleep 5
+pid=$(main_pid)
+kill -KILL "$pid"
+say "SIGKILL to $pid"
+check "restart after SIGKILL (new MainPID, active, within 30 s)" wait_for 30 new_pid_active "$pid"
+wait "$mon"
+say "monitor summary: $(cat /tmp/monitor.json 2>/dev/null)"
+check "the subscriber saw a Restart" python3 -c 'import json,sys; s=json.load(open("/tmp/monitor.json")); sys.exit(0 if s["restarts"] >= 1 and s["received"] > 0 else 1)'
+
+# --- stop, the target, purge ----------------------------------------------------------------------
+check "systemctl stop fulcrumd" timeout 30 systemctl stop fulcrumd
+check "stopped cleanly (not failed)" test "$(systemctl is-failed fulcrumd)" = inactive
+journalctl -u fulcrumd -o short-monotonic --no-hostname > /hilres/journal.txt
+check "dpkg --purge comanip" dpkg --purge comanip
+check "purge removed the user" bash -c '! id comanip 2>/dev/null'
+check "purge removed /var/lib/comanip" test ! -e /var/lib/comanip
+finish

@@ -3,7 +3,7 @@
 //! built-in simulated robot: every cycle arrives, in order, and every field it decodes equals
 //! what the Rust subscriber (`fulcrumd monitor --samples-out`) reads from the same samples.
 //!
-//! Needs `python3` with pip; the test installs the `iceoryx2` package in the version of the Rust
+//! Needs `python3` (pip is installed with apt-get when missing); the test installs the `iceoryx2` package in the version of the Rust
 //! crate in Cargo.lock when it is missing or another version (the wire format is only
 //! guaranteed between equal versions), and FAILS (never skips) if that does not work.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
@@ -53,6 +53,22 @@ fn ensure_python_iceoryx2() {
     }
     let spec = format!("iceoryx2=={want}");
     let mut log = String::new();
+    let has_pip =
+        || Command::new("python3").args(["-m", "pip", "--version"]).output().is_ok_and(|o| o.status.success());
+    if !has_pip() {
+        // A fresh Debian 12 has python3 without pip.
+        let apt = Command::new("apt-get")
+            .args(["install", "-y", "--no-install-recommends", "python3-pip"])
+            .env("DEBIAN_FRONTEND", "noninteractive")
+            .output();
+        if !apt.is_ok_and(|o| o.status.success()) {
+            let _ = Command::new("apt-get").arg("update").env("DEBIAN_FRONTEND", "noninteractive").output();
+            let _ = Command::new("apt-get")
+                .args(["install", "-y", "--no-install-recommends", "python3-pip"])
+                .env("DEBIAN_FRONTEND", "noninteractive")
+                .output();
+        }
+    }
     // A Debian python3 is "externally managed" (PEP 668): retry with its override.
     for extra in [&[][..], &["--break-system-packages"][..]] {
         let out = Command::new("python3")

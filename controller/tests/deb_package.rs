@@ -61,6 +61,18 @@ fn run_ok(cmd: &mut Command) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// PATH with the directory of the cargo running this test first: cargo-deb runs `cargo metadata`
+/// from PATH.
+fn path_with_cargo() -> std::ffi::OsString {
+    let mut dirs: Vec<PathBuf> = std::env::var_os("CARGO")
+        .map(PathBuf::from)
+        .and_then(|c| c.parent().map(Path::to_path_buf))
+        .into_iter()
+        .collect();
+    dirs.extend(std::env::split_paths(&std::env::var_os("PATH").unwrap_or_default()));
+    std::env::join_paths(dirs).unwrap()
+}
+
 fn cargo() -> Command {
     Command::new(std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into()))
 }
@@ -153,6 +165,7 @@ fn deb() -> &'static Path {
                 .args(["--locked", "-p", "controller", "--no-build", "--profile", "dev", "--fast", "--output"])
                 .arg(out_dir.path())
                 .env("CARGO_TARGET_DIR", &target_dir)
+                .env("PATH", path_with_cargo())
                 .current_dir(workspace()),
         );
         let debs: Vec<PathBuf> = std::fs::read_dir(out_dir.path())

@@ -136,10 +136,38 @@ wait "$mon"
 say "monitor summary: $(cat /tmp/monitor.json 2>/dev/null)"
 check "the subscriber saw a Restart" python3 -c 'import json,sys; s=json.load(open("/tmp/monitor.json")); sys.exit(0 if s["restarts"] >= 1 and s["received"] > 0 else 1)'
 
-# --- stop, the target, purge ----------------------------------------------------------------------
+# --- stop ----------------------------------------------------------------------------------------
 check "systemctl stop fulcrumd" timeout 30 systemctl stop fulcrumd
 check "stopped cleanly (not failed)" test "$(systemctl is-failed fulcrumd)" = inactive
 journalctl -u fulcrumd -o short-monotonic --no-hostname > /hilres/journal.txt
+
+# --- comanip.target: fulcrumd and comanip-camera (an image sequence instead of /dev/video0) --------
+frames=/tmp/comanip-frames
+simrobot render --out "$frames" --frames 5 --no-masks > /dev/null 2>&1
+for i in 0 1 2 3 4; do
+    printf '%d 1000000 frame_%06d_left.png frame_%06d_right.png\n' $((1000000000 + i * 33333333)) "$i" "$i"
+done > "$frames/frames.txt"
+chmod -R a+rX "$frames"
+# What an operator does: edit the conffile.
+echo "COMANIP_CAMERA_ARGS=images $frames --paced --repeat" > /etc/comanip/camera.env
+systemctl reset-failed fulcrumd 2> /dev/null
+check "systemctl start comanip.target" timeout 120 systemctl start comanip.target
+check "fulcrumd and comanip-camera active" systemctl is-active -q fulcrumd comanip-camera
+cpid=$(systemctl show -p MainPID --value comanip-camera)
+say "comanip-camera: nice $(ps -o ni= -p "$cpid" | tr -d ' '), $(taskset -pc "$cpid"), $(chrt -p "$cpid" | head -n 1)"
+check "camera niced 10" test "$(ps -o ni= -p "$cpid" | tr -d ' ')" = 10
+check "camera on CPU 0 only" test "$(taskset -pc "$cpid" | awk -F': ' '{ print $2 }')" = 0
+check "camera SCHED_OTHER" bash -c "chrt -p $cpid | grep -q SCHED_OTHER"
+check "camera runs as comanip" test "$(ps -o user= -p "$cpid")" = comanip
+check "frames from the sandboxed camera reach a subscriber, in order" \
+    timeout 180 runuser -u comanip -- comanip-camera monitor --frames 10 --expect-in-order --start-timeout-s 90 \
+    --summary-json /tmp/frames.json
+say "frame monitor: $(tr -d '\n' < /tmp/frames.json 2>/dev/null)"
+journalctl -u comanip-camera -o short-monotonic --no-hostname > /hilres/journal-camera.txt
+check "systemctl stop comanip.target" timeout 60 systemctl stop comanip.target
+check "the target's members stopped with it" bash -c '! systemctl is-active -q fulcrumd && ! systemctl is-active -q comanip-camera'
+
+# --- purge ---------------------------------------------------------------------------------------
 check "dpkg --purge comanip" dpkg --purge comanip
 check "purge removed the user" bash -c '! id comanip 2>/dev/null'
 check "purge removed /var/lib/comanip" test ! -e /var/lib/comanip

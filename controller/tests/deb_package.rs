@@ -409,3 +409,15 @@ fn purge_keeps_a_user_and_directory_that_existed_before() {
     assert!(!r.join("var/lib/comanip/.created-by-package").exists(), "purge left its marker");
     assert!(!r.join("usr/bin/fulcrumd").exists());
 }
+
+#[test]
+fn build_script_and_systemd_guest_scripts_pass_shellcheck() {
+    // Not run by `cargo test` (packaging/build-deb builds in release; the guest takes minutes):
+    // lint them so that they do not rot between their runs (docs/packaging.md, docs/systemd.md).
+    let shellcheck = ensure_apt_tool("shellcheck", "shellcheck");
+    for script in ["packaging/build-deb", "tests/hil/run-systemd-guest.sh", "tests/hil/systemd-guest-test.sh"] {
+        let p = workspace().join(script);
+        run_ok(Command::new("bash").arg("-n").arg(&p));
+        run_ok(Command::new(&shellcheck).args(["--severity=style"]).arg(&p));
+    }
+}

@@ -256,7 +256,7 @@ pub struct Progress {
     pub kept: usize,
     /// Refusals by reason (frame-level reasons count frames, the others eye images).
     pub refused: BTreeMap<Refusal, usize>,
-    /// Distinct trocars (fulcrums more than 5 mm apart) among the kept observations.
+    /// Distinct trocars (published fulcrums more than 5 mm apart) among the kept observations.
     pub trocars: usize,
     /// Spread of the kept tool axes: the largest angle from their mean, radians.
     pub axis_spread_rad: f64,
@@ -408,7 +408,7 @@ impl Collector {
                 event = e;
                 continue;
             }
-            self.keep(obs, fulcrum);
+            self.keep(obs, Vector3::from(s.tool.fulcrum_m));
             if let Some(e) = self.maybe_solve(s.t_ns) {
                 event = e;
             }

@@ -51,9 +51,7 @@ mod subscriber;
 
 pub mod logging;
 
-pub use calibration::{
-    CALIBRATION_SAMPLE_VERSION, CalibrationSample, CalibrationState, DEFAULT_CALIBRATION_SERVICE,
-};
+pub use calibration::{CALIBRATION_SAMPLE_VERSION, CalibrationSample, CalibrationState, DEFAULT_CALIBRATION_SERVICE};
 pub use continuity::Continuity;
 pub use frames::{
     DEFAULT_FRAME_SERVICE, FRAME_HEADER_VERSION, FrameConnectError, FrameCounters, FrameCreateError, FrameHeader,

@@ -237,8 +237,8 @@ pub struct Calibration {
 pub enum Event {
     /// Nothing beyond the counts.
     None,
-    /// The target precision was reached: a calibration to publish.
-    Solved(Calibration),
+    /// The target precision was reached: a calibration to publish (boxed: it is large).
+    Solved(Box<Calibration>),
     /// Sustained misfit of new observations against the current calibration: it is flagged
     /// and collection restarted (fraction of the window that misfit).
     Drift {
@@ -371,11 +371,12 @@ impl Collector {
                 self.refuse(Refusal::Ambiguous);
                 continue;
             }
-            if !(eye.confidence >= self.cfg.min_confidence) {
+            // (NaN confidence counts as low.)
+            if eye.confidence.is_nan() || eye.confidence < self.cfg.min_confidence {
                 self.refuse(Refusal::LowConfidence);
                 continue;
             }
-            if self.cfg.min_sharpness > 0.0 && eye.sharpness.is_some_and(|v| !(v >= self.cfg.min_sharpness)) {
+            if self.cfg.min_sharpness > 0.0 && eye.sharpness.is_some_and(|v| v.is_nan() || v < self.cfg.min_sharpness) {
                 self.refuse(Refusal::Blurred);
                 continue;
             }
@@ -490,7 +491,7 @@ impl Collector {
         let (res, _) = residual_and_jacobian(&set, o, &r, &t);
         let cov = residual_covariance(&set, o, &r, &t, &self.cfg.noise);
         let chi2 = cov.try_inverse().map_or(f64::INFINITY, |si| (res.transpose() * si * res)[(0, 0)]);
-        self.drift.push(!(chi2 <= self.cfg.drift_chi2));
+        self.drift.push(chi2.is_nan() || chi2 > self.cfg.drift_chi2);
         let w = self.cfg.drift_window.max(1);
         if self.drift.len() > w {
             self.drift.remove(0);
@@ -594,7 +595,7 @@ impl Collector {
         if reached {
             self.progress.solved = true;
             self.result = Some(cal.clone());
-            return Some(Event::Solved(cal));
+            return Some(Event::Solved(Box::new(cal)));
         }
         None
     }
@@ -605,7 +606,7 @@ impl Collector {
 fn line_distance_px(a: &[[f64; 2]; 2], b: &[[f64; 2]; 2]) -> f64 {
     let (dx, dy) = (a[1][0] - a[0][0], a[1][1] - a[0][1]);
     let n = dx.hypot(dy);
-    if !(n > 0.0) {
+    if n.is_nan() || n <= 0.0 {
         return f64::INFINITY;
     }
     b.iter().map(|p| ((p[0] - a[0][0]) * dy - (p[1] - a[0][1]) * dx).abs() / n).fold(0.0, f64::max)

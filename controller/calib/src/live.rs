@@ -190,7 +190,7 @@ pub fn replay(
             },
         };
         match col.push(&sample) {
-            Event::Solved(c) if published.is_none() => published = Some(c),
+            Event::Solved(c) if published.is_none() => published = Some(*c),
             Event::Drift { .. } => drifts += 1,
             _ => {}
         }

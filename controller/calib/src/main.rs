@@ -428,7 +428,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 trans_m: noise_mm * 1e-3,
                 pixel_px: noise_px,
             };
-            if !noise.is_valid() || !(target_mm > 0.0 && target_deg > 0.0) {
+            if !(noise.is_valid() && target_mm > 0.0 && target_deg > 0.0) {
                 return Err("noise σ must be finite and ≥ 0 (not all 0), targets > 0".into());
             }
             let opts = ReplayOptions {

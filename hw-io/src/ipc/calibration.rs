@@ -1,9 +1,10 @@
 //! The live calibration's output (issue 19): `comanip-calib live` publishes the registration
 //! of the tool arm to the endoscope arm as [`CalibrationSample`]s (iceoryx2 type name
 //! `comanip::CalibrationSample`, 432 bytes, `#[repr(C)]`) on [`DEFAULT_CALIBRATION_SERVICE`],
-//! so that the tracker starts from it. Publish with [`Publisher<CalibrationSample>`]
-//! (`PublisherOptions { history: 1, .. }` hands the latest one to a late subscriber), read
-//! with [`Subscriber<CalibrationSample>`].
+//! so that the tracker starts from it. Publish with [`Publisher<CalibrationSample>`], read
+//! with [`Subscriber<CalibrationSample>`] (`hw-io/tests/ipc_calibration.rs`). A tracker that
+//! starts later should get the latest calibration: the live process is meant to republish
+//! its current state periodically (a service history is not relied on: untested).
 //!
 //! [`Publisher<CalibrationSample>`]: super::Publisher
 //! [`Subscriber<CalibrationSample>`]: super::Subscriber

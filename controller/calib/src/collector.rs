@@ -256,7 +256,9 @@ pub struct Progress {
     pub kept: usize,
     /// Refusals by reason (frame-level reasons count frames, the others eye images).
     pub refused: BTreeMap<Refusal, usize>,
-    /// Distinct trocars (published fulcrums more than 5 mm apart) among the kept observations.
+    /// Fulcrum sites: published fulcrums more than 5 mm apart among the kept observations
+    /// (a coverage figure; fulcrumd's first estimates at an entry scatter, so one trocar can
+    /// count more than once).
     pub trocars: usize,
     /// Spread of the kept tool axes: the largest angle from their mean, radians.
     pub axis_spread_rad: f64,

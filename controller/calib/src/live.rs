@@ -92,7 +92,7 @@ pub fn progress_line(p: &Progress, t_s: f64) -> String {
     }
     let _ = write!(
         s,
-        " | trocars {} axis ±{:.1}° scope ±{:.1}°",
+        " | fulcrum sites {} axis ±{:.1}° scope ±{:.1}°",
         p.trocars,
         p.axis_spread_rad.to_degrees(),
         p.ecm_spread_rad.to_degrees() / 2.0

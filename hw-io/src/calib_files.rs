@@ -189,14 +189,24 @@ pub struct NoiseJson {
 pub struct ObservationJson {
     /// Robot 1 (ECM-like): `[yaw rad, pitch rad, insertion m, roll rad]`.
     pub ecm_joints: [f64; 4],
-    /// Robot 2 (PSM-like): `[yaw rad, pitch rad, insertion m]`.
+    /// Robot 2 (PSM-like): `[yaw rad, pitch rad, insertion m]`; for an arm without a
+    /// mechanical RCM, the tool line's direction written as those joints about
+    /// `tool_point_m` (the tip `insertion` metres from it).
     pub psm_joints: [f64; 3],
+    /// The known point of the tool's line in `{t}`, metres: omitted (the origin, robot 2's
+    /// RCM) for an RCM arm; the fulcrum for an arm without a mechanical RCM (issue 19).
+    #[serde(default, skip_serializing_if = "is_origin")]
+    pub tool_point_m: [f64; 3],
     /// Two distinct points of the tool centreline in the image, pixels `[[u, v], [u, v]]`.
     pub line_px: [[f64; 2]; 2],
     /// The eye that saw the line, `"left"` (default, omitted) or `"right"` (needs the
     /// dataset's `right_eye`).
     #[serde(default, skip_serializing_if = "is_left")]
     pub eye: Eye,
+}
+
+fn is_origin(p: &[f64; 3]) -> bool {
+    *p == [0.0; 3]
 }
 
 fn is_left(e: &Eye) -> bool {
@@ -496,6 +506,7 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
     for (i, o) in d.observations.iter().enumerate() {
         finite(|| format!("observations[{i}].ecm_joints"), &o.ecm_joints)?;
         finite(|| format!("observations[{i}].psm_joints"), &o.psm_joints)?;
+        finite(|| format!("observations[{i}].tool_point_m"), &o.tool_point_m)?;
         let p = [o.line_px[0][0], o.line_px[0][1], o.line_px[1][0], o.line_px[1][1]];
         finite(|| format!("observations[{i}].line_px"), &p)?;
         if (p[0] - p[2]).hypot(p[1] - p[3]) < 1e-6 {
@@ -827,6 +838,7 @@ mod tests {
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],
                 psm_joints: [0.0, 0.1, 0.1],
+                tool_point_m: [0.0; 3],
                 line_px: [[10.0, 20.0], [200.0, 220.0]],
                 eye: Eye::Left,
             }],

@@ -324,6 +324,7 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
                     observations.push(Observation {
                         ecm_joints: *qe,
                         psm_joints: *qt,
+                        tool_point_m: [0.0; 3],
                         line_px: [[a.x + s * n0, a.y + s * n1], [b.x + s * n2, b.y + s * n3]],
                         eye: Eye::Left,
                     });

@@ -135,6 +135,14 @@ pub struct BusFrame {
     pub axis_b: Vector3<f64>,
     /// The cycle's wrist centre `P`, metres, `{b}`.
     pub wrist_b: Vector3<f64>,
+    /// Exposure mid time, nanoseconds (bus clock).
+    pub t_ns: u64,
+    /// True when fulcrumd said the instrument was inside a trocar in that cycle.
+    pub inside: bool,
+    /// Age of the endoscope TPDO before the frame's time, nanoseconds.
+    pub ecm_age_ns: u64,
+    /// Age of the tool arm's cycle (its SYNC) at the frame's time, nanoseconds.
+    pub tool_age_ns: u64,
 }
 
 /// What [`read_run`] found.
@@ -142,6 +150,9 @@ pub struct BusFrame {
 pub struct BusRunData {
     /// Frames with both arms' joints and the instrument inside a trocar.
     pub frames: Vec<BusFrame>,
+    /// Every frame with both arms' joints, inside a trocar or not, in time order (the live
+    /// replay: `comanip-calib live --replay`).
+    pub timeline: Vec<BusFrame>,
     /// Frames listed in frames.txt.
     pub listed: usize,
     /// Frames left out: no cycle, no endoscope joints, or the instrument not inside.
@@ -242,6 +253,7 @@ pub fn read_run(dir: &Path, cfg: &Config) -> Result<BusRunData, BusRunError> {
         }
     }
     let mut out = Vec::new();
+    let mut timeline = Vec::new();
     let (mut no_cycle, mut no_ecm, mut outside) = (0, 0, 0);
     let cycles = &replay.cycles;
     for (index, (t, files)) in listed.iter().enumerate() {
@@ -266,11 +278,7 @@ pub fn read_run(dir: &Path, cfg: &Config) -> Result<BusRunData, BusRunError> {
         }
         let s = (*t - a.0) as f64 / (b.0 - a.0).max(1) as f64;
         let q = [0, 1, 2, 3].map(|k| a.1[k] + s * (b.1[k] - a.1[k]));
-        if c.output.state != OutputState::Inside {
-            outside += 1;
-            continue;
-        }
-        out.push(BusFrame {
+        let frame = BusFrame {
             index,
             files: files.clone(),
             ecm_joints: q,
@@ -278,13 +286,24 @@ pub fn read_run(dir: &Path, cfg: &Config) -> Result<BusRunData, BusRunError> {
             fulcrum_b: Vector3::from(c.output.fulcrum_base_m),
             axis_b: Vector3::from(c.output.axis_base),
             wrist_b: Vector3::from(c.output.wrist_base_m),
-        });
+            t_ns: *t,
+            inside: c.output.state == OutputState::Inside,
+            ecm_age_ns: t.saturating_sub(a.0),
+            tool_age_ns: t.saturating_sub(c.sync_unix_us * 1000),
+        };
+        timeline.push(frame.clone());
+        if !frame.inside {
+            outside += 1;
+            continue;
+        }
+        out.push(frame);
     }
     if out.is_empty() {
         return Err(BusRunError::Nothing { frames: listed.len() });
     }
     Ok(BusRunData {
         frames: out,
+        timeline,
         listed: listed.len(),
         no_cycle,
         no_ecm,

@@ -39,7 +39,13 @@ pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoi
     let obs = d
         .observations
         .iter()
-        .map(|o| Observation { ecm_joints: o.ecm_joints, psm_joints: o.psm_joints, line_px: o.line_px, eye: o.eye })
+        .map(|o| Observation {
+            ecm_joints: o.ecm_joints,
+            psm_joints: o.psm_joints,
+            tool_point_m: o.tool_point_m,
+            line_px: o.line_px,
+            eye: o.eye,
+        })
         .collect();
     let noise = d.noise_model.map(|n| KinematicNoise { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px });
     (setup, obs, noise)
@@ -61,6 +67,7 @@ pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicN
             .map(|o| ObservationJson {
                 ecm_joints: o.ecm_joints,
                 psm_joints: o.psm_joints,
+                tool_point_m: o.tool_point_m,
                 line_px: o.line_px,
                 eye: o.eye,
             })

@@ -164,6 +164,40 @@ enum Command {
         #[arg(long, default_value = "docs/calibration/from-run")]
         out_dir: PathBuf,
     },
+    /// Live calibration (issue 19): collect observations while the team works, solve when
+    /// the predicted precision reaches the target, write the result file. `--replay DIR`
+    /// runs it in time order over a recorded run (`simrobot generate --frames`) and reports
+    /// against the run's truth.
+    Live {
+        /// A recorded run's directory (bus.log, truth.jsonl, frames/). Without it: the live
+        /// process (not in this build: docs/calibration.md, "live").
+        #[arg(long)]
+        replay: Option<PathBuf>,
+        /// fulcrumd's configuration (TOML); default: the built-in one.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Target: predicted RMS translation at the mean fulcrum, millimetres.
+        #[arg(long, default_value_t = 1.0)]
+        target_mm: f64,
+        /// Target: predicted RMS rotation, degrees.
+        #[arg(long, default_value_t = 0.2)]
+        target_deg: f64,
+        /// Noise model: pixel σ of the line points, pixels.
+        #[arg(long, default_value_t = 1.2)]
+        noise_px: f64,
+        /// Noise model: rotation σ per axis of the camera and tool-line frames, milliradians.
+        #[arg(long, default_value_t = 4.0)]
+        noise_mrad: f64,
+        /// Noise model: translation σ per axis of the camera and tool-line frames, millimetres.
+        #[arg(long, default_value_t = 1.2)]
+        noise_mm: f64,
+        /// The versioned result file (JSON, with covariance).
+        #[arg(long, default_value = "calibration-live.json")]
+        out: PathBuf,
+        /// The replay's report (Markdown).
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
     /// Run the protocol sweeps; write sweep.md and SVG box plots into a directory.
     Sweep {
         /// Output directory.
@@ -376,6 +410,59 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             std::fs::write(&path, &md).map_err(|e| format!("{}: {e}", path.display()))?;
             hw_io::outln!("{md}")?;
             hw_io::outln!("wrote {}", path.display())?;
+        }
+        Command::Live { replay, config, target_mm, target_deg, noise_px, noise_mrad, noise_mm, out, report } => {
+            use comanip_calib::live::{ReplayOptions, progress_line, replay as run_replay, report_markdown};
+            let Some(dir) = replay else {
+                return Err("`comanip-calib live` without --replay (the process on the bus) is not in this build; see docs/calibration.md, \"live\"".into());
+            };
+            let cfg = match &config {
+                Some(p) => {
+                    let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+                    toml::from_str::<controller::config::Config>(&text).map_err(|e| format!("{}: {e}", p.display()))?
+                }
+                None => controller::config::Config::default(),
+            };
+            let noise = estimator::calib::KinematicNoise {
+                rot_rad: noise_mrad * 1e-3,
+                trans_m: noise_mm * 1e-3,
+                pixel_px: noise_px,
+            };
+            if !(noise.is_valid() && target_mm > 0.0 && target_deg > 0.0) {
+                return Err("noise σ must be finite and ≥ 0 (not all 0), targets > 0".into());
+            }
+            let opts = ReplayOptions {
+                noise,
+                target_translation_m: target_mm * 1e-3,
+                target_rotation_rad: target_deg.to_radians(),
+                log_every_s: 10.0,
+            };
+            let bar = comanip_calib::sweep::progress_bar(0, "frames");
+            if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {msg}") {
+                bar.set_style(style);
+            }
+            let r = run_replay(&dir, &cfg, &opts, |p, t| bar.set_message(progress_line(p, t)))?;
+            bar.finish_and_clear();
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            let md = report_markdown(&r, &opts, &command);
+            if let Some(path) = &report {
+                std::fs::write(path, &md).map_err(|e| format!("{}: {e}", path.display()))?;
+            }
+            hw_io::outln!("{md}")?;
+            let chosen = r.published.as_ref().or(r.at_end.as_ref());
+            let Some((cal, _)) = chosen else {
+                return Err("no calibration: too little data (see the report)".into());
+            };
+            let entry =
+                comanip_calib::convert::result_json("ours", &cal.pose, &cal.ours.residuals, Some(&cal.ours), 0.0);
+            let file = hw_io::calib_files::ResultFile {
+                format: hw_io::calib_files::RESULT_FORMAT.into(),
+                version: hw_io::calib_files::CALIB_FILE_VERSION,
+                results: vec![entry],
+                failures: Vec::new(),
+            };
+            std::fs::write(&out, hw_io::calib_files::to_json(&file)).map_err(|e| format!("{}: {e}", out.display()))?;
+            hw_io::outln!("wrote {}", out.display())?;
         }
         Command::Sweep { out_dir, trials, geometries: Some(n), held_out_only, seed, .. } => {
             let mut opts = comanip_calib::generalise::GeneralisationOptions::full(n);

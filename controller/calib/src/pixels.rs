@@ -343,6 +343,7 @@ pub fn observations(run: &PixelRun, source: LineSource, both_eyes: bool) -> Vec<
                 out.push(Observation {
                     ecm_joints: pose.ecm_joints,
                     psm_joints: pose.psm_joints,
+                    tool_point_m: [0.0; 3],
                     line_px: *ends,
                     eye: if eye == 0 { Eye::Left } else { Eye::Right },
                 });

@@ -286,6 +286,7 @@ fn predicted_observation(
     Some(Observation {
         ecm_joints: *ecm_joints,
         psm_joints: *psm_joints,
+        tool_point_m: [0.0; 3],
         line_px: [tip.into(), far.into()],
         eye: super::Eye::Left,
     })

@@ -50,23 +50,73 @@ use serde::{Deserialize, Serialize};
 
 pub use camera::Intrinsics;
 
-/// One calibration observation: both arms' joints and the tool shaft's line in the image.
+/// One calibration observation: robot 1's joints, the tool's line in the tool arm's frame
+/// `{t}`, and the tool shaft's line in the image.
 ///
-/// Shaped so that a line detector can feed it: any two distinct points of the detected
-/// centreline (typically the segment's end points) in pixels, as measured (distorted) image
-/// coordinates; [`Intrinsics::undistort_px`] is applied by the pipelines.
+/// **The tool's line** is "a line through a known point with a known direction in `{t}`"
+/// (issue 19), so that both arm kinds fit:
+/// - an RCM arm (the paper's PSM): the point is the RCM, the origin of `{t}`
+///   (`tool_point_m = [0, 0, 0]`, the default) and the direction comes from its joints
+///   (`psm_joints`, [`rcm_arms::psm_axis`]);
+/// - an arm without a mechanical RCM (comanip's Achilles-type arm): `{t}` is the arm's base,
+///   the point is the fulcrum fulcrumd publishes (the trocar, on the instrument axis) and the
+///   direction the instrument axis; [`Observation::from_tool_line`] writes that direction as
+///   the equivalent RCM joints (yaw, pitch) and the tip's distance from the point as the
+///   "insertion".
+///
+/// The image side is shaped so that a line detector can feed it: any two distinct points of
+/// the detected centreline (typically the segment's end points) in pixels, as measured
+/// (distorted) image coordinates; [`Intrinsics::undistort_px`] is applied by the pipelines.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Observation {
     /// Robot 1 (ECM-like): `[yaw rad, pitch rad, insertion m, roll rad]`.
     pub ecm_joints: [f64; 4],
-    /// Robot 2 (PSM-like): `[yaw rad, pitch rad, insertion m]`.
+    /// Robot 2's line as RCM joints about [`Observation::tool_point_m`]:
+    /// `[yaw rad, pitch rad, insertion m]`; the direction is [`rcm_arms::psm_axis`], the tool
+    /// tip lies `insertion` metres from the point along it.
     pub psm_joints: [f64; 3],
+    /// The known point of the tool's line in `{t}`, metres: robot 2's RCM (the origin, the
+    /// default) for an RCM arm, the fulcrum for an arm without a mechanical RCM.
+    #[serde(default, skip_serializing_if = "is_origin")]
+    pub tool_point_m: [f64; 3],
     /// Two distinct points of the tool's centreline in the image, pixels `[[u, v], [u, v]]`.
     pub line_px: [[f64; 2]; 2],
     /// Which eye of a stereo endoscope saw the line (default: the left eye, the camera frame
     /// `{c}` of [`Setup::hand_eye`]; the right eye needs [`Setup::right_eye`]).
     #[serde(default)]
     pub eye: Eye,
+}
+
+fn is_origin(p: &[f64; 3]) -> bool {
+    *p == [0.0; 3]
+}
+
+impl Observation {
+    /// An RCM arm's observation: the tool's line through robot 2's RCM (the origin of `{t}`).
+    pub fn rcm(ecm_joints: [f64; 4], psm_joints: [f64; 3], line_px: [[f64; 2]; 2], eye: Eye) -> Self {
+        Self { ecm_joints, psm_joints, tool_point_m: [0.0; 3], line_px, eye }
+    }
+
+    /// An observation whose tool line is given directly in `{t}`: through `point_m` (metres)
+    /// along `axis` (toward the tip; normalised here), the tip `tip_m` metres from the point.
+    /// `None` when the axis is zero or not finite. The direction is stored as the RCM joints
+    /// `yaw = atan2(a_x, a_z)`, `pitch = −asin(a_y)` ([`rcm_arms::psm_axis`] inverted).
+    pub fn from_tool_line(
+        ecm_joints: [f64; 4],
+        point_m: [f64; 3],
+        axis: [f64; 3],
+        tip_m: f64,
+        line_px: [[f64; 2]; 2],
+        eye: Eye,
+    ) -> Option<Self> {
+        let a = Vector3::from(axis);
+        if !a.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        let a = a.try_normalize(1e-12)?;
+        let psm_joints = [a.x.atan2(a.z), -a.y.clamp(-1.0, 1.0).asin(), tip_m];
+        Some(Self { ecm_joints, psm_joints, tool_point_m: point_m, line_px, eye })
+    }
 }
 
 /// An eye of a stereo endoscope. The left eye is the camera frame `{c}`; both eyes share the

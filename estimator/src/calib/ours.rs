@@ -27,7 +27,9 @@ use nalgebra::{
 };
 
 use super::KinematicNoise;
-use super::paper::{PaperError, kronecker_rotation, linear_translation, refine_quaternion, wxyz};
+use super::paper::{
+    PaperError, kronecker_rotation, linear_translation, refine_quaternion, translation_given_rotation, wxyz,
+};
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::residual::{damped_step, residual_and_jacobian, residual_covariance};
 use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected, tip_well_inside};
@@ -426,17 +428,21 @@ fn runner_up(
         return (pose_of(&candidates[i].r, &candidates[i].t), costs[i]);
     }
     // Every start went to the best: its mirror about the mean line of sight to the best RCM.
+    // (About the mean line point: robot 2's RCM, or the mean fulcrum, which stays in place.)
     let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / set.obs.len().max(1) as f64;
-    let sight = (best.t - mean_c).try_normalize(1e-12).unwrap_or_else(Vector3::z);
+    let mean_p = set.obs.iter().map(|o| o.p_t).sum::<Vector3<f64>>() / set.obs.len().max(1) as f64;
+    let point_e = best.r * mean_p + best.t;
+    let sight = (point_e - mean_c).try_normalize(1e-12).unwrap_or_else(Vector3::z);
     let flip = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(sight), core::f64::consts::PI).into_inner();
     let r_m = flip * best.r;
-    let refined = refine(set, cfg, whitening(set, cfg, &r_m, &best.t), r_m, best.t);
+    let t_m = point_e - r_m * mean_p;
+    let refined = refine(set, cfg, whitening(set, cfg, &r_m, &t_m), r_m, t_m);
     let ok = refined.t.iter().chain(refined.r.iter()).all(|v| v.is_finite()) && distinct(&refined.r);
     if ok {
         let c = nll_of(&refined.r, &refined.t);
         return (pose_of(&refined.r, &refined.t), c);
     }
-    (pose_of(&r_m, &best.t), nll_of(&r_m, &best.t))
+    (pose_of(&r_m, &t_m), nll_of(&r_m, &t_m))
 }
 
 /// Whitening matrices `Σ_i^{-1/2}` at `(r, t)` (identity without a noise model).
@@ -676,12 +682,18 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     };
     // Whitening is held fixed while candidates are refined (the same weights for all); it is
     // refreshed once at each candidate's solution for a second pass.
-    let w0 = whitening(set, cfg, starts.last().unwrap_or(&Matrix3::identity()), &t0);
+    // With tool lines through points away from `{t}`'s origin, each start's translation is
+    // Eq. 5 given its rotation (with every point at the origin it is `t0` itself).
+    let t_of = |r0: &Matrix3<f64>| {
+        if set.offset_points && from.is_none() { translation_given_rotation(set, r0).unwrap_or(t0) } else { t0 }
+    };
+    let r_w = *starts.last().unwrap_or(&Matrix3::identity());
+    let w0 = whitening(set, cfg, &r_w, &t_of(&r_w));
     let firsts: Vec<Refined> = starts
         .iter()
         .flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) })
         .chain(extra.iter().copied())
-        .map(|r0| refine(set, cfg, w0.clone(), r0, t0))
+        .map(|r0| refine(set, cfg, w0.clone(), r0, t_of(&r0)))
         .collect();
     let finite = |x: &Refined| x.t.iter().chain(x.r.iter()).all(|v| v.is_finite());
     let candidates: Vec<Refined> = if cfg.noise.is_none() {

@@ -109,6 +109,35 @@ pub fn linear_translation(set: &PreparedSet) -> Result<Vector3<f64>, PaperError>
     Ok(x)
 }
 
+/// Eq. 5 for tool lines through known points `p_i` of `{t}` (an arm without a mechanical
+/// RCM, [`super::Observation::tool_point_m`]), given the rotation `R = e_tR`:
+/// `t = argmin Σ (nₑᵀ t − nₑᵀ (eO_c − R p_i))²` (metres, `{e}`). With every `p_i` at the
+/// origin it is Eq. 5 itself (any `R`). Same refusals as [`linear_translation`].
+pub fn translation_given_rotation(set: &PreparedSet, r: &Matrix3<f64>) -> Result<Vector3<f64>, PaperError> {
+    let mut ata = Matrix3::zeros();
+    let mut atb = Vector3::zeros();
+    for o in &set.obs {
+        ata += o.n_e * o.n_e.transpose();
+        atb += o.n_e * o.n_e.dot(&(o.o_ec - r * o.p_t));
+    }
+    let eig = SymmetricEigen::new(ata);
+    let max = eig.eigenvalues.max();
+    let min = eig.eigenvalues.min();
+    let ratio = if max > 0.0 { min / max } else { 0.0 };
+    if ratio.is_nan() || ratio <= RANK_TOLERANCE {
+        return Err(PaperError::ViewsCollinear { ratio });
+    }
+    if set.pencil_ratio.is_nan() || set.pencil_ratio < super::prepare::PENCIL_TOLERANCE {
+        return Err(PaperError::LinesFormOnePencil { ratio: set.pencil_ratio });
+    }
+    let mut x = Vector3::zeros();
+    for i in 0..3 {
+        let v = eig.eigenvectors.column(i);
+        x += v * (v.dot(&atb) / eig.eigenvalues[i]);
+    }
+    Ok(x)
+}
+
 /// One row of Eq. 7: `kᵀ = mᵀ ⊗ nₑᵀ`, so that `kᵀ Vec(R) = nₑᵀ R m` (column-major `Vec`).
 pub fn kronecker_row(n_e: &Vector3<f64>, m_t: &Vector3<f64>) -> SVector<f64, 9> {
     let mut k = SVector::<f64, 9>::zeros();
@@ -260,14 +289,21 @@ pub fn solve_paper(
 }
 
 /// The paper's pipeline on prepared observations.
+///
+/// With tool lines through points away from the origin of `{t}` (an arm without a
+/// mechanical RCM), Eq. 5 depends on the rotation: the rotation (Eq. 8-10, which use only
+/// the directions) is solved first, then [`translation_given_rotation`]. With every point at
+/// the origin this is the paper's order and result.
 pub fn solve_paper_prepared(set: &PreparedSet, config: &PaperConfig) -> Result<PaperResult, PaperError> {
-    let t = linear_translation(set)?;
+    let t_rcm = linear_translation(set)?;
     let r_lin = UnitQuaternion::from_rotation_matrix(&kronecker_rotation(set)?);
     let q0 = match config.initial_quaternion {
         Some(q) => Vector4::from(q),
         None => wxyz(&r_lin),
     };
     let (q, cost, iterations) = refine_quaternion(set, &q0);
+    let t =
+        if set.offset_points { translation_given_rotation(set, &q.to_rotation_matrix().into_inner())? } else { t_rcm };
     Ok(PaperResult {
         pose: Isometry3::from_parts(Translation3::from(t), q),
         linear_rotation: r_lin,

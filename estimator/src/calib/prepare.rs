@@ -37,9 +37,14 @@ pub struct Prepared {
     pub n_e: Vector3<f64>,
     /// Unit tool axis `m(θ2)` in `{t}`.
     pub m_t: Vector3<f64>,
-    /// Robot 2's frame 2 `F2(θ2)` in `{t}` (rotation only; its origin is the RCM).
+    /// Robot 2's frame 2 `F2(θ2)` in `{t}` (rotation only; its origin is the RCM, or the
+    /// line's point [`Prepared::p_t`]).
     pub psm_f2: Isometry3<f64>,
-    /// Robot 2's insertion, metres.
+    /// The known point of the tool's line in `{t}`, metres (zero for an RCM arm:
+    /// [`super::Observation::tool_point_m`]).
+    pub p_t: Vector3<f64>,
+    /// Distance from the line's point to the tool tip along `m_t`, metres (robot 2's
+    /// insertion for an RCM arm).
     pub insertion_m: f64,
     /// The two line points as ideal (undistorted) pixels.
     pub px: [Vector2<f64>; 2],
@@ -69,6 +74,10 @@ pub struct PreparedSet {
     pub views: usize,
     /// Distinct orientations of robot 2's tool, counted up to the first 3.
     pub orientations: usize,
+    /// True when some observation's tool line has its point away from the origin of `{t}`
+    /// (an arm without a mechanical RCM): Eq. 5 then needs the rotation first
+    /// ([`super::paper::translation_given_rotation`]).
+    pub offset_points: bool,
 }
 
 /// Why observations cannot be prepared.
@@ -134,6 +143,20 @@ fn finite_iso(t: &Isometry3<f64>) -> bool {
 /// plane normals (Eq. 1) from undistorted line points, tool axes from robot 2's joints; then
 /// checks the two counts the method needs (≥ 2 views of robot 1, ≥ 3 tool orientations).
 pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSet, PrepareError> {
+    let set = prepare_unchecked(setup, observations)?;
+    if set.views < 2 {
+        return Err(PrepareError::TooFewViews { views: set.views });
+    }
+    if set.orientations < 3 {
+        return Err(PrepareError::TooFewToolOrientations { orientations: set.orientations });
+    }
+    Ok(set)
+}
+
+/// [`prepare`] without the two counting checks (views, orientations; still counted in the
+/// set): for scoring single observations against a known pose (the live collector's
+/// information and drift checks). Input checks as [`prepare`].
+pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<PreparedSet, PrepareError> {
     if observations.is_empty() {
         return Err(PrepareError::Empty);
     }
@@ -149,7 +172,7 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
     let k_inv = setup.intrinsics.k_inv();
     let mut obs = Vec::with_capacity(observations.len());
     for (index, o) in observations.iter().enumerate() {
-        if !o.ecm_joints.iter().chain(o.psm_joints.iter()).all(|v| v.is_finite()) {
+        if !o.ecm_joints.iter().chain(o.psm_joints.iter()).chain(o.tool_point_m.iter()).all(|v| v.is_finite()) {
             return Err(PrepareError::Joint { index });
         }
         let px = [
@@ -173,20 +196,15 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
             n_e: r_ec * n_c,
             m_t: psm_axis(&o.psm_joints),
             psm_f2: f2,
+            p_t: Vector3::from(o.tool_point_m),
             insertion_m: o.psm_joints[2],
             px,
             eye_inv_adjoint,
         });
     }
     let views = count_distinct(obs.iter().map(|p| p.o_ec), 2, |a, b| (a - b).norm() > SAME_VIEW_M);
-    if views < 2 {
-        return Err(PrepareError::TooFewViews { views });
-    }
     let orientations =
         count_distinct(obs.iter().map(|p| p.m_t), 3, |a, b| a.cross(b).norm() > SAME_ORIENTATION_RAD || a.dot(b) < 0.0);
-    if orientations < 3 {
-        return Err(PrepareError::TooFewToolOrientations { orientations });
-    }
     let normals = obs.iter().fold(Matrix3::zeros(), |acc, p| acc + p.n_c * p.n_c.transpose());
     let eig = normals.symmetric_eigen();
     let (lmin, lmax) = (eig.eigenvalues.min(), eig.eigenvalues.max());
@@ -200,6 +218,7 @@ pub fn prepare(setup: &Setup, observations: &[Observation]) -> Result<PreparedSe
         selection: setup.selection,
         views,
         orientations,
+        offset_points: observations.iter().any(|o| o.tool_point_m != [0.0; 3]),
     })
 }
 

@@ -37,13 +37,16 @@ pub fn residual_and_jacobian(
     t: &Vector3<f64>,
 ) -> (Vector2<f64>, Jac6) {
     let rm = r * o.m_t;
+    let rp = r * o.p_t;
     let rt = o.r_ec.transpose();
-    let p_c = rt * (t - o.o_ec);
+    // The line's point (robot 2's RCM, or the fulcrum) and direction in the camera frame.
+    let p_c = rt * (rp + t - o.o_ec);
     let d_c = rt * rm;
     let nv = p_c.cross(&d_c);
     let l = set.k_inv_t * nv;
     let dn_dt = -skew(&d_c) * rt;
-    let dn_dphi = skew(&p_c) * rt * (-skew(&rm));
+    // R ← exp(δφ^) R moves both: ∂(Rm)/∂δφ = −[Rm]×, ∂(Rp)/∂δφ = −[Rp]×.
+    let dn_dphi = skew(&p_c) * rt * (-skew(&rm)) + skew(&d_c) * rt * skew(&rp);
     let mut dn = SMatrix::<f64, 3, 6>::zeros();
     dn.fixed_view_mut::<3, 3>(0, 0).copy_from(&dn_dt);
     dn.fixed_view_mut::<3, 3>(0, 3).copy_from(&dn_dphi);
@@ -64,7 +67,7 @@ pub fn residual_and_jacobian(
 pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Jac18 {
     let rt = o.r_ec.transpose();
     let rm = r * o.m_t;
-    let p_c = rt * (r * (o.m_t * o.insertion_m) + t - o.o_ec);
+    let p_c = rt * (r * (o.p_t + o.m_t * o.insertion_m) + t - o.o_ec);
     let d_c = rt * rm;
     let (sp, sd) = (skew(&p_c), skew(&d_c));
     let mut dn = SMatrix::<f64, 3, 18>::zeros();

@@ -79,7 +79,7 @@ pub struct TipPixel {
 /// `None` when it is less than 1 mm in front of the optical centre.
 pub fn tip_pixel(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipPixel> {
     let rt = o.r_ec.transpose();
-    let tip_t = r * (o.m_t * o.insertion_m);
+    let tip_t = r * (o.p_t + o.m_t * o.insertion_m);
     let p = rt * (tip_t + t - o.o_ec);
     if p.z <= 1e-3 {
         return None;

@@ -30,6 +30,8 @@
 //! # Ok(()) }
 //! ```
 //!
+//! The live calibration publishes [`CalibrationSample`]s (`comanip-calib live`, issue 19).
+//!
 //! Camera frames have their own service shape (a `#[repr(C)]` [`FrameHeader`] followed by the
 //! pixels, zero-copy): [`FramePublisher`] and [`FrameSubscriber`], `docs/frames.md`.
 //!
@@ -38,6 +40,7 @@
 //! [`PublisherOptions::iceoryx2_signal_handlers`] asks for it. iceoryx2 keeps its state in
 //! `/tmp/iceoryx2` and `/dev/shm/iox2_*`.
 
+mod calibration;
 mod continuity;
 mod frames;
 mod fulcrum;
@@ -48,6 +51,7 @@ mod subscriber;
 
 pub mod logging;
 
+pub use calibration::{CALIBRATION_SAMPLE_VERSION, CalibrationSample, CalibrationState, DEFAULT_CALIBRATION_SERVICE};
 pub use continuity::Continuity;
 pub use frames::{
     DEFAULT_FRAME_SERVICE, FRAME_HEADER_VERSION, FrameConnectError, FrameCounters, FrameCreateError, FrameHeader,

@@ -90,6 +90,8 @@ pub struct FilterSection {
     pub lost_cost_px: Option<f64>,
     /// Lost frames before re-initialisation from the kinematics.
     pub reinit_after_lost: Option<u32>,
+    /// Ours: adaptive process noise `[good_px, max_scale]`.
+    pub adaptive_noise: Option<[f64; 2]>,
     /// Noise seed.
     pub seed: Option<u64>,
 }
@@ -141,8 +143,8 @@ pub enum ConfigFileError {
 impl TrackFile {
     /// Parses `text` (`path` for the messages) and checks the values.
     pub fn from_toml(text: &str, path: &Path) -> Result<Self, ConfigFileError> {
-        let f: TrackFile =
-            toml::from_str(text).map_err(|e| ConfigFileError::Parse { path: path.to_owned(), message: e.to_string() })?;
+        let f: TrackFile = toml::from_str(text)
+            .map_err(|e| ConfigFileError::Parse { path: path.to_owned(), message: e.to_string() })?;
         let t = &f.tool;
         let bad = |key: &'static str, message: &str| ConfigFileError::Value {
             path: path.to_owned(),
@@ -227,6 +229,9 @@ impl TrackFile {
         }
         if let Some(v) = f.reinit_after_lost {
             c.reinit_after_lost = v;
+        }
+        if let Some([g, m]) = f.adaptive_noise {
+            c.adaptive_noise = Some((g, m));
         }
         if let Some(v) = f.seed {
             c.seed = v;

@@ -73,7 +73,8 @@ pub fn joint_offset(model: &ToolModel, q: &[f64; 6], dp: &Vector3<f64>, dr: &Vec
 
 fn random_unit(r: &mut ChaCha8Rng) -> Vector3<f64> {
     loop {
-        let v = Vector3::new(r.random::<f64>() * 2.0 - 1.0, r.random::<f64>() * 2.0 - 1.0, r.random::<f64>() * 2.0 - 1.0);
+        let v =
+            Vector3::new(r.random::<f64>() * 2.0 - 1.0, r.random::<f64>() * 2.0 - 1.0, r.random::<f64>() * 2.0 - 1.0);
         let n = v.norm();
         if n > 0.1 && n <= 1.0 {
             return v / n;
@@ -82,7 +83,8 @@ fn random_unit(r: &mut ChaCha8Rng) -> Vector3<f64> {
 }
 
 /// Runs `trials` trials on `seq` (label `label`): each from a random frame among those with
-/// the instrument visible in both eyes for the whole trial (`frames` frames), started from the
+/// the instrument visible in both eyes (at least `min_px` pixels) for the whole trial (`frames`
+/// frames), started from the
 /// encoders' joints moved so that the tip is `pos_m` away and turned by `rot_rad`.
 #[allow(clippy::too_many_arguments)]
 pub fn converge(
@@ -95,13 +97,14 @@ pub fn converge(
     pos_m: f64,
     rot_rad: f64,
     seed: u64,
+    min_px: u64,
     progress: &dyn Fn(),
 ) -> Result<Vec<Trial>, RunError> {
     let visible = |i: usize| {
         seq.frames.get(i).is_some_and(|f| {
             f.encoder_rad.is_some()
                 && f.ecm_joints.is_some()
-                && f.truth.is_some_and(|t| t.instrument_px[0] >= 400 && t.instrument_px[1] >= 400)
+                && f.truth.is_some_and(|t| t.instrument_px[0] >= min_px && t.instrument_px[1] >= min_px)
         })
     };
     let starts: Vec<usize> = (0..seq.frames.len()).filter(|&i| (i..i + frames).all(visible)).collect();

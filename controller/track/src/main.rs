@@ -12,7 +12,11 @@ use comanip_track::run::{RunOptions, build_model, mode_name, track, write_jsonl}
 use track::Mode;
 
 #[derive(Parser)]
-#[command(name = "comanip-track", version, about = "Particle-filter tool tracking from stereo frames and the arm's encoders")]
+#[command(
+    name = "comanip-track",
+    version,
+    about = "Particle-filter tool tracking from stereo frames and the arm's encoders"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -100,6 +104,9 @@ enum Command {
         /// Seed of the starts.
         #[arg(long, default_value_t = 7)]
         seed: u64,
+        /// Fewest instrument pixels in each eye for a frame to be used.
+        #[arg(long, default_value_t = 400)]
+        min_px: u64,
         /// Output (JSON).
         #[arg(long)]
         out: PathBuf,
@@ -209,7 +216,13 @@ fn run(cli: Cli) -> Result<(), String> {
                 &seq,
                 &model,
                 cfg,
-                &RunOptions { first, count: n, start_joints: None, overlay: overlay.as_deref(), progress: &|k| b.set_position(k as u64) },
+                &RunOptions {
+                    first,
+                    count: n,
+                    start_joints: None,
+                    overlay: overlay.as_deref(),
+                    progress: &|k| b.set_position(k as u64),
+                },
             )
             .map_err(|e| e.to_string())?;
             b.finish_and_clear();
@@ -233,7 +246,7 @@ fn run(cli: Cli) -> Result<(), String> {
             );
             Ok(())
         }
-        Command::Converge { run, trials, frames_per_trial, pos_mm, rot_deg, seed, out, common } => {
+        Command::Converge { run, trials, frames_per_trial, pos_mm, rot_deg, seed, min_px, out, common } => {
             let (file, fcfg) = setup(&common)?;
             let mut all = Vec::new();
             let mut cfg0 = None;
@@ -255,6 +268,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     pos_mm * 1e-3,
                     rot_deg.to_radians(),
                     seed + k as u64,
+                    min_px,
                     &|| b.inc(1),
                 )
                 .map_err(|e| e.to_string())?;
@@ -262,7 +276,8 @@ fn run(cli: Cli) -> Result<(), String> {
             }
             b.finish_and_clear();
             let cfg = cfg0.ok_or("no run")?;
-            let res = ConvergeResults { mode: mode_name(cfg.mode).into(), particles: cfg.particles, fps: 0.0, trials: all };
+            let res =
+                ConvergeResults { mode: mode_name(cfg.mode).into(), particles: cfg.particles, fps: 0.0, trials: all };
             let s = experiment::summarise(&res, 5);
             println!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
             std::fs::write(&out, serde_json::to_string(&res).unwrap_or_default())
@@ -274,10 +289,8 @@ fn run(cli: Cli) -> Result<(), String> {
             let model = build_model(&seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
             let (w, h) = size(&seq);
             let first = seq.frames.iter().position(|f| f.truth.is_some_and(|t| t.instrument_px[0] > 400)).unwrap_or(0);
-            let mut points: Vec<RatePoint> = std::fs::read_to_string(&out)
-                .ok()
-                .and_then(|t| serde_json::from_str(&t).ok())
-                .unwrap_or_default();
+            let mut points: Vec<RatePoint> =
+                std::fs::read_to_string(&out).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
             for n in counts {
                 let mut cfg = file.tracker(w, h);
                 cfg.particles = n;

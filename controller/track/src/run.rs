@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, UnitQuaternion};
 use serde::Serialize;
-use track::{FrameInput, Mode, PartMesh, StereoCameras, Status, ToolGeometry, ToolModel, Tracker, TrackerConfig};
+use track::{FrameInput, Mode, PartMesh, Status, StereoCameras, ToolGeometry, ToolModel, Tracker, TrackerConfig};
 
 use crate::config::ToolSection;
 use crate::input::{FrameTruth, Sequence};
@@ -249,7 +249,8 @@ pub fn write_jsonl(path: &Path, results: &[FrameResult]) -> Result<(), RunError>
     let werr = |e: std::io::Error| RunError::Write { path: path.to_owned(), message: e.to_string() };
     let mut w = std::io::BufWriter::new(std::fs::File::create(path).map_err(werr)?);
     for r in results {
-        let line = serde_json::to_string(r).map_err(|e| RunError::Write { path: path.to_owned(), message: e.to_string() })?;
+        let line =
+            serde_json::to_string(r).map_err(|e| RunError::Write { path: path.to_owned(), message: e.to_string() })?;
         writeln!(w, "{line}").map_err(werr)?;
     }
     w.flush().map_err(werr)

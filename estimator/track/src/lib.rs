@@ -123,6 +123,10 @@ pub struct TrackerConfig {
     /// Consecutive lost frames after which the particles are re-initialised from the
     /// kinematics.
     pub reinit_after_lost: u32,
+    /// Ours: adaptive process noise `(good_px, max_scale)`: the motion noise is scaled by
+    /// `clamp(c / good_px, 1, √max_scale)²` where `c` is the previous frame's best cost per
+    /// eye (pixels): a poor fit explores more. `None`: fixed noise (the paper).
+    pub adaptive_noise: Option<(f64, f64)>,
     /// Seed of the noise (runs are reproducible).
     pub seed: u64,
 }
@@ -141,7 +145,7 @@ impl TrackerConfig {
             width,
             height,
             joint_noise_rad: [0.0005, 0.0005, 0.0005, 0.001, 0.001, 0.005],
-            init_spread_rad: [0.01, 0.01, 0.01, 0.02, 0.02, 0.05],
+            init_spread_rad: [0.02, 0.02, 0.02, 0.04, 0.04, 0.05],
             jaw_init_rad: 0.2,
             jaw_noise_rad: 0.01,
             camera_noise: None,
@@ -154,6 +158,10 @@ impl TrackerConfig {
             uncertain_spread_m: 0.004,
             lost_cost_px: 7.0,
             reinit_after_lost: 3,
+            adaptive_noise: match mode {
+                Mode::Paper => None,
+                Mode::Ours => Some((3.5, 16.0)),
+            },
             seed: 1,
         }
     }
@@ -203,6 +211,11 @@ impl TrackerConfig {
         }
         if !pos(self.lost_cost_px) {
             return Err(ConfigError("lost_cost_px"));
+        }
+        if let Some((g, m)) = self.adaptive_noise
+            && !(pos(g) && m.is_finite() && m >= 1.0)
+        {
+            return Err(ConfigError("adaptive_noise (good_px > 0, max_scale >= 1)"));
         }
         Ok(())
     }
@@ -301,6 +314,7 @@ pub struct Tracker {
     idx: Vec<usize>,
     fields: [EdgeField; 2],
     last_encoder: Option<[f64; JOINTS]>,
+    last_cost_px: f64,
     frame: u64,
     lost_run: u32,
     rng: ChaCha8Rng,
@@ -322,6 +336,7 @@ impl Tracker {
             idx: vec![0; n],
             fields: [EdgeField::new(cfg.width, cfg.height), EdgeField::new(cfg.width, cfg.height)],
             last_encoder: None,
+            last_cost_px: 0.0,
             frame: 0,
             lost_run: 0,
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
@@ -369,6 +384,7 @@ impl Tracker {
             p.camera_delta = [0.0; 6];
         });
         self.last_encoder = Some(*encoder_rad);
+        self.last_cost_px = 0.0;
         self.lost_run = 0;
     }
 
@@ -454,8 +470,8 @@ impl Tracker {
         let mut best = *start;
         let mut cost = start_cost;
         let mut steps = [0.0; JOINTS + 1];
-        for j in 0..JOINTS {
-            steps[j] = 2.0 * self.cfg.joint_noise_rad[j];
+        for (s, n) in steps.iter_mut().zip(&self.cfg.joint_noise_rad) {
+            *s = 2.0 * n;
         }
         steps[JOINTS] = 2.0 * self.cfg.jaw_noise_rad;
         for _ in 0..self.cfg.refine_sweeps {
@@ -544,7 +560,14 @@ impl Tracker {
             }
             Some(prev) => {
                 let inc: [f64; JOINTS] = core::array::from_fn(|j| input.encoder_rad[j] - prev[j]);
-                self.diffuse(&inc, 1.0, 0);
+                let scale = match self.cfg.adaptive_noise {
+                    Some((good, max)) if self.last_cost_px.is_finite() => {
+                        (self.last_cost_px / good).clamp(1.0, max.sqrt()).powi(2)
+                    }
+                    Some((_, max)) => max,
+                    None => 1.0,
+                };
+                self.diffuse(&inc, scale, 0);
             }
         }
         self.last_encoder = Some(input.encoder_rad);
@@ -604,6 +627,7 @@ impl Tracker {
             Mode::Ours => best_cost / 2.0,
             Mode::Paper => best_cost,
         };
+        self.last_cost_px = per_eye;
         let lost = !(per_eye.is_finite() && per_eye <= self.cfg.lost_cost_px);
         let mut status = if lost {
             Status::Lost

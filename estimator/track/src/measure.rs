@@ -5,9 +5,9 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
+use crate::Particle;
 use crate::edges::EdgeField;
 use crate::model::{Part, StereoCameras, ToolModel, eye_in, project};
-use crate::Particle;
 
 /// Parameters of our measurement (pixels).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -29,7 +29,7 @@ pub fn shaft_contour_offsets(a: &Vector3<f64>, u: &Vector3<f64>, r: f64) -> Opti
     let w = -a;
     let wp = w - u * w.dot(u);
     let d = wp.norm();
-    if !(d > r * 1.0001) {
+    if d.is_nan() || d <= r * 1.0001 {
         return None;
     }
     let wh = wp / d;
@@ -71,15 +71,12 @@ fn eye_cost_ours(
             let t = -g.shaft_modelled_m * s as f64 / (ns - 1) as f64;
             let p = a + off + u * t;
             let q = project(k, &p);
-            match (q, prev) {
-                (Some(q), Some(pq)) => {
-                    let phi = (q.1 - pq.1).atan2(q.0 - pq.0);
-                    if let Some(v) = sample_cost(f, 0.5 * (q.0 + pq.0), 0.5 * (q.1 + pq.1), phi, c) {
-                        sum += v;
-                        n += 1;
-                    }
+            if let (Some(q), Some(pq)) = (q, prev) {
+                let phi = (q.1 - pq.1).atan2(q.0 - pq.0);
+                if let Some(v) = sample_cost(f, 0.5 * (q.0 + pq.0), 0.5 * (q.1 + pq.1), phi, c) {
+                    sum += v;
+                    n += 1;
                 }
-                _ => {}
             }
             prev = q;
         }
@@ -136,13 +133,7 @@ pub(crate) fn cost_ours(
 /// Our silhouette of a hypothesis in one eye (`eye`: 0 left, 1 right) as pixel points (measured
 /// pixels): the shaft's two contour lines and the tip parts' silhouette edges, each sampled
 /// densely (for overlays; allocates into `out`).
-pub fn silhouette_px(
-    model: &ToolModel,
-    cams: &StereoCameras,
-    p: &Particle,
-    eye: usize,
-    out: &mut Vec<[f64; 2]>,
-) {
+pub fn silhouette_px(model: &ToolModel, cams: &StereoCameras, p: &Particle, eye: usize, out: &mut Vec<[f64; 2]>) {
     out.clear();
     let Some(t_b_i) = model.instrument_in_base(&p.joints) else { return };
     let Some(k) = cams.intrinsics.get(eye) else { return };

@@ -173,8 +173,8 @@ pub fn median_p95(v: &mut [f64]) -> (f64, f64) {
     (at(0.5), at(0.95))
 }
 
-/// Summary of a mode's trials: converged fraction, errors after convergence (the last
-/// `tail` frames of every converged trial: median and p95 of position mm, orientation deg),
+/// Summary of a mode's trials: converged fraction, errors after convergence (the frames of
+/// every converged trial from its convergence on, at most its last `tail`: median and p95 of position mm, orientation deg),
 /// convergence time (frames: median, p95) and mean step time.
 #[derive(Clone, Debug, Serialize)]
 pub struct Summary {
@@ -221,7 +221,7 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
         }
         if let Some(k) = t.converged_at {
             ct.push(k as f64);
-            for (x, y) in t.errors.iter().skip(t.errors.len().saturating_sub(tail)).flatten() {
+            for (x, y) in t.errors.iter().skip(t.errors.len().saturating_sub(tail).max(k)).flatten() {
                 p.push(*x);
                 a.push(*y);
             }

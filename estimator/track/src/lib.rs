@@ -145,7 +145,7 @@ impl TrackerConfig {
             width,
             height,
             joint_noise_rad: [0.0005, 0.0005, 0.0005, 0.001, 0.001, 0.005],
-            init_spread_rad: [0.02, 0.02, 0.02, 0.04, 0.04, 0.05],
+            init_spread_rad: [0.01, 0.01, 0.01, 0.02, 0.02, 0.05],
             jaw_init_rad: 0.2,
             jaw_noise_rad: 0.01,
             camera_noise: None,

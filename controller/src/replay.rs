@@ -241,6 +241,43 @@ pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogRe
     Ok(out)
 }
 
+/// The endoscope-holder arm's joints `[yaw rad, pitch rad, insertion m, roll rad]` from a
+/// candump log: each pair of its two nodes' TPDOs (less than 1 ms apart) decoded with the
+/// arm's encoder model `arm`, stamped with the later one's time (nanoseconds on the log's
+/// clock, Unix microseconds × 1000), in log order. Used by `comanip-calib from-run` and
+/// `comanip-track run`.
+pub fn endoscope_joints(
+    path: &Path,
+    arm: &sim::endoscope_arm::EndoscopeArmConfig,
+) -> Result<Vec<(u64, [f64; 4])>, ReplayError> {
+    let file = std::fs::File::open(path).map_err(|source| ReplayError::Open { path: path.to_owned(), source })?;
+    let mut reader = CandumpReader::new(std::io::BufReader::new(file));
+    let mut ecm: Vec<(u64, [f64; 4])> = Vec::new();
+    let mut pending: [Option<(u64, [i32; 2])>; 2] = [None, None];
+    loop {
+        let rec = match reader.next_record() {
+            Ok(Some(r)) => r,
+            Ok(None) => break,
+            Err(source) => return Err(ReplayError::Candump { path: path.to_owned(), source }),
+        };
+        let frame: CanFrame = rec.timed.frame;
+        if let Ok(hw_io::can::Message::Tpdo { node, counts }) = hw_io::can::Message::decode(&frame) {
+            let Some(k) = arm.node_ids.iter().position(|&n| n == node.get()) else { continue };
+            let t_ns = rec.timed.unix_time_us * 1000;
+            if let Some(slot) = pending.get_mut(k) {
+                *slot = Some((t_ns, counts));
+            }
+            if let [Some((t0, a)), Some((t1, b))] = pending
+                && t0.abs_diff(t1) < 1_000_000
+            {
+                ecm.push((t0.max(t1), arm.counts_to_joints(&[a[0], a[1], b[0], b[1]])));
+                pending = [None, None];
+            }
+        }
+    }
+    Ok(ecm)
+}
+
 /// Comparison of a candump replay with a flight recording of the same run.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct LogVsRecording {

@@ -30,8 +30,6 @@ use std::path::{Path, PathBuf};
 use controller::config::Config;
 use estimator::calib::{Intrinsics, KinematicNoise, Setup};
 use hw_io::calib_files::TransformJson;
-use hw_io::can::candump::CandumpReader;
-use hw_io::can::{CanFrame, Message};
 use hw_io::ipc::OutputState;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde::Deserialize;
@@ -227,31 +225,8 @@ pub fn read_run(dir: &Path, cfg: &Config) -> Result<BusRunData, BusRunError> {
     let bus = dir.join("bus.log");
     let replay = controller::replay::replay_candump(&bus, cfg).map_err(|e| BusRunError::Replay(e.to_string()))?;
     // The endoscope arm's TPDOs.
-    let ecm_cfg = EndoscopeArmConfig::default();
-    let file =
-        std::fs::File::open(&bus).map_err(|e| BusRunError::File { path: bus.clone(), message: e.to_string() })?;
-    let mut reader = CandumpReader::new(std::io::BufReader::new(file));
-    let mut ecm: Vec<(u64, [f64; 4])> = Vec::new();
-    let mut pending: [Option<(u64, [i32; 2])>; 2] = [None, None];
-    loop {
-        let rec = match reader.next_record() {
-            Ok(Some(r)) => r,
-            Ok(None) => break,
-            Err(e) => return Err(BusRunError::Replay(e.to_string())),
-        };
-        let frame: CanFrame = rec.timed.frame;
-        if let Ok(Message::Tpdo { node, counts }) = Message::decode(&frame) {
-            let Some(k) = ecm_cfg.node_ids.iter().position(|&n| n == node.get()) else { continue };
-            let t_ns = rec.timed.unix_time_us * 1000;
-            pending[k] = Some((t_ns, counts));
-            if let [Some((t0, a)), Some((t1, b))] = pending
-                && t0.abs_diff(t1) < 1_000_000
-            {
-                ecm.push((t0.max(t1), ecm_cfg.counts_to_joints(&[a[0], a[1], b[0], b[1]])));
-                pending = [None, None];
-            }
-        }
-    }
+    let ecm = controller::replay::endoscope_joints(&bus, &EndoscopeArmConfig::default())
+        .map_err(|e| BusRunError::Replay(e.to_string()))?;
     let mut out = Vec::new();
     let mut timeline = Vec::new();
     let (mut no_cycle, mut no_ecm, mut outside) = (0, 0, 0);

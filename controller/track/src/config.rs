@@ -1,0 +1,263 @@
+//! `comanip-track`'s configuration (TOML, `configs/comanip-track.toml`): every key optional,
+//! unknown keys refused, errors naming the file, the line and the key.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use track::{Mode, TrackerConfig};
+
+/// The file's schema. Units are in the key names.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackFile {
+    /// `paper` or `ours`.
+    pub mode: Mode,
+    /// Particles (`--particles` overrides).
+    pub particles: Option<usize>,
+    /// The instrument on the tool arm.
+    pub tool: ToolSection,
+    /// Process noise.
+    pub noise: NoiseSection,
+    /// Measurement.
+    pub measurement: MeasurementSection,
+    /// Filter and status.
+    pub filter: FilterSection,
+}
+
+/// `[tool]`.
+#[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ToolSection {
+    /// Wrist centre to tip (jaw pivot), metres.
+    pub instrument_length_m: f64,
+    /// Shaft modelled back from its distal end, metres.
+    pub shaft_modelled_m: f64,
+    /// Sides of the model's cylinders.
+    pub segments: usize,
+}
+
+impl Default for ToolSection {
+    fn default() -> Self {
+        Self { instrument_length_m: 0.3, shaft_modelled_m: 0.10, segments: 16 }
+    }
+}
+
+/// `[noise]`. `None`: the mode's default.
+#[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct NoiseSection {
+    /// Eq. 13's σ per joint per frame, radians.
+    pub joint_rad: Option<[f64; 6]>,
+    /// Particles' spread about the kinematics at (re-)initialisation, radians per joint.
+    pub init_spread_rad: Option<[f64; 6]>,
+    /// Jaw noise per frame, radians.
+    pub jaw_rad: Option<f64>,
+    /// Initial jaw angle, radians.
+    pub jaw_init_rad: Option<f64>,
+    /// `g_CB` augmentation noise per frame `[rotation rad, translation m]` (absent: off).
+    pub camera: Option<[f64; 2]>,
+}
+
+/// `[measurement]`.
+#[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MeasurementSection {
+    /// τ, pixels.
+    pub tau_px: Option<f64>,
+    /// Ours: truncation, pixels.
+    pub truncate_px: Option<f64>,
+    /// Ours: orientation weight, pixels.
+    pub orientation_px: Option<f64>,
+    /// Ours: samples per shaft contour line.
+    pub shaft_samples: Option<usize>,
+    /// Ours: Sobel magnitude threshold.
+    pub edge_threshold: Option<f32>,
+    /// Paper: Canny thresholds `[low, high]`.
+    pub canny: Option<[f32; 2]>,
+}
+
+/// `[filter]`.
+#[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FilterSection {
+    /// Ours: annealing layers.
+    pub anneal_layers: Option<usize>,
+    /// Ours: refinement sweeps.
+    pub refine_sweeps: Option<usize>,
+    /// Spread above which a frame is UNCERTAIN, metres.
+    pub uncertain_spread_m: Option<f64>,
+    /// Cost above which a frame is LOST, pixels.
+    pub lost_cost_px: Option<f64>,
+    /// Lost frames before re-initialisation from the kinematics.
+    pub reinit_after_lost: Option<u32>,
+    /// Ours: adaptive process noise `[good_px, max_scale]`.
+    pub adaptive_noise: Option<[f64; 2]>,
+    /// Noise seed.
+    pub seed: Option<u64>,
+}
+
+impl Default for TrackFile {
+    fn default() -> Self {
+        Self {
+            mode: Mode::Ours,
+            particles: None,
+            tool: ToolSection::default(),
+            noise: NoiseSection::default(),
+            measurement: MeasurementSection::default(),
+            filter: FilterSection::default(),
+        }
+    }
+}
+
+/// Why the configuration was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigFileError {
+    /// Unreadable file.
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        /// File.
+        path: PathBuf,
+        /// OS error.
+        source: std::io::Error,
+    },
+    /// Not TOML of this schema (the message names the line, column and key).
+    #[error("config file {path}: {message}")]
+    Parse {
+        /// File.
+        path: PathBuf,
+        /// Parser message.
+        message: String,
+    },
+    /// A value out of range.
+    #[error("config file {path}: {key}: {message}")]
+    Value {
+        /// File.
+        path: PathBuf,
+        /// The key.
+        key: &'static str,
+        /// Why.
+        message: String,
+    },
+}
+
+impl TrackFile {
+    /// Parses `text` (`path` for the messages) and checks the values.
+    pub fn from_toml(text: &str, path: &Path) -> Result<Self, ConfigFileError> {
+        let f: TrackFile = toml::from_str(text)
+            .map_err(|e| ConfigFileError::Parse { path: path.to_owned(), message: e.to_string() })?;
+        let t = &f.tool;
+        let bad = |key: &'static str, message: &str| ConfigFileError::Value {
+            path: path.to_owned(),
+            key,
+            message: message.to_string(),
+        };
+        if !(t.instrument_length_m.is_finite() && t.instrument_length_m > 0.02) {
+            return Err(bad("tool.instrument_length_m", "must be finite and above 0.02 m"));
+        }
+        if !(t.shaft_modelled_m.is_finite() && t.shaft_modelled_m > 0.0) {
+            return Err(bad("tool.shaft_modelled_m", "must be finite and positive"));
+        }
+        if !(3..=128).contains(&t.segments) {
+            return Err(bad("tool.segments", "must be in 3..=128"));
+        }
+        f.tracker(640, 480).validate().map_err(|e| ConfigFileError::Value {
+            path: path.to_owned(),
+            key: e.0,
+            message: "out of range".into(),
+        })?;
+        Ok(f)
+    }
+
+    /// Reads and checks a file.
+    pub fn load(path: &Path) -> Result<Self, ConfigFileError> {
+        let text =
+            std::fs::read_to_string(path).map_err(|source| ConfigFileError::Read { path: path.to_owned(), source })?;
+        Self::from_toml(&text, path)
+    }
+
+    /// The tracker's configuration for `width × height` images.
+    pub fn tracker(&self, width: usize, height: usize) -> TrackerConfig {
+        let mut c = TrackerConfig::new(self.mode, width, height);
+        if let Some(n) = self.particles {
+            c.particles = n;
+        }
+        let n = &self.noise;
+        if let Some(v) = n.joint_rad {
+            c.joint_noise_rad = v;
+        }
+        if let Some(v) = n.init_spread_rad {
+            c.init_spread_rad = v;
+        }
+        if let Some(v) = n.jaw_rad {
+            c.jaw_noise_rad = v;
+        }
+        if let Some(v) = n.jaw_init_rad {
+            c.jaw_init_rad = v;
+        }
+        c.camera_noise = n.camera;
+        let m = &self.measurement;
+        if let Some(v) = m.tau_px {
+            c.tau_px = v;
+        }
+        if let Some(v) = m.truncate_px {
+            c.ours.truncate_px = v;
+        }
+        if let Some(v) = m.orientation_px {
+            c.ours.orientation_px = v;
+        }
+        if let Some(v) = m.shaft_samples {
+            c.ours.shaft_samples = v;
+        }
+        if let Some(v) = m.edge_threshold {
+            c.edge_threshold = v;
+        }
+        if let Some(v) = m.canny {
+            c.canny_px = v;
+        }
+        let f = &self.filter;
+        if let Some(v) = f.anneal_layers {
+            c.anneal_layers = v;
+        }
+        if let Some(v) = f.refine_sweeps {
+            c.refine_sweeps = v;
+        }
+        if let Some(v) = f.uncertain_spread_m {
+            c.uncertain_spread_m = v;
+        }
+        if let Some(v) = f.lost_cost_px {
+            c.lost_cost_px = v;
+        }
+        if let Some(v) = f.reinit_after_lost {
+            c.reinit_after_lost = v;
+        }
+        if let Some([g, m]) = f.adaptive_noise {
+            c.adaptive_noise = Some((g, m));
+        }
+        if let Some(v) = f.seed {
+            c.seed = v;
+        }
+        c
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_file_parses() {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/comanip-track.toml");
+        let f = TrackFile::load(&p).unwrap();
+        assert_eq!(f.tool, ToolSection::default());
+    }
+
+    #[test]
+    fn errors_name_the_key() {
+        let e = TrackFile::from_toml("[filter]\nlost_cost_px = -1.0\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("lost_cost_px"), "{e}");
+        let e = TrackFile::from_toml("[tool]\nbogus = 1\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("bogus"), "{e}");
+        let e = TrackFile::from_toml("particles = 0\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("particles"), "{e}");
+    }
+}

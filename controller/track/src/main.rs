@@ -1,0 +1,337 @@
+//! `comanip-track`: particle-filter tool tracking (`docs/tracking.md`).
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use comanip_track::config::TrackFile;
+use comanip_track::experiment::{self, ConvergeResults, RatePoint};
+use comanip_track::input::{Sequence, read_sequence};
+use comanip_track::run::{RunOptions, build_model, mode_name, track, write_jsonl};
+use track::Mode;
+
+#[derive(Parser)]
+#[command(
+    name = "comanip-track",
+    version,
+    about = "Particle-filter tool tracking from stereo frames and the arm's encoders"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ModeArg {
+    /// The paper's method, faithful.
+    Paper,
+    /// Ours.
+    Ours,
+}
+
+impl From<ModeArg> for Mode {
+    fn from(m: ModeArg) -> Self {
+        match m {
+            ModeArg::Paper => Mode::Paper,
+            ModeArg::Ours => Mode::Ours,
+        }
+    }
+}
+
+#[derive(clap::Args)]
+struct Common {
+    /// Tracker configuration (TOML, configs/comanip-track.toml).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// fulcrumd's configuration (the tool arm's encoders and kinematics); default: its defaults.
+    #[arg(long)]
+    fulcrumd_config: Option<PathBuf>,
+    /// Measurement and filter (overrides the configuration's `mode`).
+    #[arg(long, value_enum)]
+    mode: Option<ModeArg>,
+    /// Particles (overrides the configuration).
+    #[arg(long)]
+    particles: Option<usize>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Track a recorded sequence offline: one JSON line per frame.
+    Run {
+        /// The frames directory (frames.txt, PNGs, truth.jsonl).
+        #[arg(long)]
+        frames: PathBuf,
+        /// The candump log of the bus (both arms).
+        #[arg(long)]
+        candump: PathBuf,
+        /// The left and right eyes' camera_info YAML.
+        #[arg(long, num_args = 2, value_names = ["LEFT", "RIGHT"])]
+        cameras: Vec<PathBuf>,
+        /// Output, JSON Lines.
+        #[arg(long)]
+        out: PathBuf,
+        /// Write overlays (PNG) into this directory.
+        #[arg(long)]
+        overlay: Option<PathBuf>,
+        /// First frame.
+        #[arg(long, default_value_t = 0)]
+        first: usize,
+        /// Frames to track (default: all).
+        #[arg(long)]
+        count: Option<usize>,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Convergence from perturbed starts (the paper's protocol) on `simrobot generate --frames`
+    /// runs; writes the trials as JSON.
+    Converge {
+        /// Run directories (DIR/bus.log, DIR/frames).
+        #[arg(long, required = true, num_args = 1..)]
+        run: Vec<PathBuf>,
+        /// Trials per run.
+        #[arg(long, default_value_t = 10)]
+        trials: usize,
+        /// Frames per trial.
+        #[arg(long, default_value_t = 15)]
+        frames_per_trial: usize,
+        /// Initial tip position error, millimetres.
+        #[arg(long, default_value_t = 13.0)]
+        pos_mm: f64,
+        /// Initial orientation error, degrees.
+        #[arg(long, default_value_t = 10.0)]
+        rot_deg: f64,
+        /// Seed of the starts.
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+        /// Fewest instrument pixels in each eye for a frame to be used.
+        #[arg(long, default_value_t = 400)]
+        min_px: u64,
+        /// Output (JSON).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Frames per second against particle count on a run's frames.
+    Rate {
+        /// Run directory.
+        #[arg(long)]
+        run: PathBuf,
+        /// Particle counts.
+        #[arg(long, num_args = 1.., default_values_t = [100usize, 250, 500, 1000, 2000])]
+        counts: Vec<usize>,
+        /// Frames per count.
+        #[arg(long, default_value_t = 10)]
+        frames: usize,
+        /// Output (JSON, appended to when it exists).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Summaries and plots from `converge` and `rate` outputs.
+    Report {
+        /// `converge` outputs.
+        #[arg(long, num_args = 1..)]
+        converge: Vec<PathBuf>,
+        /// `rate` output.
+        #[arg(long)]
+        rate: Option<PathBuf>,
+        /// Frames at the end of each converged trial counted as "after convergence".
+        #[arg(long, default_value_t = 5)]
+        tail: usize,
+        /// Plot directory.
+        #[arg(long)]
+        plots: PathBuf,
+    },
+}
+
+fn bar(total: u64) -> indicatif::ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let b = indicatif::ProgressBar::new(total);
+    if let Ok(style) = indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {elapsed} (eta {eta})") {
+        b.set_style(style);
+    }
+    b
+}
+
+fn setup(common: &Common) -> Result<(TrackFile, controller::config::Config), String> {
+    let mut file = match &common.config {
+        Some(p) => TrackFile::load(p).map_err(|e| e.to_string())?,
+        None => TrackFile::default(),
+    };
+    if let Some(m) = common.mode {
+        file.mode = m.into();
+    }
+    if let Some(n) = common.particles {
+        file.particles = Some(n);
+    }
+    let fcfg = match &common.fulcrumd_config {
+        Some(p) => controller::config::Config::load(p).map_err(|e| e.to_string())?,
+        None => controller::config::Config::default(),
+    };
+    Ok((file, fcfg))
+}
+
+fn open_run(dir: &Path, fcfg: &controller::config::Config) -> Result<Sequence, String> {
+    let f = dir.join("frames");
+    read_sequence(&f, &dir.join("bus.log"), [&f.join("left.yaml"), &f.join("right.yaml")], fcfg)
+        .map_err(|e| e.to_string())
+}
+
+fn size(seq: &Sequence) -> (usize, usize) {
+    (seq.intrinsics[0].width as usize, seq.intrinsics[0].height as usize)
+}
+
+fn main() -> ExitCode {
+    controller::process::init_logging();
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("comanip-track: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<(), String> {
+    match cli.command {
+        Command::Run { frames, candump, cameras, out, overlay, first, count, common } => {
+            let (file, fcfg) = setup(&common)?;
+            let [l, r] = cameras.as_slice() else { return Err("--cameras takes LEFT RIGHT".into()) };
+            let seq = read_sequence(&frames, &candump, [l, r], &fcfg).map_err(|e| e.to_string())?;
+            let model = build_model(&seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
+            let (w, h) = size(&seq);
+            let cfg = file.tracker(w, h);
+            if let Some(d) = &overlay {
+                std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
+            }
+            let n = count.unwrap_or(usize::MAX);
+            let b = bar(seq.frames.len().saturating_sub(first).min(n) as u64);
+            let res = track(
+                &seq,
+                &model,
+                cfg,
+                &RunOptions {
+                    first,
+                    count: n,
+                    start_joints: None,
+                    overlay: overlay.as_deref(),
+                    progress: &|k| b.set_position(k as u64),
+                },
+            )
+            .map_err(|e| e.to_string())?;
+            b.finish_and_clear();
+            write_jsonl(&out, &res).map_err(|e| e.to_string())?;
+            let tracked = res.iter().filter(|r| r.status == "TRACKING").count();
+            let lost = res.iter().filter(|r| r.status == "LOST").count();
+            let mut errs: Vec<f64> = res.iter().filter_map(|r| r.error_mm).collect();
+            let (med, p95) = experiment::median_p95(&mut errs);
+            let mean_ms = res.iter().map(|r| r.step_ms).sum::<f64>() / res.len().max(1) as f64;
+            println!(
+                "comanip-track run ({}, {} particles): {} frames, {} TRACKING, {} LOST; tip error vs truth median {:.2} mm, p95 {:.2} mm; {:.1} ms per frame; {}",
+                mode_name(cfg.mode),
+                cfg.particles,
+                res.len(),
+                tracked,
+                lost,
+                med,
+                p95,
+                mean_ms,
+                out.display()
+            );
+            Ok(())
+        }
+        Command::Converge { run, trials, frames_per_trial, pos_mm, rot_deg, seed, min_px, out, common } => {
+            let (file, fcfg) = setup(&common)?;
+            let mut all = Vec::new();
+            let mut cfg0 = None;
+            let b = bar((trials * run.len()) as u64);
+            for (k, dir) in run.iter().enumerate() {
+                let seq = open_run(dir, &fcfg)?;
+                let model = build_model(&seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
+                let (w, h) = size(&seq);
+                let cfg = file.tracker(w, h);
+                cfg0 = Some(cfg);
+                let label = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
+                let t = experiment::converge(
+                    &seq,
+                    &label,
+                    &model,
+                    cfg,
+                    trials,
+                    frames_per_trial,
+                    pos_mm * 1e-3,
+                    rot_deg.to_radians(),
+                    seed + k as u64,
+                    min_px,
+                    &|| b.inc(1),
+                )
+                .map_err(|e| e.to_string())?;
+                all.extend(t);
+            }
+            b.finish_and_clear();
+            let cfg = cfg0.ok_or("no run")?;
+            let res =
+                ConvergeResults { mode: mode_name(cfg.mode).into(), particles: cfg.particles, fps: 0.0, trials: all };
+            let s = experiment::summarise(&res, 5);
+            println!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
+            std::fs::write(&out, serde_json::to_string(&res).unwrap_or_default())
+                .map_err(|e| format!("{}: {e}", out.display()))
+        }
+        Command::Rate { run, counts, frames, out, common } => {
+            let (file, fcfg) = setup(&common)?;
+            let seq = open_run(&run, &fcfg)?;
+            let model = build_model(&seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
+            let (w, h) = size(&seq);
+            let first = seq.frames.iter().position(|f| f.truth.is_some_and(|t| t.instrument_px[0] > 400)).unwrap_or(0);
+            let mut points: Vec<RatePoint> =
+                std::fs::read_to_string(&out).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
+            for n in counts {
+                let mut cfg = file.tracker(w, h);
+                cfg.particles = n;
+                let res = track(
+                    &seq,
+                    &model,
+                    cfg,
+                    &RunOptions { first, count: frames + 1, start_joints: None, overlay: None, progress: &|_| {} },
+                )
+                .map_err(|e| e.to_string())?;
+                // The first frame initialises (and warms the caches): not counted.
+                let mut ms: Vec<f64> = res.iter().skip(1).filter(|r| r.step_ms > 0.0).map(|r| r.step_ms).collect();
+                let (med, _) = experiment::median_p95(&mut ms);
+                println!("{} {n} particles: median {med:.1} ms per frame = {:.2} fps", mode_name(cfg.mode), 1e3 / med);
+                points.retain(|p| !(p.mode == mode_name(cfg.mode) && p.particles == n));
+                points.push(RatePoint { mode: mode_name(cfg.mode).into(), particles: n, step_ms: med, fps: 1e3 / med });
+            }
+            points.sort_by(|a, b| (a.mode.as_str(), a.particles).cmp(&(b.mode.as_str(), b.particles)));
+            std::fs::write(&out, serde_json::to_string_pretty(&points).unwrap_or_default())
+                .map_err(|e| format!("{}: {e}", out.display()))
+        }
+        Command::Report { converge, rate, tail, plots } => {
+            std::fs::create_dir_all(&plots).map_err(|e| format!("{}: {e}", plots.display()))?;
+            let mut results = Vec::new();
+            for p in &converge {
+                let t = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+                let r: ConvergeResults = serde_json::from_str(&t).map_err(|e| format!("{}: {e}", p.display()))?;
+                println!("{}", serde_json::to_string(&experiment::summarise(&r, tail)).unwrap_or_default());
+                results.push(r);
+            }
+            if !results.is_empty() {
+                let frames = results.iter().flat_map(|r| r.trials.iter().map(|t| t.errors.len())).max().unwrap_or(1);
+                experiment::plot_convergence(&plots.join("convergence.svg"), &results, frames)
+                    .map_err(|e| e.to_string())?;
+            }
+            if let Some(p) = rate {
+                let t = std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))?;
+                let pts: Vec<RatePoint> = serde_json::from_str(&t).map_err(|e| format!("{}: {e}", p.display()))?;
+                experiment::plot_rate(&plots.join("rate.svg"), &pts).map_err(|e| e.to_string())?;
+            }
+            Ok(())
+        }
+    }
+}

@@ -1,0 +1,724 @@
+//! # Tool tracking: a particle filter over the tool arm's joints (issue 18)
+//!
+//! The method of *Vision-Based Surgical Tool Pose Estimation for the da Vinci® Robotic
+//! Surgical System* (Hao, Özgüner and Çavuşoğlu, IROS 2018) on our set-up, and ours. Pure
+//! maths: images come in as bytes, the estimate goes out as numbers; no I/O, no clock.
+//!
+//! ## The state and the models (`docs/tracking.md` maps every paper quantity)
+//! - **State** ([`Particle`]): the tool arm's six joints (the Achilles-type arm: three
+//!   motorised, the passive wrist's three; radians), the jaw angle (each jaw, radians: the
+//!   instrument's jaws are not encoded, so they are state, not input), and optionally the
+//!   correction of the camera-to-base transform `g_CB` (Eq. 17-18; a rotation vector and a
+//!   translation applied on the left of the left eye's `g_CB`).
+//! - **Motion** (Eq. 13): each joint moves by the encoders' increment since the previous
+//!   frame plus Gaussian noise of its own standard deviation; the jaw and `g_CB` by Gaussian
+//!   noise alone (a Brownian motion, the paper's footnote 1).
+//! - **Measurement**: [`Mode::Paper`]: Canny edges of both images, the virtual image of each
+//!   particle's silhouette (Algorithms 1-2), chamfer distance, `s = exp(−d/τ)`, `π =
+//!   sqrt(s_l² + s_r²)` (Eq. 14-16), resampling every frame (Algorithm 3). [`Mode::Ours`]:
+//!   the shaft's two contour lines in closed form plus the tip parts' precomputed candidate
+//!   edges, sampled and looked up in each eye's distance field (computed once per frame),
+//!   oriented (edge direction) and truncated (clutter, occlusion), annealed over a few layers,
+//!   the best hypothesis refined locally; all particles in parallel (rayon); no allocation per
+//!   frame after start-up.
+//! - **Status** ([`Status`]): `Tracking`, `Uncertain` (the particles' tip spread too wide),
+//!   `Lost` (the best hypothesis's cost above a threshold); after a few lost frames the
+//!   particles are re-initialised from the kinematics (the encoders' joints).
+//!
+//! A live process calls [`Tracker::step`] once per stereo frame.
+
+pub mod edges;
+pub mod measure;
+pub mod model;
+pub mod resample;
+
+use estimator::kinematics::JOINTS;
+use nalgebra::{Isometry3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use rayon::prelude::*;
+
+pub use edges::{EdgeField, ImageError};
+pub use measure::OursCost;
+pub use model::{ModelError, Part, PartMesh, StereoCameras, ToolGeometry, ToolModel};
+
+/// One hypothesis of the state.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Particle {
+    /// The tool arm's joints 1-6, radians (`docs/kinematics.md`).
+    pub joints: [f64; JOINTS],
+    /// Each jaw's opening, radians (≥ 0 open).
+    pub jaw_rad: f64,
+    /// Correction of `g_CB` (Eq. 17): rotation vector (radians) then translation (metres),
+    /// applied on the left of the left eye's `T_c_b`; zeros unless the augmentation is on.
+    pub camera_delta: [f64; 6],
+}
+
+/// Which measurement and filter.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    /// The paper's method, faithful (Algorithms 1-3, Eq. 6-16).
+    Paper,
+    /// Ours: analytic silhouettes, distance field once per frame, oriented truncated chamfer,
+    /// annealing, local refinement.
+    Ours,
+}
+
+/// The tracker's verdict on a frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub enum Status {
+    /// The best hypothesis fits and the particles agree.
+    Tracking,
+    /// The best hypothesis fits but the particles' tip spread exceeds
+    /// [`TrackerConfig::uncertain_spread_m`].
+    Uncertain,
+    /// The best hypothesis does not fit (likelihood collapse): no pose is published.
+    Lost,
+}
+
+/// The tracker's parameters (units in each field).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackerConfig {
+    /// Measurement and filter.
+    pub mode: Mode,
+    /// Particles.
+    pub particles: usize,
+    /// Image width and height, pixels (both eyes).
+    pub width: usize,
+    /// Image height, pixels.
+    pub height: usize,
+    /// Eq. 13's standard deviation of each joint's process noise per frame, radians.
+    pub joint_noise_rad: [f64; JOINTS],
+    /// Spread of the particles about the kinematics at (re-)initialisation, radians per joint.
+    pub init_spread_rad: [f64; JOINTS],
+    /// Jaw angle at (re-)initialisation, radians.
+    pub jaw_init_rad: f64,
+    /// The jaw's process noise per frame, radians.
+    pub jaw_noise_rad: f64,
+    /// `g_CB` augmentation (Eq. 17): process noise per frame `[rotation rad, translation m]`;
+    /// `None`: `g_CB` is taken as calibrated.
+    pub camera_noise: Option<[f64; 2]>,
+    /// The paper's sensitivity τ (Eq. 15), pixels; ours: the temperature of the last layer,
+    /// pixels of summed mean cost.
+    pub tau_px: f64,
+    /// Our measurement's parameters.
+    pub ours: OursCost,
+    /// Our edge threshold (Sobel magnitude, grey levels per pixel ×4).
+    pub edge_threshold: f32,
+    /// The paper's Canny thresholds (low, high), grey-level gradient.
+    pub canny_px: [f32; 2],
+    /// Ours: annealing layers after the first evaluation (0: none).
+    pub anneal_layers: usize,
+    /// Ours: coordinate-descent sweeps refining the best hypothesis (0: none).
+    pub refine_sweeps: usize,
+    /// Tip spread (weighted standard deviation of the particles' tip, metres) above which a
+    /// frame is `Uncertain`.
+    pub uncertain_spread_m: f64,
+    /// Best hypothesis's cost above which a frame is `Lost`, pixels (ours: mean sample cost per
+    /// eye; paper: mean chamfer distance per eye).
+    pub lost_cost_px: f64,
+    /// Consecutive lost frames after which the particles are re-initialised from the
+    /// kinematics.
+    pub reinit_after_lost: u32,
+    /// Ours: adaptive process noise `(good_px, max_scale)`: the motion noise is scaled by
+    /// `clamp(c / good_px, 1, √max_scale)²` where `c` is the previous frame's best cost per
+    /// eye (pixels): a poor fit explores more. `None`: fixed noise (the paper).
+    pub adaptive_noise: Option<(f64, f64)>,
+    /// Seed of the noise (runs are reproducible).
+    pub seed: u64,
+}
+
+impl TrackerConfig {
+    /// Defaults for `mode` on `width × height` images (tuned on seeds 2 and 3 of
+    /// `docs/tracking.md`).
+    pub fn new(mode: Mode, width: usize, height: usize) -> Self {
+        let (particles, anneal, refine, tau) = match mode {
+            Mode::Paper => (500, 0, 0, 3.0),
+            Mode::Ours => (1000, 2, 4, 1.0),
+        };
+        Self {
+            mode,
+            particles,
+            width,
+            height,
+            joint_noise_rad: [0.0005, 0.0005, 0.0005, 0.001, 0.001, 0.005],
+            init_spread_rad: [0.01, 0.01, 0.01, 0.02, 0.02, 0.05],
+            jaw_init_rad: 0.2,
+            jaw_noise_rad: 0.01,
+            camera_noise: None,
+            tau_px: tau,
+            ours: OursCost { truncate_px: 12.0, orientation_px: 3.0, shaft_samples: 24 },
+            edge_threshold: 60.0,
+            canny_px: [20.0, 50.0],
+            anneal_layers: anneal,
+            refine_sweeps: refine,
+            uncertain_spread_m: 0.004,
+            lost_cost_px: 7.0,
+            reinit_after_lost: 3,
+            adaptive_noise: match mode {
+                Mode::Paper => None,
+                Mode::Ours => Some((3.5, 16.0)),
+            },
+            seed: 1,
+        }
+    }
+
+    /// Checks every value; the error names the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        let nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        if self.particles == 0 || self.particles > 1_000_000 {
+            return Err(ConfigError("particles (1..=1000000)"));
+        }
+        if self.width < 3 || self.height < 3 || self.width > 8192 || self.height > 8192 {
+            return Err(ConfigError("width/height (3..=8192 pixels)"));
+        }
+        if !self.joint_noise_rad.iter().all(|&v| nonneg(v)) {
+            return Err(ConfigError("joint_noise_rad"));
+        }
+        if !self.init_spread_rad.iter().all(|&v| nonneg(v)) {
+            return Err(ConfigError("init_spread_rad"));
+        }
+        if !nonneg(self.jaw_init_rad) || !nonneg(self.jaw_noise_rad) {
+            return Err(ConfigError("jaw_init_rad/jaw_noise_rad"));
+        }
+        if let Some(c) = self.camera_noise
+            && !c.iter().all(|&v| nonneg(v))
+        {
+            return Err(ConfigError("camera_noise"));
+        }
+        if !pos(self.tau_px) {
+            return Err(ConfigError("tau_px"));
+        }
+        let o = &self.ours;
+        if !pos(o.truncate_px) || !nonneg(o.orientation_px) || o.shaft_samples < 2 {
+            return Err(ConfigError("ours (truncate_px > 0, orientation_px >= 0, shaft_samples >= 2)"));
+        }
+        if !(self.edge_threshold.is_finite() && self.edge_threshold >= 0.0) {
+            return Err(ConfigError("edge_threshold"));
+        }
+        if !(self.canny_px[0].is_finite() && self.canny_px[1].is_finite() && self.canny_px[0] <= self.canny_px[1]) {
+            return Err(ConfigError("canny_px (low <= high)"));
+        }
+        if self.anneal_layers > 8 || self.refine_sweeps > 32 {
+            return Err(ConfigError("anneal_layers (<= 8) / refine_sweeps (<= 32)"));
+        }
+        if !pos(self.uncertain_spread_m) {
+            return Err(ConfigError("uncertain_spread_m"));
+        }
+        if !pos(self.lost_cost_px) {
+            return Err(ConfigError("lost_cost_px"));
+        }
+        if let Some((g, m)) = self.adaptive_noise
+            && !(pos(g) && m.is_finite() && m >= 1.0)
+        {
+            return Err(ConfigError("adaptive_noise (good_px > 0, max_scale >= 1)"));
+        }
+        Ok(())
+    }
+}
+
+/// A configuration value out of range (the field named).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("tracker configuration: {0} out of range")]
+pub struct ConfigError(pub &'static str);
+
+/// One stereo frame's input.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInput<'a> {
+    /// The tool arm's joints from its encoders at the frame's mid-exposure time, radians.
+    pub encoder_rad: [f64; JOINTS],
+    /// The cameras at that time (`g_CB` from the endoscope arm's kinematics and the calibration).
+    pub cameras: StereoCameras,
+    /// Left and right sRGB images, row-major, 3 bytes a pixel, `width × height`.
+    pub rgb: [&'a [u8]; 2],
+}
+
+/// Why a frame was refused (the tracker's state is unchanged).
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum StepError {
+    /// An encoder joint is not finite.
+    #[error("encoder joint {0} is not finite")]
+    Encoder(usize),
+    /// The cameras are not finite or their intrinsics invalid.
+    #[error("cameras not finite or intrinsics invalid")]
+    Cameras,
+    /// An image has the wrong size.
+    #[error("{eye} image: {source}")]
+    Image {
+        /// `left` or `right`.
+        eye: &'static str,
+        /// The reason.
+        source: ImageError,
+    },
+    /// The encoders' joints are off the arm (its forward kinematics fails).
+    #[error("the encoders' joints are not a pose of the arm")]
+    Kinematics,
+}
+
+/// The tracked pose (every number finite).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackedPose {
+    /// `T_b_tip`: the tip (jaw pivot; axes of the arm's frame 6, `z` along the instrument) in
+    /// the tool arm's base frame, metres.
+    pub tip_in_base: Isometry3<f64>,
+    /// `T_c_tip`: the tip in the left camera frame (with the estimated `g_CB`), metres.
+    pub tip_in_camera: Isometry3<f64>,
+    /// Each jaw's opening, radians.
+    pub jaw_rad: f64,
+    /// The estimated joints, radians.
+    pub joints_rad: [f64; JOINTS],
+    /// The estimated `g_CB` correction (zeros without augmentation).
+    pub camera_delta: [f64; 6],
+}
+
+/// The result of one frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Estimate {
+    /// The verdict.
+    pub status: Status,
+    /// The best hypothesis's pose; `None` when `Lost`.
+    pub pose: Option<TrackedPose>,
+    /// Weighted standard deviation of the particles' tips, metres.
+    pub spread_m: f64,
+    /// The best hypothesis's cost, pixels (ours: mean sample cost per eye; paper: mean chamfer
+    /// distance per eye).
+    pub best_cost_px: f64,
+    /// Effective number of particles `1/Σw²` of the final weights.
+    pub effective_particles: f64,
+    /// `true` when the particles were re-initialised from the kinematics at this frame.
+    pub reinitialised: bool,
+}
+
+fn mix(a: u64, b: u64) -> u64 {
+    let mut z = a ^ b.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The particle filter. Buffers are allocated by [`Tracker::new`]; [`Tracker::step`] in
+/// [`Mode::Ours`] allocates nothing.
+#[derive(Debug)]
+pub struct Tracker {
+    cfg: TrackerConfig,
+    model: ToolModel,
+    particles: Vec<Particle>,
+    next: Vec<Particle>,
+    costs: Vec<f64>,
+    weights: Vec<f64>,
+    tips: Vec<Vector3<f64>>,
+    idx: Vec<usize>,
+    fields: [EdgeField; 2],
+    last_encoder: Option<[f64; JOINTS]>,
+    last_cost_px: f64,
+    frame: u64,
+    lost_run: u32,
+    rng: ChaCha8Rng,
+}
+
+impl Tracker {
+    /// A tracker for `model` with `cfg` (validated).
+    pub fn new(cfg: TrackerConfig, model: ToolModel) -> Result<Self, ConfigError> {
+        cfg.validate()?;
+        let n = cfg.particles;
+        let p0 = Particle { joints: [0.0; JOINTS], jaw_rad: cfg.jaw_init_rad, camera_delta: [0.0; 6] };
+        Ok(Self {
+            model,
+            particles: vec![p0; n],
+            next: vec![p0; n],
+            costs: vec![0.0; n],
+            weights: vec![0.0; n],
+            tips: vec![Vector3::zeros(); n],
+            idx: vec![0; n],
+            fields: [EdgeField::new(cfg.width, cfg.height), EdgeField::new(cfg.width, cfg.height)],
+            last_encoder: None,
+            last_cost_px: 0.0,
+            frame: 0,
+            lost_run: 0,
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            cfg,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &TrackerConfig {
+        &self.cfg
+    }
+
+    /// The model.
+    pub fn model(&self) -> &ToolModel {
+        &self.model
+    }
+
+    /// The current particles (after the last resampling).
+    pub fn particles(&self) -> &[Particle] {
+        &self.particles
+    }
+
+    /// Each eye's edge field of the last frame.
+    pub fn edge_fields(&self) -> &[EdgeField; 2] {
+        &self.fields
+    }
+
+    /// Puts the particles about `centre` (joints, radians) with the configured initial spread
+    /// (the first particle exactly at `centre`), the encoders reading `encoder_rad` now (the
+    /// next frame's increment is taken from it). Used at start-up from the kinematics, and by
+    /// the experiments from a perturbed start.
+    pub fn initialise(&mut self, centre: &[f64; JOINTS], encoder_rad: &[f64; JOINTS]) {
+        let seed = mix(self.cfg.seed, 0xA11C_E000 + self.frame);
+        let spread = self.cfg.init_spread_rad;
+        let jaw = self.cfg.jaw_init_rad;
+        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
+            let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
+            p.joints = *centre;
+            if i > 0 {
+                for (j, q) in p.joints.iter_mut().enumerate() {
+                    *q += spread[j] * r.sample::<f64, _>(StandardNormal);
+                }
+            }
+            p.jaw_rad = jaw;
+            p.camera_delta = [0.0; 6];
+        });
+        self.last_encoder = Some(*encoder_rad);
+        self.last_cost_px = 0.0;
+        self.lost_run = 0;
+    }
+
+    fn diffuse(&mut self, increment: &[f64; JOINTS], scale: f64, layer: u64) {
+        let seed = mix(mix(self.cfg.seed, self.frame), layer + 1);
+        let sig = self.cfg.joint_noise_rad;
+        let (jsig, cam) = (self.cfg.jaw_noise_rad, self.cfg.camera_noise);
+        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
+            let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
+            for j in 0..JOINTS {
+                p.joints[j] += increment[j] + scale * sig[j] * r.sample::<f64, _>(StandardNormal);
+            }
+            p.jaw_rad = (p.jaw_rad + scale * jsig * r.sample::<f64, _>(StandardNormal)).clamp(0.0, 1.2);
+            if let Some([sr, st]) = cam {
+                for k in 0..6 {
+                    let s = if k < 3 { sr } else { st };
+                    p.camera_delta[k] += scale * s * r.sample::<f64, _>(StandardNormal);
+                }
+            }
+        });
+    }
+
+    fn evaluate(&mut self, cams: &StereoCameras) {
+        let model = &self.model;
+        let fields = &self.fields;
+        let oc = self.cfg.ours;
+        let tau = self.cfg.tau_px;
+        match self.cfg.mode {
+            Mode::Ours => {
+                self.particles.par_iter().zip(self.costs.par_iter_mut()).zip(self.tips.par_iter_mut()).for_each(
+                    |((p, c), t)| {
+                        *c = measure::cost_ours(model, cams, fields, p, &oc);
+                        *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
+                    },
+                );
+            }
+            Mode::Paper => {
+                let (w, h) = (self.cfg.width, self.cfg.height);
+                self.particles
+                    .par_iter()
+                    .zip(self.costs.par_iter_mut())
+                    .zip(self.weights.par_iter_mut())
+                    .zip(self.tips.par_iter_mut())
+                    .for_each(|(((p, c), wt), t)| {
+                        VIRTUAL.with(|img| {
+                            let mut img = img.borrow_mut();
+                            img.resize(w * h, 0);
+                            let (pi, d) = measure::paper_score(model, cams, fields, p, tau, &mut img);
+                            *wt = pi;
+                            *c = d;
+                        });
+                        *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
+                    });
+            }
+        }
+    }
+
+    /// Ours: weights `exp(−(c − c_min)/τ)`; non-finite costs weigh zero.
+    fn weights_from_costs(&mut self, tau: f64) -> bool {
+        let cmin = self.costs.iter().copied().filter(|c| c.is_finite()).fold(f64::INFINITY, f64::min);
+        if !cmin.is_finite() {
+            return false;
+        }
+        for (w, &c) in self.weights.iter_mut().zip(&self.costs) {
+            *w = if c.is_finite() { (-(c - cmin) / tau).exp() } else { 0.0 };
+        }
+        true
+    }
+
+    fn resample(&mut self) -> bool {
+        let u0: f64 = self.rng.random::<f64>();
+        if resample::low_variance(&self.weights, u0, &mut self.idx).is_err() {
+            return false;
+        }
+        for (k, &i) in self.idx.iter().enumerate() {
+            self.next[k] = self.particles[i];
+        }
+        std::mem::swap(&mut self.particles, &mut self.next);
+        true
+    }
+
+    fn refine(&self, start: &Particle, start_cost: f64, cams: &StereoCameras) -> (Particle, f64) {
+        let mut best = *start;
+        let mut cost = start_cost;
+        let mut steps = [0.0; JOINTS + 1];
+        for (s, n) in steps.iter_mut().zip(&self.cfg.joint_noise_rad) {
+            *s = 2.0 * n;
+        }
+        steps[JOINTS] = 2.0 * self.cfg.jaw_noise_rad;
+        for _ in 0..self.cfg.refine_sweeps {
+            for (j, step) in steps.iter().enumerate() {
+                for sign in [1.0, -1.0] {
+                    let mut c = best;
+                    if j < JOINTS {
+                        c.joints[j] += sign * step;
+                    } else {
+                        c.jaw_rad = (c.jaw_rad + sign * step).clamp(0.0, 1.2);
+                    }
+                    let k = measure::cost_ours(&self.model, cams, &self.fields, &c, &self.cfg.ours);
+                    if k < cost {
+                        best = c;
+                        cost = k;
+                        break;
+                    }
+                }
+            }
+            for s in &mut steps {
+                *s *= 0.5;
+            }
+        }
+        (best, cost)
+    }
+
+    /// Processes one stereo frame: motion (the encoders' increment since the previous frame
+    /// plus noise), measurement, resampling, status. On error the state is unchanged.
+    /// Allocation-free in [`Mode::Ours`].
+    pub fn step(&mut self, input: &FrameInput<'_>) -> Result<Estimate, StepError> {
+        if let Some(j) = input.encoder_rad.iter().position(|v| !v.is_finite()) {
+            return Err(StepError::Encoder(j));
+        }
+        if !input.cameras.is_valid() {
+            return Err(StepError::Cameras);
+        }
+        let n_px = self.cfg.width * self.cfg.height * 3;
+        for (e, eye) in ["left", "right"].into_iter().enumerate() {
+            if input.rgb[e].len() != n_px {
+                return Err(StepError::Image {
+                    eye,
+                    source: ImageError::Size {
+                        len: input.rgb[e].len(),
+                        width: self.cfg.width,
+                        height: self.cfg.height,
+                        channels: 3,
+                    },
+                });
+            }
+        }
+        if self.model.instrument_in_base(&input.encoder_rad).is_none() {
+            return Err(StepError::Kinematics);
+        }
+        let cams = input.cameras;
+        // Edges, once per frame.
+        match self.cfg.mode {
+            Mode::Ours => {
+                let th = self.cfg.edge_threshold;
+                let [f0, f1] = &mut self.fields;
+                let (a, b) = rayon::join(|| f0.compute_ours(input.rgb[0], th), || f1.compute_ours(input.rgb[1], th));
+                a.and(b).map_err(|source| StepError::Image { eye: "left", source })?;
+            }
+            Mode::Paper => {
+                let (w, h) = (self.cfg.width as u32, self.cfg.height as u32);
+                let [lo, hi] = self.cfg.canny_px;
+                for (e, f) in self.fields.iter_mut().enumerate() {
+                    let grey: Vec<u8> = input.rgb[e]
+                        .chunks_exact(3)
+                        .map(|p| (0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2])) as u8)
+                        .collect();
+                    let img = image::GrayImage::from_raw(w, h, grey).ok_or(StepError::Image {
+                        eye: "left",
+                        source: ImageError::Size { len: 0, width: w as usize, height: h as usize, channels: 1 },
+                    })?;
+                    let edges = imageproc::edges::canny(&img, lo, hi);
+                    f.set_edges(edges.as_raw()).map_err(|source| StepError::Image { eye: "left", source })?;
+                }
+            }
+        }
+        // Motion (Eq. 13), or initialisation from the kinematics.
+        let mut reinitialised = false;
+        match self.last_encoder {
+            None => {
+                self.initialise(&input.encoder_rad, &input.encoder_rad);
+                reinitialised = true;
+            }
+            Some(prev) => {
+                let inc: [f64; JOINTS] = core::array::from_fn(|j| input.encoder_rad[j] - prev[j]);
+                let scale = match self.cfg.adaptive_noise {
+                    Some((good, max)) if self.last_cost_px.is_finite() => {
+                        (self.last_cost_px / good).clamp(1.0, max.sqrt()).powi(2)
+                    }
+                    Some((_, max)) => max,
+                    None => 1.0,
+                };
+                self.diffuse(&inc, scale, 0);
+            }
+        }
+        self.last_encoder = Some(input.encoder_rad);
+        self.evaluate(&cams);
+        let (best_i, best_cost) = match self.cfg.mode {
+            Mode::Ours => {
+                let layers = self.cfg.anneal_layers;
+                for l in 0..layers {
+                    let tau = self.cfg.tau_px * 2f64.powi((layers - l) as i32);
+                    if !self.weights_from_costs(tau) || !self.resample() {
+                        break;
+                    }
+                    self.diffuse(&[0.0; JOINTS], 0.5f64.powi(l as i32 + 1), l as u64 + 1);
+                    self.evaluate(&cams);
+                }
+                let ok = self.weights_from_costs(self.cfg.tau_px);
+                let bi = argmin(&self.costs);
+                if !ok { (bi, f64::INFINITY) } else { (bi, self.costs[bi]) }
+            }
+            Mode::Paper => {
+                let bi = argmax(&self.weights);
+                (bi, self.costs[bi])
+            }
+        };
+        // Spread and effective particles of the final weights.
+        let total: f64 = self.weights.iter().sum();
+        let (spread, ess) = if total > 0.0 && total.is_finite() {
+            let mut mean = Vector3::zeros();
+            for (w, t) in self.weights.iter().zip(&self.tips) {
+                mean += t * (w / total);
+            }
+            let mut var = 0.0;
+            let mut s2 = 0.0;
+            for (w, t) in self.weights.iter().zip(&self.tips) {
+                let wn = w / total;
+                var += wn * (t - mean).norm_squared();
+                s2 += wn * wn;
+            }
+            (var.sqrt(), 1.0 / s2)
+        } else {
+            (f64::INFINITY, 0.0)
+        };
+        // The best hypothesis, refined (ours).
+        let mut best = self.particles[best_i];
+        let mut best_cost = best_cost;
+        if self.cfg.mode == Mode::Ours && self.cfg.refine_sweeps > 0 && best_cost.is_finite() {
+            let (p, c) = self.refine(&best, best_cost, &cams);
+            best = p;
+            best_cost = c;
+            // The refined hypothesis replaces the worst particle.
+            let wi = argmax_cost(&self.costs);
+            self.particles[wi] = best;
+            self.costs[wi] = best_cost;
+            self.weights[wi] = self.weights[best_i].max(self.weights[wi]);
+        }
+        let per_eye = match self.cfg.mode {
+            Mode::Ours => best_cost / 2.0,
+            Mode::Paper => best_cost,
+        };
+        self.last_cost_px = per_eye;
+        let lost = !(per_eye.is_finite() && per_eye <= self.cfg.lost_cost_px);
+        let mut status = if lost {
+            Status::Lost
+        } else if spread > self.cfg.uncertain_spread_m {
+            Status::Uncertain
+        } else {
+            Status::Tracking
+        };
+        let pose = if lost { None } else { self.pose_of(&best, &cams) };
+        if pose.is_none() {
+            status = Status::Lost;
+        }
+        // Resample for the next frame.
+        if !self.resample() {
+            status = Status::Lost;
+        }
+        self.frame += 1;
+        if status == Status::Lost {
+            self.lost_run += 1;
+            if self.lost_run >= self.cfg.reinit_after_lost {
+                self.initialise(&input.encoder_rad, &input.encoder_rad);
+                reinitialised = true;
+            }
+        } else {
+            self.lost_run = 0;
+        }
+        Ok(Estimate {
+            status,
+            pose: if status == Status::Lost { None } else { pose },
+            spread_m: spread,
+            best_cost_px: per_eye,
+            effective_particles: ess,
+            reinitialised,
+        })
+    }
+
+    fn pose_of(&self, p: &Particle, cams: &StereoCameras) -> Option<TrackedPose> {
+        let tip = self.model.tip_in_base(&p.joints)?;
+        let eyes = cams.eyes_from_base(&p.camera_delta);
+        let cam = eyes[0] * tip;
+        let finite = |t: &Isometry3<f64>| {
+            t.translation.vector.iter().all(|v| v.is_finite()) && t.rotation.coords.iter().all(|v| v.is_finite())
+        };
+        (finite(&tip) && finite(&cam) && p.jaw_rad.is_finite()).then_some(TrackedPose {
+            tip_in_base: tip,
+            tip_in_camera: cam,
+            jaw_rad: p.jaw_rad,
+            joints_rad: p.joints,
+            camera_delta: p.camera_delta,
+        })
+    }
+
+    /// The cost (ours, pixels summed over both eyes) of one hypothesis on the last frame's edges.
+    pub fn cost_of(&self, p: &Particle, cams: &StereoCameras) -> f64 {
+        measure::cost_ours(&self.model, cams, &self.fields, p, &self.cfg.ours)
+    }
+}
+
+thread_local! {
+    static VIRTUAL: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+fn argmin(v: &[f64]) -> usize {
+    let mut bi = 0;
+    for (i, &c) in v.iter().enumerate() {
+        if c < v[bi] || !v[bi].is_finite() && c.is_finite() {
+            bi = i;
+        }
+    }
+    bi
+}
+
+fn argmax(v: &[f64]) -> usize {
+    let mut bi = 0;
+    for (i, &c) in v.iter().enumerate() {
+        if c > v[bi] {
+            bi = i;
+        }
+    }
+    bi
+}
+
+fn argmax_cost(v: &[f64]) -> usize {
+    let mut bi = 0;
+    for (i, &c) in v.iter().enumerate() {
+        if !c.is_finite() || c > v[bi] {
+            bi = i;
+            if !c.is_finite() {
+                break;
+            }
+        }
+    }
+    bi
+}

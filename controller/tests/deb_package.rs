@@ -19,15 +19,21 @@ use std::sync::OnceLock;
 use std::time::Instant;
 
 /// The binaries of the package and the workspace package that builds each.
-const BINARIES: [(&str, &str); 5] = [
+const BINARIES: [(&str, &str); 6] = [
     ("fulcrumd", "controller"),
     ("simrobot", "sim"),
     ("comanip-calib", "comanip-calib"),
     ("comanip-bench", "comanip-bench"),
     ("comanip-camera", "comanip-camera"),
+    ("comanip-track", "comanip-track"),
 ];
 
-const CONFFILES: [&str; 3] = ["/etc/comanip/fulcrumd.toml", "/etc/comanip/simrobot.toml", "/etc/comanip/camera.env"];
+const CONFFILES: [&str; 4] = [
+    "/etc/comanip/fulcrumd.toml",
+    "/etc/comanip/simrobot.toml",
+    "/etc/comanip/camera.env",
+    "/etc/comanip/comanip-track.toml",
+];
 
 fn workspace() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()

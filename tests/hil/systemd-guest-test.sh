@@ -125,13 +125,17 @@ check "watchdog restart after SIGSTOP (new MainPID, active, within 30 s)" wait_f
 check "journal: watchdog timeout" bash -c "journalctl -u fulcrumd -o cat | grep -q 'Watchdog timeout'"
 
 # --- Restart=on-failure after SIGKILL, seen by a subscriber as a Restart ------------------------
-runuser -u comanip -- /usr/bin/fulcrumd monitor --duration-s 20 --summary-json /tmp/monitor.json > /hilres/monitor.log 2>&1 &
+# The monitor runs until 5 s after the restart (SIGTERM, forwarded by runuser: the summary is
+# still written), however long the restart takes on a loaded host; 90 s at most.
+runuser -u comanip -- /usr/bin/fulcrumd monitor --duration-s 90 --summary-json /tmp/monitor.json > /hilres/monitor.log 2>&1 &
 mon=$!
 sleep 5
 pid=$(main_pid)
 kill -KILL "$pid"
 say "SIGKILL to $pid"
 check "restart after SIGKILL (new MainPID, active, within 30 s)" wait_for 30 new_pid_active "$pid"
+sleep 5
+kill -TERM "$mon" 2> /dev/null
 wait "$mon"
 say "monitor summary: $(cat /tmp/monitor.json 2>/dev/null)"
 check "the subscriber saw a Restart" python3 -c 'import json,sys; s=json.load(open("/tmp/monitor.json")); sys.exit(0 if s["restarts"] >= 1 and s["received"] > 0 else 1)'
@@ -166,6 +170,59 @@ say "frame monitor: $(tr -d '\n' < /tmp/frames.json 2>/dev/null)"
 journalctl -u comanip-camera -o short-monotonic --no-hostname > /hilres/journal-camera.txt
 check "systemctl stop comanip.target" timeout 60 systemctl stop comanip.target
 check "the target's members stopped with it" bash -c '! systemctl is-active -q fulcrumd && ! systemctl is-active -q comanip-camera'
+
+# --- on vcan0 with simrobot: READY only once the encoder nodes answer --------------------------
+# The robot PC's case: fulcrumd on a SocketCAN bus (vcan0 here; the initramfs loaded can, can-raw
+# and vcan), the encoder nodes played by `simrobot live`. A drop-in points the unit at vcan0 (what
+# an operator does with `systemctl edit fulcrumd`, or with bus.iface in the conffile) and gives
+# the start more time than the 30 s of the shipped unit, so that the check below (no READY while
+# the bus is silent) cannot be cut short by the start timeout.
+check "vcan0 created and up" bash -c 'ip link add dev vcan0 type vcan && ip link set up vcan0'
+mkdir -p /etc/systemd/system/fulcrumd.service.d
+cat > /etc/systemd/system/fulcrumd.service.d/vcan.conf <<'EOF'
+[Service]
+ExecStart=
+ExecStart=/usr/bin/fulcrumd --config /etc/comanip/fulcrumd.toml --iface vcan0
+TimeoutStartSec=120
+EOF
+systemctl daemon-reload
+systemctl reset-failed fulcrumd 2> /dev/null
+check "systemctl start --no-block fulcrumd (on vcan0, no simrobot yet)" systemctl start --no-block fulcrumd
+sleep 10
+vstate=$(systemctl show -p ActiveState --value fulcrumd)
+check "silent bus: still activating after 10 s (state: $vstate)" test "$vstate" = activating
+inv=$(systemctl show -p InvocationID --value fulcrumd)
+check "silent bus: no READY=1 sent" bash -c "! journalctl _SYSTEMD_INVOCATION_ID=$inv -o cat | grep -q 'READY=1 sent'"
+check "systemd-run simrobot live --iface vcan0" \
+    systemd-run --unit=comanip-simrobot --quiet /usr/bin/simrobot live --iface vcan0 --endless
+if check "fulcrumd active once simrobot answers (within 60 s)" wait_for 60 systemctl is-active -q fulcrumd; then
+    sim_t=$(systemctl show -p ExecMainStartTimestampMonotonic --value comanip-simrobot)
+    ready_t=$(systemctl show -p ActiveEnterTimestampMonotonic --value fulcrumd)
+    say "simrobot started at ${sim_t} us, fulcrumd active at ${ready_t} us (monotonic)"
+    check "READY only after simrobot started" test "${ready_t:-0}" -gt "${sim_t:-0}"
+    journalctl _SYSTEMD_INVOCATION_ID="$inv" -o cat | grep 'READY=1 sent' | sed 's/^/    /'
+    pid=$(main_pid)
+    check "no built-in simulated robot thread on vcan0" bash -c "! grep -qx fulcrumd-sim /proc/$pid/task/*/comm"
+    runuser -u comanip -- /usr/bin/fulcrumd monitor --duration-s 20 --summary-json /tmp/monitor-vcan.json \
+        > /hilres/monitor-vcan.log 2>&1
+    say "monitor summary (vcan0): $(tr -d '\n' < /tmp/monitor-vcan.json 2>/dev/null)"
+    check "samples from vcan0: valid, with insertions, no invalid flags, finite" python3 -c '
+import json, sys
+s = json.load(open("/tmp/monitor-vcan.json"))
+sys.exit(0 if s["received"] > 0 and s["valid"] > 0 and s["inside"] > 0
+         and s["valid_with_invalidating_flags"] == 0 and s["non_finite"] == 0 else 1)'
+else
+    systemctl status --no-pager -l fulcrumd | sed 's/^/    /'
+    journalctl -u fulcrumd -o cat --no-pager | tail -n 30 | sed 's/^/    /'
+    journalctl -u comanip-simrobot -o cat --no-pager | tail -n 20 | sed 's/^/    /'
+fi
+journalctl _SYSTEMD_INVOCATION_ID="$inv" -o short-monotonic --no-hostname > /hilres/journal-vcan.txt
+journalctl -u comanip-simrobot -o short-monotonic --no-hostname > /hilres/journal-simrobot.txt
+check "systemctl stop fulcrumd (vcan0)" timeout 30 systemctl stop fulcrumd
+systemctl stop comanip-simrobot 2> /dev/null
+rm -rf /etc/systemd/system/fulcrumd.service.d
+systemctl daemon-reload
+ip link del vcan0
 
 # --- purge ---------------------------------------------------------------------------------------
 check "dpkg --purge comanip" dpkg --purge comanip

@@ -12,7 +12,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use hw_io::ipc::{FrameHeader, FulcrumSample};
+use hw_io::ipc::{FrameHeader, FulcrumSample, TrackSample};
 
 fn which(program: &str) -> Option<PathBuf> {
     let path = std::env::var_os("PATH")?;
@@ -66,8 +66,14 @@ fn the_c_header_has_the_rust_layouts() {
         version, camera_id, sequence, run_id, timestamp_ns, exposure_ns, eyes, width, height, stride,
         pixel_format, payload_bytes, source_dropped);
     expected.extend(r2);
+    let (c3, r3) = fields!(TrackSample, "TrackSample":
+        version, status, sequence, run_id, frame_timestamp_ns, frame_sequence, published_ns, reasons,
+        calibration_source, calibration_sequence, calibration_run_id, tip_camera_m, tip_camera_wxyz, tip_base_m,
+        tip_base_wxyz, jaw_rad, spread_m, best_cost_px, camera_delta, frames_processed, frames_skipped,
+        frames_rejected, frames_invalid);
+    expected.extend(r3);
     let program = format!(
-        "#include <stddef.h>\n#include <stdio.h>\n#include \"comanip/messages.h\"\nint main(void) {{\n{c1}{c2}    return 0;\n}}\n"
+        "#include <stddef.h>\n#include <stdio.h>\n#include \"comanip/messages.h\"\nint main(void) {{\n{c1}{c2}{c3}    return 0;\n}}\n"
     );
     let dir = tempfile::tempdir().unwrap();
     let src = dir.path().join("layout.c");

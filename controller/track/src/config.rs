@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
+use hw_io::calib_files::TransformJson;
 use serde::Deserialize;
 use track::{Mode, TrackerConfig};
 
@@ -22,6 +23,42 @@ pub struct TrackFile {
     pub measurement: MeasurementSection,
     /// Filter and status.
     pub filter: FilterSection,
+    /// The camera rig and the starting camera-to-base transform (the live process).
+    pub rig: RigSection,
+}
+
+/// `[rig]`: what `comanip-track live` needs besides the frames and the bus: the stereo cameras,
+/// the hand-eye transform, the transform it starts from until a live calibration arrives, and
+/// the instrument's dimensions.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RigSection {
+    /// The left and right eyes' `camera_info` YAML files (`--cameras` overrides).
+    pub cameras: Option<[PathBuf; 2]>,
+    /// `T_f_c`: the left camera in the endoscope arm's flange frame, metres and unit quaternion
+    /// `[w, x, y, z]` (default: the simulated endoscope's).
+    pub hand_eye: TransformJson,
+    /// `T_b_e`: the endoscope arm's RCM frame in the tool arm's base frame, metres and unit
+    /// quaternion (the calibration), used until `comanip-calib live` publishes a valid one
+    /// (default: the simulated set-up's `rcm_in_tool_base`).
+    pub endoscope_in_tool_base: TransformJson,
+    /// The instrument's dimensions, metres (default: the simulated instrument's).
+    pub instrument: sim::endoscope::InstrumentGeometry,
+}
+
+impl Default for RigSection {
+    fn default() -> Self {
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        Self {
+            cameras: None,
+            hand_eye: TransformJson { translation_m: [-0.0025, 0.0, 0.0], quaternion_wxyz: [1.0, 0.0, 0.0, 0.0] },
+            endoscope_in_tool_base: TransformJson {
+                translation_m: [0.29, 0.0, 0.16],
+                quaternion_wxyz: [0.0, h, h, 0.0],
+            },
+            instrument: sim::endoscope::InstrumentGeometry::default(),
+        }
+    }
 }
 
 /// `[tool]`.
@@ -105,6 +142,7 @@ impl Default for TrackFile {
             noise: NoiseSection::default(),
             measurement: MeasurementSection::default(),
             filter: FilterSection::default(),
+            rig: RigSection::default(),
         }
     }
 }
@@ -159,6 +197,15 @@ impl TrackFile {
         }
         if !(3..=128).contains(&t.segments) {
             return Err(bad("tool.segments", "must be in 3..=128"));
+        }
+        for (key, x) in [("rig.hand_eye", &f.rig.hand_eye), ("rig.endoscope_in_tool_base", &f.rig.endoscope_in_tool_base)] {
+            let n2: f64 = x.quaternion_wxyz.iter().map(|v| v * v).sum();
+            if !(x.translation_m.iter().chain(&x.quaternion_wxyz).all(|v| v.is_finite()) && n2 > 1e-12) {
+                return Err(bad(key, "must be finite with a non-zero quaternion"));
+            }
+        }
+        if f.rig.instrument.mesh().is_err() {
+            return Err(bad("rig.instrument", "not a valid instrument (positive dimensions, wrist no wider than the shaft)"));
         }
         f.tracker(640, 480).validate().map_err(|e| ConfigFileError::Value {
             path: path.to_owned(),
@@ -257,6 +304,12 @@ mod tests {
         assert!(e.to_string().contains("lost_cost_px"), "{e}");
         let e = TrackFile::from_toml("[tool]\nbogus = 1\n", Path::new("x.toml")).unwrap_err();
         assert!(e.to_string().contains("bogus"), "{e}");
+        let e = TrackFile::from_toml(
+            "[rig]\nhand_eye = { translation_m = [0.0, 0.0, nan], quaternion_wxyz = [1.0, 0.0, 0.0, 0.0] }\n",
+            Path::new("x.toml"),
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("rig.hand_eye"), "{e}");
         let e = TrackFile::from_toml("particles = 0\n", Path::new("x.toml")).unwrap_err();
         assert!(e.to_string().contains("particles"), "{e}");
     }

@@ -73,9 +73,17 @@ pub struct Sequence {
 impl Sequence {
     /// `T_cl_b` (the paper's `g_CB`) for endoscope joints `q`.
     pub fn left_from_base(&self, q: &[f64; 4]) -> Isometry3<f64> {
-        let t_e_c = estimator::calib::rcm_arms::camera_pose(q, &self.hand_eye);
-        (self.ecm_in_tool_base * t_e_c).inverse()
+        left_from_base(&self.ecm_in_tool_base, &self.hand_eye, q)
     }
+}
+
+/// `T_cl_b` (the paper's `g_CB`, metres): the tool arm's base in the left camera frame, from
+/// `T_b_e` (the endoscope arm's RCM frame in the tool arm's base: the calibration), the
+/// hand-eye `T_f_c` and the endoscope arm's joints `q` (`[yaw rad, pitch rad, insertion m,
+/// roll rad]`). The offline run and the live process both use it.
+pub fn left_from_base(ecm_in_tool_base: &Isometry3<f64>, hand_eye: &Isometry3<f64>, q: &[f64; 4]) -> Isometry3<f64> {
+    let t_e_c = estimator::calib::rcm_arms::camera_pose(q, hand_eye);
+    (ecm_in_tool_base * t_e_c).inverse()
 }
 
 /// Why a sequence cannot be read.
@@ -147,7 +155,8 @@ struct FrameJson {
     left: Option<EyeJson>,
 }
 
-fn iso(t: &TransformJson) -> Isometry3<f64> {
+/// A transform of a calibration file as an isometry (metres).
+pub fn iso(t: &TransformJson) -> Isometry3<f64> {
     let [w, x, y, z] = t.quaternion_wxyz;
     Isometry3::from_parts(
         Translation3::from(Vector3::from(t.translation_m)),
@@ -159,7 +168,9 @@ fn read(path: &Path) -> Result<String, SequenceError> {
     std::fs::read_to_string(path).map_err(|e| SequenceError::File { path: path.to_owned(), message: e.to_string() })
 }
 
-fn interpolate<const N: usize>(samples: &[(u64, [f64; N])], t: u64) -> Option<[f64; N]> {
+/// The value of `samples` (time-ordered `(t_ns, value)`) at `t`, linearly interpolated between
+/// the two samples around it; `None` outside them or when they are more than [`MAX_GAP_NS`] apart.
+pub fn interpolate<const N: usize>(samples: &[(u64, [f64; N])], t: u64) -> Option<[f64; N]> {
     let j = samples.partition_point(|s| s.0 <= t);
     let a = samples.get(j.checked_sub(1)?)?;
     let b = samples.get(j)?;
@@ -169,6 +180,54 @@ fn interpolate<const N: usize>(samples: &[(u64, [f64; N])], t: u64) -> Option<[f
     let s = (t - a.0) as f64 / (b.0 - a.0).max(1) as f64;
     Some(core::array::from_fn(|k| a.1[k] + s * (b.1[k] - a.1[k])))
 }
+
+/// The two eyes' intrinsics and `T_cr_cl` (metres) from their `camera_info` YAML files.
+pub fn read_stereo(cameras: [&Path; 2]) -> Result<([Intrinsics; 2], Isometry3<f64>), SequenceError> {
+    let (lt, rt) = (read(cameras[0])?, read(cameras[1])?);
+    let stereo = hw_io::calib_files::parse_stereo_camera_info(&lt, &rt)
+        .map_err(|e| SequenceError::File { path: cameras[0].to_owned(), message: e.to_string() })?;
+    let r = stereo.rotation_right_left;
+    let rot = nalgebra::Matrix3::new(r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2]);
+    let right_from_left = Isometry3::from_parts(
+        Translation3::from(Vector3::from(stereo.translation_right_left_m)),
+        UnitQuaternion::from_matrix(&rot),
+    );
+    Ok(([stereo.left, stereo.right], right_from_left))
+}
+
+/// The rig of a simulated run, from its `truth.jsonl` header: the hand-eye `T_f_c`, the
+/// endoscope arm's RCM in the tool arm's base `T_b_e` (metres; an exact calibration) and the
+/// instrument's dimensions.
+pub fn read_truth_rig(
+    truth: &Path,
+) -> Result<(Isometry3<f64>, Isometry3<f64>, sim::endoscope::InstrumentGeometry), SequenceError> {
+    let text = read(truth)?;
+    let header: Header = serde_json::from_str(text.lines().next().unwrap_or_default())
+        .map_err(|e| SequenceError::File { path: truth.to_owned(), message: format!("header: {e}") })?;
+    Ok((iso(&header.config.camera.hand_eye), iso(&header.rcm_in_tool_base), header.config.instrument))
+}
+
+/// Both arms' joints from a candump log, in log order, stamped in nanoseconds on the log's clock
+/// (Unix time): the tool arm's complete cycles through fulcrumd's own acquisition
+/// (`controller::replay::replay_candump`, radians), the endoscope arm's node pairs
+/// (`controller::replay::endoscope_joints`, `[yaw rad, pitch rad, insertion m, roll rad]`).
+pub fn recorded_joints(candump: &Path, cfg: &controller::config::Config) -> Result<RecordedArms, SequenceError> {
+    let replay = controller::replay::replay_candump(candump, cfg)
+        .map_err(|source| SequenceError::Replay { path: candump.to_owned(), source })?;
+    let tool: Vec<(u64, [f64; 6])> = replay
+        .cycles
+        .iter()
+        .filter(|c| c.input.received_mask == 0b111 && c.output.joints_rad.iter().all(|v| v.is_finite()))
+        .map(|c| (c.sync_unix_us * 1000, c.output.joints_rad))
+        .collect();
+    let ecm = controller::replay::endoscope_joints(candump, &sim::endoscope_arm::EndoscopeArmConfig::default())
+        .map_err(|source| SequenceError::Replay { path: candump.to_owned(), source })?;
+    Ok((tool, ecm))
+}
+
+/// Both arms' recorded joints: the tool arm's `(t_ns, joints rad)` and the endoscope arm's
+/// `(t_ns, [yaw rad, pitch rad, insertion m, roll rad])`, time-ordered.
+pub type RecordedArms = (Vec<(u64, [f64; 6])>, Vec<(u64, [f64; 4])>);
 
 /// Reads a sequence: `frames_dir` (frames.txt, truth.jsonl), the candump log, the two eyes'
 /// camera_info files; `cfg` is fulcrumd's configuration (the tool arm's encoders and
@@ -194,15 +253,7 @@ pub fn read_sequence(
     if listed.is_empty() {
         return Err(SequenceError::NoFrames(index_path));
     }
-    let (lt, rt) = (read(cameras[0])?, read(cameras[1])?);
-    let stereo = hw_io::calib_files::parse_stereo_camera_info(&lt, &rt)
-        .map_err(|e| SequenceError::File { path: cameras[0].to_owned(), message: e.to_string() })?;
-    let r = stereo.rotation_right_left;
-    let rot = nalgebra::Matrix3::new(r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2]);
-    let right_from_left = Isometry3::from_parts(
-        Translation3::from(Vector3::from(stereo.translation_right_left_m)),
-        UnitQuaternion::from_matrix(&rot),
-    );
+    let (intrinsics, right_from_left) = read_stereo(cameras)?;
     let truth_path = frames_dir.join("truth.jsonl");
     let truth_text = read(&truth_path)?;
     let mut lines = truth_text.lines();
@@ -225,16 +276,7 @@ pub fn read_sequence(
             });
         }
     }
-    let replay = controller::replay::replay_candump(candump, cfg)
-        .map_err(|source| SequenceError::Replay { path: candump.to_owned(), source })?;
-    let tool: Vec<(u64, [f64; 6])> = replay
-        .cycles
-        .iter()
-        .filter(|c| c.input.received_mask == 0b111 && c.output.joints_rad.iter().all(|v| v.is_finite()))
-        .map(|c| (c.sync_unix_us * 1000, c.output.joints_rad))
-        .collect();
-    let ecm = controller::replay::endoscope_joints(candump, &sim::endoscope_arm::EndoscopeArmConfig::default())
-        .map_err(|source| SequenceError::Replay { path: candump.to_owned(), source })?;
+    let (tool, ecm) = recorded_joints(candump, cfg)?;
     let frames = listed
         .into_iter()
         .enumerate()
@@ -249,7 +291,7 @@ pub fn read_sequence(
         .collect();
     Ok(Sequence {
         frames,
-        intrinsics: [stereo.left, stereo.right],
+        intrinsics,
         right_from_left,
         hand_eye: iso(&header.config.camera.hand_eye),
         ecm_in_tool_base: iso(&header.rcm_in_tool_base),

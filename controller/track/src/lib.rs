@@ -6,11 +6,14 @@
 //! - [`config`]: the TOML configuration (`configs/comanip-track.toml`);
 //! - [`input`]: a recorded sequence, both arms' joints matched to the frames;
 //! - [`run`]: the model, one step per frame, the JSON lines;
+//! - [`live`]: the live process: frame service, bus, calibration in, [`hw_io::ipc::TrackSample`]s out;
 //! - [`overlay`]: the best hypothesis and the particle cloud drawn on both eyes;
 //! - [`experiment`]: convergence from perturbed starts, frame rate, plots.
 
 pub mod config;
 pub mod experiment;
 pub mod input;
+pub mod live;
+pub mod live_cli;
 pub mod overlay;
 pub mod run;

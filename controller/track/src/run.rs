@@ -39,7 +39,18 @@ pub fn build_model(
     tool: &ToolSection,
     cfg: &controller::config::Config,
 ) -> Result<ToolModel, RunError> {
-    let mut g = seq.instrument;
+    build_model_for(seq.instrument, tool, cfg)
+}
+
+/// The tracker's model of an instrument of dimensions `instrument` (metres), as configured in
+/// `tool`, on fulcrumd's arm `cfg` (the live process: the instrument's dimensions from its
+/// configuration).
+pub fn build_model_for(
+    instrument: sim::endoscope::InstrumentGeometry,
+    tool: &ToolSection,
+    cfg: &controller::config::Config,
+) -> Result<ToolModel, RunError> {
+    let mut g = instrument;
     g.segments = tool.segments;
     g.shaft_length_m = tool.shaft_modelled_m;
     let mesh = g.mesh().map_err(|e| RunError::Model(e.to_string()))?;
@@ -127,6 +138,27 @@ pub fn cameras(seq: &Sequence, ecm: &[f64; 4]) -> StereoCameras {
     }
 }
 
+/// One stereo frame through the tracker, as the offline run and the live process do it: the
+/// first frame initialises the particles about `start_joints` (default: the encoders' `enc`,
+/// radians), then [`Tracker::step`] with the cameras `cams` and the two eyes' sRGB images.
+pub fn step_frame(
+    tracker: &mut Tracker,
+    started: &mut bool,
+    start_joints: Option<[f64; 6]>,
+    enc: [f64; 6],
+    cams: StereoCameras,
+    rgb: [&[u8]; 2],
+) -> Result<track::Estimate, track::StepError> {
+    if !*started {
+        if let Some(j) = enc.iter().position(|v| !v.is_finite()) {
+            return Err(track::StepError::Encoder(j));
+        }
+        tracker.initialise(&start_joints.unwrap_or(enc), &enc);
+        *started = true;
+    }
+    tracker.step(&FrameInput { encoder_rad: enc, cameras: cams, rgb })
+}
+
 /// Where a run starts and what it writes.
 pub struct RunOptions<'a> {
     /// First frame (index into the sequence).
@@ -187,13 +219,8 @@ pub fn track(
             continue;
         };
         let cams = cameras(seq, &ecm);
-        if !started {
-            tracker.initialise(&opts.start_joints.unwrap_or(enc), &enc);
-            started = true;
-        }
-        let input = FrameInput { encoder_rad: enc, cameras: cams, rgb: [&l.rgb, &r.rgb] };
         let t0 = std::time::Instant::now();
-        let est = match tracker.step(&input) {
+        let est = match step_frame(&mut tracker, &mut started, opts.start_joints, enc, cams, [&l.rgb, &r.rgb]) {
             Ok(e) => e,
             Err(e) => {
                 tracing::warn!(frame = f.index, "frame refused: {e}");

@@ -5,6 +5,8 @@
  * - comanip_frame_header_t: the user header of the frame service
  *   "comanip/frames/endoscope", iceoryx2 type name "comanip::FrameHeader", 72 bytes,
  *   alignment 8; the payload is the frame's pixels as a slice of bytes (docs/frames.md).
+ * - TrackSample: comanip-track live's output, service "comanip/track", iceoryx2 type name
+ *   "comanip::TrackSample", 288 bytes, alignment 8 (docs/output.md, docs/tracking.md).
  *
  * Units and frames are in each field's comment. hw-io/tests/c_layout.rs compiles this header
  * and checks every offset, the sizes and the alignments against the Rust types, and that the
@@ -69,5 +71,51 @@ typedef struct {
 
 _Static_assert(sizeof(comanip_frame_header_t) == 72, "comanip_frame_header_t layout");
 _Static_assert(_Alignof(comanip_frame_header_t) == 8, "comanip_frame_header_t alignment");
+
+#define TRACK_SAMPLE_VERSION 1u
+#define TRACK_STATUS_INVALID 0u   /* input refused: see reasons; no pose */
+#define TRACK_STATUS_TRACKING 1u  /* pose valid */
+#define TRACK_STATUS_UNCERTAIN 2u /* pose is the best guess; spread above the limit */
+#define TRACK_STATUS_LOST 3u      /* no pose */
+#define TRACK_REASON_CALIBRATION_FROM_CONFIG (1u << 0)
+#define TRACK_REASON_CALIBRATION_DRIFT (1u << 1)
+#define TRACK_REASON_CALIBRATION_REFUSED (1u << 2)
+#define TRACK_REASON_TOOL_JOINTS_STALE (1u << 3)
+#define TRACK_REASON_ENDOSCOPE_JOINTS_STALE (1u << 4)
+#define TRACK_REASON_NOT_FINITE (1u << 5)
+#define TRACK_REASON_FRAME_FORMAT (1u << 6)
+#define TRACK_REASON_FRAME_HEADER (1u << 7)
+#define TRACK_REASON_TRACKER_REFUSED (1u << 8)
+#define TRACK_REASON_REINITIALISED (1u << 9)
+#define TRACK_REASON_SKIPPED_BEFORE (1u << 10)
+
+typedef struct TrackSample {
+    uint32_t version;              /*   0: TRACK_SAMPLE_VERSION */
+    uint32_t status;               /*   4: TRACK_STATUS_* */
+    uint64_t sequence;             /*   8: message number since the tracker started */
+    uint64_t run_id;               /*  16: random per tracker start */
+    uint64_t frame_timestamp_ns;   /*  24: the frame's mid-exposure time, ns */
+    uint64_t frame_sequence;       /*  32: the frame's sequence on the frame service */
+    uint64_t published_ns;         /*  40: CLOCK_MONOTONIC at publish, ns */
+    uint32_t reasons;              /*  48: TRACK_REASON_* bits */
+    uint32_t calibration_source;   /*  52: 0 configuration, 1 live calibration */
+    uint64_t calibration_sequence; /*  56: sequence of the CalibrationSample used */
+    uint64_t calibration_run_id;   /*  64: run_id of the CalibrationSample used */
+    double tip_camera_m[3];        /*  72: m, left camera frame */
+    double tip_camera_wxyz[4];     /*  96: unit quaternion, left camera frame */
+    double tip_base_m[3];          /* 128: m, tool arm base frame */
+    double tip_base_wxyz[4];       /* 152: unit quaternion, tool arm base frame */
+    double jaw_rad;                /* 184: rad, each jaw */
+    double spread_m;               /* 192: m, particles' tip spread; -1 undefined */
+    double best_cost_px;           /* 200: px per eye; -1 undefined */
+    double camera_delta[6];        /* 208: g_CB correction: rad (rotation vector), m */
+    uint64_t frames_processed;     /* 256: frames with a sample */
+    uint64_t frames_skipped;       /* 264: frames dropped for newer ones or lost */
+    uint64_t frames_rejected;      /* 272: frames with a corrupt header */
+    uint64_t frames_invalid;       /* 280: processed frames whose input was refused */
+} TrackSample;
+
+_Static_assert(sizeof(TrackSample) == 288, "TrackSample layout");
+_Static_assert(_Alignof(TrackSample) == 8, "TrackSample alignment");
 
 #endif /* COMANIP_MESSAGES_H */

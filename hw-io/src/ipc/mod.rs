@@ -30,7 +30,8 @@
 //! # Ok(()) }
 //! ```
 //!
-//! The live calibration publishes [`CalibrationSample`]s (`comanip-calib live`, issue 19).
+//! The live calibration publishes [`CalibrationSample`]s (`comanip-calib live`, issue 19); the
+//! live tool tracker [`TrackSample`]s (`comanip-track live`, issue 18).
 //!
 //! Camera frames have their own service shape (a `#[repr(C)]` [`FrameHeader`] followed by the
 //! pixels, zero-copy): [`FramePublisher`] and [`FrameSubscriber`], `docs/frames.md`.
@@ -48,6 +49,7 @@ mod message;
 mod publisher;
 mod service;
 mod subscriber;
+mod track;
 
 pub mod logging;
 
@@ -67,6 +69,7 @@ pub use logging::route_iceoryx2_logs_to_tracing;
 pub use message::{InvalidMessage, Message};
 pub use publisher::{CreateError, FulcrumPublisher, PublishError, Publisher};
 pub use service::{OpenError, PublisherOptions};
+pub use track::{DEFAULT_TRACK_SERVICE, TRACK_SAMPLE_VERSION, TrackReasons, TrackSample, TrackStatus};
 pub use subscriber::{
     ConnectError, FulcrumSubscriber, ReceiveCheck, Received, RecvError, Subscriber, SubscriberCounters, WaitError,
 };

@@ -1,0 +1,353 @@
+//! `comanip-track live`: the live loop ([`crate::live::run`]) on iceoryx2 and the bus, its
+//! status lines, summary and latency figures.
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use controller::process::{STOP, install_stop_handlers, write_json};
+use hw_io::ipc::{
+    CalibrationSample, FrameSubscriber, Publisher, PublisherOptions, Subscriber, TrackSample, TrackStatus,
+};
+
+use crate::config::TrackFile;
+use crate::input::{iso, read_stereo, read_truth_rig};
+use crate::live::{JointsAt, LiveCounters, LiveTracker, LoopOptions, RecordedJoints, Rig, run as run_loop};
+
+/// The command line of `comanip-track live` (see `main.rs` for each option's meaning).
+#[derive(Clone, Debug)]
+pub struct LiveArgs {
+    /// Left and right camera_info YAML (empty: the configuration's).
+    pub cameras: Vec<PathBuf>,
+    /// Joints from this candump log instead of the bus.
+    pub candump: Option<PathBuf>,
+    /// Frame time + this = the log's clock, nanoseconds.
+    pub candump_offset_ns: i64,
+    /// The rig from a simulated run's truth.jsonl header.
+    pub rig_from_truth: Option<PathBuf>,
+    /// Frame service.
+    pub frame_service: String,
+    /// Calibration service.
+    pub calibration_service: String,
+    /// Output service.
+    pub output_service: String,
+    /// Stop after this many frames.
+    pub frames: Option<u64>,
+    /// Idle timeout after the first frame, seconds.
+    pub idle_timeout_s: Option<f64>,
+    /// Seconds between status lines.
+    pub status_every_s: f64,
+    /// Summary JSON.
+    pub summary_json: Option<PathBuf>,
+    /// Every sample as JSON Lines.
+    pub samples_jsonl: Option<PathBuf>,
+}
+
+/// Why `comanip-track live` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LiveCliError {
+    /// A command-line or configuration problem.
+    #[error("{0}")]
+    Setup(String),
+    /// A file.
+    #[error(transparent)]
+    Input(#[from] crate::input::SequenceError),
+    /// The model.
+    #[error(transparent)]
+    Model(#[from] crate::run::RunError),
+    /// The tracker.
+    #[error(transparent)]
+    Build(#[from] crate::live::LiveBuildError),
+    /// Shared memory.
+    #[error("{what}: {message}")]
+    Ipc {
+        /// Which service.
+        what: &'static str,
+        /// Why.
+        message: String,
+    },
+    /// The loop.
+    #[error(transparent)]
+    Loop(#[from] crate::live::LiveError),
+    /// An output file.
+    #[error("{path}: {message}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        message: String,
+    },
+}
+
+/// A latency histogram: 0.1 ms bins up to 2 s (the last bin holds everything above).
+#[derive(Clone, Debug)]
+pub struct LatencyHistogram {
+    bins: Vec<u64>,
+    count: u64,
+    max_ns: u64,
+}
+
+impl Default for LatencyHistogram {
+    fn default() -> Self {
+        Self { bins: vec![0; 20_001], count: 0, max_ns: 0 }
+    }
+}
+
+impl LatencyHistogram {
+    /// Adds one latency, nanoseconds.
+    pub fn add(&mut self, ns: u64) {
+        let i = ((ns / 100_000) as usize).min(self.bins.len() - 1);
+        self.bins[i] += 1;
+        self.count += 1;
+        self.max_ns = self.max_ns.max(ns);
+    }
+
+    /// The `q` quantile (0..=1), milliseconds (upper edge of its bin); `None` when empty.
+    pub fn quantile_ms(&self, q: f64) -> Option<f64> {
+        if self.count == 0 {
+            return None;
+        }
+        let target = ((q * self.count as f64).ceil() as u64).clamp(1, self.count);
+        let mut seen = 0;
+        for (i, n) in self.bins.iter().enumerate() {
+            seen += n;
+            if seen >= target {
+                return Some((i + 1) as f64 * 0.1);
+            }
+        }
+        Some(self.max_ns as f64 * 1e-6)
+    }
+
+    /// `{count, p50_ms, p99_ms, max_ms}`.
+    pub fn summary(&self) -> LatencySummary {
+        LatencySummary {
+            count: self.count,
+            p50_ms: self.quantile_ms(0.5),
+            p99_ms: self.quantile_ms(0.99),
+            max_ms: (self.count > 0).then_some(self.max_ns as f64 * 1e-6),
+        }
+    }
+}
+
+/// Latency percentiles, milliseconds.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct LatencySummary {
+    /// Samples.
+    pub count: u64,
+    /// Median.
+    pub p50_ms: Option<f64>,
+    /// 99th percentile.
+    pub p99_ms: Option<f64>,
+    /// Largest.
+    pub max_ms: Option<f64>,
+}
+
+/// What `comanip-track live --summary-json` writes.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct LiveSummary {
+    /// Mode and particles.
+    pub mode: String,
+    /// Particles.
+    pub particles: usize,
+    /// Frame counters.
+    pub counters: LiveCounters,
+    /// Samples published.
+    pub published: u64,
+    /// Seconds from the first frame received to the last sample.
+    pub seconds: f64,
+    /// Frames tracked per second over that time.
+    pub processed_fps: f64,
+    /// Frame mid-exposure time → sample published (meaningful when the frames are stamped on
+    /// this machine's `CLOCK_MONOTONIC`, i.e. live; not for recorded timestamps).
+    pub frame_to_publish: LatencySummary,
+    /// Frame taken from the frame service → sample published (the tracker's own latency).
+    pub receive_to_publish: LatencySummary,
+    /// Whether any sample used a live calibration.
+    pub live_calibration_seen: bool,
+}
+
+fn new_run_id() -> u64 {
+    use std::hash::BuildHasher;
+    std::hash::RandomState::new().hash_one((std::time::SystemTime::now(), std::process::id(), "comanip-track"))
+}
+
+fn ipc_err(what: &'static str) -> impl Fn(&dyn std::fmt::Display) -> LiveCliError {
+    move |e| LiveCliError::Ipc { what, message: e.to_string() }
+}
+
+/// Builds the live tracker from the configuration and the command line.
+pub fn build(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs) -> Result<LiveTracker, LiveCliError> {
+    let cameras: [PathBuf; 2] = match (args.cameras.as_slice(), &file.rig.cameras) {
+        ([l, r], _) => [l.clone(), r.clone()],
+        ([], Some(c)) => c.clone(),
+        _ => {
+            return Err(LiveCliError::Setup(
+                "no cameras: give --cameras LEFT RIGHT or [rig] cameras in the configuration".into(),
+            ));
+        }
+    };
+    let (intrinsics, right_from_left) = read_stereo([&cameras[0], &cameras[1]])?;
+    let (hand_eye, ecm_in_tool_base, instrument) = match &args.rig_from_truth {
+        Some(t) => read_truth_rig(t)?,
+        None => (iso(&file.rig.hand_eye), iso(&file.rig.endoscope_in_tool_base), file.rig.instrument),
+    };
+    let model = crate::run::build_model_for(instrument, &file.tool, fcfg)?;
+    let cfg = file.tracker(intrinsics[0].width as usize, intrinsics[0].height as usize);
+    let rig = Rig { intrinsics, right_from_left, hand_eye };
+    Ok(LiveTracker::new(cfg, model, rig, ecm_in_tool_base, new_run_id())?)
+}
+
+fn open_jsonl(path: Option<&Path>) -> Result<Option<std::io::BufWriter<std::fs::File>>, LiveCliError> {
+    path.map(|p| {
+        std::fs::File::create(p)
+            .map(std::io::BufWriter::new)
+            .map_err(|e| LiveCliError::Write { path: p.to_owned(), message: e.to_string() })
+    })
+    .transpose()
+}
+
+/// One sample as a JSON object (the `--samples-jsonl` line).
+pub fn sample_json(s: &TrackSample, received_ns: u64) -> serde_json::Value {
+    serde_json::json!({
+        "sequence": s.sequence,
+        "status": s.status().map_or("UNKNOWN", TrackStatus::name),
+        "reasons": s.reasons().to_string(),
+        "frame_sequence": s.frame_sequence,
+        "frame_timestamp_ns": s.frame_timestamp_ns,
+        "received_ns": received_ns,
+        "published_ns": s.published_ns,
+        "calibration_source": s.calibration_source,
+        "calibration_sequence": s.calibration_sequence,
+        "tip_camera_m": s.tip_camera_m,
+        "tip_camera_wxyz": s.tip_camera_wxyz,
+        "tip_base_m": s.tip_base_m,
+        "tip_base_wxyz": s.tip_base_wxyz,
+        "jaw_rad": s.jaw_rad,
+        "spread_m": s.spread_m,
+        "best_cost_px": s.best_cost_px,
+        "frames_processed": s.frames_processed,
+        "frames_skipped": s.frames_skipped,
+        "frames_rejected": s.frames_rejected,
+        "frames_invalid": s.frames_invalid,
+    })
+}
+
+/// Runs `comanip-track live` until a stop condition (signal, `--frames`, idle timeout).
+pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs) -> Result<(), LiveCliError> {
+    let mut live = build(file, fcfg, args)?;
+    let mut joints: Box<dyn JointsAt> = match &args.candump {
+        Some(p) => Box::new(RecordedJoints::from_candump(p, fcfg, args.candump_offset_ns)?),
+        None => {
+            return Err(LiveCliError::Setup(
+                "joints from the bus: the passive bus listener is not merged yet; use --candump LOG".into(),
+            ));
+        }
+    };
+    install_stop_handlers();
+    let mut frames = FrameSubscriber::connect(&args.frame_service, &PublisherOptions::frames())
+        .map_err(|e| ipc_err("frame service")(&e))?;
+    let mut calibration = Subscriber::<CalibrationSample>::connect(&args.calibration_service)
+        .map_err(|e| ipc_err("calibration service")(&e))?;
+    let mut publisher = Publisher::<TrackSample>::create(&args.output_service, &PublisherOptions::default())
+        .map_err(|e| ipc_err("track service")(&e))?;
+    let cfg = *live.config();
+    tracing::info!(
+        mode = crate::run::mode_name(cfg.mode),
+        particles = cfg.particles,
+        width = cfg.width,
+        height = cfg.height,
+        frames = %args.frame_service,
+        output = %args.output_service,
+        "comanip-track live: waiting for frames; calibration from the configuration until {} publishes a valid one",
+        args.calibration_service
+    );
+    let mut jsonl = open_jsonl(args.samples_jsonl.as_deref())?;
+    let mut frame_lat = LatencyHistogram::default();
+    let mut recv_lat = LatencyHistogram::default();
+    let mut first: Option<Instant> = None;
+    let mut last = Instant::now();
+    let mut last_status = Instant::now();
+    let mut published = 0u64;
+    let mut live_calibration_seen = false;
+    let mut write_error: Option<String> = None;
+    let every = Duration::from_secs_f64(args.status_every_s.max(0.1));
+    let mut on_sample = |s: &TrackSample, received_ns: u64| {
+        let now = Instant::now();
+        first.get_or_insert(now);
+        last = now;
+        published += 1;
+        live_calibration_seen |= s.calibration_source == 1;
+        if s.frame_timestamp_ns > 0 {
+            frame_lat.add(s.published_ns.saturating_sub(s.frame_timestamp_ns));
+        }
+        recv_lat.add(s.published_ns.saturating_sub(received_ns));
+        if let Some(w) = jsonl.as_mut()
+            && let Err(e) = writeln!(w, "{}", sample_json(s, received_ns))
+        {
+            write_error.get_or_insert(e.to_string());
+        }
+        if now.duration_since(last_status) >= every {
+            last_status = now;
+            tracing::info!(
+                sample = s.sequence,
+                status = s.status().map_or("UNKNOWN", TrackStatus::name),
+                reasons = %s.reasons(),
+                processed = s.frames_processed,
+                skipped = s.frames_skipped,
+                rejected = s.frames_rejected,
+                invalid = s.frames_invalid,
+                "status"
+            );
+        }
+    };
+    let opts = LoopOptions {
+        max_frames: args.frames,
+        idle_timeout: args.idle_timeout_s.map(Duration::from_secs_f64),
+        stop: &STOP,
+    };
+    let result = run_loop(&mut live, &mut frames, &mut joints, &mut calibration, &mut publisher, &opts, &mut on_sample);
+    let counters = result?;
+    if let Some(mut w) = jsonl {
+        w.flush().map_err(|e| LiveCliError::Write {
+            path: args.samples_jsonl.clone().unwrap_or_default(),
+            message: e.to_string(),
+        })?;
+    }
+    if let Some(e) = write_error {
+        return Err(LiveCliError::Write { path: args.samples_jsonl.clone().unwrap_or_default(), message: e });
+    }
+    let seconds = first.map_or(0.0, |f| last.duration_since(f).as_secs_f64());
+    let summary = LiveSummary {
+        mode: crate::run::mode_name(cfg.mode).into(),
+        particles: cfg.particles,
+        counters,
+        published,
+        seconds,
+        processed_fps: if seconds > 0.0 { counters.processed.saturating_sub(1) as f64 / seconds } else { 0.0 },
+        frame_to_publish: frame_lat.summary(),
+        receive_to_publish: recv_lat.summary(),
+        live_calibration_seen,
+    };
+    tracing::info!(
+        processed = counters.processed,
+        skipped = counters.skipped,
+        rejected = counters.rejected,
+        invalid = counters.invalid,
+        tracking = counters.by_status[1],
+        uncertain = counters.by_status[2],
+        lost = counters.by_status[3],
+        fps = summary.processed_fps,
+        stopped_by_signal = STOP.load(Ordering::Relaxed),
+        "comanip-track live: stopped"
+    );
+    write_json(args.summary_json.as_deref(), &summary)
+        .map_err(|e| LiveCliError::Write { path: args.summary_json.clone().unwrap_or_default(), message: e.to_string() })?;
+    Ok(())
+}
+
+impl<J: JointsAt + ?Sized> JointsAt for Box<J> {
+    fn joints_at(&mut self, t_ns: u64) -> Result<crate::live::ArmJoints, crate::live::JointsError> {
+        (**self).joints_at(t_ns)
+    }
+}

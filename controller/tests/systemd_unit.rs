@@ -216,7 +216,8 @@ fn units_for_verify() -> Vec<(String, String)> {
         .map(|(name, text)| {
             let text = text
                 .replace("/usr/bin/fulcrumd ", &format!("{} ", env!("CARGO_BIN_EXE_fulcrumd")))
-                .replace("/usr/bin/comanip-camera ", "/bin/true ");
+                .replace("/usr/bin/comanip-camera ", "/bin/true ")
+                .replace("/usr/bin/comanip-track ", "/bin/true ");
             (name, text)
         })
         .collect()
@@ -315,6 +316,31 @@ fn companion_units_stay_off_the_loop_and_the_target_starts_the_set() {
     assert_eq!(one("User"), "comanip");
     assert_eq!(one("PrivateTmp"), "no", "iceoryx2's /tmp/iceoryx2 must be the host's");
     assert!(a.iter().any(|(s, k, v)| s == "Unit" && k == "PartOf" && v == "comanip.target"));
+
+    // The tracker: lower still, on the camera's CPU, no real-time, the bus but no IP.
+    let tracker = &units.iter().find(|(n, _)| n == "comanip-track.service").expect("comanip-track.service").1;
+    let t = assignments(tracker);
+    let tone = |key: &str| -> String {
+        let v: Vec<&str> =
+            t.iter().filter(|(s, k, _)| s == "Service" && k == key).map(|(_, _, v)| v.as_str()).collect();
+        assert_eq!(v.len(), 1, "comanip-track [Service] {key}= should appear once, found {v:?}");
+        v[0].to_string()
+    };
+    assert_eq!(tone("CPUAffinity"), "0", "off the loop's CPU (docs/realtime.md: the loop on CPU 1)");
+    assert!(tone("Nice").parse::<i32>().unwrap() >= one("Nice").parse::<i32>().unwrap(), "niced at least as the camera");
+    assert!(tone("CPUWeight").parse::<u32>().unwrap() < 100, "below the default weight 100");
+    assert_eq!(tone("RestrictRealtime"), "yes", "no SCHED_FIFO for the tracker");
+    assert!(t.iter().all(|(_, k, _)| k != "CPUSchedulingPolicy" && k != "LimitRTPRIO"));
+    assert_eq!(tone("User"), "comanip");
+    assert_eq!(tone("PrivateTmp"), "no", "iceoryx2's /tmp/iceoryx2 must be the host's");
+    assert!(tone("RestrictAddressFamilies").split_whitespace().any(|f| f == "AF_CAN"), "the passive bus socket");
+    assert!(t.iter().all(|(_, k, v)| !(k == "PrivateNetwork" && v == "yes")), "can0 is in the host's namespace");
+    assert_eq!(tone("IPAddressDeny"), "any");
+    assert_eq!(
+        tone("ExecStart"),
+        "/usr/bin/comanip-track live --config /etc/comanip/comanip-track.toml --fulcrumd-config /etc/comanip/fulcrumd.toml"
+    );
+    assert!(t.iter().any(|(s, k, v)| s == "Unit" && k == "PartOf" && v == "comanip.target"));
 
     let target = &units.iter().find(|(n, _)| n == "comanip.target").expect("comanip.target").1;
     let wants: Vec<String> = assignments(target)

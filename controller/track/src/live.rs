@@ -78,10 +78,22 @@ impl JointsError {
 
 /// Both arms' joints at a frame's time.
 pub trait JointsAt {
-    /// The joints at `t_ns`, a frame's mid-exposure time on the frame service's clock
-    /// (nanoseconds); an implementation on another clock converts. May block briefly until
-    /// the bus has passed `t_ns`. Allocation-free.
-    fn joints_at(&mut self, t_ns: u64) -> Result<ArmJoints, JointsError>;
+    /// The joints at `frame.timestamp_ns`, the frame's mid-exposure time on the frame service's
+    /// clock (nanoseconds); an implementation on another clock converts. May block briefly
+    /// until the bus has passed that time. Allocation-free.
+    fn joints_at(&mut self, frame: &FrameMeta) -> Result<ArmJoints, JointsError>;
+}
+
+/// How a frame maps to the recorded log's clock.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RecordedClock {
+    /// The frame's timestamp plus this offset, nanoseconds (0: the frames carry the log's clock,
+    /// as `comanip-camera images` plays a `simrobot generate` directory).
+    Offset(i64),
+    /// The recorded time of the frame's sequence number in a `frames.txt` (nanoseconds on the
+    /// log's clock; `sequence mod len`): frames played from that directory with any timing
+    /// (`comanip-camera images --paced [--repeat]`).
+    Index(Vec<u64>),
 }
 
 /// Both arms' joints recorded in a candump log, interpolated at a frame's time (the offline
@@ -90,25 +102,33 @@ pub trait JointsAt {
 pub struct RecordedJoints {
     tool: Vec<(u64, [f64; 6])>,
     endoscope: Vec<(u64, [f64; 4])>,
-    offset_ns: i64,
+    clock: RecordedClock,
 }
 
 impl RecordedJoints {
-    /// From recorded samples (time-ordered, nanoseconds on the log's clock); `offset_ns` is
-    /// added to a frame's time to get the log's clock (0 when the frames carry the log's
-    /// clock, as `comanip-camera images` plays a `simrobot generate` directory).
-    pub fn new(tool: Vec<(u64, [f64; 6])>, endoscope: Vec<(u64, [f64; 4])>, offset_ns: i64) -> Self {
-        Self { tool, endoscope, offset_ns }
+    /// From recorded samples (time-ordered, nanoseconds on the log's clock).
+    pub fn new(tool: Vec<(u64, [f64; 6])>, endoscope: Vec<(u64, [f64; 4])>, clock: RecordedClock) -> Self {
+        Self { tool, endoscope, clock }
     }
 
     /// Reads a candump log through fulcrumd's acquisition (`crate::input::recorded_joints`).
     pub fn from_candump(
         path: &std::path::Path,
         cfg: &controller::config::Config,
-        offset_ns: i64,
+        clock: RecordedClock,
     ) -> Result<Self, crate::input::SequenceError> {
         let (tool, endoscope) = crate::input::recorded_joints(path, cfg)?;
-        Ok(Self::new(tool, endoscope, offset_ns))
+        Ok(Self::new(tool, endoscope, clock))
+    }
+
+    /// The joints at `t` on the log's clock, nanoseconds.
+    pub fn at_log_time(&self, t: u64) -> Result<ArmJoints, JointsError> {
+        match (interpolate(&self.tool, t), interpolate(&self.endoscope, t)) {
+            (Some(tool_rad), Some(endoscope)) => Ok(ArmJoints { tool_rad, endoscope }),
+            (None, Some(_)) => Err(JointsError::ToolStale),
+            (Some(_), None) => Err(JointsError::EndoscopeStale),
+            (None, None) => Err(JointsError::BothStale),
+        }
     }
 
     /// The time span of the tool arm's readings, nanoseconds on the log's clock.
@@ -118,14 +138,17 @@ impl RecordedJoints {
 }
 
 impl JointsAt for RecordedJoints {
-    fn joints_at(&mut self, t_ns: u64) -> Result<ArmJoints, JointsError> {
-        let t = t_ns.saturating_add_signed(self.offset_ns);
-        match (interpolate(&self.tool, t), interpolate(&self.endoscope, t)) {
-            (Some(tool_rad), Some(endoscope)) => Ok(ArmJoints { tool_rad, endoscope }),
-            (None, Some(_)) => Err(JointsError::ToolStale),
-            (Some(_), None) => Err(JointsError::EndoscopeStale),
-            (None, None) => Err(JointsError::BothStale),
-        }
+    fn joints_at(&mut self, frame: &FrameMeta) -> Result<ArmJoints, JointsError> {
+        let t = match &self.clock {
+            RecordedClock::Offset(o) => frame.timestamp_ns.saturating_add_signed(*o),
+            RecordedClock::Index(times) => {
+                let Some(i) = usize::try_from(frame.sequence).ok().and_then(|s| s.checked_rem(times.len())) else {
+                    return Err(JointsError::BothStale);
+                };
+                times.get(i).copied().unwrap_or_default()
+            }
+        };
+        self.at_log_time(t)
     }
 }
 
@@ -531,7 +554,7 @@ impl LiveTracker {
         let (Some(left), Some(right)) = (frame.eye(0), frame.eye(1)) else {
             return self.refuse(Some(&meta), TrackReasons::FRAME_FORMAT | extra);
         };
-        let arms = match joints.joints_at(meta.timestamp_ns) {
+        let arms = match joints.joints_at(&meta) {
             Ok(a) => a,
             Err(e) => return self.refuse(Some(&meta), e.reasons() | extra),
         };
@@ -547,6 +570,7 @@ impl LiveTracker {
         if !cams.is_valid() {
             return self.refuse(Some(&meta), TrackReasons::NOT_FINITE | extra);
         }
+        let first = !self.started;
         let est = match step_frame(&mut self.tracker, &mut self.started, None, arms.tool_rad, cams, [left, right]) {
             Ok(e) => e,
             Err(StepError::Encoder(_) | StepError::Cameras) => {
@@ -556,7 +580,7 @@ impl LiveTracker {
             Err(StepError::Kinematics) => return self.refuse(Some(&meta), TrackReasons::TRACKER_REFUSED | extra),
         };
         let mut reasons = extra;
-        if est.reinitialised {
+        if est.reinitialised || first {
             reasons |= TrackReasons::REINITIALISED;
         }
         let mut s = self.base_sample(reasons);

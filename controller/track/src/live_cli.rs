@@ -13,7 +13,7 @@ use hw_io::ipc::{
 
 use crate::config::TrackFile;
 use crate::input::{iso, read_stereo, read_truth_rig};
-use crate::live::{JointsAt, LiveCounters, LiveTracker, LoopOptions, RecordedJoints, Rig, run as run_loop};
+use crate::live::{JointsAt, LiveCounters, LiveTracker, LoopOptions, RecordedClock, RecordedJoints, Rig, run as run_loop};
 
 /// The command line of `comanip-track live` (see `main.rs` for each option's meaning).
 #[derive(Clone, Debug)]
@@ -24,6 +24,8 @@ pub struct LiveArgs {
     pub candump: Option<PathBuf>,
     /// Frame time + this = the log's clock, nanoseconds.
     pub candump_offset_ns: i64,
+    /// Map frames to the log's clock by their sequence number in this frames.txt.
+    pub candump_frames_index: Option<PathBuf>,
     /// The rig from a simulated run's truth.jsonl header.
     pub rig_from_truth: Option<PathBuf>,
     /// Frame service.
@@ -233,11 +235,34 @@ pub fn sample_json(s: &TrackSample, received_ns: u64) -> serde_json::Value {
     })
 }
 
+/// The recorded mid-exposure times of a `frames.txt` (nanoseconds, in order).
+pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| LiveCliError::Setup(format!("{}: {e}", path.display())))?;
+    let mut times = Vec::new();
+    for line in text.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')) {
+        let t = line.split_whitespace().next().and_then(|t| t.parse::<u64>().ok()).ok_or_else(|| {
+            LiveCliError::Setup(format!("{}: not `t_mid_ns exposure_ns left right`: {line}", path.display()))
+        })?;
+        times.push(t);
+    }
+    if times.is_empty() {
+        return Err(LiveCliError::Setup(format!("{}: no frames listed", path.display())));
+    }
+    Ok(times)
+}
+
 /// Runs `comanip-track live` until a stop condition (signal, `--frames`, idle timeout).
 pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs) -> Result<(), LiveCliError> {
     let mut live = build(file, fcfg, args)?;
     let mut joints: Box<dyn JointsAt> = match &args.candump {
-        Some(p) => Box::new(RecordedJoints::from_candump(p, fcfg, args.candump_offset_ns)?),
+        Some(p) => {
+            let clock = match &args.candump_frames_index {
+                Some(index) => RecordedClock::Index(read_frame_times(index)?),
+                None => RecordedClock::Offset(args.candump_offset_ns),
+            };
+            Box::new(RecordedJoints::from_candump(p, fcfg, clock)?)
+        }
         None => {
             return Err(LiveCliError::Setup(
                 "joints from the bus: the passive bus listener is not merged yet; use --candump LOG".into(),
@@ -347,7 +372,7 @@ pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs)
 }
 
 impl<J: JointsAt + ?Sized> JointsAt for Box<J> {
-    fn joints_at(&mut self, t_ns: u64) -> Result<crate::live::ArmJoints, crate::live::JointsError> {
-        (**self).joints_at(t_ns)
+    fn joints_at(&mut self, frame: &hw_io::frame::FrameMeta) -> Result<crate::live::ArmJoints, crate::live::JointsError> {
+        (**self).joints_at(frame)
     }
 }

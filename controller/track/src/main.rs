@@ -97,6 +97,11 @@ enum Command {
         /// frames carry the log's clock, as `comanip-camera images` plays a recorded run).
         #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
         candump_offset_ns: i64,
+        /// Instead of an offset: a frame's time on the log's clock is the recorded time of its
+        /// sequence number in this frames.txt (frames played with `comanip-camera images
+        /// --paced`, stamped live).
+        #[arg(long, requires = "candump", conflicts_with = "candump_offset_ns")]
+        candump_frames_index: Option<PathBuf>,
         /// Take the rig (hand-eye, the endoscope arm in the tool arm's base, the instrument) from
         /// a simulated run's truth.jsonl header (an exact calibration) instead of the config.
         #[arg(long)]
@@ -295,6 +300,7 @@ fn run(cli: Cli) -> Result<(), String> {
             cameras,
             candump,
             candump_offset_ns,
+            candump_frames_index,
             rig_from_truth,
             frame_service,
             calibration_service,
@@ -311,6 +317,7 @@ fn run(cli: Cli) -> Result<(), String> {
                 cameras,
                 candump,
                 candump_offset_ns,
+                candump_frames_index,
                 rig_from_truth,
                 frame_service,
                 calibration_service,

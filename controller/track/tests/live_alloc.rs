@@ -1,0 +1,84 @@
+//! The live loop (`comanip_track::live::run`) in our mode allocates nothing per frame after
+//! start-up, in any thread: a counting global allocator watches steady-state frames delivered by
+//! an in-process source (in bursts, so that the newest-frame-wins path runs too), joints from
+//! the recorded log, samples into a pre-sized `Vec`.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code")]
+
+mod common;
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use comanip_track::live::{LiveTracker, LoopOptions, MemoryFrames, NoCalibration, RecordedClock, RecordedJoints, Rig, run};
+use hw_io::ipc::{TrackSample, TrackStatus};
+
+struct Counting;
+static COUNT: AtomicUsize = AtomicUsize::new(0);
+static ON: AtomicBool = AtomicBool::new(false);
+
+// SAFETY: forwards to the system allocator; only counts.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        if ON.load(Ordering::Relaxed) {
+            COUNT.fetch_add(1, Ordering::Relaxed);
+        }
+        // SAFETY: the caller's contract is forwarded.
+        unsafe { System.alloc(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        // SAFETY: the caller's contract is forwarded.
+        unsafe { System.dealloc(p, l) }
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
+        if ON.load(Ordering::Relaxed) {
+            COUNT.fetch_add(1, Ordering::Relaxed);
+        }
+        // SAFETY: the caller's contract is forwarded.
+        unsafe { System.realloc(p, l, n) }
+    }
+}
+
+#[global_allocator]
+static A: Counting = Counting;
+
+#[test]
+fn the_counter_sees_allocations_and_the_live_loop_allocates_nothing_per_frame() {
+    ON.store(true, Ordering::SeqCst);
+    let v: Vec<u64> = std::hint::black_box(vec![1, 2, 3]);
+    ON.store(false, Ordering::SeqCst);
+    assert!(COUNT.load(Ordering::SeqCst) >= 1 && v.len() == 3);
+
+    let dir = tempfile::tempdir().unwrap();
+    let run_dir = common::generate(dir.path());
+    let seq = common::sequence(&run_dir);
+    let fcfg = controller::config::Config::default();
+    let model = comanip_track::run::build_model(&seq, &comanip_track::config::ToolSection::default(), &fcfg).unwrap();
+    let mut c = track::TrackerConfig::new(track::Mode::Ours, 320, 240);
+    c.particles = 300;
+    let rig = Rig { intrinsics: seq.intrinsics, right_from_left: seq.right_from_left, hand_eye: seq.hand_eye };
+    let mut live = LiveTracker::new(c, model, rig, seq.ecm_in_tool_base, 1).unwrap();
+    let first = common::first_in_view(&seq);
+    let n = 14.min(seq.frames.len() - first);
+    let mut src = MemoryFrames::new(common::memory_frames(&seq, first..first + n), 2);
+    let mut joints =
+        RecordedJoints::from_candump(&run_dir.join("bus.log"), &fcfg, RecordedClock::Offset(0)).unwrap();
+    let mut out: Vec<TrackSample> = Vec::with_capacity(64);
+    let stop = AtomicBool::new(false);
+    let opts = LoopOptions { max_frames: None, idle_timeout: Some(std::time::Duration::ZERO), stop: &stop };
+    COUNT.store(0, Ordering::SeqCst);
+    let mut seen = 0usize;
+    // Start-up: the first two samples (rayon's pool starts, buffers warm); then count.
+    let counters = run(&mut live, &mut src, &mut joints, &mut NoCalibration, &mut out, &opts, &mut |_, _| {
+        seen += 1;
+        if seen == 2 {
+            ON.store(true, Ordering::SeqCst);
+        }
+    })
+    .unwrap();
+    ON.store(false, Ordering::SeqCst);
+    assert_eq!(COUNT.load(Ordering::SeqCst), 0, "allocations in {} steady-state frames", out.len() - 2);
+    assert!(out.len() >= 6, "{} samples", out.len());
+    assert!(counters.skipped >= 5, "the newest-frame-wins path ran: {counters:?}");
+    let posed = out.iter().filter(|s| s.status().is_some_and(TrackStatus::has_pose)).count();
+    assert!(posed >= out.len() / 2, "the frames were tracked ({posed} poses of {}), not refused", out.len());
+}

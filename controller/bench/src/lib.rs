@@ -7,6 +7,7 @@
 //! - [`bound`]: the motion-only bound of each true event;
 //! - [`report`]: aggregation, Markdown tables and the Table III consistency check;
 //! - [`plots`]: SVG figures (plotters);
+//! - [`isolation`]: the loop's timing alone and beside another process (A B A B …);
 //! - [`shaft`]: the shaft-detector benchmark on rendered frames (paper, ours, OpenCV peers).
 
 pub mod bound;
@@ -14,6 +15,7 @@ pub mod bus_loss;
 pub mod detection;
 pub mod families;
 pub mod ipc;
+pub mod isolation;
 pub mod plots;
 pub mod report;
 pub mod shaft;

@@ -5,6 +5,8 @@
 //! - `comanip-bench detection [--seeds 11,12,13,14] [--cycles 90] [--config fulcrumd.toml]`
 //! - `comanip-bench loop [--seconds 60]` — the daemon on its in-process simulated robot.
 //! - `comanip-bench ipc [--samples 20000]` — iceoryx2 latency between two processes.
+//! - `comanip-bench isolation --beside "<command>" [--pairs 4] [--seconds 20] [--loop-cpu 1]` —
+//!   the loop alone and beside a command, interleaved (`docs/tracking.md` "Isolation").
 //! - `comanip-bench shaft [--frames-per-family 14] [--tuning] [--peers] [--out DIR] [--figures DIR]`
 //!   — the shaft detectors (ours, the paper's, OpenCV peers) on rendered frames
 //!   (`docs/detection.md`).
@@ -53,6 +55,32 @@ enum Command {
     BusLoss(BusLossArgs),
     /// Shaft detectors on rendered endoscope frames: ours, the paper's, OpenCV peers.
     Shaft(ShaftArgs),
+    /// The loop's timing alone and beside another process, runs interleaved (A B A B ...).
+    Isolation(IsolationArgs),
+}
+
+#[derive(clap::Args)]
+struct IsolationArgs {
+    /// The command run beside the loop (`sh -c`, its own process group; apply the unit's
+    /// priority yourself: `taskset -c 0 nice -n 15 ...`).
+    #[arg(long)]
+    beside: String,
+    /// Pairs of runs (alone, beside), interleaved.
+    #[arg(long, default_value_t = 4)]
+    pairs: usize,
+    /// Seconds of loop per run.
+    #[arg(long, default_value_t = 20)]
+    seconds: u64,
+    /// Seconds between starting the command and starting the loop.
+    #[arg(long, default_value_t = 3.0)]
+    warm_up_s: f64,
+    /// The loop thread's CPU (fulcrumd's `[realtime] cpu_affinity`; docs/realtime.md: 1 on a
+    /// 2-core PC); negative: not pinned.
+    #[arg(long, default_value_t = 1, allow_hyphen_values = true)]
+    loop_cpu: i64,
+    /// Also write the runs as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -322,6 +350,38 @@ fn run_loop(a: &LoopArgs) -> Result<RunSummary, String> {
     daemon::run(opts, &STOP).map_err(|e| e.to_string())
 }
 
+fn isolation(a: &IsolationArgs) -> Result<String, String> {
+    let opts = comanip_bench::isolation::IsolationOptions {
+        beside: a.beside.clone(),
+        pairs: a.pairs,
+        seconds: a.seconds,
+        warm_up_s: a.warm_up_s,
+    };
+    let mut run_loop = |seconds: u64| {
+        let mut config = Config::default();
+        config.recorder.enabled = false;
+        config.output.service = format!("comanip-bench/{}/isolation", std::process::id());
+        if let Ok(cpu) = usize::try_from(a.loop_cpu) {
+            config.realtime.cpu_affinity = vec![cpu];
+        }
+        let config_toml = toml::to_string(&config).map_err(|e| e.to_string())?;
+        let opts = RunOptions { config, config_toml, max_cycles: Some(seconds * 1000), sim_seed: 1 };
+        daemon::run(opts, &STOP).map_err(|e| e.to_string())
+    };
+    let report = comanip_bench::isolation::run(&opts, &mut run_loop, &mut |r| {
+        eprintln!(
+            "comanip-bench isolation: run {} {}: {} overruns, period error p99.9 {:.0} µs, max {:.0} µs, CPU busy {:?}",
+            r.index, r.condition, r.overruns, r.period_error_us[2], r.period_error_us[3], r.cpu_busy
+        );
+    })
+    .map_err(|e| e.to_string())?;
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?)
+            .map_err(|e| format!("{}: {e}", p.display()))?;
+    }
+    Ok(report.markdown())
+}
+
 fn loop_markdown(s: &RunSummary) -> String {
     let t = &s.timing;
     let mut m = String::new();
@@ -488,6 +548,7 @@ fn main() -> ExitCode {
         Command::Families(a) => families(a).map(|r| Some(r.markdown())),
         Command::BusLoss(a) => bus_loss(a).map(|r| Some(r.markdown())),
         Command::Shaft(a) => shaft(a).map(Some),
+        Command::Isolation(a) => isolation(a).map(Some),
     };
     let printed = match &result {
         Ok(Some(report)) => hw_io::outln!("{report}"),

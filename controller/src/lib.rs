@@ -17,6 +17,7 @@
 //! `controller/calib` (`comanip-calib`).
 #![warn(missing_docs)]
 
+pub mod bus_listen;
 pub mod config;
 pub mod cycle;
 pub mod daemon;

@@ -17,14 +17,12 @@ use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
 use hw_io::can::candump::{CandumpReadError, CandumpReader};
-use hw_io::can::{CanFrame, SYNC_COB_ID};
 use hw_io::ipc::HealthFlags;
 use serde::Serialize;
 
+use crate::bus_listen::{CutCycle, CycleCutter, EndoscopeDecoder};
 use crate::config::{Config, LoadError};
-use crate::cycle::{
-    Acquisition, AcquisitionError, AcquisitionStats, CycleInput, CycleOutput, Estimation, EstimationError,
-};
+use crate::cycle::{AcquisitionError, AcquisitionStats, CycleInput, CycleOutput, Estimation, EstimationError};
 use crate::recorder::{ReadError, RecordingReader, parse_file_name};
 use crate::rt_loop::{CycleRecord, RECORD_KIND};
 
@@ -189,18 +187,16 @@ pub fn replay_candump(path: &Path, cfg: &Config) -> Result<LogReplay, ReplayErro
 }
 
 /// [`replay_candump`] on any reader. Times past the year 2554 (nanoseconds beyond `u64`) saturate.
+/// The log is cut into cycles by [`crate::bus_listen::CycleCutter`], the same cutter the live
+/// bus listener runs.
 pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogReplay, ReplayError> {
-    let mut acq = Acquisition::new(&cfg.bus.encoder, cfg.health)?.with_other_nodes(&cfg.bus.other_node_ids);
+    let mut cutter = CycleCutter::from_config(cfg)?;
     let mut est = estimation(cfg)?;
-    let deadline_us = u64::from(cfg.cycle.frame_deadline_us);
     let mut reader = CandumpReader::new(reader);
     let mut out = LogReplay::default();
-    // The open cycle's SYNC time, microseconds.
-    let mut open: Option<u64> = None;
-    let close = |acq: &mut Acquisition, est: &mut Estimation, sync_us: u64, end_us: u64, cycles: &mut Vec<LogCycle>| {
-        let input = acq.end_cycle(end_us.saturating_mul(1000), false);
-        let output = est.process(&input);
-        cycles.push(LogCycle { sync_unix_us: sync_us, input, output });
+    let push = |c: CutCycle, est: &mut Estimation, cycles: &mut Vec<LogCycle>| {
+        let output = est.process(&c.input);
+        cycles.push(LogCycle { sync_unix_us: c.sync_us, input: c.input, output });
     };
     loop {
         let rec = match reader.next_record() {
@@ -208,35 +204,14 @@ pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogRe
             Ok(None) => break,
             Err(source) => return Err(ReplayError::Candump { path: PathBuf::new(), source }),
         };
-        let frame: CanFrame = rec.timed.frame;
-        let t = rec.timed.unix_time_us;
-        let is_sync = !frame.is_extended() && frame.id().raw() == u32::from(SYNC_COB_ID);
-        if let Some(sync_us) = open
-            && (is_sync || t > sync_us.saturating_add(deadline_us))
-        {
-            close(&mut acq, &mut est, sync_us, sync_us.saturating_add(deadline_us), &mut out.cycles);
-            open = None;
-        }
-        if is_sync {
-            acq.start_cycle();
-            open = Some(t);
-            continue;
-        }
-        match open {
-            Some(sync_us) => {
-                acq.on_frame(&frame, t.saturating_mul(1000));
-                if acq.is_complete() {
-                    close(&mut acq, &mut est, sync_us, t, &mut out.cycles);
-                    open = None;
-                }
-            }
-            None => acq.on_frame_between_cycles(&frame, t.saturating_mul(1000)),
+        if let Some(c) = cutter.on_frame(&rec.timed.frame, rec.timed.unix_time_us) {
+            push(c, &mut est, &mut out.cycles);
         }
     }
-    if let Some(sync_us) = open {
-        close(&mut acq, &mut est, sync_us, sync_us.saturating_add(deadline_us), &mut out.cycles);
+    if let Some(c) = cutter.finish() {
+        push(c, &mut est, &mut out.cycles);
     }
-    out.acquisition = *acq.stats();
+    out.acquisition = *cutter.stats();
     out.lines = reader.line_number();
     Ok(out)
 }
@@ -245,34 +220,24 @@ pub fn replay_candump_reader(reader: impl BufRead, cfg: &Config) -> Result<LogRe
 /// candump log: each pair of its two nodes' TPDOs (less than 1 ms apart) decoded with the
 /// arm's encoder model `arm`, stamped with the later one's time (nanoseconds on the log's
 /// clock, Unix microseconds × 1000), in log order. Used by `comanip-calib from-run` and
-/// `comanip-track run`.
+/// `comanip-track run`; the decoding is [`crate::bus_listen::EndoscopeDecoder`], the same the
+/// live bus listener runs.
 pub fn endoscope_joints(
     path: &Path,
     arm: &sim::endoscope_arm::EndoscopeArmConfig,
 ) -> Result<Vec<(u64, [f64; 4])>, ReplayError> {
     let file = std::fs::File::open(path).map_err(|source| ReplayError::Open { path: path.to_owned(), source })?;
     let mut reader = CandumpReader::new(std::io::BufReader::new(file));
+    let mut decoder = EndoscopeDecoder::new(arm);
     let mut ecm: Vec<(u64, [f64; 4])> = Vec::new();
-    let mut pending: [Option<(u64, [i32; 2])>; 2] = [None, None];
     loop {
         let rec = match reader.next_record() {
             Ok(Some(r)) => r,
             Ok(None) => break,
             Err(source) => return Err(ReplayError::Candump { path: path.to_owned(), source }),
         };
-        let frame: CanFrame = rec.timed.frame;
-        if let Ok(hw_io::can::Message::Tpdo { node, counts }) = hw_io::can::Message::decode(&frame) {
-            let Some(k) = arm.node_ids.iter().position(|&n| n == node.get()) else { continue };
-            let t_ns = rec.timed.unix_time_us * 1000;
-            if let Some(slot) = pending.get_mut(k) {
-                *slot = Some((t_ns, counts));
-            }
-            if let [Some((t0, a)), Some((t1, b))] = pending
-                && t0.abs_diff(t1) < 1_000_000
-            {
-                ecm.push((t0.max(t1), arm.counts_to_joints(&[a[0], a[1], b[0], b[1]])));
-                pending = [None, None];
-            }
+        if let Some(s) = decoder.on_frame(&rec.timed.frame, rec.timed.unix_time_us.saturating_mul(1000)) {
+            ecm.push(s);
         }
     }
     Ok(ecm)

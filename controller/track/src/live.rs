@@ -7,8 +7,8 @@
 //! iceoryx2 and the bus in the process and on in-process inputs in the tests:
 //!
 //! - [`FrameSource`]: frames (the iceoryx2 [`FrameSubscriber`]; in tests [`MemoryFrames`]);
-//! - [`JointsAt`]: both arms' joints at a frame's time (the passive bus listener; a recorded
-//!   candump log, [`RecordedJoints`]);
+//! - [`JointsAt`]: both arms' joints at a frame's time ([`BusJoints`]: the passive bus
+//!   listener `controller::bus_listen`, on the bus or on a replayed candump log);
 //! - [`CalibrationSource`]: the newest calibration message (`Subscriber<CalibrationSample>`;
 //!   [`NoCalibration`]);
 //! - [`TrackSink`]: where samples go (`Publisher<TrackSample>`; a `Vec`).
@@ -39,7 +39,7 @@ use hw_io::ipc::{
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use track::{Status, StepError, StereoCameras, ToolModel, Tracker, TrackerConfig};
 
-use crate::input::{interpolate, left_from_base};
+use crate::input::left_from_base;
 use crate::run::step_frame;
 
 /// Both arms' joints at one instant.
@@ -84,9 +84,14 @@ pub trait JointsAt {
     fn joints_at(&mut self, frame: &FrameMeta) -> Result<ArmJoints, JointsError>;
 }
 
-/// How a frame maps to the recorded log's clock.
+/// How a frame's time maps to the bus clock (`CLOCK_REALTIME` nanoseconds on a live bus, the
+/// log's clock for a recorded one).
 #[derive(Clone, Debug, PartialEq)]
-pub enum RecordedClock {
+pub enum FrameClock {
+    /// Live: the frame's `CLOCK_MONOTONIC` time moved to `CLOCK_REALTIME`
+    /// (`controller::bus_listen::bus_time_ns` with
+    /// [`hw_io::frame::realtime_minus_monotonic_ns`], re-read every second).
+    Monotonic,
     /// The frame's timestamp plus this offset, nanoseconds (0: the frames carry the log's clock,
     /// as `comanip-camera images` plays a `simrobot generate` directory).
     Offset(i64),
@@ -96,59 +101,92 @@ pub enum RecordedClock {
     Index(Vec<u64>),
 }
 
-/// Both arms' joints recorded in a candump log, interpolated at a frame's time (the offline
-/// run's [`interpolate`]); the host tests' and replays' [`JointsAt`].
+/// Maps frames to the bus clock ([`FrameClock`]), keeping the clock offset of the live case.
 #[derive(Clone, Debug)]
-pub struct RecordedJoints {
-    tool: Vec<(u64, [f64; 6])>,
-    endoscope: Vec<(u64, [f64; 4])>,
-    clock: RecordedClock,
+pub struct ClockMap {
+    clock: FrameClock,
+    offset: Option<(i128, Instant)>,
 }
 
-impl RecordedJoints {
-    /// From recorded samples (time-ordered, nanoseconds on the log's clock).
-    pub fn new(tool: Vec<(u64, [f64; 6])>, endoscope: Vec<(u64, [f64; 4])>, clock: RecordedClock) -> Self {
-        Self { tool, endoscope, clock }
+impl ClockMap {
+    /// A map of `clock`.
+    pub fn new(clock: FrameClock) -> Self {
+        Self { clock, offset: None }
     }
 
-    /// Reads a candump log through fulcrumd's acquisition (`crate::input::recorded_joints`).
-    pub fn from_candump(
-        path: &std::path::Path,
-        cfg: &controller::config::Config,
-        clock: RecordedClock,
-    ) -> Result<Self, crate::input::SequenceError> {
-        let (tool, endoscope) = crate::input::recorded_joints(path, cfg)?;
-        Ok(Self::new(tool, endoscope, clock))
-    }
-
-    /// The joints at `t` on the log's clock, nanoseconds.
-    pub fn at_log_time(&self, t: u64) -> Result<ArmJoints, JointsError> {
-        match (interpolate(&self.tool, t), interpolate(&self.endoscope, t)) {
-            (Some(tool_rad), Some(endoscope)) => Ok(ArmJoints { tool_rad, endoscope }),
-            (None, Some(_)) => Err(JointsError::ToolStale),
-            (Some(_), None) => Err(JointsError::EndoscopeStale),
-            (None, None) => Err(JointsError::BothStale),
+    /// `frame`'s time on the bus clock, nanoseconds; `None` when it cannot be (an empty index,
+    /// out of range).
+    pub fn bus_time(&mut self, frame: &FrameMeta) -> Option<u64> {
+        match &self.clock {
+            FrameClock::Monotonic => {
+                let now = Instant::now();
+                let offset = match self.offset {
+                    Some((o, at)) if now.duration_since(at) < Duration::from_secs(1) => o,
+                    _ => {
+                        let o = hw_io::frame::realtime_minus_monotonic_ns();
+                        self.offset = Some((o, now));
+                        o
+                    }
+                };
+                controller::bus_listen::bus_time_ns(frame.timestamp_ns, offset)
+            }
+            FrameClock::Offset(o) => frame.timestamp_ns.checked_add_signed(*o),
+            FrameClock::Index(times) => {
+                let i = usize::try_from(frame.sequence).ok()?.checked_rem(times.len())?;
+                times.get(i).copied()
+            }
         }
     }
+}
 
-    /// The time span of the tool arm's readings, nanoseconds on the log's clock.
-    pub fn span_ns(&self) -> Option<(u64, u64)> {
-        Some((self.tool.first()?.0, self.tool.last()?.0))
+/// Both arms' joints from the passive bus listener (`controller::bus_listen`, its own
+/// SocketCAN socket or a replayed candump log): each arm's history read at the frame's time on
+/// the bus clock, with the listener's staleness rules (`Staleness::TOOL`, `ENDOSCOPE`). When
+/// the frame is newer than the newest tool sample, or no sample came yet (the listener has not
+/// caught up), it waits up to `catch_up` (1 ms sleeps; not at all once a replayed log ended).
+#[derive(Debug)]
+pub struct BusJoints {
+    listener: controller::bus_listen::ListenerThread,
+    clock: ClockMap,
+    catch_up: Duration,
+}
+
+impl BusJoints {
+    /// Reads `listener`'s histories, frames mapped by `clock`.
+    pub fn new(listener: controller::bus_listen::ListenerThread, clock: FrameClock, catch_up: Duration) -> Self {
+        Self { listener, clock: ClockMap::new(clock), catch_up }
+    }
+
+    /// The listener's counters.
+    pub fn stats(&self) -> controller::bus_listen::ListenStats {
+        self.listener.stats()
+    }
+
+    /// Stops the listener's thread.
+    pub fn stop(&mut self) {
+        self.listener.stop();
     }
 }
 
-impl JointsAt for RecordedJoints {
+impl JointsAt for BusJoints {
     fn joints_at(&mut self, frame: &FrameMeta) -> Result<ArmJoints, JointsError> {
-        let t = match &self.clock {
-            RecordedClock::Offset(o) => frame.timestamp_ns.saturating_add_signed(*o),
-            RecordedClock::Index(times) => {
-                let Some(i) = usize::try_from(frame.sequence).ok().and_then(|s| s.checked_rem(times.len())) else {
-                    return Err(JointsError::BothStale);
-                };
-                times.get(i).copied().unwrap_or_default()
-            }
-        };
-        self.at_log_time(t)
+        use controller::bus_listen::Staleness;
+        let t = self.clock.bus_time(frame).ok_or(JointsError::BothStale)?;
+        let start = Instant::now();
+        while self.listener.latest_ns().0.is_none_or(|l| l < t)
+            && !self.listener.ended()
+            && start.elapsed() < self.catch_up
+        {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        let tool = self.listener.tool_at(t, &Staleness::TOOL);
+        let ecm = self.listener.endoscope_at(t, &Staleness::ENDOSCOPE);
+        match (tool, ecm) {
+            (Ok(a), Ok(b)) => Ok(ArmJoints { tool_rad: a.joints, endoscope: b.joints }),
+            (Err(_), Ok(_)) => Err(JointsError::ToolStale),
+            (Ok(_), Err(_)) => Err(JointsError::EndoscopeStale),
+            (Err(_), Err(_)) => Err(JointsError::BothStale),
+        }
     }
 }
 

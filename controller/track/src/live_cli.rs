@@ -13,7 +13,7 @@ use hw_io::ipc::{
 
 use crate::config::TrackFile;
 use crate::input::{iso, read_stereo, read_truth_rig};
-use crate::live::{JointsAt, LiveCounters, LiveTracker, LoopOptions, RecordedClock, RecordedJoints, Rig, run as run_loop};
+use crate::live::{BusJoints, FrameClock, LiveCounters, LiveTracker, LoopOptions, Rig, run as run_loop};
 
 /// The command line of `comanip-track live` (see `main.rs` for each option's meaning).
 #[derive(Clone, Debug)]
@@ -26,6 +26,8 @@ pub struct LiveArgs {
     pub candump_offset_ns: i64,
     /// Map frames to the log's clock by their sequence number in this frames.txt.
     pub candump_frames_index: Option<PathBuf>,
+    /// The bus interface (default: fulcrumd's configuration's).
+    pub iface: Option<String>,
     /// The rig from a simulated run's truth.jsonl header.
     pub rig_from_truth: Option<PathBuf>,
     /// Frame service.
@@ -235,6 +237,51 @@ pub fn sample_json(s: &TrackSample, received_ns: u64) -> serde_json::Value {
     })
 }
 
+/// Both arms' joints through the passive bus listener (`controller::bus_listen`): on
+/// fulcrumd's bus (`[bus] iface` of its configuration, or `--iface`), frames on
+/// `CLOCK_MONOTONIC`; or a candump log replayed through the listener's `CanBus` input
+/// (`--candump`), frames mapped by `--candump-offset-ns` or `--candump-frames-index`.
+pub fn open_joints(fcfg: &controller::config::Config, args: &LiveArgs) -> Result<BusJoints, LiveCliError> {
+    use controller::bus_listen::{BusListener, ListenConfig, ListenerThread};
+    let mut lcfg = ListenConfig::from_daemon(fcfg);
+    let listen_err = |e: controller::bus_listen::ListenError| LiveCliError::Setup(format!("bus listener: {e}"));
+    match &args.candump {
+        Some(p) => {
+            let clock = match &args.candump_frames_index {
+                Some(index) => FrameClock::Index(read_frame_times(index)?),
+                None => FrameClock::Offset(args.candump_offset_ns),
+            };
+            // The whole log is read at once: keep all of it (10 minutes of the tool arm).
+            lcfg.history = REPLAY_HISTORY;
+            let bus = hw_io::can::ReplayBus::open(p, hw_io::can::Pacing::AsFastAsPossible)
+                .map_err(|e| LiveCliError::Setup(e.to_string()))?;
+            let listener = ListenerThread::spawn(BusListener::new(bus, &lcfg).map_err(listen_err)?).map_err(listen_err)?;
+            Ok(BusJoints::new(listener, clock, REPLAY_CATCH_UP))
+        }
+        None => {
+            let iface = args.iface.clone().unwrap_or_else(|| fcfg.bus.iface.clone());
+            if iface.is_empty() {
+                return Err(LiveCliError::Setup(
+                    "no bus: fulcrumd's configuration has [bus] iface = \"\" (its simulated robot); give --iface or --candump"
+                        .into(),
+                ));
+            }
+            let listener = ListenerThread::open(&iface, &lcfg).map_err(listen_err)?;
+            tracing::info!(iface = %iface, "listening to the bus (passive: nothing is sent)");
+            Ok(BusJoints::new(listener, FrameClock::Monotonic, CATCH_UP))
+        }
+    }
+}
+
+/// Tool-arm samples kept when a candump log is replayed (the whole log is read at once).
+pub const REPLAY_HISTORY: usize = 600_000;
+
+/// How long a frame waits for a replayed log to be read past its time.
+pub const REPLAY_CATCH_UP: Duration = Duration::from_secs(10);
+
+/// How long a frame waits for the live bus listener to pass its time.
+pub const CATCH_UP: Duration = Duration::from_millis(30);
+
 /// The recorded mid-exposure times of a `frames.txt` (nanoseconds, in order).
 pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
     let text = std::fs::read_to_string(path)
@@ -255,20 +302,7 @@ pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
 /// Runs `comanip-track live` until a stop condition (signal, `--frames`, idle timeout).
 pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs) -> Result<(), LiveCliError> {
     let mut live = build(file, fcfg, args)?;
-    let mut joints: Box<dyn JointsAt> = match &args.candump {
-        Some(p) => {
-            let clock = match &args.candump_frames_index {
-                Some(index) => RecordedClock::Index(read_frame_times(index)?),
-                None => RecordedClock::Offset(args.candump_offset_ns),
-            };
-            Box::new(RecordedJoints::from_candump(p, fcfg, clock)?)
-        }
-        None => {
-            return Err(LiveCliError::Setup(
-                "joints from the bus: the passive bus listener is not merged yet; use --candump LOG".into(),
-            ));
-        }
-    };
+    let mut joints = open_joints(fcfg, args)?;
     install_stop_handlers();
     let mut frames = FrameSubscriber::connect(&args.frame_service, &PublisherOptions::frames())
         .map_err(|e| ipc_err("frame service")(&e))?;
@@ -369,10 +403,4 @@ pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs)
     write_json(args.summary_json.as_deref(), &summary)
         .map_err(|e| LiveCliError::Write { path: args.summary_json.clone().unwrap_or_default(), message: e.to_string() })?;
     Ok(())
-}
-
-impl<J: JointsAt + ?Sized> JointsAt for Box<J> {
-    fn joints_at(&mut self, frame: &hw_io::frame::FrameMeta) -> Result<crate::live::ArmJoints, crate::live::JointsError> {
-        (**self).joints_at(frame)
-    }
 }

@@ -90,7 +90,12 @@ enum Command {
         /// `[rig] cameras`).
         #[arg(long, num_args = 2, value_names = ["LEFT", "RIGHT"])]
         cameras: Vec<PathBuf>,
-        /// Both arms' joints from a recorded candump log instead of the bus (replays, tests).
+        /// The bus interface the passive listener opens (default: fulcrumd's configuration's
+        /// `[bus] iface`).
+        #[arg(long, conflicts_with = "candump")]
+        iface: Option<String>,
+        /// Both arms' joints from a recorded candump log replayed through the bus listener
+        /// instead of the bus (replays, tests).
         #[arg(long)]
         candump: Option<PathBuf>,
         /// Added to each frame's timestamp to get the candump log's clock, nanoseconds (0: the
@@ -301,6 +306,7 @@ fn run(cli: Cli) -> Result<(), String> {
             candump,
             candump_offset_ns,
             candump_frames_index,
+            iface,
             rig_from_truth,
             frame_service,
             calibration_service,
@@ -318,6 +324,7 @@ fn run(cli: Cli) -> Result<(), String> {
                 candump,
                 candump_offset_ns,
                 candump_frames_index,
+                iface,
                 rig_from_truth,
                 frame_service,
                 calibration_service,

@@ -1,7 +1,7 @@
 //! The live loop (`comanip_track::live::run`) in our mode allocates nothing per frame after
 //! start-up, in any thread: a counting global allocator watches steady-state frames delivered by
 //! an in-process source (in bursts, so that the newest-frame-wins path runs too), joints from
-//! the recorded log, samples into a pre-sized `Vec`.
+//! the passive bus listener replaying the recorded log, samples into a pre-sized `Vec`.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code")]
 
 mod common;
@@ -9,7 +9,7 @@ mod common;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-use comanip_track::live::{LiveTracker, LoopOptions, MemoryFrames, NoCalibration, RecordedClock, RecordedJoints, Rig, run};
+use comanip_track::live::{LiveTracker, LoopOptions, MemoryFrames, NoCalibration, Rig, run};
 use hw_io::ipc::{TrackSample, TrackStatus};
 
 struct Counting;
@@ -60,8 +60,7 @@ fn the_counter_sees_allocations_and_the_live_loop_allocates_nothing_per_frame() 
     let first = common::first_in_view(&seq);
     let n = 14.min(seq.frames.len() - first);
     let mut src = MemoryFrames::new(common::memory_frames(&seq, first..first + n), 2);
-    let mut joints =
-        RecordedJoints::from_candump(&run_dir.join("bus.log"), &fcfg, RecordedClock::Offset(0)).unwrap();
+    let mut joints = common::bus_joints(&run_dir);
     let mut out: Vec<TrackSample> = Vec::with_capacity(64);
     let stop = AtomicBool::new(false);
     let opts = LoopOptions { max_frames: None, idle_timeout: Some(std::time::Duration::ZERO), stop: &stop };
@@ -80,5 +79,6 @@ fn the_counter_sees_allocations_and_the_live_loop_allocates_nothing_per_frame() 
     assert!(out.len() >= 6, "{} samples", out.len());
     assert!(counters.skipped >= 5, "the newest-frame-wins path ran: {counters:?}");
     let posed = out.iter().filter(|s| s.status().is_some_and(TrackStatus::has_pose)).count();
-    assert!(posed >= out.len() / 2, "the frames were tracked ({posed} poses of {}), not refused", out.len());
+    let reasons: Vec<String> = out.iter().map(|s| format!("{:?} {}", s.status(), s.reasons())).collect();
+    assert!(posed >= out.len() / 2, "the frames were tracked ({posed} poses of {}), not refused: {reasons:?}", out.len());
 }

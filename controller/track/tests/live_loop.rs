@@ -13,8 +13,8 @@ use std::sync::atomic::AtomicBool;
 
 use comanip_track::input::Sequence;
 use comanip_track::live::{
-    ArmJoints, CalibrationPoll, CalibrationSource, Incoming, JointsAt, JointsError, LiveTracker, LoopOptions,
-    MemoryFrames, NoCalibration, RecordedClock, RecordedJoints, Rig, run,
+    ArmJoints, BusJoints, CalibrationPoll, CalibrationSource, Incoming, JointsAt, JointsError, LiveTracker, LoopOptions,
+    MemoryFrames, NoCalibration, Rig, run,
 };
 use hw_io::frame::FrameMeta;
 use hw_io::ipc::FrameHeaderError;
@@ -46,9 +46,8 @@ fn live(seq: &Sequence) -> LiveTracker {
     LiveTracker::new(c, model, rig, seq.ecm_in_tool_base, 99).unwrap()
 }
 
-fn joints(f: &Fixture) -> RecordedJoints {
-    RecordedJoints::from_candump(&f.run.join("bus.log"), &controller::config::Config::default(), RecordedClock::Offset(0))
-        .unwrap()
+fn joints(f: &Fixture) -> BusJoints {
+    common::bus_joints(&f.run)
 }
 
 fn pose(p: [f64; 3], q: [f64; 4]) -> Isometry3<f64> {
@@ -128,7 +127,7 @@ fn every_frame_is_accounted_for_the_newest_wins_and_the_poses_follow_the_truth()
 }
 
 /// Joints from the log, NaN for one frame.
-struct NanAt(RecordedJoints, u64);
+struct NanAt(BusJoints, u64);
 
 impl JointsAt for NanAt {
     fn joints_at(&mut self, frame: &FrameMeta) -> Result<ArmJoints, JointsError> {

@@ -100,3 +100,18 @@ pub fn memory_frames(seq: &Sequence, range: std::ops::Range<usize>) -> Vec<Incom
 pub fn first_in_view(seq: &Sequence) -> usize {
     seq.frames.iter().position(|f| f.truth.is_some_and(|t| t.instrument_px[0] > 400)).unwrap()
 }
+
+/// Both arms' joints through the passive bus listener replaying the run's candump log, frames
+/// on the log's clock.
+pub fn bus_joints(run: &Path) -> comanip_track::live::BusJoints {
+    use controller::bus_listen::{BusListener, ListenConfig, ListenerThread};
+    let mut cfg = ListenConfig::from_daemon(&controller::config::Config::default());
+    cfg.history = comanip_track::live_cli::REPLAY_HISTORY;
+    let bus = hw_io::can::ReplayBus::open(run.join("bus.log"), hw_io::can::Pacing::AsFastAsPossible).unwrap();
+    let listener = ListenerThread::spawn(BusListener::new(bus, &cfg).unwrap()).unwrap();
+    comanip_track::live::BusJoints::new(
+        listener,
+        comanip_track::live::FrameClock::Offset(0),
+        comanip_track::live_cli::REPLAY_CATCH_UP,
+    )
+}

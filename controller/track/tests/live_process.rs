@@ -10,7 +10,8 @@ mod common;
 
 use std::io::BufRead as _;
 use std::process::{Command, Stdio};
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, mpsc};
 use std::time::{Duration, Instant};
 
 use hw_io::ipc::{Subscriber, TrackSample};
@@ -34,7 +35,25 @@ fn the_live_process_tracks_a_paced_frame_stream_and_accounts_for_every_frame() {
     std::fs::write(&cfg, "mode = \"ours\"\nparticles = 150\n[filter]\nanneal_layers = 1\n").unwrap();
     let summary = dir.path().join("summary.json");
     let samples = dir.path().join("samples.jsonl");
-    let mut sub = Subscriber::<TrackSample>::connect(&osvc).unwrap();
+    // A subscriber of the output on its own thread, reading while the tracker runs (a sample
+    // buffered for a publisher that has exited is gone with it).
+    let done = Arc::new(AtomicBool::new(false));
+    let (ready_tx, ready_rx) = mpsc::channel();
+    let sub_thread = {
+        let (osvc, done) = (osvc.clone(), Arc::clone(&done));
+        std::thread::spawn(move || {
+            let mut sub = Subscriber::<TrackSample>::connect(&osvc).unwrap();
+            ready_tx.send(()).unwrap();
+            let mut got = Vec::new();
+            while !done.load(Ordering::Relaxed) {
+                if let Some(r) = sub.wait(Duration::from_millis(50)).unwrap() {
+                    got.push(r.sample);
+                }
+            }
+            (got, sub.counters())
+        })
+    };
+    ready_rx.recv().unwrap();
 
     let mut tracker = Command::new(env!("CARGO_BIN_EXE_comanip-track"))
         .args(["live", "--idle-timeout-s", "3", "--status-every-s", "1"])
@@ -137,13 +156,11 @@ fn the_live_process_tracks_a_paced_frame_stream_and_accounts_for_every_frame() {
     let (median, _) = comanip_track::experiment::median_p95(&mut errs);
     assert!(median < 3.0, "median tip error {median:.2} mm after convergence");
     // The same samples over iceoryx2: each checked by the subscriber (no NaN marked valid).
-    let mut received = 0;
-    let mut last = None;
-    while let Some(r) = sub.try_recv().unwrap() {
-        received += 1;
-        last = Some(r.sample);
-    }
-    assert!(received >= 1, "nothing received over iceoryx2");
-    assert_eq!(last.unwrap().frames_processed, processed);
+    done.store(true, Ordering::Relaxed);
+    let (got, counters) = sub_thread.join().unwrap();
+    assert_eq!(counters.rejected, 0, "a sample broke its invariants");
+    assert_eq!(got.len() as u64 + counters.missed, processed, "every sample received or counted as missed");
+    assert!(!got.is_empty(), "nothing received over iceoryx2");
+    assert_eq!(got.last().unwrap().frames_processed, processed);
     assert!(s["receive_to_publish"]["count"].as_u64().unwrap() == processed);
 }

@@ -358,6 +358,8 @@ fn isolation(a: &IsolationArgs) -> Result<String, String> {
         warm_up_s: a.warm_up_s,
     };
     let mut run_loop = |seconds: u64| {
+        // The daemon's shutdown sets the stop flag: clear it for the next run.
+        STOP.store(false, std::sync::atomic::Ordering::Relaxed);
         let mut config = Config::default();
         config.recorder.enabled = false;
         config.output.service = format!("comanip-bench/{}/isolation", std::process::id());

@@ -327,7 +327,10 @@ fn companion_units_stay_off_the_loop_and_the_target_starts_the_set() {
         v[0].to_string()
     };
     assert_eq!(tone("CPUAffinity"), "0", "off the loop's CPU (docs/realtime.md: the loop on CPU 1)");
-    assert!(tone("Nice").parse::<i32>().unwrap() >= one("Nice").parse::<i32>().unwrap(), "niced at least as the camera");
+    assert!(
+        tone("Nice").parse::<i32>().unwrap() >= one("Nice").parse::<i32>().unwrap(),
+        "niced at least as the camera"
+    );
     assert!(tone("CPUWeight").parse::<u32>().unwrap() < 100, "below the default weight 100");
     assert_eq!(tone("RestrictRealtime"), "yes", "no SCHED_FIFO for the tracker");
     assert!(t.iter().all(|(_, k, _)| k != "CPUSchedulingPolicy" && k != "LimitRTPRIO"));

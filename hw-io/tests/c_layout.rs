@@ -107,13 +107,11 @@ fn the_c_header_has_the_rust_layouts() {
 #[test]
 fn the_docs_quote_the_header() {
     let header = std::fs::read_to_string(manifest().join("include/comanip/messages.h")).unwrap();
-    for (doc, after) in
-        [
-            ("../docs/output.md", "## C and C++ subscribers"),
-            ("../docs/output.md", "### The tracker's message: `TrackSample`"),
-            ("../docs/frames.md", "## The frame header"),
-        ]
-    {
+    for (doc, after) in [
+        ("../docs/output.md", "## C and C++ subscribers"),
+        ("../docs/output.md", "### The tracker's message: `TrackSample`"),
+        ("../docs/frames.md", "## The frame header"),
+    ] {
         let text = std::fs::read_to_string(manifest().join(doc)).unwrap();
         let from = text.find(after).unwrap_or_else(|| panic!("{doc}: no section {after:?}"));
         let start = text[from..].find("```c\n").map(|i| from + i + 5).unwrap_or_else(|| panic!("{doc}: no C block"));

@@ -133,7 +133,11 @@ pub fn machine() -> String {
     let cpus = std::thread::available_parallelism().map_or(0, std::num::NonZeroUsize::get);
     let model = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|t| t.lines().find(|l| l.starts_with("model name")).map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string()))
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
+        })
         .unwrap_or_else(|| "unknown CPU".into());
     format!("{cpus} vCPU, {model}")
 }
@@ -150,15 +154,20 @@ fn spawn(command: &str) -> Result<Child, IsolationError> {
         .map_err(|source| IsolationError::Spawn { command: command.to_string(), source })
 }
 
-/// Stops the command's whole process group: SIGTERM, up to 3 s, then SIGKILL.
+/// Stops the command's whole process group: SIGTERM, up to 3 s for every member to end, then
+/// SIGKILL.
 fn stop(child: &mut Child) {
     let Ok(pgid) = i32::try_from(child.id()) else { return };
     // SAFETY: kill(2) on the process group this module created (`process_group(0)`: its id is
     // the child's pid); no memory is involved.
     unsafe { libc::kill(-pgid, libc::SIGTERM) };
+    // Wait for the whole group (not only the shell) to go, so that its members can finish
+    // (write their summaries); the shell itself is reaped as it ends.
     let deadline = Instant::now() + Duration::from_secs(3);
     while Instant::now() < deadline {
-        if matches!(child.try_wait(), Ok(Some(_))) {
+        let _ = child.try_wait();
+        // SAFETY: signal 0 only asks whether a member of the group still exists.
+        if unsafe { libc::kill(-pgid, 0) } != 0 {
             break;
         }
         std::thread::sleep(Duration::from_millis(50));
@@ -300,8 +309,11 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap_or_default();
         let marker = dir.join("child.pid");
         // A shell whose child ignores SIGTERM: the SIGKILL of the group must end it too.
-        let mut c = spawn(&format!("sh -c 'trap \"\" TERM; echo $$ > {}; while :; do sleep 0.05; done' & wait", marker.display()))
-            .unwrap_or_else(|e| panic!("{e}"));
+        let mut c = spawn(&format!(
+            "sh -c 'trap \"\" TERM; echo $$ > {}; while :; do sleep 0.05; done' & wait",
+            marker.display()
+        ))
+        .unwrap_or_else(|e| panic!("{e}"));
         let t0 = Instant::now();
         while !marker.exists() && t0.elapsed() < Duration::from_secs(5) {
             std::thread::sleep(Duration::from_millis(20));

@@ -198,14 +198,19 @@ impl TrackFile {
         if !(3..=128).contains(&t.segments) {
             return Err(bad("tool.segments", "must be in 3..=128"));
         }
-        for (key, x) in [("rig.hand_eye", &f.rig.hand_eye), ("rig.endoscope_in_tool_base", &f.rig.endoscope_in_tool_base)] {
+        for (key, x) in
+            [("rig.hand_eye", &f.rig.hand_eye), ("rig.endoscope_in_tool_base", &f.rig.endoscope_in_tool_base)]
+        {
             let n2: f64 = x.quaternion_wxyz.iter().map(|v| v * v).sum();
             if !(x.translation_m.iter().chain(&x.quaternion_wxyz).all(|v| v.is_finite()) && n2 > 1e-12) {
                 return Err(bad(key, "must be finite with a non-zero quaternion"));
             }
         }
         if f.rig.instrument.mesh().is_err() {
-            return Err(bad("rig.instrument", "not a valid instrument (positive dimensions, wrist no wider than the shaft)"));
+            return Err(bad(
+                "rig.instrument",
+                "not a valid instrument (positive dimensions, wrist no wider than the shaft)",
+            ));
         }
         f.tracker(640, 480).validate().map_err(|e| ConfigFileError::Value {
             path: path.to_owned(),

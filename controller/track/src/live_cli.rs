@@ -181,7 +181,11 @@ fn ipc_err(what: &'static str) -> impl Fn(&dyn std::fmt::Display) -> LiveCliErro
 }
 
 /// Builds the live tracker from the configuration and the command line.
-pub fn build(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs) -> Result<LiveTracker, LiveCliError> {
+pub fn build(
+    file: &TrackFile,
+    fcfg: &controller::config::Config,
+    args: &LiveArgs,
+) -> Result<LiveTracker, LiveCliError> {
     let cameras: [PathBuf; 2] = match (args.cameras.as_slice(), &file.rig.cameras) {
         ([l, r], _) => [l.clone(), r.clone()],
         ([], Some(c)) => c.clone(),
@@ -255,7 +259,8 @@ pub fn open_joints(fcfg: &controller::config::Config, args: &LiveArgs) -> Result
             lcfg.history = REPLAY_HISTORY;
             let bus = hw_io::can::ReplayBus::open(p, hw_io::can::Pacing::AsFastAsPossible)
                 .map_err(|e| LiveCliError::Setup(e.to_string()))?;
-            let listener = ListenerThread::spawn(BusListener::new(bus, &lcfg).map_err(listen_err)?).map_err(listen_err)?;
+            let listener =
+                ListenerThread::spawn(BusListener::new(bus, &lcfg).map_err(listen_err)?).map_err(listen_err)?;
             Ok(BusJoints::new(listener, clock, REPLAY_CATCH_UP))
         }
         None => {
@@ -284,8 +289,7 @@ pub const CATCH_UP: Duration = Duration::from_millis(30);
 
 /// The recorded mid-exposure times of a `frames.txt` (nanoseconds, in order).
 pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| LiveCliError::Setup(format!("{}: {e}", path.display())))?;
+    let text = std::fs::read_to_string(path).map_err(|e| LiveCliError::Setup(format!("{}: {e}", path.display())))?;
     let mut times = Vec::new();
     for line in text.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#')) {
         let t = line.split_whitespace().next().and_then(|t| t.parse::<u64>().ok()).ok_or_else(|| {
@@ -400,7 +404,9 @@ pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs)
         stopped_by_signal = STOP.load(Ordering::Relaxed),
         "comanip-track live: stopped"
     );
-    write_json(args.summary_json.as_deref(), &summary)
-        .map_err(|e| LiveCliError::Write { path: args.summary_json.clone().unwrap_or_default(), message: e.to_string() })?;
+    write_json(args.summary_json.as_deref(), &summary).map_err(|e| LiveCliError::Write {
+        path: args.summary_json.clone().unwrap_or_default(),
+        message: e.to_string(),
+    })?;
     Ok(())
 }

@@ -80,5 +80,9 @@ fn the_counter_sees_allocations_and_the_live_loop_allocates_nothing_per_frame() 
     assert!(counters.skipped >= 5, "the newest-frame-wins path ran: {counters:?}");
     let posed = out.iter().filter(|s| s.status().is_some_and(TrackStatus::has_pose)).count();
     let reasons: Vec<String> = out.iter().map(|s| format!("{:?} {}", s.status(), s.reasons())).collect();
-    assert!(posed >= out.len() / 2, "the frames were tracked ({posed} poses of {}), not refused: {reasons:?}", out.len());
+    assert!(
+        posed >= out.len() / 2,
+        "the frames were tracked ({posed} poses of {}), not refused: {reasons:?}",
+        out.len()
+    );
 }

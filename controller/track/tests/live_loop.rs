@@ -13,8 +13,8 @@ use std::sync::atomic::AtomicBool;
 
 use comanip_track::input::Sequence;
 use comanip_track::live::{
-    ArmJoints, BusJoints, CalibrationPoll, CalibrationSource, Incoming, JointsAt, JointsError, LiveTracker, LoopOptions,
-    MemoryFrames, NoCalibration, Rig, run,
+    ArmJoints, BusJoints, CalibrationPoll, CalibrationSource, Incoming, JointsAt, JointsError, LiveTracker,
+    LoopOptions, MemoryFrames, NoCalibration, Rig, run,
 };
 use hw_io::frame::FrameMeta;
 use hw_io::ipc::FrameHeaderError;

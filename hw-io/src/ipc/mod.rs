@@ -69,7 +69,7 @@ pub use logging::route_iceoryx2_logs_to_tracing;
 pub use message::{InvalidMessage, Message};
 pub use publisher::{CreateError, FulcrumPublisher, PublishError, Publisher};
 pub use service::{OpenError, PublisherOptions};
-pub use track::{DEFAULT_TRACK_SERVICE, TRACK_SAMPLE_VERSION, TrackReasons, TrackSample, TrackStatus};
 pub use subscriber::{
     ConnectError, FulcrumSubscriber, ReceiveCheck, Received, RecvError, Subscriber, SubscriberCounters, WaitError,
 };
+pub use track::{DEFAULT_TRACK_SERVICE, TRACK_SAMPLE_VERSION, TrackReasons, TrackSample, TrackStatus};

@@ -749,3 +749,37 @@ where
     }
     Ok(live.counters())
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test code")]
+    use super::*;
+    use hw_io::frame::ImageLayout;
+
+    fn meta(sequence: u64, timestamp_ns: u64) -> FrameMeta {
+        FrameMeta {
+            sequence,
+            camera_id: 0,
+            timestamp_ns,
+            exposure_ns: 0,
+            eyes: 2,
+            layout: ImageLayout::packed(4, 3, PixelFormat::Rgb8).unwrap(),
+        }
+    }
+
+    #[test]
+    fn frame_clocks_map_frames_to_the_bus_clock() {
+        // Live: a frame stamped now on CLOCK_MONOTONIC is now on CLOCK_REALTIME.
+        let mut live = ClockMap::new(FrameClock::Monotonic);
+        let bus = live.bus_time(&meta(0, monotonic_now_ns())).unwrap();
+        let unix_ns = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64;
+        assert!(unix_ns.abs_diff(bus) < 50_000_000, "{bus} vs {unix_ns}");
+        let mut off = ClockMap::new(FrameClock::Offset(-5));
+        assert_eq!(off.bus_time(&meta(0, 100)), Some(95));
+        assert_eq!(off.bus_time(&meta(0, 2)), None, "before the clock's origin");
+        let mut index = ClockMap::new(FrameClock::Index(vec![10, 20, 30]));
+        assert_eq!(index.bus_time(&meta(1, 999)), Some(20));
+        assert_eq!(index.bus_time(&meta(4, 999)), Some(20), "a repeated sequence wraps");
+        assert_eq!(ClockMap::new(FrameClock::Index(Vec::new())).bus_time(&meta(0, 1)), None);
+    }
+}

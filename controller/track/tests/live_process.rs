@@ -164,3 +164,31 @@ fn the_live_process_tracks_a_paced_frame_stream_and_accounts_for_every_frame() {
     assert_eq!(got.last().unwrap().frames_processed, processed);
     assert!(s["receive_to_publish"]["count"].as_u64().unwrap() == processed);
 }
+
+#[test]
+fn live_without_cameras_or_bus_fails_with_a_message() {
+    let o = Command::new(env!("CARGO_BIN_EXE_comanip-track")).args(["live"]).output().unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("no cameras") && e.contains("[rig] cameras"), "{e}");
+    // Cameras given, but fulcrumd's default configuration has no bus (its simulated robot).
+    let dir = tempfile::tempdir().unwrap();
+    let yaml = "image_width: 4\nimage_height: 3\ncamera_name: x\ncamera_matrix:\n  rows: 3\n  cols: 3\n  data: [2.0, 0.0, 1.5, 0.0, 2.0, 1.0, 0.0, 0.0, 1.0]\n\
+                distortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.0, 0.0, 0.0, 0.0, 0.0]\n\
+                rectification_matrix:\n  rows: 3\n  cols: 3\n  data: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]\n\
+                projection_matrix:\n  rows: 3\n  cols: 4\n  data: [2.0, 0.0, 1.5, 0.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]\n";
+    let (l, r) = (dir.path().join("l.yaml"), dir.path().join("r.yaml"));
+    std::fs::write(&l, yaml).unwrap();
+    std::fs::write(&r, yaml.replace("data: [2.0, 0.0, 1.5, 0.0, 0.0, 2.0", "data: [2.0, 0.0, 1.5, -0.01, 0.0, 2.0"))
+        .unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_comanip-track"))
+        .arg("live")
+        .arg("--cameras")
+        .arg(&l)
+        .arg(&r)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("no bus") && e.contains("--iface"), "{e}");
+}

@@ -78,16 +78,19 @@ const CAMERA_FPS: u64 = 10;
 const CAMERA_SIZE: (u32, u32) = (160, 120);
 /// The comanip-camera binary, passed from the host run to the guest run.
 const CAMERA_BIN_ENV: &str = "HIL_CAMERA_BIN";
-/// The live calibration scenario's camera: 320×240 at 5 fps (the shaft must be a few pixels
-/// wide for the detector; the guest's one CPU renders, detects and runs the loop).
-const CALIB_CAMERA_FPS: u64 = 5;
-const CALIB_CAMERA_SIZE: (u32, u32) = (320, 240);
-/// Cycles of the live calibration scenario's daemon: 60 s at the guest's 2 ms period (30 s of
+/// The live calibration scenario's camera: 160×120 (as the camera scenario) at 2 fps. simrobot
+/// renders at SCHED_FIFO 90 on the guest's one CPU: at 320×240 and 5 fps, and at 240×180 and
+/// 2 fps, it rendered 1.3-1.5 frames a second, skipped the rest, the daemon overran, and the
+/// non-real-time processes (the calibration, niced as its unit) got so little CPU that the
+/// kernel dropped 94 % of the bus frames queued for its listener.
+const CALIB_CAMERA_FPS: u64 = 2;
+const CALIB_CAMERA_SIZE: (u32, u32) = (160, 120);
+/// Cycles of the live calibration scenario's daemon: 50 s at the guest's 2 ms period (25 s of
 /// twin time: the instrument in two or three trocars, the endoscope moving every 1.5-3 s).
-const CALIB_RUN_CYCLES: u64 = 30_000;
+const CALIB_RUN_CYCLES: u64 = 25_000;
 /// Its targets, relaxed for the short, coarse guest session (the default is 1 mm / 0.2°).
-const CALIB_TARGET_MM: f64 = 3.0;
-const CALIB_TARGET_DEG: f64 = 0.6;
+const CALIB_TARGET_MM: f64 = 8.0;
+const CALIB_TARGET_DEG: f64 = 1.5;
 /// The comanip-calib binary, passed from the host run to the guest run.
 const CALIB_BIN_ENV: &str = "HIL_CALIB_BIN";
 
@@ -587,8 +590,8 @@ fn drive_in(scenario: Scenario, dir: &Path) {
         wait_for_line(&dir.join("frame-monitor.out"), "subscribed", Duration::from_secs(60));
         child
     });
-    // The live calibration: its subscriber first, then the process (normal priority, nice 10,
-    // as its unit), before the robot and the daemon.
+    // The live calibration: its subscriber first, then the process, before the robot and the
+    // daemon.
     let mut calib_procs = (scenario == Scenario::CalibLive).then(|| {
         let cam = write_endoscope_config(dir, CALIB_CAMERA_SIZE, CALIB_CAMERA_FPS);
         std::fs::write(dir.join("comanip-calib.toml"), calib_live_config(dir, &cam, &service, &frames_service, &calib_service))
@@ -600,9 +603,13 @@ fn drive_in(scenario: Scenario, dir: &Path) {
             "calib-monitor",
         );
         wait_for_line(&dir.join("calib-monitor.err"), "subscribed", Duration::from_secs(60));
+        // SCHED_FIFO 50, below every other real-time process of the guest (candump 60, the
+        // monitor 70, the daemon 80, simrobot 90), as candump and the monitor get theirs: at
+        // normal priority (nice 10, as its unit) in the one-CPU guest on the shared host, its
+        // bus listener read 6-18 % of the frames and the kernel dropped the rest (measured).
         let live = spawn(
-            Command::new("nice")
-                .args(["-n", "10"])
+            Command::new("chrt")
+                .args(["-f", "50"])
                 .arg(&bin)
                 .arg("live")
                 .arg("--live-config")
@@ -777,7 +784,7 @@ fn calib_live_config(
          baseline_m = {b:?}\nhand_eye = {{ translation_m = {t:?}, quaternion_wxyz = {q:?} }}\n\n\
          [target]\ntranslation_mm = {CALIB_TARGET_MM:?}\nrotation_deg = {CALIB_TARGET_DEG:?}\n\n\
          [output]\nresult_file = \"{out}\"\nprogress_every_s = 5.0\nmax_age_ms = 200.0\n\n\
-         [pairing]\nendoscope_max_gap_ms = 60.0\ntool_max_gap_ms = 50.0\n",
+         [pairing]\nendoscope_max_gap_ms = 60.0\n",
         fcfg = dir.join("fulcrumd.toml").display(),
         fx = k.fx,
         fy = k.fy,

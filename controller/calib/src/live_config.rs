@@ -173,14 +173,11 @@ pub struct PairingSection {
     /// are interpolated when at most this far apart, and its newest sample is held at most
     /// this long, milliseconds.
     pub endoscope_max_gap_ms: f64,
-    /// The tool arm (answering every SYNC) is alive at a frame's time when its samples around
-    /// it are at most this far apart, milliseconds.
-    pub tool_max_gap_ms: f64,
 }
 
 impl Default for PairingSection {
     fn default() -> Self {
-        Self { endoscope_max_gap_ms: 25.0, tool_max_gap_ms: 20.0 }
+        Self { endoscope_max_gap_ms: 25.0 }
     }
 }
 
@@ -335,7 +332,6 @@ impl LiveConfig {
             ("output.progress_every_s", o.progress_every_s, 0.1),
             ("output.max_age_ms", o.max_age_ms, 1.0),
             ("pairing.endoscope_max_gap_ms", self.pairing.endoscope_max_gap_ms, 1.0),
-            ("pairing.tool_max_gap_ms", self.pairing.tool_max_gap_ms, 1.0),
         ] {
             if !(v.is_finite() && v >= min && v <= 3600.0) {
                 return Err(bad(key, format!("{v}: must be in [{min}, 3600]")));
@@ -408,7 +404,7 @@ mod tests {
             ("[target]\ntranslation_mm = 0.0\n", "target.translation_mm"),
             ("[noise]\npixel_px = 0.0\nrotation_mrad = 0.0\ntranslation_mm = 0.0\n", "noise"),
             ("[output]\nrepublish_s = 0.0\n", "output.republish_s"),
-            ("[pairing]\ntool_max_gap_ms = 0.5\n", "pairing.tool_max_gap_ms"),
+            ("[pairing]\nendoscope_max_gap_ms = 0.5\n", "pairing.endoscope_max_gap_ms"),
             ("[camera]\nintrinsics_yaml = \"x.yaml\"\n[camera.intrinsics]\nfx = 1.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 4\nheight = 4\n", "camera"),
             ("[camera.intrinsics]\nfx = -1.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 4\nheight = 4\n", "camera.intrinsics"),
             ("[bus.endoscope_arm]\nnode_ids = [1, 5]\n", "bus.endoscope_arm"),

@@ -27,11 +27,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use controller::bus_listen::{JointsAtError, ListenConfig, ListenerThread, Staleness, bus_time_ns};
+use controller::bus_listen::{Arm, JointsAtError, ListenConfig, ListenerThread, Staleness, bus_time_ns};
 use hw_io::frame::{PixelFormat, realtime_minus_monotonic_ns};
 use hw_io::ipc::{
-    CalibrationSample, CalibrationState, FrameSubscriber, FulcrumSample, OutputState, Publisher, PublisherOptions,
-    Subscriber,
+    CalibrationSample, CalibrationState, FrameSubscriber, FulcrumSample, HealthFlags, OutputState, Publisher,
+    PublisherOptions, Subscriber,
 };
 use serde::Serialize;
 use tracing::{info, warn};
@@ -42,6 +42,9 @@ use crate::live_config::Resolved;
 
 /// fulcrumd samples kept for pairing (4 s at 1 kHz).
 const FULCRUM_HISTORY: usize = 4096;
+
+/// Longest wait for the bus listener and the fulcrum reader to reach a frame's time.
+const CATCH_UP: Duration = Duration::from_millis(500);
 
 /// Why the live process stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -121,6 +124,8 @@ pub struct LiveSummary {
     pub bus_endoscope_samples: u64,
     /// Receive errors.
     pub bus_errors: u64,
+    /// Frames the kernel dropped from the listener's receive queue (it fell behind).
+    pub bus_dropped_rx_frames: u64,
     /// fulcrumd samples received.
     pub fulcrum_samples: u64,
     /// Why pairing failed, by reason (per frame and arm: `endoscope: stale`, `tool: gap`...).
@@ -198,6 +203,11 @@ impl FulcrumReader {
         let before = j.checked_sub(1).and_then(|i| q.get(i));
         let after = q.get(j);
         [before, after].into_iter().flatten().map(|s| (*s, s.timestamp_ns.abs_diff(t_ns))).min_by_key(|(_, d)| *d)
+    }
+
+    /// The newest sample's time, `CLOCK_MONOTONIC` nanoseconds.
+    fn newest_ns(&self) -> Option<u64> {
+        self.history.lock().unwrap_or_else(PoisonError::into_inner).back().map(|s| s.timestamp_ns)
     }
 
     fn received(&self) -> u64 {
@@ -323,8 +333,10 @@ pub fn run(cfg: &Resolved, stop: &AtomicBool, request: &AtomicBool) -> Result<Li
 
     let mut listen = ListenConfig::from_daemon(&cfg.fulcrumd);
     listen.endoscope = file.bus.endoscope_arm.clone();
-    let listener = ListenerThread::open(&file.bus.iface, &listen)?;
-    info!("listening on {} (passive: this process never sends)", file.bus.iface);
+    // The endoscope arm only (kernel filters): the tool arm's data come through fulcrumd, whose
+    // health flags say when its nodes stop answering.
+    let listener = ListenerThread::open_for(&file.bus.iface, &listen, &[Arm::Endoscope])?;
+    info!("listening on {} for the endoscope arm (passive: this process never sends)", file.bus.iface);
     let fopts = PublisherOptions { subscriber_buffer: cfg.fulcrumd.output.subscriber_buffer, ..Default::default() };
     let fulcrum = FulcrumReader::spawn(cfg.fulcrum_service.clone(), fopts)?;
     let ipc_err = |service: &str, e: &dyn std::fmt::Display| LiveError::Ipc {
@@ -494,8 +506,8 @@ pub fn run(cfg: &Resolved, stop: &AtomicBool, request: &AtomicBool) -> Result<Li
     let fc = frames.counters();
     summary.frames_missed = fc.missed;
     let b = listener.stats();
-    (summary.bus_tool_samples, summary.bus_endoscope_samples, summary.bus_errors) =
-        (b.tool_samples, b.endoscope_samples, b.errors);
+    (summary.bus_tool_samples, summary.bus_endoscope_samples, summary.bus_errors, summary.bus_dropped_rx_frames) =
+        (b.tool_samples, b.endoscope_samples, b.errors, b.dropped_rx_frames);
     summary.fulcrum_samples = fulcrum.received();
     summary.messages = publisher.published();
     Ok(summary)
@@ -523,10 +535,18 @@ fn pair<'a>(
 ) -> FrameInput<'a> {
     let t_bus = bus_time_ns(t_mono, realtime_minus_monotonic_ns()).unwrap_or(0);
     let ms = |v: f64| (v * 1e6) as u64;
+    // The readers are threads of this process, behind when the machine is busy: give them until
+    // the endoscope arm and fulcrumd have a sample past the frame's time (at most CATCH_UP), so
+    // that a frame is refused for what the bus did, not for how late this process read it.
+    let caught_up = || {
+        listener.latest_ns().1.is_some_and(|t| t >= t_bus) && fulcrum.newest_ns().is_some_and(|t| t >= t_mono)
+    };
+    let start = Instant::now();
+    while !caught_up() && start.elapsed() < CATCH_UP {
+        std::thread::sleep(Duration::from_millis(5));
+    }
     let ecm_gap = ms(cfg.file.pairing.endoscope_max_gap_ms);
     let ecm_policy = Staleness { max_gap_ns: ecm_gap, max_age_ns: ecm_gap };
-    let tool_policy =
-        Staleness { max_gap_ns: ms(cfg.file.pairing.tool_max_gap_ms), max_age_ns: ms(cfg.file.output.max_age_ms) };
     let (ecm_joints, ecm_age_ns) = match listener.endoscope_at(t_bus, &ecm_policy) {
         Ok(j) => (j.joints, j.age_ns),
         Err(e) => {
@@ -534,23 +554,29 @@ fn pair<'a>(
             ([f64::NAN; 4], u64::MAX)
         }
     };
-    let tool_age_ns = match listener.tool_at(t_bus, &tool_policy) {
-        Ok(j) => j.age_ns,
-        Err(e) => {
-            count(summary, "tool", &e);
-            u64::MAX
-        }
-    };
+    // The tool arm's nodes: stale or silent per fulcrumd's health flags of the sample.
+    let silent = HealthFlags::NODE1_STALE
+        | HealthFlags::NODE2_STALE
+        | HealthFlags::NODE3_STALE
+        | HealthFlags::NODE1_HEARTBEAT
+        | HealthFlags::NODE2_HEARTBEAT
+        | HealthFlags::NODE3_HEARTBEAT;
     let tool = match fulcrum.nearest(t_mono) {
-        Some((s, dt)) => ToolSample {
-            fulcrum_valid: s.state() == Ok(OutputState::Inside),
-            fulcrum_m: s.fulcrum_base_m,
-            axis: s.axis_base,
-            wrist_m: s.wrist_base_m,
-            wrist_to_tip_m: cfg.file.tool.wrist_to_tip_m,
-            age_ns: tool_age_ns,
-            fulcrum_age_ns: dt,
-        },
+        Some((s, dt)) => {
+            let stale = s.health().intersects(silent);
+            if stale {
+                *summary.pairing.entry("tool: nodes stale (fulcrumd)".into()).or_insert(0) += 1;
+            }
+            ToolSample {
+                fulcrum_valid: s.state() == Ok(OutputState::Inside),
+                fulcrum_m: s.fulcrum_base_m,
+                axis: s.axis_base,
+                wrist_m: s.wrist_base_m,
+                wrist_to_tip_m: cfg.file.tool.wrist_to_tip_m,
+                age_ns: if stale { u64::MAX } else { dt },
+                fulcrum_age_ns: dt,
+            }
+        }
         None => {
             *summary.pairing.entry("fulcrum: no data".into()).or_insert(0) += 1;
             ToolSample {
@@ -559,7 +585,7 @@ fn pair<'a>(
                 axis: [0.0; 3],
                 wrist_m: [0.0; 3],
                 wrist_to_tip_m: cfg.file.tool.wrist_to_tip_m,
-                age_ns: tool_age_ns,
+                age_ns: 0,
                 fulcrum_age_ns: u64::MAX,
             }
         }

@@ -585,9 +585,9 @@ impl BusListener<SocketCanBus> {
         if arms.contains(&Arm::Endoscope) {
             ids.extend(cfg.endoscope.node_ids.iter().map(|&n| hw_io::can::TPDO1_COB_ID_BASE + u16::from(n)));
         }
-        l.bus.set_receive_filter(&ids).map_err(|source| {
-            ListenError::Open(hw_io::can::OpenError::Io { interface: iface.to_owned(), source })
-        })?;
+        l.bus
+            .set_receive_filter(&ids)
+            .map_err(|source| ListenError::Open(hw_io::can::OpenError::Io { interface: iface.to_owned(), source }))?;
         Ok(l)
     }
 }

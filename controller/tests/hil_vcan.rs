@@ -594,11 +594,17 @@ fn drive_in(scenario: Scenario, dir: &Path) {
     // daemon.
     let mut calib_procs = (scenario == Scenario::CalibLive).then(|| {
         let cam = write_endoscope_config(dir, CALIB_CAMERA_SIZE, CALIB_CAMERA_FPS);
-        std::fs::write(dir.join("comanip-calib.toml"), calib_live_config(dir, &cam, &service, &frames_service, &calib_service))
-            .expect("write comanip-calib.toml");
+        std::fs::write(
+            dir.join("comanip-calib.toml"),
+            calib_live_config(dir, &cam, &service, &frames_service, &calib_service),
+        )
+        .expect("write comanip-calib.toml");
         let bin = std::env::var_os(CALIB_BIN_ENV).expect("HIL_CALIB_BIN");
         let monitor = spawn(
-            Command::new(&bin).args(["monitor", "--service", &calib_service]).arg("--out").arg(dir.join("calibration.jsonl")),
+            Command::new(&bin)
+                .args(["monitor", "--service", &calib_service])
+                .arg("--out")
+                .arg(dir.join("calibration.jsonl")),
             dir,
             "calib-monitor",
         );
@@ -1529,6 +1535,8 @@ fn hil_live_calibration_published_within_its_predicted_3_sigma() {
     let result: Value = serde_json::from_str(&result).expect("JSON");
     assert_eq!(result["format"], "comanip-calib-result");
     assert!(result["results"][0]["covariance"].is_array(), "{result}");
-    assert!(u(&summary["frames"]) > 0 && u(&summary["bus_endoscope_samples"]) > 0 && u(&summary["fulcrum_samples"]) > 0);
+    assert!(
+        u(&summary["frames"]) > 0 && u(&summary["bus_endoscope_samples"]) > 0 && u(&summary["fulcrum_samples"]) > 0
+    );
     assert!(summary["refused"].as_object().is_some_and(|r| !r.is_empty()), "refusals counted: {summary}");
 }

@@ -282,14 +282,17 @@ impl LiveConfig {
             .endoscope_arm
             .validate(&fulcrumd.bus.encoder.node_ids)
             .map_err(|e| bad("bus.endoscope_arm", e.to_string()))?;
-        for (key, name) in [("services.frames", &self.services.frames), ("services.calibration", &self.services.calibration)]
+        for (key, name) in
+            [("services.frames", &self.services.frames), ("services.calibration", &self.services.calibration)]
         {
             if name.is_empty() {
                 return Err(bad(key, "empty".into()));
             }
         }
         let intrinsics = match (&self.camera.intrinsics, &self.camera.intrinsics_yaml) {
-            (Some(_), Some(_)) => return Err(bad("camera", "give either intrinsics or intrinsics_yaml, not both".into())),
+            (Some(_), Some(_)) => {
+                return Err(bad("camera", "give either intrinsics or intrinsics_yaml, not both".into()));
+            }
             (Some(k), None) => *k,
             (None, Some(p)) => {
                 let p = relative(path, p);
@@ -312,7 +315,8 @@ impl LiveConfig {
         if !(tip.is_finite() && tip > 0.0 && tip < 2.0) {
             return Err(bad("tool.wrist_to_tip_m", format!("{tip}: must be in (0, 2) metres")));
         }
-        for (key, v) in [("target.translation_mm", self.target.translation_mm), ("target.rotation_deg", self.target.rotation_deg)]
+        for (key, v) in
+            [("target.translation_mm", self.target.translation_mm), ("target.rotation_deg", self.target.rotation_deg)]
         {
             if !(v.is_finite() && v > 0.0) {
                 return Err(bad(key, format!("{v}: must be finite and > 0")));
@@ -365,10 +369,7 @@ fn pose(p: &PoseToml) -> Option<Isometry3<f64>> {
     if !all.clone().all(|v| v.is_finite()) || (q.norm() - 1.0).abs() > 1e-6 {
         return None;
     }
-    Some(Isometry3::from_parts(
-        Translation3::from(Vector3::from(p.translation_m)),
-        UnitQuaternion::from_quaternion(q),
-    ))
+    Some(Isometry3::from_parts(Translation3::from(Vector3::from(p.translation_m)), UnitQuaternion::from_quaternion(q)))
 }
 
 #[cfg(test)]
@@ -382,8 +383,8 @@ mod tests {
 
     #[test]
     fn the_shipped_file_and_the_defaults_resolve_alike() {
-        let shipped = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../configs/comanip-calib.toml"))
-            .unwrap();
+        let shipped =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../configs/comanip-calib.toml")).unwrap();
         let cfg = LiveConfig::from_toml(&shipped, Path::new("comanip-calib.toml")).unwrap();
         let r = cfg.resolve(Path::new("comanip-calib.toml")).unwrap();
         let d = resolve("").unwrap();
@@ -399,14 +400,23 @@ mod tests {
         for (text, key) in [
             ("[bus]\niface = \"\"\n", "bus.iface"),
             ("[camera]\nbaseline_m = -1.0\n", "camera.baseline_m"),
-            ("[camera.hand_eye]\ntranslation_m = [0.0, 0.0, 0.0]\nquaternion_wxyz = [2.0, 0.0, 0.0, 0.0]\n", "camera.hand_eye"),
+            (
+                "[camera.hand_eye]\ntranslation_m = [0.0, 0.0, 0.0]\nquaternion_wxyz = [2.0, 0.0, 0.0, 0.0]\n",
+                "camera.hand_eye",
+            ),
             ("[tool]\nwrist_to_tip_m = nan\n", "tool.wrist_to_tip_m"),
             ("[target]\ntranslation_mm = 0.0\n", "target.translation_mm"),
             ("[noise]\npixel_px = 0.0\nrotation_mrad = 0.0\ntranslation_mm = 0.0\n", "noise"),
             ("[output]\nrepublish_s = 0.0\n", "output.republish_s"),
             ("[pairing]\nendoscope_max_gap_ms = 0.5\n", "pairing.endoscope_max_gap_ms"),
-            ("[camera]\nintrinsics_yaml = \"x.yaml\"\n[camera.intrinsics]\nfx = 1.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 4\nheight = 4\n", "camera"),
-            ("[camera.intrinsics]\nfx = -1.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 4\nheight = 4\n", "camera.intrinsics"),
+            (
+                "[camera]\nintrinsics_yaml = \"x.yaml\"\n[camera.intrinsics]\nfx = 1.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 4\nheight = 4\n",
+                "camera",
+            ),
+            (
+                "[camera.intrinsics]\nfx = -1.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 4\nheight = 4\n",
+                "camera.intrinsics",
+            ),
             ("[bus.endoscope_arm]\nnode_ids = [1, 5]\n", "bus.endoscope_arm"),
         ] {
             match resolve(text) {
@@ -418,7 +428,9 @@ mod tests {
 
     #[test]
     fn unknown_keys_and_wrong_types_are_parse_errors_with_the_key() {
-        for (text, needle) in [("[target]\nprecision = 1.0\n", "precision"), ("[tool]\nwrist_to_tip_m = \"a\"\n", "wrist_to_tip_m")] {
+        for (text, needle) in
+            [("[target]\nprecision = 1.0\n", "precision"), ("[tool]\nwrist_to_tip_m = \"a\"\n", "wrist_to_tip_m")]
+        {
             match resolve(text) {
                 Err(LiveConfigError::Parse { message, .. }) => assert!(message.contains(needle), "{message}"),
                 other => panic!("{text}: {other:?}"),

@@ -142,7 +142,8 @@ struct FulcrumReader {
 
 impl FulcrumReader {
     fn spawn(service: String, opts: PublisherOptions) -> Result<Self, LiveError> {
-        let history: Arc<Mutex<VecDeque<FulcrumSample>>> = Arc::new(Mutex::new(VecDeque::with_capacity(FULCRUM_HISTORY)));
+        let history: Arc<Mutex<VecDeque<FulcrumSample>>> =
+            Arc::new(Mutex::new(VecDeque::with_capacity(FULCRUM_HISTORY)));
         let received = Arc::new(Mutex::new(0u64));
         let stop = Arc::new(AtomicBool::new(false));
         let (h, r, st) = (Arc::clone(&history), Arc::clone(&received), Arc::clone(&stop));
@@ -288,8 +289,8 @@ fn mean_fulcrum(lp: &LiveLoop) -> [f64; 3] {
     let n = obs.len().max(1) as f64;
     let mut m = [0.0; 3];
     for o in obs {
-        for k in 0..3 {
-            m[k] += o.tool_point_m[k] / n;
+        for (mk, pk) in m.iter_mut().zip(o.tool_point_m) {
+            *mk += pk / n;
         }
     }
     m
@@ -313,10 +314,8 @@ fn write_result(path: &Path, cal: &Calibration) -> Result<(), String> {
 
 fn summarise(summary: &mut LiveSummary, p: &Progress) {
     summary.kept = p.kept;
-    summary.refused = Refusal::ALL
-        .iter()
-        .filter_map(|r| p.refused.get(r).map(|n| (r.name().to_string(), *n)))
-        .collect();
+    summary.refused =
+        Refusal::ALL.iter().filter_map(|r| p.refused.get(r).map(|n| (r.name().to_string(), *n))).collect();
     summary.drifts = p.drifts;
     summary.solves = p.solves;
 }
@@ -345,8 +344,9 @@ pub fn run(cfg: &Resolved, stop: &AtomicBool, request: &AtomicBool) -> Result<Li
     };
     let mut frames = FrameSubscriber::connect(&file.services.frames, &PublisherOptions::frames())
         .map_err(|e| ipc_err(&file.services.frames, &e))?;
-    let mut publisher = Publisher::<CalibrationSample>::create(&file.services.calibration, &PublisherOptions::default())
-        .map_err(|e| ipc_err(&file.services.calibration, &e))?;
+    let mut publisher =
+        Publisher::<CalibrationSample>::create(&file.services.calibration, &PublisherOptions::default())
+            .map_err(|e| ipc_err(&file.services.calibration, &e))?;
     info!("subscribed to frames on {}, publishing on {}", file.services.frames, file.services.calibration);
 
     let run_id = hw_io::can::unix_time_now_us() ^ (u64::from(std::process::id()) << 40);
@@ -433,7 +433,10 @@ pub fn run(cfg: &Resolved, stop: &AtomicBool, request: &AtomicBool) -> Result<Li
                         last_publish = Instant::now();
                     }
                     Event::Drift { misfit_fraction } => {
-                        warn!("drift: {:.0} % of recent observations misfit; collection restarted", misfit_fraction * 100.0);
+                        warn!(
+                            "drift: {:.0} % of recent observations misfit; collection restarted",
+                            misfit_fraction * 100.0
+                        );
                         current = CalibrationSample::collecting(0);
                         current.state = CalibrationState::Drift as u32;
                         current.drifts = lp.collector().progress().drifts as u32;
@@ -448,7 +451,9 @@ pub fn run(cfg: &Resolved, stop: &AtomicBool, request: &AtomicBool) -> Result<Li
         if request.swap(false, Ordering::Relaxed) {
             summary.requested_solves += 1;
             match lp.collector_mut().solve_now(last_t) {
-                None => info!("solve requested: too little data ({} observations)", lp.collector().observations().len()),
+                None => {
+                    info!("solve requested: too little data ({} observations)", lp.collector().observations().len())
+                }
                 Some(Err(e)) => warn!("solve requested: {e}"),
                 Some(Ok(cal)) => {
                     let p = cal.precision;
@@ -538,9 +543,8 @@ fn pair<'a>(
     // The readers are threads of this process, behind when the machine is busy: give them until
     // the endoscope arm and fulcrumd have a sample past the frame's time (at most CATCH_UP), so
     // that a frame is refused for what the bus did, not for how late this process read it.
-    let caught_up = || {
-        listener.latest_ns().1.is_some_and(|t| t >= t_bus) && fulcrum.newest_ns().is_some_and(|t| t >= t_mono)
-    };
+    let caught_up =
+        || listener.latest_ns().1.is_some_and(|t| t >= t_bus) && fulcrum.newest_ns().is_some_and(|t| t >= t_mono);
     let start = Instant::now();
     while !caught_up() && start.elapsed() < CATCH_UP {
         std::thread::sleep(Duration::from_millis(5));

@@ -508,10 +508,22 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             let resolved = file.resolve(&path)?;
             let summary = comanip_calib::live_process::run(&resolved, &controller::process::STOP, &REQUEST)?;
             if let Some(p) = &summary_json {
-                std::fs::write(p, serde_json::to_string_pretty(&summary)?).map_err(|e| format!("{}: {e}", p.display()))?;
+                std::fs::write(p, serde_json::to_string_pretty(&summary)?)
+                    .map_err(|e| format!("{}: {e}", p.display()))?;
             }
         }
-        Command::Live { replay: Some(dir), config, target_mm, target_deg, noise_px, noise_mrad, noise_mm, out, report, .. } => {
+        Command::Live {
+            replay: Some(dir),
+            config,
+            target_mm,
+            target_deg,
+            noise_px,
+            noise_mrad,
+            noise_mm,
+            out,
+            report,
+            ..
+        } => {
             use comanip_calib::live::{ReplayOptions, progress_line, replay as run_replay, report_markdown};
             let cfg = match &config {
                 Some(p) => {

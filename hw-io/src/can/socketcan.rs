@@ -101,10 +101,8 @@ impl SocketCanBus {
         const CAN_SFF_MASK: u32 = 0x7FF;
         const CAN_EFF_FLAG: u32 = 0x8000_0000;
         const CAN_RTR_FLAG: u32 = 0x4000_0000;
-        let filters: Vec<(u32, u32)> = ids
-            .iter()
-            .map(|&id| (u32::from(id) & CAN_SFF_MASK, CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG))
-            .collect();
+        let filters: Vec<(u32, u32)> =
+            ids.iter().map(|&id| (u32::from(id) & CAN_SFF_MASK, CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG)).collect();
         self.socket.set_filters(&filters)
     }
 

@@ -87,6 +87,7 @@ const CALIB_CAMERA_FPS: u64 = 2;
 const CALIB_CAMERA_SIZE: (u32, u32) = (160, 120);
 /// Cycles of the live calibration scenario's daemon: 50 s at the guest's 2 ms period (25 s of
 /// twin time: the instrument in two or three trocars, the endoscope moving every 1.5-3 s).
+/// With 20 000 the collector had 34 observations at the end, short of the 40 of its first solve.
 const CALIB_RUN_CYCLES: u64 = 25_000;
 /// Its targets, relaxed for the short, coarse guest session (the default is 1 mm / 0.2°).
 const CALIB_TARGET_MM: f64 = 8.0;
@@ -773,7 +774,8 @@ fn write_endoscope_config(dir: &Path, size: (u32, u32), fps: u64) -> sim::endosc
 
 /// `comanip-calib live`'s configuration in the guest: the rendered camera, the scenario's
 /// services, fulcrumd's configuration (its encoders, deadline, health, buffer), relaxed targets
-/// and pairing gaps for the guest's coarse timing (it skips periods now and then).
+/// and pairing gaps for the guest's coarse timing: its daemon skips periods under load, and with
+/// 60 ms 77 of 189 frames fell in a gap between two endoscope samples (one run).
 fn calib_live_config(
     dir: &Path,
     cam: &sim::endoscope::EndoscopeConfig,
@@ -790,7 +792,7 @@ fn calib_live_config(
          baseline_m = {b:?}\nhand_eye = {{ translation_m = {t:?}, quaternion_wxyz = {q:?} }}\n\n\
          [target]\ntranslation_mm = {CALIB_TARGET_MM:?}\nrotation_deg = {CALIB_TARGET_DEG:?}\n\n\
          [output]\nresult_file = \"{out}\"\nprogress_every_s = 5.0\nmax_age_ms = 200.0\n\n\
-         [pairing]\nendoscope_max_gap_ms = 60.0\n",
+         [pairing]\nendoscope_max_gap_ms = 150.0\n",
         fcfg = dir.join("fulcrumd.toml").display(),
         fx = k.fx,
         fy = k.fy,

@@ -217,7 +217,8 @@ fn units_for_verify() -> Vec<(String, String)> {
             let text = text
                 .replace("/usr/bin/fulcrumd ", &format!("{} ", env!("CARGO_BIN_EXE_fulcrumd")))
                 .replace("/usr/bin/comanip-camera ", "/bin/true ")
-                .replace("/usr/bin/comanip-track ", "/bin/true ");
+                .replace("/usr/bin/comanip-track ", "/bin/true ")
+                .replace("/usr/bin/comanip-calib ", "/bin/true ");
             (name, text)
         })
         .collect()
@@ -300,22 +301,31 @@ fn every_service_rates_at_most_2_0_in_systemd_analyze_security() {
 #[test]
 fn companion_units_stay_off_the_loop_and_the_target_starts_the_set() {
     let units = all_units();
-    let camera = &units.iter().find(|(n, _)| n == "comanip-camera.service").expect("comanip-camera.service").1;
-    let a = assignments(camera);
-    let one = |key: &str| -> String {
-        let v: Vec<&str> =
-            a.iter().filter(|(s, k, _)| s == "Service" && k == key).map(|(_, _, v)| v.as_str()).collect();
-        assert_eq!(v.len(), 1, "comanip-camera [Service] {key}= should appear once, found {v:?}");
-        v[0].to_string()
-    };
-    // docs/realtime.md pins the loop to CPU 1 on the 2-core target; the camera keeps to CPU 0.
-    assert_eq!(one("CPUAffinity"), "0");
-    assert!(one("Nice").parse::<i32>().unwrap() > 0, "the camera must be niced");
-    assert!(one("CPUWeight").parse::<u32>().unwrap() < 100, "below the default weight 100");
-    assert_eq!(one("RestrictRealtime"), "yes");
-    assert_eq!(one("User"), "comanip");
-    assert_eq!(one("PrivateTmp"), "no", "iceoryx2's /tmp/iceoryx2 must be the host's");
-    assert!(a.iter().any(|(s, k, v)| s == "Unit" && k == "PartOf" && v == "comanip.target"));
+    // comanip-camera and the live calibration: lower priority, off the loop's CPU.
+    for companion in ["comanip-camera.service", "comanip-calib-live.service"] {
+        let text = &units.iter().find(|(n, _)| n == companion).unwrap_or_else(|| panic!("{companion}")).1;
+        let a = assignments(text);
+        let one = |key: &str| -> String {
+            let v: Vec<&str> =
+                a.iter().filter(|(s, k, _)| s == "Service" && k == key).map(|(_, _, v)| v.as_str()).collect();
+            assert_eq!(v.len(), 1, "{companion} [Service] {key}= should appear once, found {v:?}");
+            v[0].to_string()
+        };
+        // docs/realtime.md pins the loop to CPU 1 on the 2-core target; companions keep to CPU 0.
+        assert_eq!(one("CPUAffinity"), "0", "{companion}");
+        assert!(one("Nice").parse::<i32>().unwrap() > 0, "{companion} must be niced");
+        assert!(one("CPUWeight").parse::<u32>().unwrap() < 100, "{companion}: below the default weight 100");
+        assert_eq!(one("RestrictRealtime"), "yes", "{companion}");
+        assert_eq!(one("User"), "comanip", "{companion}");
+        assert_eq!(one("PrivateTmp"), "no", "{companion}: iceoryx2's /tmp/iceoryx2 must be the host's");
+        assert!(a.iter().any(|(s, k, v)| s == "Unit" && k == "PartOf" && v == "comanip.target"), "{companion}");
+    }
+    // The live calibration reads the CAN bus (no private network) but never IP.
+    let calib = assignments(&units.iter().find(|(n, _)| n == "comanip-calib-live.service").unwrap().1);
+    let has = |key: &str, val: &str| calib.iter().any(|(s, k, v)| s == "Service" && k == key && v.contains(val));
+    assert!(has("RestrictAddressFamilies", "AF_CAN") && has("IPAddressDeny", "any"));
+    assert!(!calib.iter().any(|(_, k, _)| k == "PrivateNetwork"), "a private network would hide the CAN bus");
+    assert!(has("ExecStart", "--live-config /etc/comanip/comanip-calib.toml"));
 
     // The tracker: lower still, on the camera's CPU, no real-time, the bus but no IP.
     let tracker = &units.iter().find(|(n, _)| n == "comanip-track.service").expect("comanip-track.service").1;

@@ -64,8 +64,11 @@ pub struct ToolSample {
     pub wrist_m: [f64; 3],
     /// Distance from the wrist centre to the tip along the axis, metres.
     pub wrist_to_tip_m: f64,
-    /// Age of the tool arm's data at the frame's exposure mid time, nanoseconds.
+    /// Age of the tool arm's encoder data at the frame's exposure mid time, nanoseconds.
     pub age_ns: u64,
+    /// Distance in time from the frame's exposure mid time to the fulcrumd sample the line
+    /// comes from, nanoseconds (`u64::MAX`: no sample, fulcrumd silent).
+    pub fulcrum_age_ns: u64,
 }
 
 /// One stereo frame and both arms' data at its time.
@@ -91,9 +94,12 @@ pub enum Refusal {
     /// Frame: an arm's data are older than [`CollectorConfig::max_age_ns`] (an arm that stops
     /// answering), or not finite.
     StaleEncoders,
+    /// Frame: no fulcrumd output near the frame's time (fulcrumd silent or not running).
+    NoFulcrum,
     /// Frame: the instrument is not inside a trocar with a valid fulcrum.
     InvalidFulcrum,
-    /// Frame: identical to the previous frame (frozen camera).
+    /// Frame: identical to the previous frame, or its time not after the previous frame's
+    /// (frozen camera: repeated images or a stalled clock).
     FrozenCamera,
     /// Eye: no instrument in view.
     NoInstrument,
@@ -109,8 +115,9 @@ pub enum Refusal {
 
 impl Refusal {
     /// Every reason, in display order.
-    pub const ALL: [Refusal; 8] = [
+    pub const ALL: [Refusal; 9] = [
         Refusal::StaleEncoders,
+        Refusal::NoFulcrum,
         Refusal::InvalidFulcrum,
         Refusal::FrozenCamera,
         Refusal::NoInstrument,
@@ -124,6 +131,7 @@ impl Refusal {
     pub fn name(self) -> &'static str {
         match self {
             Refusal::StaleEncoders => "stale encoders",
+            Refusal::NoFulcrum => "no fulcrum",
             Refusal::InvalidFulcrum => "invalid fulcrum",
             Refusal::FrozenCamera => "frozen camera",
             Refusal::NoInstrument => "no instrument",
@@ -285,6 +293,7 @@ pub struct Collector {
     result: Option<Calibration>,
     drift: Vec<bool>,
     last_digest: Option<u64>,
+    last_t_ns: Option<u64>,
     progress: Progress,
     trocars: Vec<Vector3<f64>>,
 }
@@ -302,6 +311,7 @@ impl Collector {
             result: None,
             drift: Vec::new(),
             last_digest: None,
+            last_t_ns: None,
             progress: Progress::default(),
             trocars: Vec::new(),
         }
@@ -329,8 +339,9 @@ impl Collector {
     /// Feeds one sample (time order); returns what it caused.
     pub fn push(&mut self, s: &Sample) -> Event {
         self.progress.frames += 1;
-        let frozen = self.last_digest == Some(s.frame_digest);
+        let frozen = self.last_digest == Some(s.frame_digest) || self.last_t_ns.is_some_and(|t| s.t_ns <= t);
         self.last_digest = Some(s.frame_digest);
+        self.last_t_ns = Some(self.last_t_ns.map_or(s.t_ns, |t| t.max(s.t_ns)));
         let finite = s
             .ecm_joints
             .iter()
@@ -340,6 +351,10 @@ impl Collector {
             .all(|v| v.is_finite());
         if !finite || s.ecm_age_ns > self.cfg.max_age_ns || s.tool.age_ns > self.cfg.max_age_ns {
             self.refuse(Refusal::StaleEncoders);
+            return Event::None;
+        }
+        if s.tool.fulcrum_age_ns > self.cfg.max_age_ns {
+            self.refuse(Refusal::NoFulcrum);
             return Event::None;
         }
         if !s.tool.fulcrum_valid {
@@ -662,6 +677,7 @@ mod tests {
                         wrist_m: (-m * 0.05).into(),
                         wrist_to_tip_m: 0.05 + o.psm_joints[2],
                         age_ns: 1_000_000,
+                        fulcrum_age_ns: 1_000_000,
                     },
                 }
             })
@@ -695,8 +711,10 @@ mod tests {
         refuses(Refusal::StaleEncoders, none, |s| s.ecm_age_ns = 500_000_000);
         refuses(Refusal::StaleEncoders, none, |s| s.tool.age_ns = 500_000_000);
         refuses(Refusal::StaleEncoders, none, |s| s.ecm_joints[0] = f64::NAN);
+        refuses(Refusal::NoFulcrum, none, |s| s.tool.fulcrum_age_ns = u64::MAX);
         refuses(Refusal::InvalidFulcrum, none, |s| s.tool.fulcrum_valid = false);
         refuses(Refusal::FrozenCamera, none, |s| s.frame_digest = 0);
+        refuses(Refusal::FrozenCamera, none, |s| s.t_ns = 0);
         refuses(Refusal::NoInstrument, none, |s| s.eyes[0] = EyeDetection::default());
         refuses(Refusal::Ambiguous, none, |s| {
             s.eyes[0].found = 2;
@@ -710,6 +728,7 @@ mod tests {
         c.push(&s[0]);
         let mut again = s[0];
         again.frame_digest = 99;
+        again.t_ns = s[0].t_ns + 1;
         c.push(&again);
         assert_eq!((c.progress().kept, refused(&c, Refusal::Redundant)), (1, 1));
         // A second, weak shaft is not a second instrument.
@@ -777,6 +796,7 @@ mod tests {
         for (i, x) in s.iter().enumerate().skip(at + 1).take(30) {
             let mut y = *x;
             y.frame_digest = 10_000 + i as u64;
+            y.t_ns += 1_000_000_000_000;
             drift |= matches!(c.push(&y), Event::Drift { .. });
         }
         assert!(!drift && c.result().is_some());
@@ -785,6 +805,7 @@ mod tests {
         for (i, x) in s.iter().enumerate().take(60) {
             let mut y = *x;
             y.frame_digest = 20_000 + i as u64;
+            y.t_ns += 2_000_000_000_000;
             for v in [&mut y.tool.fulcrum_m, &mut y.tool.wrist_m] {
                 v[0] += 0.02;
             }

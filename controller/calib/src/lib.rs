@@ -8,8 +8,11 @@
 //! - [`residual_plot`]: the residual figure of `calibrate --plot` (SVG).
 //! - [`bus_run`]: `from-run`, the calibration from a recorded run: both arms' joints from
 //!   the candump log, matched to the stereo frames by time, lines detected in both eyes.
-//! - [`live`]: `live --replay`, the collector over a recorded natural session in time order,
-//!   scored against the run's truth.
+//! - [`live`]: the live calibration's loop (detector + collector), shared by its two sources;
+//!   `live --replay`, the loop over a recorded natural session in time order, scored against
+//!   the run's truth.
+//! - [`live_process`]: `live` on the bus (frames, a passive CAN listener, fulcrumd's output,
+//!   the calibration published); [`live_config`]: its TOML settings.
 //! - [`detect`]: `detect`, the shaft's lines in a directory of images (lines file, overlays).
 //! - [`pixels`]: `pixels`, the calibration from rendered stereo frames with detected lines,
 //!   next to the same poses with exact lines.
@@ -24,6 +27,8 @@ pub mod convert;
 pub mod detect;
 pub mod generalise;
 pub mod live;
+pub mod live_config;
+pub mod live_process;
 pub mod pixels;
 pub mod residual_plot;
 pub mod run;

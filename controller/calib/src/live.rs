@@ -1,8 +1,13 @@
-//! `comanip-calib live --replay DIR` (issue 19): the live calibration's collector run in time
-//! order over a recorded natural session (`simrobot generate --frames`): both arms from the
-//! candump log (the tool arm through fulcrumd's own replay, [`crate::bus_run`]), our shaft
-//! detector on both eyes of every frame, the [`crate::collector::Collector`] deciding what to
-//! keep and when to solve. The report compares the result with the run's ground truth.
+//! The live calibration's loop ([`LiveLoop`]: one stereo frame and both arms' data at its time
+//! in, our shaft detector on both eyes, the [`crate::collector::Collector`] deciding what to
+//! keep and when to solve) and its two input sources:
+//! - `comanip-calib live --replay DIR` ([`replay`]): a recorded natural session (`simrobot
+//!   generate --frames`) in time order: both arms from the candump log (the tool arm through
+//!   fulcrumd's own replay, [`crate::bus_run`]), the frames from their PNG files; the report
+//!   compares the result with the run's ground truth;
+//! - `comanip-calib live` on the bus ([`crate::live_process`]): frames from the frame service,
+//!   the endoscope arm's joints from a passive socket on the bus (`controller::bus_listen`),
+//!   the tool line from fulcrumd's output.
 
 use std::fmt::Write as _;
 use std::hash::{Hash, Hasher};
@@ -81,6 +86,78 @@ pub struct ReplayReport {
     pub fulcrum_to_trocar_m: f64,
 }
 
+/// One stereo frame as a source delivers it, with both arms' data at its exposure mid time.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInput<'a> {
+    /// Exposure mid time, nanoseconds (the source's clock; strictly increasing for a live
+    /// camera: a repeat counts as a frozen camera).
+    pub t_ns: u64,
+    /// Left and right images: width, height (pixels) and packed 8-bit sRGB bytes; `None` for an
+    /// eye the source could not deliver (counted as no instrument).
+    pub eyes: [Option<(usize, usize, &'a [u8])>; 2],
+    /// The endoscope arm's joints `[yaw rad, pitch rad, insertion m, roll rad]` (any value
+    /// when `ecm_age_ns` is `u64::MAX`).
+    pub ecm_joints: [f64; 4],
+    /// Age of those joints at the frame's time, nanoseconds (`u64::MAX`: none).
+    pub ecm_age_ns: u64,
+    /// The tool arm's line (fulcrumd's fulcrum, axis, wrist centre) with its ages.
+    pub tool: ToolSample,
+}
+
+/// The loop both sources run: our detector on both eyes, then the collector.
+pub struct LiveLoop {
+    det: Box<dyn vision::ShaftDetector + Send>,
+    col: Collector,
+}
+
+impl LiveLoop {
+    /// The loop for the collector settings `cfg` (our detector for its camera).
+    pub fn new(cfg: CollectorConfig) -> Result<Self, ReplayError> {
+        let det = crate::detect::make_detector(crate::detect::DetectorChoice::Ours, cfg.setup.intrinsics)
+            .map_err(ReplayError::Detector)?;
+        Ok(Self { det, col: Collector::new(cfg) })
+    }
+
+    /// Detects the tool in both eyes of `f` and feeds the collector; returns what it caused.
+    pub fn on_frame(&mut self, f: &FrameInput<'_>) -> Event {
+        let mut hasher = std::collections::hash_map::DefaultHasher::new();
+        let mut eyes = [EyeDetection::default(); 2];
+        for (eye, img) in f.eyes.iter().enumerate() {
+            let Some((w, h, rgb)) = img else { continue };
+            rgb.hash(&mut hasher);
+            let Ok(view) = vision::RgbView::new(*w, *h, rgb) else { continue };
+            if let Ok(found) = self.det.detect(&view) {
+                eyes[eye] = EyeDetection {
+                    found: found.len(),
+                    ends_px: found.first().map(|d| d.ends_px),
+                    confidence: found.first().map_or(0.0, |d| d.confidence),
+                    second_confidence: found.get(1).map_or(0.0, |d| d.confidence),
+                    sharpness: None,
+                };
+            }
+        }
+        let sample = Sample {
+            t_ns: f.t_ns,
+            frame_digest: hasher.finish(),
+            eyes,
+            ecm_joints: f.ecm_joints,
+            ecm_age_ns: f.ecm_age_ns,
+            tool: f.tool,
+        };
+        self.col.push(&sample)
+    }
+
+    /// The collector (counts, precision, result).
+    pub fn collector(&self) -> &Collector {
+        &self.col
+    }
+
+    /// The collector, to solve on request or restart.
+    pub fn collector_mut(&mut self) -> &mut Collector {
+        &mut self.col
+    }
+}
+
 /// One progress line (kept, refused by reason, coverage, predicted precision).
 pub fn progress_line(p: &Progress, t_s: f64) -> String {
     let mut s = format!("t={t_s:6.1}s frames {:4} kept {:4} |", p.frames, p.kept);
@@ -134,8 +211,6 @@ pub fn replay(
 ) -> Result<ReplayReport, ReplayError> {
     let data = read_run(dir, cfg)?;
     let k = data.intrinsics;
-    let mut det =
-        crate::detect::make_detector(crate::detect::DetectorChoice::Ours, k).map_err(ReplayError::Detector)?;
     let setup = Setup {
         intrinsics: k,
         hand_eye: data.hand_eye,
@@ -148,7 +223,7 @@ pub fn replay(
     let mut ccfg = CollectorConfig::new(setup, opts.noise);
     ccfg.target_translation_m = opts.target_translation_m;
     ccfg.target_rotation_rad = opts.target_rotation_rad;
-    let mut col = Collector::new(ccfg);
+    let mut lp = LiveLoop::new(ccfg)?;
     let truth = data.ecm_in_tool_base.inverse();
     let frames_dir = dir.join("frames");
     let t0 = data.timeline.first().map_or(0, |f| f.t_ns);
@@ -158,25 +233,10 @@ pub fn replay(
     let mut drifts = 0;
     for f in &data.timeline {
         let t_s = f.t_ns.saturating_sub(t0) as f64 * 1e-9;
-        let mut hasher = std::collections::hash_map::DefaultHasher::new();
-        let mut eyes = [EyeDetection::default(); 2];
-        for (eye, file) in f.files.iter().enumerate() {
-            let Ok(img) = hw_io::camera::png::read_rgb(&frames_dir.join(file)) else { continue };
-            img.rgb.hash(&mut hasher);
-            let Ok(view) = vision::RgbView::new(img.width, img.height, &img.rgb) else { continue };
-            if let Ok(found) = det.detect(&view) {
-                eyes[eye] = EyeDetection {
-                    found: found.len(),
-                    ends_px: found.first().map(|d| d.ends_px),
-                    confidence: found.first().map_or(0.0, |d| d.confidence),
-                    second_confidence: found.get(1).map_or(0.0, |d| d.confidence),
-                    sharpness: None,
-                };
-            }
-        }
-        let sample = Sample {
+        let imgs = f.files.clone().map(|file| hw_io::camera::png::read_rgb(&frames_dir.join(file)).ok());
+        let eyes = [0, 1].map(|e| imgs[e].as_ref().map(|i| (i.width, i.height, i.rgb.as_slice())));
+        let input = FrameInput {
             t_ns: f.t_ns,
-            frame_digest: hasher.finish(),
             eyes,
             ecm_joints: f.ecm_joints,
             ecm_age_ns: f.ecm_age_ns,
@@ -187,19 +247,21 @@ pub fn replay(
                 wrist_m: f.wrist_b.into(),
                 wrist_to_tip_m: data.tip_m,
                 age_ns: f.tool_age_ns,
+                fulcrum_age_ns: f.tool_age_ns,
             },
         };
-        match col.push(&sample) {
+        match lp.on_frame(&input) {
             Event::Solved(c) if published.is_none() => published = Some(*c),
             Event::Drift { .. } => drifts += 1,
             _ => {}
         }
-        on_progress(col.progress(), t_s);
+        on_progress(lp.collector().progress(), t_s);
         if t_s >= next_log {
-            log.push(progress_line(col.progress(), t_s));
+            log.push(progress_line(lp.collector().progress(), t_s));
             next_log += opts.log_every_s;
         }
     }
+    let col = lp.collector_mut();
     let duration_s = data.timeline.last().map_or(0.0, |f| f.t_ns.saturating_sub(t0) as f64 * 1e-9);
     let t_end = data.timeline.last().map_or(0, |f| f.t_ns);
     let (at_end, end_error) = match col.solve_now(t_end) {

@@ -165,15 +165,25 @@ enum Command {
         out_dir: PathBuf,
     },
     /// Live calibration (issue 19): collect observations while the team works, solve when
-    /// the predicted precision reaches the target, write the result file. `--replay DIR`
-    /// runs it in time order over a recorded run (`simrobot generate --frames`) and reports
-    /// against the run's truth.
+    /// the predicted precision reaches the target, write the result file, publish the
+    /// calibration. Without `--replay`: the process on the bus (frames from the frame service,
+    /// both arms from a passive CAN socket, the tool line from fulcrumd; settings in
+    /// `--live-config`; SIGUSR1 asks for a solve now; SIGINT/SIGTERM stop it). `--replay DIR`
+    /// runs the same loop in time order over a recorded run (`simrobot generate --frames`) and
+    /// reports against the run's truth.
     Live {
         /// A recorded run's directory (bus.log, truth.jsonl, frames/). Without it: the live
-        /// process (not in this build: docs/calibration.md, "live").
+        /// process on the bus.
         #[arg(long)]
         replay: Option<PathBuf>,
-        /// fulcrumd's configuration (TOML); default: the built-in one.
+        /// The live process's settings (TOML, configs/comanip-calib.toml); default: the
+        /// built-in ones (bus can0, simrobot's default endoscope).
+        #[arg(long)]
+        live_config: Option<PathBuf>,
+        /// The live process: a JSON summary written at exit (counts, the first publication).
+        #[arg(long)]
+        summary_json: Option<PathBuf>,
+        /// With --replay: fulcrumd's configuration (TOML); default: the built-in one.
         #[arg(long)]
         config: Option<PathBuf>,
         /// Target: predicted RMS translation at the mean fulcrum, millimetres.
@@ -198,6 +208,16 @@ enum Command {
         #[arg(long)]
         report: Option<PathBuf>,
     },
+    /// Subscribe to the calibration service and write every message as a JSON line (a
+    /// tracker's view of `live`; used by the HIL test). Stops at SIGINT/SIGTERM.
+    Monitor {
+        /// The calibration service.
+        #[arg(long, default_value = hw_io::ipc::DEFAULT_CALIBRATION_SERVICE)]
+        service: String,
+        /// JSON Lines output (one message per line); default: standard output.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Run the protocol sweeps; write sweep.md and SVG box plots into a directory.
     Sweep {
         /// Output directory.
@@ -221,6 +241,67 @@ enum Command {
         #[arg(long)]
         held_out_only: bool,
     },
+}
+
+/// Set by SIGUSR1: `live` solves now.
+static REQUEST: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+extern "C" fn on_request(_: libc::c_int) {
+    REQUEST.store(true, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// SIGUSR1 sets [`REQUEST`] (a failure to install it is reported, the process runs on).
+fn install_request_handler() {
+    use nix::sys::signal::{SaFlags, SigAction, SigHandler, SigSet, Signal, sigaction};
+    let action = SigAction::new(SigHandler::Handler(on_request), SaFlags::SA_RESTART, SigSet::empty());
+    // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
+    if let Err(e) = unsafe { sigaction(Signal::SIGUSR1, &action) } {
+        eprintln!("comanip-calib: cannot install the SIGUSR1 handler: {e}");
+    }
+}
+
+/// `comanip-calib monitor`: every calibration message as one JSON line until SIGINT/SIGTERM.
+fn monitor(service: &str, out: Option<&std::path::Path>) -> Result<(), Box<dyn std::error::Error>> {
+    use std::io::Write as _;
+    controller::process::install_stop_handlers();
+    let mut sub = hw_io::ipc::Subscriber::<hw_io::ipc::CalibrationSample>::connect(service)
+        .map_err(|e| format!("{service}: {e}"))?;
+    let mut w: Box<dyn std::io::Write> = match out {
+        Some(p) => Box::new(std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?),
+        None => Box::new(std::io::stdout()),
+    };
+    eprintln!("comanip-calib monitor: subscribed to {service}");
+    let mut refused = 0u64;
+    while !controller::process::STOP.load(std::sync::atomic::Ordering::Relaxed) {
+        match sub.wait(std::time::Duration::from_millis(100)) {
+            Ok(Some(rx)) => {
+                let s = rx.sample;
+                let state = match s.state() {
+                    Some(hw_io::ipc::CalibrationState::Collecting) => "collecting",
+                    Some(hw_io::ipc::CalibrationState::Valid) => "valid",
+                    Some(hw_io::ipc::CalibrationState::Drift) => "drift",
+                    None => "unknown",
+                };
+                let line = serde_json::json!({
+                    "state": state, "sequence": s.sequence, "run_id": s.run_id, "timestamp_ns": s.timestamp_ns,
+                    "observations": s.observations, "drifts": s.drifts, "translation_m": s.translation_m,
+                    "quaternion_wxyz": s.quaternion_wxyz, "covariance": s.covariance.to_vec(),
+                    "predicted_fulcrum_m": s.predicted_fulcrum_m, "predicted_origin_m": s.predicted_origin_m,
+                    "predicted_rotation_rad": s.predicted_rotation_rad, "mean_fulcrum_m": s.mean_fulcrum_m,
+                });
+                writeln!(w, "{line}")?;
+                w.flush()?;
+            }
+            Ok(None) => {}
+            Err(hw_io::ipc::WaitError::Recv(e)) => {
+                refused += 1;
+                eprintln!("comanip-calib monitor: refused: {e}");
+            }
+            Err(e) => return Err(format!("{service}: {e}").into()),
+        }
+    }
+    eprintln!("comanip-calib monitor: stopped ({refused} refused)");
+    Ok(())
 }
 
 fn main() -> ExitCode {
@@ -411,11 +492,39 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             hw_io::outln!("{md}")?;
             hw_io::outln!("wrote {}", path.display())?;
         }
-        Command::Live { replay, config, target_mm, target_deg, noise_px, noise_mrad, noise_mm, out, report } => {
-            use comanip_calib::live::{ReplayOptions, progress_line, replay as run_replay, report_markdown};
-            let Some(dir) = replay else {
-                return Err("`comanip-calib live` without --replay (the process on the bus) is not in this build; see docs/calibration.md, \"live\"".into());
+        Command::Monitor { service, out } => monitor(&service, out.as_deref())?,
+        Command::Live { replay: None, live_config, summary_json, .. } => {
+            controller::process::init_logging();
+            controller::process::install_stop_handlers();
+            install_request_handler();
+            let path = live_config.unwrap_or_else(|| PathBuf::from("(built-in)"));
+            let file = if path.is_file() {
+                comanip_calib::live_config::LiveConfig::load(&path)?
+            } else if path.as_os_str() == "(built-in)" {
+                comanip_calib::live_config::LiveConfig::default()
+            } else {
+                return Err(format!("{}: no such file", path.display()).into());
             };
+            let resolved = file.resolve(&path)?;
+            let summary = comanip_calib::live_process::run(&resolved, &controller::process::STOP, &REQUEST)?;
+            if let Some(p) = &summary_json {
+                std::fs::write(p, serde_json::to_string_pretty(&summary)?)
+                    .map_err(|e| format!("{}: {e}", p.display()))?;
+            }
+        }
+        Command::Live {
+            replay: Some(dir),
+            config,
+            target_mm,
+            target_deg,
+            noise_px,
+            noise_mrad,
+            noise_mm,
+            out,
+            report,
+            ..
+        } => {
+            use comanip_calib::live::{ReplayOptions, progress_line, replay as run_replay, report_markdown};
             let cfg = match &config {
                 Some(p) => {
                     let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;

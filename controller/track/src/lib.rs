@@ -7,10 +7,13 @@
 //! - [`input`]: a recorded sequence, both arms' joints matched to the frames;
 //! - [`run`]: the model, one step per frame, the JSON lines;
 //! - [`overlay`]: the best hypothesis and the particle cloud drawn on both eyes;
-//! - [`experiment`]: convergence from perturbed starts, frame rate, plots.
+//! - [`experiment`]: convergence from perturbed starts, frame rate, plots;
+//! - [`robustness`]: joint-sensor noise, second instrument, smoke, occluder windows (loss and
+//!   recovery), plots.
 
 pub mod config;
 pub mod experiment;
 pub mod input;
 pub mod overlay;
+pub mod robustness;
 pub mod run;

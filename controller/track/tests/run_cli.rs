@@ -112,7 +112,8 @@ fn run_writes_one_line_per_frame_with_finite_poses_and_overlays_and_follows_the_
     let model = comanip_track::run::build_model(&seq, &comanip_track::config::ToolSection::default(), &fcfg).unwrap();
     let mut c = track::TrackerConfig::new(track::Mode::Ours, 320, 240);
     c.particles = 300;
-    let trials = comanip_track::experiment::converge(&seq, "t", &model, c, 1, 10, 0.0, 0.0, 3, 100, &|| {}).unwrap();
+    let trials =
+        comanip_track::experiment::converge(&seq, "t", &model, c, 1, 10, 0.0, 0.0, 3, 100, 0.0, &|| {}).unwrap();
     let mut e: Vec<f64> = trials[0].errors.iter().flatten().map(|x| x.0).collect();
     assert!(e.len() >= 5, "poses published on {} of 10 frames", e.len());
     let (median, _) = comanip_track::experiment::median_p95(&mut e);

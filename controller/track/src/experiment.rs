@@ -233,6 +233,9 @@ pub struct Summary {
     pub all_position_mm: (f64, f64),
     /// The kinematics over every frame of every trial, mm (median, p95).
     pub all_kinematics_mm: (f64, f64),
+    /// Tracker orientation over every frame of every trial (LOST left out), degrees (median,
+    /// p95).
+    pub all_orientation_deg: (f64, f64),
 }
 
 /// Summarises `r` (`tail` last frames of each converged trial).
@@ -241,8 +244,10 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
     let mut lost = 0;
     let mut frames = 0;
     let (mut kp, mut ka, mut allp, mut allk) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut alla = Vec::new();
     for t in &r.trials {
         allp.extend(t.errors.iter().flatten().map(|e| e.0));
+        alla.extend(t.errors.iter().flatten().map(|e| e.1));
         allk.extend(t.kinematics.iter().flatten().map(|e| e.0));
         if let Some(k) = t.converged_at {
             for (x, y) in t.kinematics.iter().skip(t.kinematics.len().saturating_sub(tail).max(k)).flatten() {
@@ -289,6 +294,7 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
         kinematics_deg: median_p95(&mut ka),
         all_position_mm: median_p95(&mut allp),
         all_kinematics_mm: median_p95(&mut allk),
+        all_orientation_deg: median_p95(&mut alla),
     }
 }
 

@@ -31,7 +31,7 @@ use serde::Serialize;
 
 use crate::endoscope::config::EndoscopeConfig;
 use crate::endoscope::output::{OutputError, write_mask_png, write_png};
-use crate::endoscope::render::{StereoFrame, label};
+use crate::endoscope::render::{Occluder, StereoFrame, label};
 use crate::endoscope::{
     InstrumentGeometry, InstrumentMesh, InstrumentState, SceneState, StereoRenderer, frame_mid_time_ns,
 };
@@ -92,6 +92,13 @@ pub struct World {
     shaft_end_m: f64,
     keep_ns: u64,
     history: VecDeque<WorldSample>,
+    /// Jaw pivot of the rendered instrument in `{i}` (its wrist link's length), metres.
+    wrist_m: f64,
+    /// The second instrument's trocar in `{e}` (set at the first recorded sample when the
+    /// second instrument is on), metres.
+    second_trocar: Option<Vector3<f64>>,
+    /// A second instrument is in the scene.
+    second: bool,
 }
 
 impl World {
@@ -107,6 +114,40 @@ impl World {
             shaft_end_m: twin.scenario.instrument_length_m - instrument.wrist_length_m,
             keep_ns,
             history: VecDeque::with_capacity(1024),
+            wrist_m: instrument.wrist_length_m,
+            second_trocar: None,
+            second: false,
+        })
+    }
+
+    /// Adds a second instrument (`false`: none), clutter that crosses in front of the tool
+    /// arm's instrument: its trocar is the mirror image, through the endoscope arm's axis
+    /// (`z` of `{e}`), of the point 12 cm behind the instrument's tip at the first recorded
+    /// sample; its jaw pivot moves about the instrument's tip, 2.5 cm nearer the endoscope
+    /// (along `−z` of `{e}`), by sines of 2 cm and 1.5 cm (periods 7.7 s and 5.3 s), the
+    /// depth by 1 cm (9.1 s), its roll by 0.3 rad; jaws 0.2 rad. The renderer draws it when
+    /// `realism.second_instrument` is on.
+    pub fn set_second_instrument(&mut self, on: bool) {
+        self.second = on;
+    }
+
+    fn second_at(&self, t_ns: u64, tool: &Isometry3<f64>) -> Option<InstrumentState> {
+        let trocar = self.second_trocar?;
+        let origin = self.history.front().map_or(t_ns, |s| s.t_ns);
+        let t = t_ns.saturating_sub(origin) as f64 * 1e-9;
+        let w = |period: f64, phase: f64| (std::f64::consts::TAU * t / period + phase).sin();
+        let tip = (tool * nalgebra::Point3::new(0.0, 0.0, self.wrist_m)).coords;
+        let target = tip + Vector3::new(0.02 * w(7.7, 0.0), 0.015 * w(5.3, 1.0), -0.025 + 0.01 * w(9.1, 2.0));
+        let aim = target - trocar;
+        let dir = aim.try_normalize(1e-9)?;
+        let r = UnitQuaternion::rotation_between(&Vector3::z(), &dir).unwrap_or_else(UnitQuaternion::identity)
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.3 * w(6.1, 0.5));
+        let origin_i = target - dir * self.wrist_m;
+        Some(InstrumentState {
+            pose_world: Isometry3::from_parts(Translation3::from(origin_i), r),
+            wrist_rad: 0.0,
+            jaw_rad: [JAW_RAD; 2],
+            psm_joints: None,
         })
     }
 
@@ -143,6 +184,10 @@ impl World {
         while self.history.front().is_some_and(|f| f.t_ns.saturating_add(self.keep_ns) < t_ns) && self.history.len() > 1
         {
             self.history.pop_front();
+        }
+        if self.second && self.second_trocar.is_none() {
+            let back = (s.instrument_in_ecm * nalgebra::Point3::new(0.0, 0.0, self.wrist_m - 0.12)).coords;
+            self.second_trocar = Some(Vector3::new(-back.x, -back.y, back.z));
         }
         self.history.push_back(s);
         Ok(s)
@@ -184,7 +229,8 @@ impl World {
             _ => (a.ecm_joints, a.instrument_in_ecm),
         };
         let instrument = InstrumentState { pose_world: pose, wrist_rad: 0.0, jaw_rad: [JAW_RAD; 2], psm_joints: None };
-        Some(SceneState { ecm_joints: ecm, instrument, second: None })
+        let second = if self.second { self.second_at(t_ns, &pose) } else { None };
+        Some(SceneState { ecm_joints: ecm, instrument, second })
     }
 
     /// The tip (jaw pivot, the scenario's `P + L·z`) of the instrument at sample `s`, metres,
@@ -207,6 +253,161 @@ pub fn default_endoscope_config() -> EndoscopeConfig {
     c.tissue.extent_m = 0.40;
     c.realism.second_instrument = false;
     c
+}
+
+/// A time window during which an occluder plate ([`Occluder`]) hides about `fraction` of
+/// the instrument in the left eye ([`occluder_for`]); times in seconds from the first frame's
+/// mid time. Written `START:DURATION:FRACTION[:tip|:shaft]` on the command line (`simrobot
+/// generate --occlude 3:1:0.5`; the tip end hidden first unless `:shaft`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct OcclusionWindow {
+    /// Start, seconds from the first frame.
+    pub start_s: f64,
+    /// Duration, seconds.
+    pub duration_s: f64,
+    /// Fraction of the instrument's visible length to hide (`1`: all of it).
+    pub fraction: f64,
+    /// Which end is hidden first: `false` the tip end (jaws, wrist, then the shaft), `true`
+    /// the shaft's end (where it leaves the image), leaving the tip in view.
+    pub from_shaft_end: bool,
+}
+
+impl OcclusionWindow {
+    /// `true` when `t_s` (seconds from the first frame) lies in the window.
+    pub fn contains(&self, t_s: f64) -> bool {
+        t_s >= self.start_s && t_s < self.start_s + self.duration_s
+    }
+}
+
+/// A malformed `--occlude` value.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "occlusion window {0:?}: expected START_S:DURATION_S:FRACTION[:tip|:shaft], start and duration finite and >= 0, fraction in (0, 1]"
+)]
+pub struct OcclusionWindowError(pub String);
+
+impl std::str::FromStr for OcclusionWindow {
+    type Err = OcclusionWindowError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let err = || OcclusionWindowError(s.to_string());
+        let mut parts: Vec<&str> = s.split(':').map(str::trim).collect();
+        let from_shaft_end = match parts.last() {
+            Some(&"shaft") => true,
+            Some(&"tip") => false,
+            _ => {
+                parts.push("tip");
+                false
+            }
+        };
+        parts.pop();
+        let v: Vec<f64> = parts.iter().map(|x| x.parse::<f64>().map_err(|_| err())).collect::<Result<_, _>>()?;
+        let [start_s, duration_s, fraction] = v[..] else { return Err(err()) };
+        let ok = start_s.is_finite()
+            && start_s >= 0.0
+            && duration_s.is_finite()
+            && duration_s >= 0.0
+            && fraction.is_finite()
+            && fraction > 0.0
+            && fraction <= 1.0;
+        if !ok {
+            return Err(err());
+        }
+        Ok(Self { start_s, duration_s, fraction, from_shaft_end })
+    }
+}
+
+/// An occluder plate hiding about `fraction` of the instrument in the left eye at `scene`
+/// (mid time), tip end first (or the shaft's end first with `from_shaft_end`): the instrument's axis from the jaw tips back along the shaft
+/// is sampled every millimetre, the samples in the left image weighted by their image length
+/// over their depth (≈ the pixels they cover), and the plate covers the samples from the tip
+/// end up to `fraction` of the weight. The plate lies in the plane `z = 0.8·(z_min − 5 mm)`
+/// of the left eye (in front of what it covers), perpendicular to the optical axis, its long
+/// side along the covered part's image, with a margin for the right eye's other disparity
+/// (and 6 px); with `fraction = 1` it reaches 3 cm beyond the last visible sample. The
+/// instrument's true visible fraction is the renderer's ground truth
+/// ([`crate::endoscope::Visibility`]). `None` when the instrument is out of the left image or
+/// too near the camera.
+pub fn occluder_for(
+    renderer: &StereoRenderer,
+    scene: &SceneState,
+    fraction: f64,
+    from_shaft_end: bool,
+) -> Option<Occluder> {
+    if !(fraction.is_finite() && fraction > 0.0) {
+        return None;
+    }
+    let cfg = renderer.config();
+    let g = &cfg.instrument;
+    let eyes = renderer.eye_poses(&scene.ecm_joints);
+    let t_c_e = eyes[0].inverse();
+    let t_c_i = t_c_e * scene.instrument.pose_world;
+    let top = g.wrist_length_m + g.jaw_length_m;
+    let n = ((top + g.shaft_length_m) / 0.001).ceil() as usize;
+    let mut pts: Vec<(Vector3<f64>, f64)> = Vec::new();
+    let mut prev: Option<nalgebra::Vector2<f64>> = None;
+    for k in 0..=n {
+        let p_i = nalgebra::Point3::new(0.0, 0.0, top - 0.001 * k as f64);
+        let p_e = scene.instrument.pose_world * p_i;
+        let Some(px) = renderer.project_world(&eyes[0], &p_e.coords) else {
+            prev = None;
+            continue;
+        };
+        let p_c = (t_c_i * p_i).coords;
+        let w = prev.map_or(0.0, |q| (px - q).norm()) / p_c.z;
+        pts.push((p_c, w));
+        prev = Some(px);
+    }
+    if from_shaft_end {
+        // Weights belong to the step toward the previous sample: shift them with the order.
+        let w: Vec<f64> = pts.iter().map(|p| p.1).collect();
+        pts.reverse();
+        for (i, p) in pts.iter_mut().enumerate() {
+            p.1 = if i == 0 { 0.0 } else { w[w.len() - i] };
+        }
+    }
+    let total: f64 = pts.iter().map(|p| p.1).sum();
+    let (first, _) = *pts.first()?;
+    if total.is_nan() || total <= 0.0 {
+        return None;
+    }
+    let mut cut = pts.len() - 1;
+    let mut cum = 0.0;
+    if fraction < 1.0 {
+        for (i, p) in pts.iter().enumerate() {
+            cum += p.1;
+            if cum >= fraction * total {
+                cut = i;
+                break;
+            }
+        }
+    }
+    let covered = &pts[..=cut];
+    let z_min = covered.iter().map(|p| p.0.z).fold(f64::INFINITY, f64::min);
+    let z_max = covered.iter().map(|p| p.0.z).fold(0.0, f64::max);
+    let z_p = 0.8 * (z_min - 0.005);
+    if z_p.is_nan() || z_p <= 0.005 {
+        return None;
+    }
+    let k = &cfg.camera.intrinsics;
+    let m_px = k.fx * cfg.camera.baseline_m * (1.0 / z_p - 1.0 / z_max) + 6.0;
+    let m = m_px * z_p / k.fx;
+    let a = first * (z_p / first.z);
+    let b = pts[cut].0 * (z_p / pts[cut].0.z);
+    let len = (b - a).norm();
+    let d = if len > 1e-6 { (b - a) / len } else { Vector3::x() };
+    let e = Vector3::z().cross(&d).normalize();
+    let tip_end = a - d * m;
+    let cut_end = if fraction >= 1.0 { b + d * (m + 0.03) } else { b };
+    let centre = (tip_end + cut_end) / 2.0;
+    let half_along = (cut_end - tip_end).norm() / 2.0;
+    let half_across = (g.shaft_radius_m() + 0.004) * z_p / z_min + m;
+    let rot = nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[d, e, Vector3::z()]));
+    let in_camera = Isometry3::from_parts(Translation3::from(centre), UnitQuaternion::from_rotation_matrix(&rot));
+    Some(Occluder {
+        pose_world: eyes[0] * in_camera,
+        half_size_m: [half_along.max(1e-4), half_across.max(1e-4)],
+        material: Occluder::GAUZE,
+    })
 }
 
 /// Pixels of the instrument (label 1) visible in eye `eye` (0 left, 1 right) of a rendered
@@ -256,6 +457,9 @@ struct FramesLine<'a> {
     ecm_joints: [f64; ECM_JOINTS],
     tool_joints: [f64; 6],
     instrument_px: [u64; 2],
+    /// The occluder window's fraction when one covers this frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    occlusion_target: Option<f64>,
     files: [&'a str; 4],
     left: &'a crate::endoscope::EyeTruth,
     right: &'a crate::endoscope::EyeTruth,
@@ -304,6 +508,7 @@ pub struct FrameWriter {
     index: BufWriter<File>,
     index_path: std::path::PathBuf,
     exposure_ns: u64,
+    occlusions: Vec<OcclusionWindow>,
 }
 
 impl FrameWriter {
@@ -361,7 +566,14 @@ impl FrameWriter {
             index,
             index_path,
             exposure_ns: (cfg.timing.exposure_s * 1e9).round() as u64,
+            occlusions: Vec::new(),
         })
+    }
+
+    /// Occluder windows of the next frames (times from the first frame): in a window, each
+    /// frame gets the plate of [`occluder_for`] placed at its mid time.
+    pub fn set_occlusions(&mut self, windows: Vec<OcclusionWindow>) {
+        self.occlusions = windows;
     }
 
     /// Mid time of the next frame's exposure, nanoseconds on the bus clock.
@@ -395,6 +607,11 @@ impl FrameWriter {
         let mid = world.scene_at(t).ok_or(FramesError::NoSample)?;
         let sample = *world.sample_at(t).ok_or(FramesError::NoSample)?;
         let scene = |at: u64| world.scene_at(at).unwrap_or(mid);
+        let rel_s = t.saturating_sub(self.t0_ns) as f64 * 1e-9;
+        let window = self.occlusions.iter().find(|w| w.contains(rel_s)).copied();
+        let target = window.map(|w| w.fraction);
+        let occluder = window.and_then(|w| occluder_for(&self.renderer, &mid, w.fraction, w.from_shaft_end));
+        self.renderer.set_occluder(occluder);
         self.renderer.render_into(t, &scene, &mut self.frame).map_err(OutputError::from)?;
         let n = self.next;
         let names = [
@@ -417,6 +634,7 @@ impl FrameWriter {
             ecm_joints: mid.ecm_joints,
             tool_joints: sample.tool_joints,
             instrument_px: px,
+            occlusion_target: target,
             files: [&names[0], &names[1], &names[2], &names[3]],
             left: &self.frame.truth[0],
             right: &self.frame.truth[1],

@@ -127,6 +127,10 @@ pub struct FilterSection {
     pub lost_cost_px: Option<f64>,
     /// Lost frames before re-initialisation from the kinematics.
     pub reinit_after_lost: Option<u32>,
+    /// Ours: LOST below this inlier share (0..1); a negative value: by `lost_cost_px`.
+    pub lost_inlier_share: Option<f64>,
+    /// Ours: keep the particles on the kinematics while lost.
+    pub hold_while_lost: Option<bool>,
     /// Ours: adaptive process noise `[good_px, max_scale]`.
     pub adaptive_noise: Option<[f64; 2]>,
     /// Noise seed.
@@ -281,6 +285,12 @@ impl TrackFile {
         }
         if let Some(v) = f.reinit_after_lost {
             c.reinit_after_lost = v;
+        }
+        if let Some(v) = f.lost_inlier_share {
+            c.lost_inlier_share = (v >= 0.0 || v.is_nan()).then_some(v);
+        }
+        if let Some(v) = f.hold_while_lost {
+            c.hold_while_lost = v;
         }
         if let Some([g, m]) = f.adaptive_noise {
             c.adaptive_noise = Some((g, m));

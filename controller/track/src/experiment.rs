@@ -35,6 +35,14 @@ pub struct Trial {
     pub converged_at: Option<usize>,
     /// Mean step time, milliseconds.
     pub step_ms: f64,
+    /// Per frame: the kinematics alone (the encoders as the tracker got them, noise
+    /// included) against the truth: position (mm), orientation (degrees).
+    #[serde(default)]
+    pub kinematics: Vec<Option<(f64, f64)>>,
+    /// First frame (within the trial, after the first) at which the tracker re-initialised
+    /// from the kinematics (after LOST frames).
+    #[serde(default)]
+    pub reinitialised_at: Option<usize>,
 }
 
 /// The results of one mode on a set of trials.
@@ -98,6 +106,7 @@ pub fn converge(
     rot_rad: f64,
     seed: u64,
     min_px: u64,
+    noise_rad: f64,
     progress: &dyn Fn(),
 ) -> Result<Vec<Trial>, RunError> {
     let visible = |i: usize| {
@@ -124,11 +133,20 @@ pub fn converge(
         let Some(start) = joint_offset(model, &enc, &dp, &dr) else { continue };
         let mut c = cfg;
         c.seed = seed.wrapping_mul(1000).wrapping_add(t as u64);
+        let encoder_noise = (noise_rad > 0.0)
+            .then_some(crate::run::EncoderNoise { sigma_rad: [noise_rad; 6], seed: c.seed ^ 0x05EE_D0F0_015E });
         let res = track(
             seq,
             model,
             c,
-            &RunOptions { first, count: frames, start_joints: Some(start), overlay: None, progress: &|_| {} },
+            &RunOptions {
+                first,
+                count: frames,
+                start_joints: Some(start),
+                overlay: None,
+                progress: &|_| {},
+                encoder_noise,
+            },
         )?;
         let init = f.truth.and_then(|tr| {
             let tip = model.tip_in_base(&start)?;
@@ -160,6 +178,8 @@ fn trial_of(label: &str, first: usize, initial: (f64, f64), res: &[FrameResult])
         status: res.iter().map(|r| r.status.clone()).collect(),
         converged_at,
         step_ms: res.iter().map(|r| r.step_ms).sum::<f64>() / n,
+        kinematics: res.iter().map(|r| r.kinematics_error_mm.zip(r.kinematics_error_deg)).collect(),
+        reinitialised_at: res.iter().skip(1).position(|r| r.reinitialised).map(|k| k + 1),
     }
 }
 
@@ -186,6 +206,8 @@ pub struct Summary {
     pub trials: usize,
     /// Trials converged by their end.
     pub converged: usize,
+    /// … of which converged at or after a re-initialisation from the kinematics.
+    pub converged_after_reinit: usize,
     /// Position error after convergence, mm (median, p95).
     pub position_mm: (f64, f64),
     /// Orientation error after convergence, degrees (median, p95).
@@ -202,6 +224,18 @@ pub struct Summary {
     pub lost_frames: usize,
     /// All frames.
     pub frames: usize,
+    /// The kinematics alone over the same frames as "after convergence" of the converged
+    /// trials, mm (median, p95).
+    pub kinematics_mm: (f64, f64),
+    /// … orientation, degrees (median, p95).
+    pub kinematics_deg: (f64, f64),
+    /// Tracker over every frame of every trial (LOST frames left out), mm (median, p95).
+    pub all_position_mm: (f64, f64),
+    /// The kinematics over every frame of every trial, mm (median, p95).
+    pub all_kinematics_mm: (f64, f64),
+    /// Tracker orientation over every frame of every trial (LOST left out), degrees (median,
+    /// p95).
+    pub all_orientation_deg: (f64, f64),
 }
 
 /// Summarises `r` (`tail` last frames of each converged trial).
@@ -209,7 +243,18 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
     let (mut p, mut a, mut fp, mut fa, mut ct) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let mut lost = 0;
     let mut frames = 0;
+    let (mut kp, mut ka, mut allp, mut allk) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut alla = Vec::new();
     for t in &r.trials {
+        allp.extend(t.errors.iter().flatten().map(|e| e.0));
+        alla.extend(t.errors.iter().flatten().map(|e| e.1));
+        allk.extend(t.kinematics.iter().flatten().map(|e| e.0));
+        if let Some(k) = t.converged_at {
+            for (x, y) in t.kinematics.iter().skip(t.kinematics.len().saturating_sub(tail).max(k)).flatten() {
+                kp.push(*x);
+                ka.push(*y);
+            }
+        }
         lost += t.status.iter().filter(|s| *s == "LOST").count();
         frames += t.status.len();
         if let Some(Some((x, y))) = t.errors.last() {
@@ -232,6 +277,11 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
         particles: r.particles,
         trials: r.trials.len(),
         converged: r.trials.iter().filter(|t| t.converged_at.is_some()).count(),
+        converged_after_reinit: r
+            .trials
+            .iter()
+            .filter(|t| t.converged_at.zip(t.reinitialised_at).is_some_and(|(c, k)| c >= k))
+            .count(),
         position_mm: median_p95(&mut p),
         orientation_deg: median_p95(&mut a),
         final_position_mm: median_p95(&mut fp),
@@ -240,6 +290,11 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
         step_ms: r.trials.iter().map(|t| t.step_ms).sum::<f64>() / r.trials.len().max(1) as f64,
         lost_frames: lost,
         frames,
+        kinematics_mm: median_p95(&mut kp),
+        kinematics_deg: median_p95(&mut ka),
+        all_position_mm: median_p95(&mut allp),
+        all_kinematics_mm: median_p95(&mut allk),
+        all_orientation_deg: median_p95(&mut alla),
     }
 }
 

@@ -33,6 +33,12 @@ pub struct FrameTruth {
     pub rotation_camera: UnitQuaternion<f64>,
     /// Instrument pixels visible in the left and right masks.
     pub instrument_px: [u64; 2],
+    /// The instrument's visible fraction in the left and right eyes (occlusion by the second
+    /// instrument or the occluder plate; `None`: out of view or not in the truth file).
+    pub visible_fraction: [Option<f64>; 2],
+    /// The occluder window's target fraction when one covers this frame
+    /// (`simrobot generate --occlude`).
+    pub occlusion_target: Option<f64>,
 }
 
 /// One stereo frame of the sequence.
@@ -139,9 +145,22 @@ struct InstrumentJson {
     tip_camera_m: [f64; 3],
 }
 
+#[derive(Deserialize, Default, Clone, Copy)]
+struct VisibilityJson {
+    unoccluded_px: u64,
+    visible_px: u64,
+}
+
+impl VisibilityJson {
+    fn fraction(&self) -> Option<f64> {
+        (self.unoccluded_px > 0).then(|| self.visible_px as f64 / self.unoccluded_px as f64)
+    }
+}
+
 #[derive(Deserialize)]
 struct EyeJson {
     instruments: Vec<InstrumentJson>,
+    visibility: Option<VisibilityJson>,
 }
 
 #[derive(Deserialize)]
@@ -152,7 +171,10 @@ struct FrameJson {
     index: usize,
     #[serde(default)]
     instrument_px: [u64; 2],
+    #[serde(default)]
+    occlusion_target: Option<f64>,
     left: Option<EyeJson>,
+    right: Option<EyeJson>,
 }
 
 /// A transform of a calibration file as an isometry (metres).
@@ -266,6 +288,10 @@ pub fn read_sequence(
             continue;
         }
         let Some(left) = f.left else { continue };
+        let visible_fraction = [
+            left.visibility.and_then(|v| v.fraction()),
+            f.right.as_ref().and_then(|e| e.visibility).and_then(|v| v.fraction()),
+        ];
         let Some(i) = left.instruments.iter().find(|i| i.label == 1) else { continue };
         let [w, x, y, z] = i.pose_in_camera.quaternion_wxyz;
         if let Some(slot) = truths.get_mut(f.index) {
@@ -273,6 +299,8 @@ pub fn read_sequence(
                 tip_camera_m: Vector3::from(i.tip_camera_m),
                 rotation_camera: UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
                 instrument_px: f.instrument_px,
+                visible_fraction,
+                occlusion_target: f.occlusion_target,
             });
         }
     }

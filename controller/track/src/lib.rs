@@ -8,7 +8,9 @@
 //! - [`run`]: the model, one step per frame, the JSON lines;
 //! - [`live`]: the live process: frame service, bus, calibration in, [`hw_io::ipc::TrackSample`]s out;
 //! - [`overlay`]: the best hypothesis and the particle cloud drawn on both eyes;
-//! - [`experiment`]: convergence from perturbed starts, frame rate, plots.
+//! - [`experiment`]: convergence from perturbed starts, frame rate, plots;
+//! - [`robustness`]: joint-sensor noise, second instrument, smoke, occluder windows (loss and
+//!   recovery), plots.
 
 pub mod config;
 pub mod experiment;
@@ -16,4 +18,5 @@ pub mod input;
 pub mod live;
 pub mod live_cli;
 pub mod overlay;
+pub mod robustness;
 pub mod run;

@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 use comanip_track::config::TrackFile;
 use comanip_track::experiment::{self, ConvergeResults, RatePoint};
 use comanip_track::input::{Sequence, read_sequence};
+use comanip_track::robustness::{self, NoiseLevel, NoiseSweep, SceneRun};
 use comanip_track::run::{RunOptions, build_model, mode_name, track, write_jsonl};
 use track::Mode;
 
@@ -185,6 +186,57 @@ enum Command {
         #[command(flatten)]
         common: Common,
     },
+    /// Joint-sensor noise (the paper's Fig. 10-11): `converge`'s trials with Gaussian noise
+    /// added to every encoder reading the tracker gets, at each level; writes the sweep as
+    /// JSON.
+    Noise {
+        /// Run directories (DIR/bus.log, DIR/frames).
+        #[arg(long, required = true, num_args = 1..)]
+        run: Vec<PathBuf>,
+        /// Noise levels: standard deviation per joint, milliradians.
+        #[arg(long, num_args = 1.., default_values_t = [0.0f64, 2.0, 5.0, 10.0])]
+        sigmas_mrad: Vec<f64>,
+        /// Trials per run and level.
+        #[arg(long, default_value_t = 5)]
+        trials: usize,
+        /// Frames per trial.
+        #[arg(long, default_value_t = 20)]
+        frames_per_trial: usize,
+        /// Initial tip position error, millimetres (0: particles started at the truth).
+        #[arg(long, default_value_t = 13.0)]
+        pos_mm: f64,
+        /// Initial orientation error, degrees.
+        #[arg(long, default_value_t = 10.0)]
+        rot_deg: f64,
+        /// Seed of the starts (the same starts at every level).
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+        /// Fewest instrument pixels in each eye for a frame to be used.
+        #[arg(long, default_value_t = 400)]
+        min_px: u64,
+        /// Output (JSON).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Scene conditions (second instrument, smoke, occluder windows from `simrobot generate
+    /// --second-instrument / --occlude`, realism.smoke): each run tracked over the frames
+    /// where the instrument is in view; summaries, loss and recovery per occluder window;
+    /// appends to the JSON output.
+    Scenes {
+        /// `CONDITION=DIR` pairs (DIR: a `simrobot generate --frames` output).
+        #[arg(long, required = true, num_args = 1..)]
+        run: Vec<String>,
+        /// Fewest instrument pixels (unoccluded) in each eye for a frame to be tracked.
+        #[arg(long, default_value_t = 400)]
+        min_px: u64,
+        /// Output (JSON, appended to when it exists: one entry per condition, sequence, mode).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
     /// Summaries and plots from `converge` and `rate` outputs.
     Report {
         /// `converge` outputs.
@@ -199,6 +251,16 @@ enum Command {
         /// Plot directory.
         #[arg(long)]
         plots: PathBuf,
+        /// `noise` outputs for one plot (Fig. 10 style: error against the level), one per
+        /// mode; the plot is named after the first file's stem.
+        #[arg(long, num_args = 1..)]
+        noise: Vec<PathBuf>,
+        /// `noise` outputs for one plot of the error per frame (Fig. 11 style).
+        #[arg(long, num_args = 1..)]
+        noise_frames: Vec<PathBuf>,
+        /// `scenes` output: tables and one plot per condition and sequence.
+        #[arg(long)]
+        scenes: Option<PathBuf>,
     },
 }
 
@@ -277,6 +339,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     start_joints: None,
                     overlay: overlay.as_deref(),
                     progress: &|k| b.set_position(k as u64),
+                    encoder_noise: None,
                 },
             )
             .map_err(|e| e.to_string())?;
@@ -360,6 +423,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     rot_deg.to_radians(),
                     seed + k as u64,
                     min_px,
+                    0.0,
                     &|| b.inc(1),
                 )
                 .map_err(|e| e.to_string())?;
@@ -389,7 +453,14 @@ fn run(cli: Cli) -> Result<(), String> {
                     &seq,
                     &model,
                     cfg,
-                    &RunOptions { first, count: frames + 1, start_joints: None, overlay: None, progress: &|_| {} },
+                    &RunOptions {
+                        first,
+                        count: frames + 1,
+                        start_joints: None,
+                        overlay: None,
+                        progress: &|_| {},
+                        encoder_noise: None,
+                    },
                 )
                 .map_err(|e| e.to_string())?;
                 // The first frame initialises (and warms the caches): not counted.
@@ -403,8 +474,159 @@ fn run(cli: Cli) -> Result<(), String> {
             std::fs::write(&out, serde_json::to_string_pretty(&points).unwrap_or_default())
                 .map_err(|e| format!("{}: {e}", out.display()))
         }
-        Command::Report { converge, rate, tail, plots } => {
+        Command::Noise { run, sigmas_mrad, trials, frames_per_trial, pos_mm, rot_deg, seed, min_px, out, common } => {
+            let (file, fcfg) = setup(&common)?;
+            let mut seqs = Vec::new();
+            for dir in &run {
+                let seq = open_run(dir, &fcfg)?;
+                let model = build_model(&seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
+                let label = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
+                seqs.push((seq, model, label));
+            }
+            let b = bar((trials * run.len() * sigmas_mrad.len()) as u64);
+            let mut levels = Vec::new();
+            for &sigma in &sigmas_mrad {
+                if !(sigma.is_finite() && sigma >= 0.0) {
+                    return Err(format!("--sigmas-mrad {sigma}: must be finite and >= 0"));
+                }
+                let mut all = Vec::new();
+                let mut cfg0 = None;
+                for (k, (seq, model, label)) in seqs.iter().enumerate() {
+                    let (w, h) = size(seq);
+                    let cfg = file.tracker(w, h);
+                    cfg0 = Some(cfg);
+                    let t = experiment::converge(
+                        seq,
+                        label,
+                        model,
+                        cfg,
+                        trials,
+                        frames_per_trial,
+                        pos_mm * 1e-3,
+                        rot_deg.to_radians(),
+                        seed + k as u64,
+                        min_px,
+                        sigma * 1e-3,
+                        &|| b.inc(1),
+                    )
+                    .map_err(|e| e.to_string())?;
+                    all.extend(t);
+                }
+                let cfg = cfg0.ok_or("no run")?;
+                let res = ConvergeResults {
+                    mode: mode_name(cfg.mode).into(),
+                    particles: cfg.particles,
+                    fps: 0.0,
+                    trials: all,
+                };
+                let sm = experiment::summarise(&res, 5);
+                b.suspend(|| println!("sigma {sigma} mrad: {}", serde_json::to_string(&sm).unwrap_or_default()));
+                levels.push(NoiseLevel { sigma_mrad: sigma, results: res });
+            }
+            b.finish_and_clear();
+            let sweep = NoiseSweep { pos_mm, rot_deg, levels };
+            std::fs::write(&out, serde_json::to_string(&sweep).unwrap_or_default())
+                .map_err(|e| format!("{}: {e}", out.display()))
+        }
+        Command::Scenes { run, min_px, out, common } => {
+            let (file, fcfg) = setup(&common)?;
+            let mut runs: Vec<SceneRun> =
+                std::fs::read_to_string(&out).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
+            for pair in &run {
+                let Some((condition, dir)) = pair.split_once('=') else {
+                    return Err(format!("--run {pair}: expected CONDITION=DIR"));
+                };
+                let dir = PathBuf::from(dir);
+                let seq = open_run(&dir, &fcfg)?;
+                let model = build_model(&seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
+                let (w, h) = size(&seq);
+                let cfg = file.tracker(w, h);
+                let label = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
+                let b = bar(seq.frames.len() as u64);
+                let r = robustness::scene(&seq, &label, condition, &model, cfg, min_px, &|k| b.set_position(k as u64))
+                    .map_err(|e| e.to_string())?;
+                b.finish_and_clear();
+                println!("{}", serde_json::to_string(&robustness::summarise_condition(&r)).unwrap_or_default());
+                for wsum in robustness::summarise_windows(&r) {
+                    println!("{}", serde_json::to_string(&wsum).unwrap_or_default());
+                }
+                runs.retain(|x| !(x.condition == r.condition && x.sequence == r.sequence && x.mode == r.mode));
+                runs.push(r);
+            }
+            std::fs::write(&out, serde_json::to_string(&runs).unwrap_or_default())
+                .map_err(|e| format!("{}: {e}", out.display()))
+        }
+        Command::Report { converge, rate, tail, plots, noise, noise_frames, scenes } => {
             std::fs::create_dir_all(&plots).map_err(|e| format!("{}: {e}", plots.display()))?;
+            let read_sweeps = |files: &[PathBuf]| -> Result<Vec<NoiseSweep>, String> {
+                files
+                    .iter()
+                    .map(|p| {
+                        let t = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+                        serde_json::from_str(&t).map_err(|e| format!("{}: {e}", p.display()))
+                    })
+                    .collect()
+            };
+            let stem = |files: &[PathBuf]| {
+                files
+                    .first()
+                    .and_then(|p| p.file_stem())
+                    .map_or_else(|| "noise".to_string(), |s| s.to_string_lossy().into())
+            };
+            if !noise.is_empty() {
+                let sw = read_sweeps(&noise)?;
+                for s in &sw {
+                    for l in &s.levels {
+                        let sm = experiment::summarise(&l.results, tail);
+                        println!("noise {} mrad: {}", l.sigma_mrad, serde_json::to_string(&sm).unwrap_or_default());
+                    }
+                }
+                let title = format!(
+                    "Joint-sensor noise: starts {} mm / {}°, median tip error",
+                    sw.first().map_or(0.0, |s| s.pos_mm),
+                    sw.first().map_or(0.0, |s| s.rot_deg)
+                );
+                robustness::plot_noise(&plots.join(format!("{}.svg", stem(&noise))), &sw, tail, &title)
+                    .map_err(|e| e.to_string())?;
+            }
+            if !noise_frames.is_empty() {
+                let sw = read_sweeps(&noise_frames)?;
+                for s in &sw {
+                    for l in &s.levels {
+                        let sm = experiment::summarise(&l.results, tail);
+                        println!("noise {} mrad: {}", l.sigma_mrad, serde_json::to_string(&sm).unwrap_or_default());
+                    }
+                }
+                robustness::plot_noise_frames(
+                    &plots.join(format!("{}.svg", stem(&noise_frames))),
+                    &sw,
+                    "Trajectories from the truth under joint-sensor noise: median tip error",
+                )
+                .map_err(|e| e.to_string())?;
+            }
+            if let Some(p) = &scenes {
+                let t = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+                let runs: Vec<SceneRun> = serde_json::from_str(&t).map_err(|e| format!("{}: {e}", p.display()))?;
+                for r in &runs {
+                    println!("{}", serde_json::to_string(&robustness::summarise_condition(r)).unwrap_or_default());
+                    for wsum in robustness::summarise_windows(r) {
+                        println!("{}", serde_json::to_string(&wsum).unwrap_or_default());
+                    }
+                }
+                let mut keys: Vec<(String, String)> =
+                    runs.iter().map(|r| (r.condition.clone(), r.sequence.clone())).collect();
+                keys.sort();
+                keys.dedup();
+                for (c, sq) in keys {
+                    let group: Vec<&SceneRun> = runs.iter().filter(|r| r.condition == c && r.sequence == sq).collect();
+                    let name: String = format!("scene_{c}_{sq}")
+                        .chars()
+                        .map(|ch| if ch.is_ascii_alphanumeric() { ch } else { '_' })
+                        .collect();
+                    robustness::plot_scene(&plots.join(format!("{name}.svg")), &group, &format!("{c}, {sq}"))
+                        .map_err(|e| e.to_string())?;
+                }
+            }
             let mut results = Vec::new();
             for p in &converge {
                 let t = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;

@@ -105,6 +105,8 @@ pub struct FrameResult {
     pub best_cost_px: Option<f64>,
     /// Effective particles.
     pub effective_particles: Option<f64>,
+    /// Ours: the best hypothesis's share of samples on a matching edge (both eyes' mean).
+    pub inlier_share: Option<f64>,
     /// Re-initialised from the kinematics at this frame.
     pub reinitialised: bool,
     /// Against the renderer's ground truth (when known and a pose was published): tip position
@@ -114,6 +116,12 @@ pub struct FrameResult {
     pub error_deg: Option<f64>,
     /// The kinematics alone (encoders and calibration) against the truth, millimetres.
     pub kinematics_error_mm: Option<f64>,
+    /// … its orientation error, degrees.
+    pub kinematics_error_deg: Option<f64>,
+    /// The instrument's visible fraction in the left and right eyes (the renderer's truth).
+    pub visible_fraction: [Option<f64>; 2],
+    /// The occluder window's target fraction when one covers this frame.
+    pub occlusion_target: Option<f64>,
     /// Wall time of the step, milliseconds.
     pub step_ms: f64,
 }
@@ -171,6 +179,30 @@ pub struct RunOptions<'a> {
     pub overlay: Option<&'a Path>,
     /// Progress after each frame.
     pub progress: &'a dyn Fn(usize),
+    /// Joint-sensor noise added to every encoder reading the tracker gets (the paper's Fig.
+    /// 10-11); `None`: the encoders as logged.
+    pub encoder_noise: Option<EncoderNoise>,
+}
+
+/// Gaussian noise added to each encoder reading given to the tracker, independently per
+/// frame and joint (the paper's "noise added to the joint sensor feedback"). The kinematics
+/// baseline of the results uses the same noisy readings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EncoderNoise {
+    /// Standard deviation per joint, radians.
+    pub sigma_rad: [f64; 6],
+    /// Seed of the noise.
+    pub seed: u64,
+}
+
+impl EncoderNoise {
+    /// The noisy reading of frame `index`.
+    pub fn apply(&self, index: usize, enc: &[f64; 6]) -> [f64; 6] {
+        use rand::{Rng, SeedableRng};
+        let mut r =
+            rand_chacha::ChaCha8Rng::seed_from_u64(self.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        core::array::from_fn(|j| enc[j] + self.sigma_rad[j] * r.sample::<f64, _>(rand_distr::StandardNormal))
+    }
 }
 
 /// Tracks `count` frames of `seq` from `first` with a tracker of `cfg` on `model`, returning
@@ -200,13 +232,19 @@ pub fn track(
             spread_m: None,
             best_cost_px: None,
             effective_particles: None,
+            inlier_share: None,
             reinitialised: false,
             error_mm: None,
             error_deg: None,
             kinematics_error_mm: None,
+            kinematics_error_deg: None,
+            visible_fraction: f.truth.map_or([None; 2], |t| t.visible_fraction),
+            occlusion_target: f.truth.and_then(|t| t.occlusion_target),
             step_ms: 0.0,
         };
-        let (Some(enc), Some(ecm)) = (f.encoder_rad, f.ecm_joints) else {
+        let (Some(enc), Some(ecm)) =
+            (f.encoder_rad.map(|e| opts.encoder_noise.map_or(e, |n| n.apply(f.index, &e))), f.ecm_joints)
+        else {
             out.push(skipped(f.index, f.t_ns));
             (opts.progress)(out.len());
             continue;
@@ -238,7 +276,7 @@ pub fn track(
         let err = est.pose.as_ref().zip(f.truth.as_ref()).map(|(p, t)| errors(&p.tip_in_camera, t));
         let kin = f.truth.as_ref().and_then(|t| {
             let tip = model.tip_in_base(&enc)?;
-            Some(errors(&(cams.left_from_base * tip), t).0)
+            Some(errors(&(cams.left_from_base * tip), t))
         });
         if let Some(dir) = opts.overlay {
             crate::overlay::write(dir, f.index, seq, &tracker, &cams, est.pose.as_ref(), [l, r], &mut sil)?;
@@ -257,10 +295,14 @@ pub fn track(
             spread_m: est.spread_m.is_finite().then_some(est.spread_m),
             best_cost_px: est.best_cost_px.is_finite().then_some(est.best_cost_px),
             effective_particles: Some(est.effective_particles),
+            inlier_share: Some(tracker.last_inlier_share()).filter(|v| v.is_finite()),
             reinitialised: est.reinitialised,
             error_mm: err.map(|e| e.0),
             error_deg: err.map(|e| e.1),
-            kinematics_error_mm: kin,
+            kinematics_error_mm: kin.map(|k| k.0),
+            kinematics_error_deg: kin.map(|k| k.1),
+            visible_fraction: f.truth.map_or([None; 2], |t| t.visible_fraction),
+            occlusion_target: f.truth.and_then(|t| t.occlusion_target),
             step_ms,
         });
         (opts.progress)(out.len());

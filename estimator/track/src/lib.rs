@@ -123,6 +123,17 @@ pub struct TrackerConfig {
     /// Consecutive lost frames after which the particles are re-initialised from the
     /// kinematics.
     pub reinit_after_lost: u32,
+    /// Ours: LOST by the inlier share instead of the mean cost: a frame is LOST when the best
+    /// hypothesis's share of samples on a matching edge (within `measure::INLIER_PX`),
+    /// averaged over both eyes, is below this; `None`: by [`TrackerConfig::lost_cost_px`]
+    /// (the paper's mode always). The mean cost counts a hidden sample at the truncation, so
+    /// half the instrument hidden reads as lost; the inlier share halves instead.
+    pub lost_inlier_share: Option<f64>,
+    /// Ours: once re-initialised after [`TrackerConfig::reinit_after_lost`] lost frames, keep
+    /// the particles on the kinematics (re-initialise at every further lost frame) until the
+    /// instrument is found again, instead of letting them drift on clutter; and no adaptive
+    /// noise growth after a lost frame (there was nothing to fit).
+    pub hold_while_lost: bool,
     /// Ours: adaptive process noise `(good_px, max_scale)`: the motion noise is scaled by
     /// `clamp(c / good_px, 1, √max_scale)²` where `c` is the previous frame's best cost per
     /// eye (pixels): a poor fit explores more. `None`: fixed noise (the paper).
@@ -158,6 +169,11 @@ impl TrackerConfig {
             uncertain_spread_m: 0.004,
             lost_cost_px: 7.0,
             reinit_after_lost: 3,
+            lost_inlier_share: match mode {
+                Mode::Paper => None,
+                Mode::Ours => Some(0.2),
+            },
+            hold_while_lost: mode == Mode::Ours,
             adaptive_noise: match mode {
                 Mode::Paper => None,
                 Mode::Ours => Some((3.5, 16.0)),
@@ -211,6 +227,11 @@ impl TrackerConfig {
         }
         if !pos(self.lost_cost_px) {
             return Err(ConfigError("lost_cost_px"));
+        }
+        if let Some(v) = self.lost_inlier_share
+            && !(v.is_finite() && (0.0..=1.0).contains(&v))
+        {
+            return Err(ConfigError("lost_inlier_share (0..=1)"));
         }
         if let Some((g, m)) = self.adaptive_noise
             && !(pos(g) && m.is_finite() && m >= 1.0)
@@ -315,6 +336,7 @@ pub struct Tracker {
     fields: [EdgeField; 2],
     last_encoder: Option<[f64; JOINTS]>,
     last_cost_px: f64,
+    last_inlier_share: f64,
     frame: u64,
     lost_run: u32,
     rng: ChaCha8Rng,
@@ -337,6 +359,7 @@ impl Tracker {
             fields: [EdgeField::new(cfg.width, cfg.height), EdgeField::new(cfg.width, cfg.height)],
             last_encoder: None,
             last_cost_px: 0.0,
+            last_inlier_share: f64::NAN,
             frame: 0,
             lost_run: 0,
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
@@ -362,6 +385,12 @@ impl Tracker {
     /// Each eye's edge field of the last frame.
     pub fn edge_fields(&self) -> &[EdgeField; 2] {
         &self.fields
+    }
+
+    /// Ours with [`TrackerConfig::lost_inlier_share`]: the best hypothesis's inlier share
+    /// (mean of both eyes, 0..1) of the last frame; NaN otherwise.
+    pub fn last_inlier_share(&self) -> f64 {
+        self.last_inlier_share
     }
 
     /// Puts the particles about `centre` (joints, radians) with the configured initial spread
@@ -561,6 +590,9 @@ impl Tracker {
             Some(prev) => {
                 let inc: [f64; JOINTS] = core::array::from_fn(|j| input.encoder_rad[j] - prev[j]);
                 let scale = match self.cfg.adaptive_noise {
+                    // After a lost frame there was nothing to fit: no extra exploration while
+                    // held on the kinematics (it finds the occluder's edges).
+                    Some(_) if self.cfg.hold_while_lost && self.lost_run > 0 => 1.0,
                     Some((good, max)) if self.last_cost_px.is_finite() => {
                         (self.last_cost_px / good).clamp(1.0, max.sqrt()).powi(2)
                     }
@@ -628,7 +660,14 @@ impl Tracker {
             Mode::Paper => best_cost,
         };
         self.last_cost_px = per_eye;
-        let lost = !(per_eye.is_finite() && per_eye <= self.cfg.lost_cost_px);
+        let lost = match (self.cfg.mode, self.cfg.lost_inlier_share) {
+            (Mode::Ours, Some(min)) => {
+                let (c, inl) = measure::fit_ours(&self.model, &cams, &self.fields, &best, &self.cfg.ours);
+                self.last_inlier_share = 0.5 * (inl[0] + inl[1]);
+                !(c.is_finite() && self.last_inlier_share >= min)
+            }
+            _ => !(per_eye.is_finite() && per_eye <= self.cfg.lost_cost_px),
+        };
         let mut status = if lost {
             Status::Lost
         } else if spread > self.cfg.uncertain_spread_m {
@@ -648,8 +687,13 @@ impl Tracker {
         if status == Status::Lost {
             self.lost_run += 1;
             if self.lost_run >= self.cfg.reinit_after_lost {
+                let run = self.lost_run;
                 self.initialise(&input.encoder_rad, &input.encoder_rad);
                 reinitialised = true;
+                if self.cfg.hold_while_lost {
+                    // Stay on the kinematics while the instrument is not found.
+                    self.lost_run = run;
+                }
             }
         } else {
             self.lost_run = 0;

@@ -47,7 +47,9 @@ fn sample_cost(f: &EdgeField, x: f64, y: f64, phi: f64, c: &OursCost) -> Option<
     })
 }
 
-/// Our cost of one eye: mean sample cost, pixels. `t_c_i`: the instrument in this camera.
+/// Our fit of one eye: mean sample cost (pixels) and the share of the samples in the image
+/// that lie on a matching edge (cost before truncation at most [`INLIER_PX`]).
+/// `t_c_i`: the instrument in this camera.
 fn eye_cost_ours(
     model: &ToolModel,
     k: &estimator::calib::Intrinsics,
@@ -55,14 +57,14 @@ fn eye_cost_ours(
     t_c_i: &Isometry3<f64>,
     jaw: f64,
     c: &OursCost,
-) -> f64 {
+) -> (f64, f64) {
     let g = model.geometry();
-    let (mut sum, mut n) = (0.0, 0usize);
+    let (mut sum, mut n, mut inl) = (0.0, 0usize, 0usize);
     // Shaft: two analytic contour lines.
     let a = t_c_i.translation.vector;
     let u = t_c_i.rotation * Vector3::z();
     let Some(offs) = shaft_contour_offsets(&a, &u, g.shaft_radius_m) else {
-        return c.truncate_px;
+        return (c.truncate_px, 0.0);
     };
     let ns = c.shaft_samples.max(2);
     for off in offs {
@@ -76,6 +78,7 @@ fn eye_cost_ours(
                 if let Some(v) = sample_cost(f, 0.5 * (q.0 + pq.0), 0.5 * (q.1 + pq.1), phi, c) {
                     sum += v;
                     n += 1;
+                    inl += usize::from(v <= INLIER_PX);
                 }
             }
             prev = q;
@@ -100,17 +103,22 @@ fn eye_cost_ours(
                 if let Some(v) = sample_cost(f, qa.0 + s * (qb.0 - qa.0), qa.1 + s * (qb.1 - qa.1), phi, c) {
                     sum += v;
                     n += 1;
+                    inl += usize::from(v <= INLIER_PX);
                 }
             }
         }
     }
     // Samples outside the image are left out (a tool partly out of view is no worse than one
     // in view); a hypothesis with too few samples in the image costs the truncation.
-    if n < MIN_INSIDE { c.truncate_px } else { sum / n as f64 }
+    if n < MIN_INSIDE { (c.truncate_px, 0.0) } else { (sum / n as f64, inl as f64 / n as f64) }
 }
 
 /// Fewest samples inside the image for a hypothesis to be scored in an eye.
 pub const MIN_INSIDE: usize = 8;
+
+/// A sample whose cost (distance plus orientation mismatch, before truncation) is at most this
+/// lies on a matching edge (an inlier), pixels.
+pub const INLIER_PX: f64 = 3.0;
 
 /// Our cost of a particle: the mean sample cost of each eye, summed over both eyes (pixels);
 /// `f64::INFINITY` off the arm.
@@ -125,9 +133,32 @@ pub(crate) fn cost_ours(
     let eyes = cams.eyes_from_base(&p.camera_delta);
     let mut total = 0.0;
     for e in 0..2 {
-        total += eye_cost_ours(model, &cams.intrinsics[e], &fields[e], &(eyes[e] * t_b_i), p.jaw_rad, c);
+        total += eye_cost_ours(model, &cams.intrinsics[e], &fields[e], &(eyes[e] * t_b_i), p.jaw_rad, c).0;
     }
     total
+}
+
+/// Our fit of a particle: the summed cost of [`cost_ours`] and the inlier share (samples
+/// within [`INLIER_PX`] of a matching edge) of each eye, left then right; `(∞, [0, 0])` off
+/// the arm. A partly hidden instrument keeps the inlier share of its visible part; a hidden
+/// one has almost none.
+pub(crate) fn fit_ours(
+    model: &ToolModel,
+    cams: &StereoCameras,
+    fields: &[EdgeField; 2],
+    p: &Particle,
+    c: &OursCost,
+) -> (f64, [f64; 2]) {
+    let Some(t_b_i) = model.instrument_in_base(&p.joints) else { return (f64::INFINITY, [0.0; 2]) };
+    let eyes = cams.eyes_from_base(&p.camera_delta);
+    let mut total = 0.0;
+    let mut inl = [0.0; 2];
+    for e in 0..2 {
+        let (m, f) = eye_cost_ours(model, &cams.intrinsics[e], &fields[e], &(eyes[e] * t_b_i), p.jaw_rad, c);
+        total += m;
+        inl[e] = f;
+    }
+    (total, inl)
 }
 
 /// Our silhouette of a hypothesis in one eye (`eye`: 0 left, 1 right) as pixel points (measured

@@ -144,6 +144,16 @@ struct GenerateArgs {
     /// renderer's defaults with the tissue placed for the twin (docs/simulator.md).
     #[arg(long, value_name = "FILE")]
     endoscope_config: Option<PathBuf>,
+    /// With --frames: a second instrument from the other side, moving about the instrument's
+    /// tip and nearer the endoscope (turns realism.second_instrument on): clutter and
+    /// passing occlusions (docs/tracking.md, sim::world::World::set_second_instrument).
+    #[arg(long)]
+    second_instrument: bool,
+    /// With --frames: an occluder plate hiding FRACTION of the instrument (tip end first, in
+    /// the left eye) from START_S for DURATION_S seconds after the first frame; repeatable
+    /// (docs/tracking.md). The truth gives each eye's visible fraction.
+    #[arg(long, value_name = "START_S:DURATION_S:FRACTION")]
+    occlude: Vec<sim::world::OcclusionWindow>,
 }
 
 #[derive(Args, Debug)]
@@ -551,16 +561,23 @@ fn frames_setup(args: &GenerateArgs, config: &TwinConfig, t0_us: u64) -> Result<
     if !config.endoscope_arm.enabled {
         return Err(ConfigError::FramesWithoutEndoscope.into());
     }
-    let cfg = frames_config(&args.endoscope_config, args.fps)?;
+    let mut cfg = frames_config(&args.endoscope_config, args.fps)?;
+    if args.second_instrument {
+        cfg.realism.second_instrument = true;
+    }
     let mesh = cfg.instrument.mesh().map_err(|e| ConfigError::Endoscope(e.into()))?;
-    let world = World::new(config, &cfg.instrument, DEFAULT_KEEP_NS).map_err(ConfigError::from)?;
-    let writer = FrameWriter::new(
+    let mut world = World::new(config, &cfg.instrument, DEFAULT_KEEP_NS).map_err(ConfigError::from)?;
+    if args.second_instrument {
+        world.set_second_instrument(true);
+    }
+    let mut writer = FrameWriter::new(
         &args.out.join("frames"),
         &cfg,
         mesh,
         t0_us.saturating_mul(1000),
         &config.endoscope_arm.rcm_in_tool_base,
     )?;
+    writer.set_occlusions(args.occlude.clone());
     Ok((world, writer))
 }
 

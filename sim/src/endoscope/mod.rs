@@ -34,7 +34,8 @@ pub mod truth;
 pub use config::EndoscopeConfig;
 pub use mesh::{InstrumentGeometry, InstrumentMesh, ObjError};
 pub use render::{
-    Eye, EyeImage, EyeTruth, NewRendererError, RenderError, StereoFrame, StereoRenderer, frame_mid_time_ns, label,
+    Eye, EyeImage, EyeTruth, NewRendererError, Occluder, RenderError, StereoFrame, StereoRenderer, Visibility,
+    frame_mid_time_ns, label,
 };
 pub use scene::{DemoMotion, InstrumentState, SceneState};
 

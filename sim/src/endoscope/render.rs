@@ -64,6 +64,61 @@ pub mod label {
     pub const INSTRUMENT: u8 = 1;
     /// The second instrument.
     pub const SECOND: u8 = 2;
+    /// The occluder plate ([`super::Occluder`]).
+    pub const OCCLUDER: u8 = 3;
+}
+
+/// A flat opaque plate between the camera and the instrument (a retracted tissue flap, a
+/// gauze, a suction cannula's guard): the rectangle `|x| ≤ half_size_m[0]`, `|y| ≤
+/// half_size_m[1]` of its own `z = 0` plane, seen from both sides, still during an exposure,
+/// label [`label::OCCLUDER`] in the mask. The occlusion experiments of `docs/tracking.md`
+/// place it with [`crate::world::OcclusionWindow`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Occluder {
+    /// `T_e_o`: the plate's frame in the world `{e}`, metres.
+    pub pose_world: Isometry3<f64>,
+    /// Half width and half height of the plate, metres.
+    pub half_size_m: [f64; 2],
+    /// Its material.
+    pub material: Material,
+}
+
+impl Occluder {
+    /// A matte off-white plate (gauze-like).
+    pub const GAUZE: Material = Material { diffuse: [0.16, 0.14, 0.13], specular: [0.04, 0.04, 0.04], shininess: 8.0 };
+
+    /// True when the pose is finite, the sizes finite and positive and the material in range.
+    pub fn is_valid(&self) -> bool {
+        let t = self.pose_world.translation.vector;
+        let q = self.pose_world.rotation.quaternion();
+        let unit = |c: &[f64; 3]| c.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v));
+        t.iter().all(|v| v.is_finite())
+            && q.coords.iter().all(|v| v.is_finite())
+            && self.half_size_m.iter().all(|v| v.is_finite() && *v > 0.0)
+            && unit(&self.material.diffuse)
+            && unit(&self.material.specular)
+            && self.material.shininess.is_finite()
+            && self.material.shininess >= 1.0
+    }
+}
+
+/// How much of the instrument (label 1) one eye sees at the exposure's mid time, counted on
+/// the undistorted canvas (pixels): what the instrument would cover with nothing in front of
+/// it (its own parts hiding each other still) and what stays visible with the second
+/// instrument and the occluder drawn.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Visibility {
+    /// Canvas pixels of the instrument alone (nothing else in front), pixels.
+    pub unoccluded_px: u64,
+    /// Canvas pixels of the instrument still visible, pixels.
+    pub visible_px: u64,
+}
+
+impl Visibility {
+    /// `visible_px / unoccluded_px`; `None` when the instrument is out of view.
+    pub fn fraction(&self) -> Option<f64> {
+        (self.unoccluded_px > 0).then(|| self.visible_px as f64 / self.unoccluded_px as f64)
+    }
 }
 
 /// Ground truth of one eye at the exposure's mid time.
@@ -75,6 +130,9 @@ pub struct EyeTruth {
     pub camera_in_world: PoseTruth,
     /// The instruments drawn (label 1 first, then label 2 when the second is on).
     pub instruments: Vec<InstrumentTruth>,
+    /// The instrument's visibility (occlusion by the second instrument and the occluder).
+    #[serde(default)]
+    pub visibility: Visibility,
 }
 
 /// One eye's image.
@@ -105,8 +163,12 @@ pub struct StereoFrame {
 
 impl Default for StereoFrame {
     fn default() -> Self {
-        let empty =
-            |eye| EyeTruth { eye, camera_in_world: PoseTruth::from(&Isometry3::identity()), instruments: vec![] };
+        let empty = |eye| EyeTruth {
+            eye,
+            camera_in_world: PoseTruth::from(&Isometry3::identity()),
+            instruments: vec![],
+            visibility: Visibility::default(),
+        };
         Self {
             t_mid_ns: 0,
             ecm_joints: [0.0; 4],
@@ -244,6 +306,8 @@ pub struct StereoRenderer {
     work: [EyeWork; 2],
     /// The scene at the motion-blur instants of the frame being rendered (reused).
     states: Vec<(u64, SceneState)>,
+    /// The occluder drawn in the next frames (`None`: none).
+    occluder: Option<Occluder>,
 }
 
 const SRGB_LUT: usize = 8192;
@@ -453,7 +517,7 @@ impl StereoRenderer {
             gauss: lut(gauss_table(GAUSS_LUT), 0.0),
             srgb: lut(srgb_table(SRGB_LUT), 0),
         };
-        Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()], states: Vec::new() })
+        Ok(Self { shared, work: [EyeWork::default(), EyeWork::default()], states: Vec::new(), occluder: None })
     }
 
     /// How many times each eye's tissue was rasterised (the rest of the frames reused it).
@@ -465,6 +529,17 @@ impl StereoRenderer {
     /// The configuration in use.
     pub fn config(&self) -> &EndoscopeConfig {
         &self.shared.cfg
+    }
+
+    /// Puts `occluder` in the scene of the next frames (`None`: takes it away). Checked when a
+    /// frame is rendered ([`RenderError::NotFinite`] when not [`Occluder::is_valid`]).
+    pub fn set_occluder(&mut self, occluder: Option<Occluder>) {
+        self.occluder = occluder;
+    }
+
+    /// The occluder in the scene.
+    pub fn occluder(&self) -> Option<&Occluder> {
+        self.occluder.as_ref()
     }
 
     /// Camera poses `T_e_c` of both eyes (metres) for endoscope arm joints `q`.
@@ -515,6 +590,10 @@ impl StereoRenderer {
             }
             states.push((t, st));
         }
+        if self.occluder.is_some_and(|o| !o.is_valid()) {
+            return Err(RenderError::NotFinite { t_ns: t_mid_ns, what: "occluder (pose, size or material)" });
+        }
+        let occ = self.occluder.as_ref();
         let states: &[(u64, SceneState)] = states;
         let mid = states[k_samples / 2].1;
         let poses = eye_poses(&sh.hand_eye, sh.cfg.camera.baseline_m, &mid.ecm_joints);
@@ -524,8 +603,8 @@ impl StereoRenderer {
         let [t0, t1] = &mut out.truth;
         let seed = sh.cfg.seed;
         rayon::join(
-            || render_eye(sh, w0, Eye::Left, &poses[0], &light_world, states, seed, t_mid_ns, i0, t0),
-            || render_eye(sh, w1, Eye::Right, &poses[1], &light_world, states, seed, t_mid_ns, i1, t1),
+            || render_eye(sh, w0, Eye::Left, &poses[0], &light_world, states, occ, seed, t_mid_ns, i0, t0),
+            || render_eye(sh, w1, Eye::Right, &poses[1], &light_world, states, occ, seed, t_mid_ns, i1, t1),
         );
         out.t_mid_ns = t_mid_ns;
         out.ecm_joints = mid.ecm_joints;
@@ -626,6 +705,7 @@ fn render_eye(
     t_e_c: &Isometry3<f64>,
     light_world: &Point3<f64>,
     states: &[(u64, SceneState)],
+    occluder: Option<&Occluder>,
     seed: u64,
     t_mid_ns: u64,
     img: &mut EyeImage,
@@ -718,6 +798,7 @@ fn render_eye(
     let k_samples = states.len();
     let mid = k_samples / 2;
     let mut union = Bounds::EMPTY;
+    let mut visibility = Visibility::default();
     let geometry = &cfg.instrument;
     // The working depth `depth_w` equals the tissue's outside what the last instant drew.
     for (s, (_, st)) in states.iter().enumerate() {
@@ -755,7 +836,12 @@ fn render_eye(
             }
         }
         let mut drawn = Bounds::EMPTY;
-        for &(start, pi, mat, lab) in &wk.ranges {
+        // The instrument (label 1) comes first: counted alone before the rest is drawn.
+        let n_first = wk.ranges.iter().take_while(|r| r.3 == label::INSTRUMENT).count();
+        for (ri, &(start, pi, mat, lab)) in wk.ranges.iter().enumerate() {
+            if s == mid && ri == n_first {
+                visibility.unoccluded_px = count_label(&wk.s_lab, c.w, &drawn, label::INSTRUMENT);
+            }
             let m = &sh.mesh.parts[pi].1;
             let (albedo, spec, shin) = mat_f32(&mat, r.specular);
             let verts = &wk.ivert[start..start + m.positions.len()];
@@ -773,6 +859,15 @@ fn render_eye(
                 let tri = [verts[t[0] as usize], verts[t[1] as usize], verts[t[2] as usize]];
                 draw_triangle(&c, &mut wk.depth_w, &tri, true, &mut drawn, &mut frag);
             }
+        }
+        if s == mid && n_first == wk.ranges.len() {
+            visibility.unoccluded_px = count_label(&wk.s_lab, c.w, &drawn, label::INSTRUMENT);
+        }
+        if let Some(o) = occluder {
+            draw_occluder(sh, wk, o, &t_c_e, &lighting, &mut drawn);
+        }
+        if s == mid {
+            visibility.visible_px = count_label(&wk.s_lab, c.w, &drawn, label::INSTRUMENT);
         }
         if drawn.is_empty() {
             continue;
@@ -948,12 +1043,61 @@ fn render_eye(
     truth.eye = eye;
     truth.camera_in_world = PoseTruth::from(t_e_c);
     truth.instruments.clear();
+    truth.visibility = visibility;
     let st = &states[mid].1;
     truth.instruments.push(instrument_truth(label::INSTRUMENT, &st.instrument, geometry, &t_c_e, &sh.proj));
     if r.second_instrument
         && let Some(s2) = &st.second
     {
         truth.instruments.push(instrument_truth(label::SECOND, s2, geometry, &t_c_e, &sh.proj));
+    }
+}
+
+/// Pixels labelled `lab` in `labels` (canvas, `w` wide) within `b`.
+fn count_label(labels: &[u8], w: usize, b: &Bounds, lab: u8) -> u64 {
+    if b.is_empty() {
+        return 0;
+    }
+    let mut n = 0u64;
+    for y in b.y0..=b.y1 {
+        n += labels[y * w + b.x0..=y * w + b.x1].iter().filter(|&&l| l == lab).count() as u64;
+    }
+    n
+}
+
+/// Draws the occluder plate (two triangles, both faces, shaded with its normal turned to the
+/// camera) into the instant's buffers with label [`label::OCCLUDER`].
+fn draw_occluder(
+    sh: &Shared,
+    wk: &mut EyeWork,
+    o: &Occluder,
+    t_c_e: &Isometry3<f64>,
+    lighting: &Lighting,
+    drawn: &mut Bounds,
+) {
+    let c = sh.canvas;
+    let t = t_c_e * o.pose_world;
+    let [hx, hy] = o.half_size_m;
+    let corners = [[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]].map(|[x, y]| t * Point3::new(x, y, 0.0));
+    let mut n = t.rotation * Vector3::z();
+    if n.dot(&corners[0].coords) > 0.0 {
+        n = -n;
+    }
+    let a = [n.x as f32, n.y as f32, n.z as f32];
+    let v = corners.map(|p| Vtx { p: [p.x as f32, p.y as f32, p.z as f32], a });
+    let (albedo, spec, shin) = mat_f32(&o.material, sh.cfg.realism.specular);
+    let (s_col, s_lab) = (&mut wk.s_col, &mut wk.s_lab);
+    let (ray_x, ray_y) = (sh.ray_x.as_deref(), &sh.ray_y);
+    let mut frag = |idx: usize, x: usize, y: usize, z: f32, a: &[f32; 3]| {
+        let (xn, yn) = match ray_x {
+            Some(rx) => (rx[x], ray_y[y]),
+            None => c.ray(x as f32, y as f32),
+        };
+        s_col[idx] = lighting.shade([xn * z, yn * z, z], normalize(*a), albedo, spec, shin);
+        s_lab[idx] = label::OCCLUDER;
+    };
+    for tri in [[v[0], v[1], v[2]], [v[0], v[2], v[3]]] {
+        draw_triangle(&c, &mut wk.depth_w, &tri, false, drawn, &mut frag);
     }
 }
 

@@ -425,3 +425,69 @@ fn realism_options_change_the_image_and_second_instrument_occludes() {
     }
     assert!(occluded, "the second instrument never passes in front of the first");
 }
+
+#[test]
+fn occluder_hides_the_instrument_and_the_truth_counts_it() {
+    use super::render::Occluder;
+    use crate::world::occluder_for;
+    let cfg = small(RealismConfig::none(), true);
+    let mut r = renderer(cfg);
+    let t = 1_000_000_000;
+    let st = demo(t);
+    let clear = r.render(t, &|_| st).unwrap();
+    for eye in 0..2 {
+        let v = clear.truth[eye].visibility;
+        assert!(v.unoccluded_px > 50, "the instrument in view: {v:?}");
+        assert_eq!(v.visible_px, v.unoccluded_px, "nothing in front");
+    }
+    let tip_px = |f: &StereoFrame| {
+        let p = f.truth[0].instruments[0].tip_px.unwrap();
+        let w = f.images[0].width as usize;
+        f.images[0].labels[p[1].round() as usize * w + p[0].round() as usize]
+    };
+    assert_eq!(tip_px(&clear), label::INSTRUMENT);
+    // All of it hidden: almost nothing visible in either eye, the same unoccluded count.
+    r.set_occluder(occluder_for(&r, &st, 1.0, false));
+    assert!(r.occluder().is_some());
+    let hidden = r.render(t, &|_| st).unwrap();
+    for eye in 0..2 {
+        let v = hidden.truth[eye].visibility;
+        assert_eq!(v.unoccluded_px, clear.truth[eye].visibility.unoccluded_px);
+        assert!(v.fraction().unwrap() < 0.02, "eye {eye}: {v:?}");
+        assert!(hidden.images[eye].labels.contains(&label::OCCLUDER));
+    }
+    // Half, tip end first: the tip hidden; half, shaft end first: the tip in view.
+    for (shaft_end, tip_label) in [(false, label::OCCLUDER), (true, label::INSTRUMENT)] {
+        r.set_occluder(occluder_for(&r, &st, 0.5, shaft_end));
+        let half = r.render(t, &|_| st).unwrap();
+        let f = half.truth[0].visibility.fraction().unwrap();
+        assert!((0.25..0.8).contains(&f), "shaft end {shaft_end}: left visible fraction {f}");
+        assert_eq!(tip_px(&half), tip_label, "shaft end {shaft_end}");
+    }
+    // Taken away: the same bytes as before it came (the kept tissue put back).
+    r.set_occluder(None);
+    assert_eq!(r.render(t, &|_| st).unwrap().images, clear.images);
+    // A non-finite or degenerate plate is refused.
+    let mut bad = occluder_for(&r, &st, 1.0, false).unwrap();
+    bad.half_size_m[0] = f64::NAN;
+    r.set_occluder(Some(bad));
+    assert!(matches!(r.render(t, &|_| st), Err(RenderError::NotFinite { .. })));
+    let mut bad = Occluder { half_size_m: [0.0, 0.01], ..bad };
+    bad.pose_world = Isometry3::identity();
+    r.set_occluder(Some(bad));
+    assert!(r.render(t, &|_| st).is_err());
+}
+
+#[test]
+fn occlusion_windows_parse_or_are_refused() {
+    use crate::world::OcclusionWindow;
+    let w: OcclusionWindow = "3:1:0.5".parse().unwrap();
+    assert_eq!((w.start_s, w.duration_s, w.fraction, w.from_shaft_end), (3.0, 1.0, 0.5, false));
+    assert!(w.contains(3.0) && w.contains(3.99) && !w.contains(4.0) && !w.contains(2.9));
+    let w: OcclusionWindow = "8:1.5:1:shaft".parse().unwrap();
+    assert!(w.from_shaft_end && w.fraction == 1.0);
+    assert!(!"8:1:1:tip".parse::<OcclusionWindow>().unwrap().from_shaft_end);
+    for bad in ["3:1", "3:1:1.5", "3:1:0", "a:1:0.5", "3:-1:0.5", "3:1:0.5:side", "NaN:1:0.5", ""] {
+        assert!(bad.parse::<OcclusionWindow>().is_err(), "{bad:?}");
+    }
+}

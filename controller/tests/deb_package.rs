@@ -253,7 +253,13 @@ fn package_holds_the_binaries_units_configuration_header_and_docs() {
         assert_eq!(mode, "-rwxr-xr-x", "/usr/bin/{bin}");
         assert_eq!(owner, "0/0", "/usr/bin/{bin} owned by root");
     }
-    for unit in ["fulcrumd.service", "comanip-camera.service", "comanip-calib-live.service", "comanip-track.service", "comanip.target"] {
+    for unit in [
+        "fulcrumd.service",
+        "comanip-camera.service",
+        "comanip-calib-live.service",
+        "comanip-track.service",
+        "comanip.target",
+    ] {
         assert_eq!(c[&format!("/lib/systemd/system/{unit}")].0, "-rw-r--r--", "{unit}");
     }
     for conf in CONFFILES {

@@ -1,5 +1,6 @@
-//! Replays every committed seed (`tests/fuzz/corpus/<target>/`) and every regression input
-//! (`tests/fuzz/regressions/<target>/`, the crashes the fuzzers found, fixed since) through the
+//! Replays every committed seed (`tests/fuzz/corpus/<target>/`), every input the long fuzz run
+//! added to them (`tests/fuzz/corpus-grown/<target>/`, merge-minimised) and every regression
+//! input (`tests/fuzz/regressions/<target>/`, the crashes the fuzzers found, fixed since) through the
 //! fuzz target bodies, on stable, in `cargo test --workspace`: a crash once found stays a
 //! failing test. docs/fuzzing.md.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
@@ -25,16 +26,18 @@ fn files(dir: &Path) -> Vec<PathBuf> {
     v
 }
 
-/// Runs `t` on every file of its corpus and regression directories; the count of each.
-fn replay(t: &Target) -> (usize, usize) {
+/// Runs `t` on every file of its corpus, grown corpus and regression directories; the count of
+/// each.
+fn replay(t: &Target) -> (usize, usize, usize) {
     let corpus = files(&dir("corpus", t.name));
+    let grown = files(&dir("corpus-grown", t.name));
     let regressions = files(&dir("regressions", t.name));
-    for f in corpus.iter().chain(&regressions) {
+    for f in corpus.iter().chain(&grown).chain(&regressions) {
         let data = std::fs::read(f).unwrap();
         let r = std::panic::catch_unwind(|| (t.run)(&data));
         assert!(r.is_ok(), "target {} panics on {}", t.name, f.display());
     }
-    (corpus.len(), regressions.len())
+    (corpus.len(), grown.len(), regressions.len())
 }
 
 #[test]
@@ -55,8 +58,8 @@ macro_rules! replay_tests {
         #[test]
         fn $name() {
             let t = comanip_fuzz::target(stringify!($name)).unwrap();
-            let (seeds, regressions) = replay(t);
-            println!("{}: {seeds} seeds, {regressions} regression inputs replayed", t.name);
+            let (seeds, grown, regressions) = replay(t);
+            println!("{}: {seeds} seeds, {grown} grown, {regressions} regression inputs replayed", t.name);
         }
     )*};
 }

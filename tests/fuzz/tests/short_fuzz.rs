@@ -1,6 +1,6 @@
 //! The short fuzz run of CI (docs/fuzzing.md): builds the cargo-fuzz targets of
 //! `tests/fuzz/fuzz` with the nightly toolchain and runs each under libFuzzer for a few seconds
-//! from its committed corpus; a crash fails the test (the input is kept under
+//! from its committed corpus (seeds and `corpus-grown/`); a crash fails the test (the input is kept under
 //! `<target dir>/fuzz-short/<target>/`, to be added to `tests/fuzz/regressions/<target>/`).
 //!
 //! Needs `rustup` with a nightly toolchain (libFuzzer's instrumentation is nightly-only) and
@@ -106,9 +106,12 @@ fn every_target_runs_briefly_without_a_crash() {
         let mut c = Command::new(bin_dir.join(t.name));
         // New inputs go to the scratch corpus (the first directory), never to the committed one.
         c.arg(work.join("corpus")).arg(manifest.join("corpus").join(t.name));
-        let regressions = manifest.join("regressions").join(t.name);
-        if regressions.is_dir() {
-            c.arg(regressions);
+        // The long run's merge-minimised additions (where committed) and the regression inputs.
+        for kind in ["corpus-grown", "regressions"] {
+            let d = manifest.join(kind).join(t.name);
+            if d.is_dir() {
+                c.arg(d);
+            }
         }
         let dict = fuzz_dir().join("dicts").join(format!("{}.dict", t.name));
         if dict.is_file() {

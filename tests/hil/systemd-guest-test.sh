@@ -216,6 +216,50 @@ sys.exit(0 if s["received"] > 0 and s["valid"] > 0 and s["valid_with_invalidatin
     # Not a check: under emulation most cycles are incomplete and whether the detector reaches an
     # insertion within 30 s depends on the host's load (docs/systemd.md); the line reports it.
     say "samples from vcan0 inside a trocar: $(python3 -c 'import json; print(json.load(open("/tmp/monitor-vcan.json"))["inside"])' 2>/dev/null)"
+    # --- the companions on vcan0 under their units: the live calibration and the tracker ---------
+    # What an operator does: the bus in the live calibration's conffile; the eyes' camera_info
+    # files (here simrobot's) in /etc/comanip, named in the tracker's conffile; the tracker's bus
+    # in a drop-in (it otherwise takes fulcrumd's conffile's, "" for the built-in robot). No frames
+    # are published in this phase: both wait for them, listening to the bus, subscribed to their
+    # services, under their sandbox and priority.
+    simrobot generate --out /tmp/comanip-gen --cycles 1 --frames --fps 1 > /dev/null 2>&1
+    cp /tmp/comanip-gen/frames/left.yaml /tmp/comanip-gen/frames/right.yaml /etc/comanip/
+    chmod a+r /etc/comanip/left.yaml /etc/comanip/right.yaml
+    sed -i 's|^# cameras = |cameras = |' /etc/comanip/comanip-track.toml
+    sed -i 's|^iface = "can0"|iface = "vcan0"|' /etc/comanip/comanip-calib.toml
+    mkdir -p /etc/systemd/system/comanip-track.service.d
+    cat > /etc/systemd/system/comanip-track.service.d/vcan.conf <<'EOF'
+[Service]
+ExecStart=
+ExecStart=/usr/bin/comanip-track live --config /etc/comanip/comanip-track.toml --fulcrumd-config /etc/comanip/fulcrumd.toml --iface vcan0
+EOF
+    systemctl daemon-reload
+    check "systemctl start comanip-calib-live comanip-track" timeout 60 systemctl start comanip-calib-live comanip-track
+    sleep 15
+    for unit in comanip-calib-live comanip-track; do
+        check "$unit still active after 15 s" systemctl is-active -q "$unit"
+        upid=$(systemctl show -p MainPID --value "$unit")
+        say "$unit: nice $(ps -o ni= -p "$upid" | tr -d ' '), $(taskset -pc "$upid" 2> /dev/null), $(chrt -p "$upid" 2> /dev/null | head -n 1)"
+        check "$unit on CPU 0 only" test "$(taskset -pc "$upid" | awk -F': ' '{ print $2 }')" = 0
+        check "$unit SCHED_OTHER" bash -c "chrt -p $upid | grep -q SCHED_OTHER"
+        check "$unit runs as comanip" test "$(ps -o user= -p "$upid")" = comanip
+    done
+    check "comanip-calib-live niced 10" \
+        test "$(ps -o ni= -p "$(systemctl show -p MainPID --value comanip-calib-live)" | tr -d ' ')" = 10
+    check "comanip-track niced 15" \
+        test "$(ps -o ni= -p "$(systemctl show -p MainPID --value comanip-track)" | tr -d ' ')" = 15
+    check "the live calibration listens to vcan0" \
+        bash -c "journalctl -u comanip-calib-live -o cat | grep -q 'listening on vcan0'"
+    check "the live calibration is subscribed to fulcrumd's output" \
+        bash -c "journalctl -u comanip-calib-live -o cat | grep -q 'subscribed to fulcrumd'"
+    check "the tracker listens to vcan0" bash -c "journalctl -u comanip-track -o cat | grep -q 'listening to the bus'"
+    for unit in comanip-calib-live comanip-track; do
+        journalctl -u "$unit" -o short-monotonic --no-hostname > "/hilres/journal-$unit.txt"
+    done
+    check "systemctl stop comanip-calib-live comanip-track" timeout 30 systemctl stop comanip-calib-live comanip-track
+    check "both stopped cleanly (not failed)" \
+        bash -c 'test "$(systemctl is-failed comanip-calib-live)" = inactive && test "$(systemctl is-failed comanip-track)" = inactive'
+    rm -rf /etc/systemd/system/comanip-track.service.d
 else
     systemctl status --no-pager -l fulcrumd | sed 's/^/    /'
     journalctl -u fulcrumd -o cat --no-pager | tail -n 30 | sed 's/^/    /'

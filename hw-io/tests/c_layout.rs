@@ -12,7 +12,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use hw_io::ipc::{FrameHeader, FulcrumSample, TrackSample};
+use hw_io::ipc::{CalibrationSample, FrameHeader, FulcrumSample, TrackSample};
 
 fn which(program: &str) -> Option<PathBuf> {
     let path = std::env::var_os("PATH")?;
@@ -72,8 +72,12 @@ fn the_c_header_has_the_rust_layouts() {
         tip_base_wxyz, jaw_rad, spread_m, best_cost_px, camera_delta, frames_processed, frames_skipped,
         frames_rejected, frames_invalid);
     expected.extend(r3);
+    let (c4, r4) = fields!(CalibrationSample, "CalibrationSample":
+        version, state, sequence, run_id, timestamp_ns, observations, drifts, translation_m, quaternion_wxyz,
+        covariance, predicted_fulcrum_m, predicted_origin_m, predicted_rotation_rad, mean_fulcrum_m);
+    expected.extend(r4);
     let program = format!(
-        "#include <stddef.h>\n#include <stdio.h>\n#include \"comanip/messages.h\"\nint main(void) {{\n{c1}{c2}{c3}    return 0;\n}}\n"
+        "#include <stddef.h>\n#include <stdio.h>\n#include \"comanip/messages.h\"\nint main(void) {{\n{c1}{c2}{c3}{c4}    return 0;\n}}\n"
     );
     let dir = tempfile::tempdir().unwrap();
     let src = dir.path().join("layout.c");
@@ -110,6 +114,7 @@ fn the_docs_quote_the_header() {
     for (doc, after) in [
         ("../docs/output.md", "## C and C++ subscribers"),
         ("../docs/output.md", "### The tracker's message: `TrackSample`"),
+        ("../docs/output.md", "### The calibration's message: `CalibrationSample`"),
         ("../docs/frames.md", "## The frame header"),
     ] {
         let text = std::fs::read_to_string(manifest().join(doc)).unwrap();

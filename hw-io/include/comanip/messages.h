@@ -5,6 +5,8 @@
  * - comanip_frame_header_t: the user header of the frame service
  *   "comanip/frames/endoscope", iceoryx2 type name "comanip::FrameHeader", 72 bytes,
  *   alignment 8; the payload is the frame's pixels as a slice of bytes (docs/frames.md).
+ * - CalibrationSample: comanip-calib live's output, service "comanip/calibration", iceoryx2
+ *   type name "comanip::CalibrationSample", 432 bytes, alignment 8 (docs/output.md).
  * - TrackSample: comanip-track live's output, service "comanip/track", iceoryx2 type name
  *   "comanip::TrackSample", 288 bytes, alignment 8 (docs/output.md, docs/tracking.md).
  *
@@ -117,5 +119,30 @@ typedef struct TrackSample {
 
 _Static_assert(sizeof(TrackSample) == 288, "TrackSample layout");
 _Static_assert(_Alignof(TrackSample) == 8, "TrackSample alignment");
+
+#define CALIBRATION_SAMPLE_VERSION 1u
+#define CALIBRATION_STATE_COLLECTING 0u
+#define CALIBRATION_STATE_VALID 1u
+#define CALIBRATION_STATE_DRIFT 2u
+
+typedef struct CalibrationSample {
+    uint32_t version;              /*   0: CALIBRATION_SAMPLE_VERSION */
+    uint32_t state;                /*   4: CALIBRATION_STATE_*: use the pose only when VALID */
+    uint64_t sequence;             /*   8: message number since the publisher started */
+    uint64_t run_id;               /*  16: random per publisher start */
+    uint64_t timestamp_ns;         /*  24: last frame used, mid-exposure, ns */
+    uint32_t observations;         /*  32: eye lines used (or collected so far) */
+    uint32_t drifts;               /*  36: drift events since start */
+    double translation_m[3];       /*  40: m, T_e_t: {t} origin in {e} (endoscope RCM frame) */
+    double quaternion_wxyz[4];     /*  64: unit quaternion, rotation of T_e_t */
+    double covariance[36];         /*  96: row-major 6x6 of (t m, phi rad) */
+    double predicted_fulcrum_m;    /* 384: m, RMS at the mean fulcrum */
+    double predicted_origin_m;     /* 392: m, RMS at {t}'s origin */
+    double predicted_rotation_rad; /* 400: rad, RMS */
+    double mean_fulcrum_m[3];      /* 408: m, {t} */
+} CalibrationSample;
+
+_Static_assert(sizeof(CalibrationSample) == 432, "CalibrationSample layout");
+_Static_assert(_Alignof(CalibrationSample) == 8, "CalibrationSample alignment");
 
 #endif /* COMANIP_MESSAGES_H */

@@ -2,56 +2,11 @@
 //! 320×240, 5 frames/s), and the tracker following the rendered truth from the kinematics.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
-use std::path::{Path, PathBuf};
+mod common;
+
 use std::process::Command;
 
-/// Builds `bin` of `package` with the profile of this test binary and returns its path (as
-/// `controller/calib/tests/from_run.rs` does).
-fn workspace_bin(package: &str, bin: &str) -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    let profile_dir = exe.parent().and_then(Path::parent).unwrap();
-    let target_dir = profile_dir.parent().unwrap();
-    let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
-        Some("debug") => "test".to_string(),
-        Some(other) => other.to_string(),
-        None => panic!("unexpected target layout: {}", exe.display()),
-    };
-    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    let out = Command::new(&cargo)
-        .args(["build", "--quiet", "-p", package, "--bin", bin, "--profile", &profile])
-        .arg("--target-dir")
-        .arg(target_dir)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "cargo build {bin}: {}", String::from_utf8_lossy(&out.stderr));
-    profile_dir.join(bin)
-}
-
-fn generate(dir: &Path) -> PathBuf {
-    let twin = dir.join("twin.toml");
-    std::fs::write(&twin, "[scenario]\ncycles = 1\ninside_s = [5.0, 5.5]\noutside_s = [1.0, 1.2]\n").unwrap();
-    let endo = dir.join("endoscope.toml");
-    std::fs::write(
-        &endo,
-        "[camera.intrinsics]\nfx = 200.0\nfy = 200.0\ncx = 159.5\ncy = 119.5\nskew = 0.0\nwidth = 320\nheight = 240\n\
-         distortion = [-0.08, 0.01, 0.0, 0.0, 0.0]\n[tissue]\nplane_z_m = 0.27\nextent_m = 0.40\ntexture_px = 256\n\
-         [realism]\nsecond_instrument = false\n",
-    )
-    .unwrap();
-    let run = dir.join("run");
-    let o = Command::new(workspace_bin("sim", "simrobot"))
-        .args(["generate", "--frames", "--fps", "5", "--seed", "2", "--out"])
-        .arg(&run)
-        .arg("--config")
-        .arg(&twin)
-        .arg("--endoscope-config")
-        .arg(&endo)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "generate: {}", String::from_utf8_lossy(&o.stderr));
-    run
-}
+use common::generate;
 
 #[test]
 fn run_writes_one_line_per_frame_with_finite_poses_and_overlays_and_follows_the_rendered_truth() {

@@ -1,4 +1,4 @@
-//! Shared by the live tests: building the workspace's binaries, a short rendered sequence
+//! Shared by the tests of `comanip-track`: building the workspace's binaries, a short rendered sequence
 //! (`simrobot generate --frames`, 320×240, 5 frames/s), its frames in memory.
 #![allow(dead_code, reason = "each test binary uses a part")]
 
@@ -11,7 +11,7 @@ use comanip_track::live::{Incoming, MemoryFrame};
 use hw_io::frame::{FrameMeta, ImageLayout, PixelFormat};
 
 /// Builds `bin` of `package` with the profile of this test binary and returns its path (as
-/// `run_cli.rs` does).
+/// `controller/calib/tests/from_run.rs` does).
 pub fn workspace_bin(package: &str, bin: &str) -> PathBuf {
     let exe = std::env::current_exe().unwrap();
     let profile_dir = exe.parent().and_then(Path::parent).unwrap();

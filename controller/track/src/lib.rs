@@ -17,6 +17,7 @@ pub mod experiment;
 pub mod input;
 pub mod live;
 pub mod live_cli;
+pub mod monitor;
 pub mod overlay;
 pub mod robustness;
 pub mod run;

@@ -40,6 +40,14 @@ impl From<ModeArg> for Mode {
     }
 }
 
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum FormatArg {
+    /// One JSON object per line.
+    Json,
+    /// One fixed-width text line per sample.
+    Text,
+}
+
 #[derive(clap::Args)]
 struct Common {
     /// Tracker configuration (TOML, configs/comanip-track.toml).
@@ -237,6 +245,31 @@ enum Command {
         #[command(flatten)]
         common: Common,
     },
+    /// Subscribe to the tracking service (what `live` publishes) and print every sample, one
+    /// line each, as any consumer receives it (refused samples on standard error); a summary
+    /// (samples per status, refused, missed, restarts, latency) on standard error at the end.
+    /// Stops at SIGINT/SIGTERM, after `--count` samples or `--idle-timeout-s`; exits non-zero
+    /// when it stopped idle without a sample.
+    Monitor {
+        /// The tracking service.
+        #[arg(long, default_value = hw_io::ipc::DEFAULT_TRACK_SERVICE)]
+        service: String,
+        /// Line format: `json` (the `live --samples-jsonl` object) or `text`.
+        #[arg(long, value_enum, default_value = "text")]
+        format: FormatArg,
+        /// Output; default: standard output.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Stop after this many samples.
+        #[arg(long)]
+        count: Option<u64>,
+        /// Stop when nothing arrived for this many seconds.
+        #[arg(long)]
+        idle_timeout_s: Option<f64>,
+        /// Write the summary as JSON to this file as well.
+        #[arg(long)]
+        summary_json: Option<PathBuf>,
+    },
     /// Summaries and plots from `converge` and `rate` outputs.
     Report {
         /// `converge` outputs.
@@ -301,6 +334,66 @@ fn open_run(dir: &Path, fcfg: &controller::config::Config) -> Result<Sequence, S
 
 fn size(seq: &Sequence) -> (usize, usize) {
     (seq.intrinsics[0].width as usize, seq.intrinsics[0].height as usize)
+}
+
+/// `comanip-track monitor` (`comanip_track::monitor`).
+fn monitor(
+    service: &str,
+    format: FormatArg,
+    out: Option<&Path>,
+    count: Option<u64>,
+    idle_timeout_s: Option<f64>,
+    summary_json: Option<&Path>,
+) -> Result<(), String> {
+    use comanip_track::monitor::{MonitorFormat, MonitorOptions, StopReason};
+    let idle_timeout = match idle_timeout_s {
+        Some(s) if s.is_finite() && s > 0.0 => Some(std::time::Duration::from_secs_f64(s)),
+        Some(s) => return Err(format!("--idle-timeout-s must be a positive number of seconds, not {s}")),
+        None => None,
+    };
+    controller::process::install_stop_handlers();
+    let mut sub =
+        hw_io::ipc::Subscriber::<hw_io::ipc::TrackSample>::connect(service).map_err(|e| format!("{service}: {e}"))?;
+    let mut w: Box<dyn std::io::Write> = match out {
+        Some(p) => {
+            Box::new(std::io::BufWriter::new(std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?))
+        }
+        None => Box::new(std::io::stdout().lock()),
+    };
+    eprintln!("comanip-track monitor: subscribed to {service}");
+    let opts = MonitorOptions {
+        format: match format {
+            FormatArg::Json => MonitorFormat::Json,
+            FormatArg::Text => MonitorFormat::Text,
+        },
+        count,
+        idle_timeout,
+    };
+    let summary = comanip_track::monitor::monitor(&mut sub, &opts, &mut w, &controller::process::STOP)
+        .map_err(|e| format!("{service}: {e}"))?;
+    let ms = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.2}"));
+    eprintln!(
+        "comanip-track monitor: {} samples (TRACKING {}, UNCERTAIN {}, LOST {}, INVALID {}), {} refused, {} missed, {} restarts, latency p50 {} ms p99 {} ms, stopped: {:?}",
+        summary.received,
+        summary.tracking,
+        summary.uncertain,
+        summary.lost,
+        summary.invalid,
+        summary.refused,
+        summary.missed,
+        summary.restarts,
+        ms(summary.latency_ms_p50),
+        ms(summary.latency_ms_p99),
+        summary.stopped
+    );
+    if let Some(p) = summary_json {
+        let text = serde_json::to_string_pretty(&summary).map_err(|e| e.to_string())?;
+        std::fs::write(p, text + "\n").map_err(|e| format!("{}: {e}", p.display()))?;
+    }
+    if summary.stopped == StopReason::Idle && summary.received == 0 && summary.refused == 0 {
+        return Err(format!("{service}: nothing received within the idle timeout"));
+    }
+    Ok(())
 }
 
 fn main() -> ExitCode {
@@ -399,6 +492,9 @@ fn run(cli: Cli) -> Result<(), String> {
                 samples_jsonl,
             };
             comanip_track::live_cli::run(&file, &fcfg, &args).map_err(|e| e.to_string())
+        }
+        Command::Monitor { service, format, out, count, idle_timeout_s, summary_json } => {
+            monitor(&service, format, out.as_deref(), count, idle_timeout_s, summary_json.as_deref())
         }
         Command::Converge { run, trials, frames_per_trial, pos_mm, rot_deg, seed, min_px, out, common } => {
             let (file, fcfg) = setup(&common)?;

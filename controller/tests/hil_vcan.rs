@@ -71,6 +71,10 @@ enum Scenario {
     /// simrobot films the arms; `comanip-calib live` (frames, a passive socket on vcan0,
     /// fulcrumd's output) calibrates and publishes; `comanip-calib monitor` receives it.
     CalibLive,
+    /// simrobot films the arms; `comanip-track live` (frames, a passive socket on vcan0 for
+    /// both arms' joints) tracks the instrument and publishes; `comanip-track monitor`
+    /// receives every sample.
+    TrackLive,
 }
 
 /// The camera scenario's frame rate and image size (small: the guest has one slow CPU).
@@ -96,6 +100,27 @@ const CALIB_TARGET_MM: f64 = 8.0;
 const CALIB_TARGET_DEG: f64 = 1.5;
 /// The comanip-calib binary, passed from the host run to the guest run.
 const CALIB_BIN_ENV: &str = "HIL_CALIB_BIN";
+/// The live tracking scenario's camera: the calibration scenario's (the guest's one CPU renders
+/// no more), and its daemon's cycles: 40 s at the guest's 2 ms period, 80 frames at 2 fps.
+const TRACK_CAMERA_FPS: u64 = 2;
+const TRACK_CAMERA_SIZE: (u32, u32) = (160, 120);
+/// At most: the driver stops the daemon 2 s after the consumer has received
+/// [`TRACK_WANTED`] TRACKING samples. On a loaded host the guest's real-time processes (the
+/// daemon at SCHED_FIFO 80 overran 27 588 times in 20 000 cycles once) leave the tracker, below
+/// them, almost no CPU for tens of seconds: a slower host runs longer instead of failing.
+const TRACK_RUN_CYCLES: u64 = 40_000;
+/// TRACKING samples the consumer must have received before the daemon is stopped.
+const TRACK_WANTED: usize = 20;
+/// The tracker's particles in the guest (its one CPU is shared with every other process).
+const TRACK_PARTICLES: usize = 300;
+/// The tracker's joint-reading limits in the guest, ms (the defaults at the guest's 2 ms period
+/// are 10 / 40 ms for the tool arm): the overloaded guest skips periods and its listener falls
+/// behind by tens of milliseconds; with the defaults every frame was refused as stale (86 of 86
+/// once). As the live calibration's `max_age_ms = 200`.
+const TRACK_JOINTS_GAP_MS: f64 = 150.0;
+const TRACK_JOINTS_AGE_MS: f64 = 200.0;
+/// The comanip-track binary, passed from the host run to the guest run.
+const TRACK_BIN_ENV: &str = "HIL_TRACK_BIN";
 
 /// Dropout window of node 2 in `NodeSilent`, microseconds of twin time since simrobot's first
 /// SYNC (1 ms per SYNC: samples 5000 to 5199). The instrument enters its first trocar at sample
@@ -142,8 +167,9 @@ impl Scenario {
         let node = |dropouts: &str, emcy: &str| {
             format!("\n[[nodes]]\nheartbeat_period_us = 50000\ndropout_windows_us = [{dropouts}]\nemcy = [{emcy}]\n")
         };
-        if self == Scenario::CalibLive {
-            // The endoscope holder moves more often than by default: views to calibrate from.
+        if matches!(self, Scenario::CalibLive | Scenario::TrackLive) {
+            // The endoscope holder moves more often than by default: views to calibrate from,
+            // and the tracker's cameras move with it.
             s += "\n[endoscope_arm]\nhold_s = [1.5, 3.0]\nmove_s = [0.8, 1.2]\n";
         }
         let mut nodes = [node("", ""), node("", ""), node("", "")];
@@ -261,6 +287,12 @@ fn calib_bin() -> PathBuf {
     BIN.get_or_init(|| workspace_bin("comanip-calib", "comanip-calib")).clone()
 }
 
+/// `comanip-track`, built as [`simrobot`] is.
+fn track_bin() -> PathBuf {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| workspace_bin("comanip-track", "comanip-track")).clone()
+}
+
 /// `comanip-camera`, built as [`simrobot`] is.
 fn camera_bin() -> PathBuf {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
@@ -317,6 +349,7 @@ fn hil(test: &str, scenario: Scenario) -> Option<Artifacts> {
     let simrobot = simrobot();
     let camera = if scenario == Scenario::Camera { Some(camera_bin()) } else { None };
     let calib = if scenario == Scenario::CalibLive { Some(calib_bin()) } else { None };
+    let track = if scenario == Scenario::TrackLive { Some(track_bin()) } else { None };
     let dir = artifacts_dir(test);
     let started = Instant::now();
     let out = Command::new(harness())
@@ -329,6 +362,7 @@ fn hil(test: &str, scenario: Scenario) -> Option<Artifacts> {
         .env(SIMROBOT_ENV, &simrobot)
         .env(CAMERA_BIN_ENV, camera.unwrap_or_default())
         .env(CALIB_BIN_ENV, calib.unwrap_or_default())
+        .env(TRACK_BIN_ENV, track.unwrap_or_default())
         .env("RUST_BACKTRACE", "1")
         .stdin(Stdio::null())
         .output()
@@ -363,6 +397,20 @@ fn spawn(cmd: &mut Command, dir: &Path, name: &str) -> Child {
 fn signal(child: &Child, sig: libc::c_int) {
     // SAFETY: kill(2) on our own child's pid; no memory is involved.
     unsafe { libc::kill(child.id() as libc::pid_t, sig) };
+}
+
+/// Polls the tracker's consumer's JSON lines until `wanted` are TRACKING (true) or the daemon
+/// exits on its own (false).
+fn wait_for_tracking(jsonl: &Path, wanted: usize, daemon: &mut Child) -> bool {
+    loop {
+        if std::fs::read_to_string(jsonl).is_ok_and(|t| t.matches("\"status\":\"TRACKING\"").count() >= wanted) {
+            return true;
+        }
+        if daemon.try_wait().ok().flatten().is_some() {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(250));
+    }
 }
 
 /// Polls the calibration subscriber's JSON lines until one carries a valid calibration (true) or
@@ -646,6 +694,69 @@ fn drive_in(scenario: Scenario, dir: &Path) {
         wait_for_line(&dir.join("calib-live.err"), "publishing on", Duration::from_secs(60));
         (live, monitor)
     });
+    // The live tracker: its subscriber first, then the process, before the robot and the daemon.
+    let track_service = format!("comanip-hil/track/{}", std::process::id());
+    let mut track_procs = (scenario == Scenario::TrackLive).then(|| {
+        let cam = write_endoscope_config(dir, TRACK_CAMERA_SIZE, TRACK_CAMERA_FPS);
+        let k = &cam.camera.intrinsics;
+        for (name, baseline) in [("left.yaml", None), ("right.yaml", Some(cam.camera.baseline_m))] {
+            std::fs::write(dir.join(name), hw_io::calib_files::write_camera_info_yaml(name, k, baseline))
+                .expect("write the camera_info");
+        }
+        // The rig (T_b_e, the hand-eye, the instrument) is the configuration's default, which is
+        // the twin's; the calibration service has no publisher: the configuration's is used.
+        std::fs::write(
+            dir.join("comanip-track.toml"),
+            format!(
+                "mode = \"ours\"\nparticles = {TRACK_PARTICLES}\n[filter]\nanneal_layers = 1\n\
+                 [joints]\ntool_max_gap_ms = {g:?}\ntool_max_age_ms = {a:?}\nendoscope_max_gap_ms = {g:?}\n\
+                 endoscope_max_age_ms = {a:?}\nwait_ms = {a:?}\n",
+                g = TRACK_JOINTS_GAP_MS,
+                a = TRACK_JOINTS_AGE_MS
+            ),
+        )
+        .expect("write comanip-track.toml");
+        let bin = std::env::var_os(TRACK_BIN_ENV).expect("HIL_TRACK_BIN");
+        let monitor = spawn(
+            Command::new(&bin)
+                .args(["monitor", "--service", &track_service, "--format", "json"])
+                .arg("--out")
+                .arg(dir.join("track.jsonl"))
+                .arg("--summary-json")
+                .arg(dir.join("track-monitor.json")),
+            dir,
+            "track-monitor",
+        );
+        wait_for_line(&dir.join("track-monitor.err"), "subscribed", Duration::from_secs(60));
+        // Real-time priority 50, as the live calibration and for the same reason (at the unit's
+        // nice 15 on the guest's one CPU its bus listener would get too little of it), but
+        // SCHED_RR: the tracker's main thread and its bus listener thread share the priority,
+        // and when the overloaded guest keeps the listener's queue full, a SCHED_FIFO listener
+        // never blocks and the main thread never runs (seen: no frame taken in 200 s).
+        let live = spawn(
+            Command::new("chrt")
+                .args(["-r", "50"])
+                .arg(&bin)
+                .args(["live", "--iface", "vcan0", "--status-every-s", "5"])
+                .arg("--config")
+                .arg(dir.join("comanip-track.toml"))
+                .arg("--fulcrumd-config")
+                .arg(dir.join("fulcrumd.toml"))
+                .arg("--cameras")
+                .arg(dir.join("left.yaml"))
+                .arg(dir.join("right.yaml"))
+                .args(["--frame-service", &frames_service])
+                .args(["--calibration-service", &calib_service])
+                .args(["--output-service", &track_service])
+                .arg("--summary-json")
+                .arg(dir.join("track-live.json"))
+                .env("RUST_LOG", "info"),
+            dir,
+            "track-live",
+        );
+        wait_for_line(&dir.join("track-live.err"), "waiting for frames", Duration::from_secs(60));
+        (live, monitor)
+    });
     let mut robot_cmd = Command::new("chrt");
     robot_cmd
         .args(["-f", "90"])
@@ -657,7 +768,7 @@ fn drive_in(scenario: Scenario, dir: &Path) {
         .arg(dir.join("truth.jsonl"))
         .arg("--summary-json")
         .arg(dir.join("simrobot.json"));
-    if matches!(scenario, Scenario::Camera | Scenario::CalibLive) {
+    if matches!(scenario, Scenario::Camera | Scenario::CalibLive | Scenario::TrackLive) {
         robot_cmd
             .args(["--camera", "--camera-service", &frames_service])
             .arg("--endoscope-config")
@@ -668,13 +779,19 @@ fn drive_in(scenario: Scenario, dir: &Path) {
     wait_for_line(&dir.join("monitor.err"), "waiting for samples", Duration::from_secs(60));
 
     match scenario {
-        Scenario::Clean | Scenario::NodeSilent | Scenario::EmcyBurst | Scenario::Camera | Scenario::CalibLive => {
+        Scenario::Clean
+        | Scenario::NodeSilent
+        | Scenario::EmcyBurst
+        | Scenario::Camera
+        | Scenario::CalibLive
+        | Scenario::TrackLive => {
             // The clean run covers the whole scenario (one SYNC = one sample); the fault
             // scenarios their first FAULT_RUN_CYCLES samples; the camera scenario 3000 (6 s).
             let cycles = match scenario {
                 Scenario::Clean => scenario_samples,
                 Scenario::Camera => 3_000,
                 Scenario::CalibLive => CALIB_RUN_CYCLES,
+                Scenario::TrackLive => TRACK_RUN_CYCLES,
                 _ => FAULT_RUN_CYCLES,
             };
             let mut daemon = spawn(&mut daemon_cmd(dir, &service, "daemon", Some(cycles)), dir, "daemon");
@@ -685,6 +802,14 @@ fn drive_in(scenario: Scenario, dir: &Path) {
                 let published = wait_for_published_calibration(&dir.join("calibration.jsonl"), &mut daemon);
                 driver.insert("calibration_published_in_session".into(), published.into());
                 if published {
+                    std::thread::sleep(Duration::from_secs(2));
+                    signal(&daemon, libc::SIGINT);
+                }
+            }
+            if scenario == Scenario::TrackLive {
+                let tracked = wait_for_tracking(&dir.join("track.jsonl"), TRACK_WANTED, &mut daemon);
+                driver.insert("tracking_reached_in_session".into(), tracked.into());
+                if tracked {
                     std::thread::sleep(Duration::from_secs(2));
                     signal(&daemon, libc::SIGINT);
                 }
@@ -769,6 +894,17 @@ fn drive_in(scenario: Scenario, dir: &Path) {
         signal(child, libc::SIGINT);
         let code = wait_exit(child, name, Duration::from_secs(30));
         driver.insert(format!("{name}_exit"), code.into());
+    }
+    // The tracker after the robot: every frame the camera sent is in its queue. It works through
+    // them (2 s), then gets SIGINT and writes its summary; then its subscriber.
+    if let Some((live, track_monitor)) = track_procs.as_mut() {
+        std::thread::sleep(Duration::from_secs(2));
+        signal(live, libc::SIGINT);
+        driver.insert("track_live_exit".into(), wait_exit(live, "comanip-track live", Duration::from_secs(30)).into());
+        std::thread::sleep(Duration::from_millis(300));
+        signal(track_monitor, libc::SIGINT);
+        let code = wait_exit(track_monitor, "comanip-track monitor", Duration::from_secs(30));
+        driver.insert("track_monitor_exit".into(), code.into());
     }
     // The frame monitor last: simrobot's camera has stopped, every frame it sent is in.
     if let Some(child) = frame_monitor.as_mut() {
@@ -1568,4 +1704,76 @@ fn hil_live_calibration_published_within_its_predicted_3_sigma() {
         u(&summary["frames"]) > 0 && u(&summary["bus_endoscope_samples"]) > 0 && u(&summary["fulcrum_samples"]) > 0
     );
     assert!(summary["refused"].as_object().is_some_and(|r| !r.is_empty()), "refusals counted: {summary}");
+}
+
+/// `simrobot live --camera`, fulcrumd and `comanip-track live` as separate processes on vcan0
+/// (frames from the frame service, both arms' joints from the tracker's own passive socket at
+/// each frame's time, the calibration from the configuration), and `comanip-track monitor` as
+/// its consumer: every frame the camera published is accounted for by the tracker (processed,
+/// skipped or rejected), every sample it published reaches the consumer or is counted missed,
+/// none is refused (no NaN, no pose on a LOST or INVALID sample), and the instrument is tracked
+/// (TRACKING: its rendered silhouette fits the images at the joints read from the bus).
+#[test]
+#[ignore = "not yet seen passing: on the loaded development host the guest overran 1.7 times per cycle and starved the tracker; run with --ignored on a quiet host"]
+fn hil_live_tracking_accounts_for_every_frame_and_tracks() {
+    let Some(a) = hil("hil_live_tracking_accounts_for_every_frame_and_tracks", Scenario::TrackLive) else {
+        return;
+    };
+    for k in ["daemon_exit", "simrobot_exit", "track_live_exit", "track_monitor_exit"] {
+        assert_eq!(a.driver[k], 0, "{k}: {}", a.driver);
+    }
+    let r = a.json("simrobot.json");
+    let live = a.json("track-live.json");
+    let mon = a.json("track-monitor.json");
+    eprintln!("simrobot camera: {}\ncomanip-track live: {live}\ncomanip-track monitor: {mon}", r["camera"]);
+    let c = &live["counters"];
+    let (processed, skipped, rejected) = (u(&c["processed"]), u(&c["skipped"]), u(&c["rejected"]));
+    let published_frames = u(&r["camera"]["published"]);
+    assert!(published_frames >= 20, "frames published by the camera: {}", r["camera"]);
+    assert_eq!(processed + skipped + rejected, published_frames, "every frame accounted for: {live}");
+    assert_eq!(rejected, 0, "no corrupt frame header on a healthy frame service: {live}");
+    let published = u(&live["published"]);
+    assert_eq!(published, processed, "one sample per processed frame: {live}");
+    // The consumer: every sample received or counted missed, none refused.
+    assert_eq!(u(&mon["refused"]), 0, "{mon}");
+    assert_eq!(u(&mon["received"]) + u(&mon["missed"]), published, "{mon}");
+    assert_eq!(u(&mon["restarts"]), 0, "{mon}");
+    let lines: Vec<Value> = std::fs::read_to_string(a.dir.join("track.jsonl"))
+        .expect("track.jsonl")
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("a JSON line"))
+        .collect();
+    assert_eq!(lines.len() as u64, u(&mon["received"]));
+    let mut by_status = BTreeMap::<String, u64>::new();
+    let mut last_frame = None;
+    for l in &lines {
+        let st = l["status"].as_str().expect("status").to_string();
+        let fseq = u(&l["frame_sequence"]);
+        assert!(last_frame.is_none_or(|p| fseq > p), "frames out of order: {l}");
+        last_frame = Some(fseq);
+        let nums = |k: &str| l[k].as_array().expect(k).iter().map(|v| v.as_f64().expect("number")).collect::<Vec<_>>();
+        let pose: Vec<f64> =
+            ["tip_camera_m", "tip_camera_wxyz", "tip_base_m", "tip_base_wxyz"].iter().flat_map(|k| nums(k)).collect();
+        match st.as_str() {
+            "TRACKING" | "UNCERTAIN" => {
+                assert!(pose.iter().all(|v| v.is_finite()), "{l}");
+                let q = nums("tip_base_wxyz");
+                assert!((q.iter().map(|v| v * v).sum::<f64>() - 1.0).abs() < 1e-6, "a unit quaternion: {l}");
+            }
+            "LOST" | "INVALID" => assert!(pose.iter().all(|&v| v == 0.0), "no pose without tracking: {l}"),
+            other => panic!("unknown status {other}: {l}"),
+        }
+        if st == "INVALID" {
+            assert!(!l["reasons"].as_str().expect("reasons").is_empty(), "an INVALID sample says why: {l}");
+        }
+        assert!(l["reasons"].as_str().expect("reasons").contains("calibration-from-config"), "{l}");
+        *by_status.entry(st).or_default() += 1;
+    }
+    eprintln!("statuses: {by_status:?}");
+    let tracking = by_status.get("TRACKING").copied().unwrap_or(0);
+    assert!(tracking >= 10, "the instrument was tracked in {tracking} frames: {by_status:?}");
+    if u(&mon["missed"]) == 0 {
+        // The tracker's own count agrees with what its consumer saw.
+        assert_eq!(u(&live["counters"]["by_status"][1]), tracking, "{live}");
+    }
 }

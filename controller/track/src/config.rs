@@ -25,6 +25,57 @@ pub struct TrackFile {
     pub filter: FilterSection,
     /// The camera rig and the starting camera-to-base transform (the live process).
     pub rig: RigSection,
+    /// How sparse and how old the arms' joint readings may be (the live process).
+    pub joints: JointsSection,
+}
+
+/// `[joints]` (the live process): how far apart and how old the arms' joint readings around a
+/// frame's time may be before the frame is refused (`tool-joints-stale`,
+/// `endoscope-joints-stale`), and how long a frame waits for the bus listener to pass its time;
+/// milliseconds. An absent limit is scaled from fulcrumd's control period `T`
+/// (`cycle.period_us`): the tool arm answers every SYNC (gap 5 T, age 20 T: 5 and 20 ms at
+/// 1 kHz), the endoscope arm every 10th (gap 25 T, age 50 T).
+#[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct JointsSection {
+    /// Largest gap between the two tool-arm samples around a frame's time, ms.
+    pub tool_max_gap_ms: Option<f64>,
+    /// Largest age of the newest tool-arm sample when the frame is newer than it, ms.
+    pub tool_max_age_ms: Option<f64>,
+    /// As `tool_max_gap_ms`, for the endoscope arm.
+    pub endoscope_max_gap_ms: Option<f64>,
+    /// As `tool_max_age_ms`, for the endoscope arm.
+    pub endoscope_max_age_ms: Option<f64>,
+    /// How long a frame newer than the bus waits for the listener to catch up, ms (default 30).
+    pub wait_ms: Option<f64>,
+}
+
+/// What [`JointsSection::resolve`] gives: the staleness rules of both arms and the wait.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct JointsRules {
+    /// The tool arm's rule.
+    pub tool: controller::bus_listen::Staleness,
+    /// The endoscope arm's rule.
+    pub endoscope: controller::bus_listen::Staleness,
+    /// The catch-up wait.
+    pub wait: std::time::Duration,
+}
+
+impl JointsSection {
+    /// The rules for fulcrumd's control period `period_us` (microseconds).
+    pub fn resolve(&self, period_us: u32) -> JointsRules {
+        use controller::bus_listen::Staleness;
+        let t_ms = f64::from(period_us) / 1e3;
+        let ns = |v: Option<f64>, periods: f64| ((v.unwrap_or(periods * t_ms)) * 1e6).round() as u64;
+        JointsRules {
+            tool: Staleness { max_gap_ns: ns(self.tool_max_gap_ms, 5.0), max_age_ns: ns(self.tool_max_age_ms, 20.0) },
+            endoscope: Staleness {
+                max_gap_ns: ns(self.endoscope_max_gap_ms, 25.0),
+                max_age_ns: ns(self.endoscope_max_age_ms, 50.0),
+            },
+            wait: std::time::Duration::from_secs_f64(self.wait_ms.unwrap_or(30.0) / 1e3),
+        }
+    }
 }
 
 /// `[rig]`: what `comanip-track live` needs besides the frames and the bus: the stereo cameras,
@@ -147,6 +198,7 @@ impl Default for TrackFile {
             measurement: MeasurementSection::default(),
             filter: FilterSection::default(),
             rig: RigSection::default(),
+            joints: JointsSection::default(),
         }
     }
 }
@@ -215,6 +267,20 @@ impl TrackFile {
                 "rig.instrument",
                 "not a valid instrument (positive dimensions, wrist no wider than the shaft)",
             ));
+        }
+        let j = &f.joints;
+        for (key, v) in [
+            ("joints.tool_max_gap_ms", j.tool_max_gap_ms),
+            ("joints.tool_max_age_ms", j.tool_max_age_ms),
+            ("joints.endoscope_max_gap_ms", j.endoscope_max_gap_ms),
+            ("joints.endoscope_max_age_ms", j.endoscope_max_age_ms),
+        ] {
+            if v.is_some_and(|v| !(v.is_finite() && v > 0.0 && v <= 10_000.0)) {
+                return Err(bad(key, "must be a number of milliseconds in (0, 10000]"));
+            }
+        }
+        if j.wait_ms.is_some_and(|v| !(v.is_finite() && (0.0..=10_000.0).contains(&v))) {
+            return Err(bad("joints.wait_ms", "must be a number of milliseconds in [0, 10000]"));
         }
         f.tracker(640, 480).validate().map_err(|e| ConfigFileError::Value {
             path: path.to_owned(),
@@ -327,5 +393,27 @@ mod tests {
         assert!(e.to_string().contains("rig.hand_eye"), "{e}");
         let e = TrackFile::from_toml("particles = 0\n", Path::new("x.toml")).unwrap_err();
         assert!(e.to_string().contains("particles"), "{e}");
+        let e = TrackFile::from_toml("[joints]\ntool_max_age_ms = nan\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("joints.tool_max_age_ms"), "{e}");
+        let e = TrackFile::from_toml("[joints]\nendoscope_max_gap_ms = 0.0\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("joints.endoscope_max_gap_ms"), "{e}");
+        let e = TrackFile::from_toml("[joints]\nwait_ms = -1.0\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("joints.wait_ms"), "{e}");
+    }
+
+    #[test]
+    fn joint_staleness_scales_with_the_control_period_unless_given() {
+        use controller::bus_listen::Staleness;
+        let f = TrackFile::default();
+        let r = f.joints.resolve(1000);
+        assert_eq!((r.tool, r.endoscope), (Staleness::TOOL, Staleness::ENDOSCOPE), "the 1 kHz rules");
+        assert_eq!(r.wait, std::time::Duration::from_millis(30));
+        let r = f.joints.resolve(2000);
+        assert_eq!(r.tool, Staleness { max_gap_ns: 10_000_000, max_age_ns: 40_000_000 });
+        assert_eq!(r.endoscope, Staleness { max_gap_ns: 50_000_000, max_age_ns: 100_000_000 });
+        let f = TrackFile::from_toml("[joints]\ntool_max_gap_ms = 50.0\nwait_ms = 200\n", Path::new("x.toml")).unwrap();
+        let r = f.joints.resolve(2000);
+        assert_eq!(r.tool, Staleness { max_gap_ns: 50_000_000, max_age_ns: 40_000_000 });
+        assert_eq!(r.wait, std::time::Duration::from_millis(200));
     }
 }

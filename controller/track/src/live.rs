@@ -141,7 +141,8 @@ impl ClockMap {
 
 /// Both arms' joints from the passive bus listener (`controller::bus_listen`, its own
 /// SocketCAN socket or a replayed candump log): each arm's history read at the frame's time on
-/// the bus clock, with the listener's staleness rules (`Staleness::TOOL`, `ENDOSCOPE`). When
+/// the bus clock, with staleness rules per arm (by default the 1 kHz ones, `Staleness::TOOL`,
+/// `ENDOSCOPE`; [`BusJoints::with_staleness`] for another control period). When
 /// the frame is newer than the newest tool sample, or no sample came yet (the listener has not
 /// caught up), it waits up to `catch_up` (1 ms sleeps; not at all once a replayed log ended).
 #[derive(Debug)]
@@ -149,12 +150,31 @@ pub struct BusJoints {
     listener: controller::bus_listen::ListenerThread,
     clock: ClockMap,
     catch_up: Duration,
+    tool_staleness: controller::bus_listen::Staleness,
+    endoscope_staleness: controller::bus_listen::Staleness,
 }
 
 impl BusJoints {
     /// Reads `listener`'s histories, frames mapped by `clock`.
     pub fn new(listener: controller::bus_listen::ListenerThread, clock: FrameClock, catch_up: Duration) -> Self {
-        Self { listener, clock: ClockMap::new(clock), catch_up }
+        use controller::bus_listen::Staleness;
+        Self {
+            listener,
+            clock: ClockMap::new(clock),
+            catch_up,
+            tool_staleness: Staleness::TOOL,
+            endoscope_staleness: Staleness::ENDOSCOPE,
+        }
+    }
+
+    /// The same, with these staleness rules for the tool arm and the endoscope arm.
+    pub fn with_staleness(
+        mut self,
+        tool: controller::bus_listen::Staleness,
+        endoscope: controller::bus_listen::Staleness,
+    ) -> Self {
+        (self.tool_staleness, self.endoscope_staleness) = (tool, endoscope);
+        self
     }
 
     /// The listener's counters.
@@ -170,7 +190,6 @@ impl BusJoints {
 
 impl JointsAt for BusJoints {
     fn joints_at(&mut self, frame: &FrameMeta) -> Result<ArmJoints, JointsError> {
-        use controller::bus_listen::Staleness;
         let t = self.clock.bus_time(frame).ok_or(JointsError::BothStale)?;
         let start = Instant::now();
         while self.listener.latest_ns().0.is_none_or(|l| l < t)
@@ -179,8 +198,8 @@ impl JointsAt for BusJoints {
         {
             std::thread::sleep(Duration::from_millis(1));
         }
-        let tool = self.listener.tool_at(t, &Staleness::TOOL);
-        let ecm = self.listener.endoscope_at(t, &Staleness::ENDOSCOPE);
+        let tool = self.listener.tool_at(t, &self.tool_staleness);
+        let ecm = self.listener.endoscope_at(t, &self.endoscope_staleness);
         match (tool, ecm) {
             (Ok(a), Ok(b)) => Ok(ArmJoints { tool_rad: a.joints, endoscope: b.joints }),
             (Err(_), Ok(_)) => Err(JointsError::ToolStale),

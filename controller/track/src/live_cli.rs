@@ -245,7 +245,13 @@ pub fn sample_json(s: &TrackSample, received_ns: u64) -> serde_json::Value {
 /// fulcrumd's bus (`[bus] iface` of its configuration, or `--iface`), frames on
 /// `CLOCK_MONOTONIC`; or a candump log replayed through the listener's `CanBus` input
 /// (`--candump`), frames mapped by `--candump-offset-ns` or `--candump-frames-index`.
-pub fn open_joints(fcfg: &controller::config::Config, args: &LiveArgs) -> Result<BusJoints, LiveCliError> {
+/// Readings are refused by `rules` (the configuration's `[joints]`); a replayed log waits
+/// [`REPLAY_CATCH_UP`] instead of `rules.wait` (the whole log is read as fast as possible).
+pub fn open_joints(
+    fcfg: &controller::config::Config,
+    args: &LiveArgs,
+    rules: &crate::config::JointsRules,
+) -> Result<BusJoints, LiveCliError> {
     use controller::bus_listen::{BusListener, ListenConfig, ListenerThread};
     let mut lcfg = ListenConfig::from_daemon(fcfg);
     let listen_err = |e: controller::bus_listen::ListenError| LiveCliError::Setup(format!("bus listener: {e}"));
@@ -261,7 +267,7 @@ pub fn open_joints(fcfg: &controller::config::Config, args: &LiveArgs) -> Result
                 .map_err(|e| LiveCliError::Setup(e.to_string()))?;
             let listener =
                 ListenerThread::spawn(BusListener::new(bus, &lcfg).map_err(listen_err)?).map_err(listen_err)?;
-            Ok(BusJoints::new(listener, clock, REPLAY_CATCH_UP))
+            Ok(BusJoints::new(listener, clock, REPLAY_CATCH_UP).with_staleness(rules.tool, rules.endoscope))
         }
         None => {
             let iface = args.iface.clone().unwrap_or_else(|| fcfg.bus.iface.clone());
@@ -273,7 +279,15 @@ pub fn open_joints(fcfg: &controller::config::Config, args: &LiveArgs) -> Result
             }
             let listener = ListenerThread::open(&iface, &lcfg).map_err(listen_err)?;
             tracing::info!(iface = %iface, "listening to the bus (passive: nothing is sent)");
-            Ok(BusJoints::new(listener, FrameClock::Monotonic, CATCH_UP))
+            tracing::info!(
+                tool_max_gap_ms = rules.tool.max_gap_ns as f64 / 1e6,
+                tool_max_age_ms = rules.tool.max_age_ns as f64 / 1e6,
+                endoscope_max_gap_ms = rules.endoscope.max_gap_ns as f64 / 1e6,
+                endoscope_max_age_ms = rules.endoscope.max_age_ns as f64 / 1e6,
+                wait_ms = rules.wait.as_secs_f64() * 1e3,
+                "joint readings around a frame's time"
+            );
+            Ok(BusJoints::new(listener, FrameClock::Monotonic, rules.wait).with_staleness(rules.tool, rules.endoscope))
         }
     }
 }
@@ -283,9 +297,6 @@ pub const REPLAY_HISTORY: usize = 600_000;
 
 /// How long a frame waits for a replayed log to be read past its time.
 pub const REPLAY_CATCH_UP: Duration = Duration::from_secs(10);
-
-/// How long a frame waits for the live bus listener to pass its time.
-pub const CATCH_UP: Duration = Duration::from_millis(30);
 
 /// The recorded mid-exposure times of a `frames.txt` (nanoseconds, in order).
 pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
@@ -306,7 +317,7 @@ pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
 /// Runs `comanip-track live` until a stop condition (signal, `--frames`, idle timeout).
 pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs) -> Result<(), LiveCliError> {
     let mut live = build(file, fcfg, args)?;
-    let mut joints = open_joints(fcfg, args)?;
+    let mut joints = open_joints(fcfg, args, &file.joints.resolve(fcfg.cycle.period_us))?;
     install_stop_handlers();
     let mut frames = FrameSubscriber::connect(&args.frame_service, &PublisherOptions::frames())
         .map_err(|e| ipc_err("frame service")(&e))?;

@@ -111,11 +111,14 @@ pub enum Refusal {
     Blurred,
     /// Eye: adds (almost) no information to what is kept.
     Redundant,
+    /// Eye: the collection holds [`CollectorConfig::max_observations`] already (the line was
+    /// still scored by the drift watch).
+    Full,
 }
 
 impl Refusal {
     /// Every reason, in display order.
-    pub const ALL: [Refusal; 9] = [
+    pub const ALL: [Refusal; 10] = [
         Refusal::StaleEncoders,
         Refusal::NoFulcrum,
         Refusal::InvalidFulcrum,
@@ -125,6 +128,7 @@ impl Refusal {
         Refusal::LowConfidence,
         Refusal::Blurred,
         Refusal::Redundant,
+        Refusal::Full,
     ];
 
     /// A short name for progress lines and reports.
@@ -139,6 +143,7 @@ impl Refusal {
             Refusal::LowConfidence => "low confidence",
             Refusal::Blurred => "blurred",
             Refusal::Redundant => "redundant",
+            Refusal::Full => "collection full",
         }
     }
 }
@@ -170,6 +175,11 @@ pub struct CollectorConfig {
     pub min_information_gain: f64,
     /// Kept observations needed before the first (provisional) solve.
     pub min_observations: usize,
+    /// The most observations one collection keeps (a bound on the process's memory and on
+    /// each solve's time: the information gain of a new line falls only as 1/n, so without it
+    /// an hours-long session would keep tens of thousands); beyond, lines are refused as
+    /// [`Refusal::Full`] and the drift watch goes on.
+    pub max_observations: usize,
     /// Re-solve every this many new kept observations (the information is evaluated at the
     /// latest estimate).
     pub resolve_every: usize,
@@ -201,6 +211,7 @@ impl CollectorConfig {
             min_image_step_px: 1.0,
             min_information_gain: 1e-3,
             min_observations: 40,
+            max_observations: 2000,
             resolve_every: 100,
             target_translation_m: 1e-3,
             target_rotation_rad: 0.2f64.to_radians(),
@@ -402,29 +413,37 @@ impl Collector {
                 self.refuse(Refusal::StaleEncoders);
                 continue;
             };
-            match self.information(&obs) {
+            let info = match self.information(&obs) {
                 Ok(Some(fi)) => {
                     if !self.adds_information(&obs, &fi) {
                         self.refuse(Refusal::Redundant);
                         continue;
                     }
-                    self.fisher += fi;
+                    Some(fi)
                 }
                 Ok(None) => {
                     if self.near_a_kept(&obs) {
                         self.refuse(Refusal::Redundant);
                         continue;
                     }
+                    None
                 }
                 // A line the estimator cannot use (coincident points): no instrument line.
                 Err(()) => {
                     self.refuse(Refusal::NoInstrument);
                     continue;
                 }
-            }
+            };
             if let Some(e) = self.score_drift(&obs) {
                 event = e;
                 continue;
+            }
+            if self.kept.len() >= self.cfg.max_observations {
+                self.refuse(Refusal::Full);
+                continue;
+            }
+            if let Some(fi) = info {
+                self.fisher += fi;
             }
             self.keep(obs, Vector3::from(s.tool.fulcrum_m));
             if let Some(e) = self.maybe_solve(s.t_ns) {
@@ -764,6 +783,47 @@ mod tests {
         let mut c = Collector::new(cfg);
         assert!(s.iter().all(|x| !matches!(c.push(x), Event::Solved(_))));
         assert!(c.result().is_none() && c.progress().precision.is_some() && c.progress().solves >= 1);
+    }
+
+    #[test]
+    fn a_full_collection_refuses_new_lines_and_still_watches_for_drift() {
+        // An unreachable target: the collection would grow with every new view; it stops at the cap.
+        let (s, mut cfg, _) = samples(3, 3);
+        cfg.target_translation_m = 1e-7;
+        cfg.max_observations = 45;
+        let mut c = Collector::new(cfg);
+        for x in &s {
+            c.push(x);
+        }
+        assert_eq!(c.progress().kept, 45, "capped");
+        assert!(refused(&c, Refusal::Full) > 0, "{:?}", c.progress().refused);
+        // A reachable target, the cap at the count it was reached with: full from the result on.
+        cfg.target_translation_m = 2e-3;
+        cfg.target_rotation_rad = 0.5f64.to_radians();
+        cfg.drift_window = 10;
+        cfg.max_observations = usize::MAX;
+        let mut c = Collector::new(cfg);
+        let at = s.iter().position(|x| matches!(c.push(x), Event::Solved(_))).expect("solved");
+        cfg.max_observations = c.progress().kept;
+        let mut c = Collector::new(cfg);
+        assert_eq!(s.iter().position(|x| matches!(c.push(x), Event::Solved(_))), Some(at));
+        // The tool arm moved by 2 cm on its cart: nothing can be kept, the drift is still seen.
+        let mut drift = false;
+        for (i, x) in s.iter().enumerate().take(60) {
+            let mut y = *x;
+            y.frame_digest = 20_000 + i as u64;
+            y.t_ns += 2_000_000_000_000;
+            for v in [&mut y.tool.fulcrum_m, &mut y.tool.wrist_m] {
+                v[0] += 0.02;
+            }
+            if matches!(c.push(&y), Event::Drift { .. }) {
+                drift = true;
+                break;
+            }
+        }
+        assert!(drift, "drift flagged while full: {:?}", c.progress().refused);
+        assert!(refused(&c, Refusal::Full) > 0, "{:?}", c.progress().refused);
+        assert!(c.result().is_none(), "the result is dropped at drift");
     }
 
     #[test]

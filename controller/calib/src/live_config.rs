@@ -201,6 +201,24 @@ pub struct LiveConfig {
     pub output: OutputSection,
     /// `[pairing]`.
     pub pairing: PairingSection,
+    /// `[collection]`.
+    pub collection: CollectionSection,
+}
+
+/// `[collection]`: bounds of one collection.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct CollectionSection {
+    /// The most observations (eye lines) one collection keeps, 40 to 100 000: a bound on memory
+    /// and on each solve's time (about 0.1 s at 729 observations); beyond, new lines are
+    /// refused as `collection full` and the drift watch goes on.
+    pub max_observations: usize,
+}
+
+impl Default for CollectionSection {
+    fn default() -> Self {
+        Self { max_observations: 2000 }
+    }
 }
 
 /// Why a configuration was refused.
@@ -341,6 +359,12 @@ impl LiveConfig {
                 return Err(bad(key, format!("{v}: must be in [{min}, 3600]")));
             }
         }
+        if !(40..=100_000).contains(&self.collection.max_observations) {
+            return Err(bad(
+                "collection.max_observations",
+                format!("{}: must be in [40, 100000]", self.collection.max_observations),
+            ));
+        }
         if o.result_file.as_os_str().is_empty() {
             return Err(bad("output.result_file", "empty".into()));
         }
@@ -409,6 +433,7 @@ mod tests {
             ("[noise]\npixel_px = 0.0\nrotation_mrad = 0.0\ntranslation_mm = 0.0\n", "noise"),
             ("[output]\nrepublish_s = 0.0\n", "output.republish_s"),
             ("[pairing]\nendoscope_max_gap_ms = 0.5\n", "pairing.endoscope_max_gap_ms"),
+            ("[collection]\nmax_observations = 10\n", "collection.max_observations"),
             (
                 "[camera]\nintrinsics_yaml = \"x.yaml\"\n[camera.intrinsics]\nfx = 1.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 4\nheight = 4\n",
                 "camera",

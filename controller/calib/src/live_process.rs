@@ -328,6 +328,7 @@ pub fn run(cfg: &Resolved, stop: &AtomicBool, request: &AtomicBool) -> Result<Li
     ccfg.target_translation_m = file.target.translation_mm * 1e-3;
     ccfg.target_rotation_rad = file.target.rotation_deg.to_radians();
     ccfg.max_age_ns = (file.output.max_age_ms * 1e6) as u64;
+    ccfg.max_observations = file.collection.max_observations;
     let mut lp = LiveLoop::new(ccfg)?;
 
     let mut listen = ListenConfig::from_daemon(&cfg.fulcrumd);

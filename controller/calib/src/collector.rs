@@ -704,6 +704,17 @@ mod tests {
         (out, CollectorConfig::new(d.setup, d.noise.unwrap()), d.truth)
     }
 
+    /// Sample `x` again as frame `i` of a later session, the tool arm moved by 2 cm on its cart.
+    fn moved_2cm(x: &Sample, i: usize) -> Sample {
+        let mut y = *x;
+        y.frame_digest = 20_000 + i as u64;
+        y.t_ns += 2_000_000_000_000;
+        for v in [&mut y.tool.fulcrum_m, &mut y.tool.wrist_m] {
+            v[0] += 0.02;
+        }
+        y
+    }
+
     fn refused(c: &Collector, r: Refusal) -> usize {
         c.progress().refused.get(&r).copied().unwrap_or(0)
     }
@@ -810,12 +821,7 @@ mod tests {
         // The tool arm moved by 2 cm on its cart: nothing can be kept, the drift is still seen.
         let mut drift = false;
         for (i, x) in s.iter().enumerate().take(60) {
-            let mut y = *x;
-            y.frame_digest = 20_000 + i as u64;
-            y.t_ns += 2_000_000_000_000;
-            for v in [&mut y.tool.fulcrum_m, &mut y.tool.wrist_m] {
-                v[0] += 0.02;
-            }
+            let y = moved_2cm(x, i);
             if matches!(c.push(&y), Event::Drift { .. }) {
                 drift = true;
                 break;
@@ -863,12 +869,7 @@ mod tests {
         // The tool arm moved by 2 cm on its cart: its lines no longer fit.
         let mut flagged = None;
         for (i, x) in s.iter().enumerate().take(60) {
-            let mut y = *x;
-            y.frame_digest = 20_000 + i as u64;
-            y.t_ns += 2_000_000_000_000;
-            for v in [&mut y.tool.fulcrum_m, &mut y.tool.wrist_m] {
-                v[0] += 0.02;
-            }
+            let y = moved_2cm(x, i);
             if let Event::Drift { misfit_fraction } = c.push(&y) {
                 flagged = Some(misfit_fraction);
                 break;

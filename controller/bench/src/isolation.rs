@@ -211,7 +211,7 @@ pub fn run(
         let beside = index % 2 == 1;
         let mut child = if beside { Some(spawn(&opts.beside)?) } else { None };
         if beside {
-            std::thread::sleep(Duration::from_secs_f64(opts.warm_up_s.max(0.0)));
+            std::thread::sleep(Duration::try_from_secs_f64(opts.warm_up_s.max(0.0)).unwrap_or(Duration::ZERO));
         }
         let before = cpu_times();
         let result = run_loop(opts.seconds);

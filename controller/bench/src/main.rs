@@ -351,6 +351,9 @@ fn run_loop(a: &LoopArgs) -> Result<RunSummary, String> {
 }
 
 fn isolation(a: &IsolationArgs) -> Result<String, String> {
+    if !(a.warm_up_s.is_finite() && (0.0..=600.0).contains(&a.warm_up_s)) {
+        return Err(format!("--warm-up-s must be in [0, 600] seconds, not {}", a.warm_up_s));
+    }
     let opts = comanip_bench::isolation::IsolationOptions {
         beside: a.beside.clone(),
         pairs: a.pairs,

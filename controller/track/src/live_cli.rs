@@ -292,6 +292,14 @@ pub fn open_joints(
     }
 }
 
+/// `seconds` as a duration, refused unless finite and positive (a command-line value).
+fn positive_seconds(option: &str, seconds: f64) -> Result<Duration, LiveCliError> {
+    match Duration::try_from_secs_f64(seconds) {
+        Ok(d) if seconds > 0.0 => Ok(d),
+        _ => Err(LiveCliError::Setup(format!("{option} must be a positive number of seconds, not {seconds}"))),
+    }
+}
+
 /// Tool-arm samples kept when a candump log is replayed (the whole log is read at once).
 pub const REPLAY_HISTORY: usize = 600_000;
 
@@ -316,6 +324,8 @@ pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
 
 /// Runs `comanip-track live` until a stop condition (signal, `--frames`, idle timeout).
 pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs) -> Result<(), LiveCliError> {
+    let every = positive_seconds("--status-every-s", args.status_every_s)?.max(Duration::from_millis(100));
+    let idle_timeout = args.idle_timeout_s.map(|s| positive_seconds("--idle-timeout-s", s)).transpose()?;
     let mut live = build(file, fcfg, args)?;
     let mut joints = open_joints(fcfg, args, &file.joints.resolve(fcfg.cycle.period_us))?;
     install_stop_handlers();
@@ -345,7 +355,6 @@ pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs)
     let mut published = 0u64;
     let mut live_calibration_seen = false;
     let mut write_error: Option<String> = None;
-    let every = Duration::from_secs_f64(args.status_every_s.max(0.1));
     let mut on_sample = |s: &TrackSample, received_ns: u64| {
         let now = Instant::now();
         first.get_or_insert(now);
@@ -375,11 +384,7 @@ pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs)
             );
         }
     };
-    let opts = LoopOptions {
-        max_frames: args.frames,
-        idle_timeout: args.idle_timeout_s.map(Duration::from_secs_f64),
-        stop: &STOP,
-    };
+    let opts = LoopOptions { max_frames: args.frames, idle_timeout, stop: &STOP };
     let result = run_loop(&mut live, &mut frames, &mut joints, &mut calibration, &mut publisher, &opts, &mut on_sample);
     let counters = result?;
     if let Some(mut w) = jsonl {

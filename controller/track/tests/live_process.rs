@@ -191,4 +191,16 @@ fn live_without_cameras_or_bus_fails_with_a_message() {
     assert_eq!(o.status.code(), Some(1));
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("no bus") && e.contains("--iface"), "{e}");
+    // Durations that are not a positive number of seconds are refused before anything opens.
+    for (option, value) in [("--status-every-s", "inf"), ("--idle-timeout-s", "-1"), ("--idle-timeout-s", "nan")] {
+        let o = Command::new(env!("CARGO_BIN_EXE_comanip-track"))
+            .args(["live", &format!("{option}={value}"), "--cameras"])
+            .arg(&l)
+            .arg(&r)
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(1), "{option} {value}");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains(option) && e.contains("positive number of seconds"), "{option} {value}: {e}");
+    }
 }

@@ -12,6 +12,7 @@
 //! - [`robustness`]: joint-sensor noise, second instrument, smoke, occluder windows (loss and
 //!   recovery), plots.
 
+pub mod calib_error;
 pub mod config;
 pub mod experiment;
 pub mod input;

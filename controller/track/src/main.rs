@@ -270,6 +270,37 @@ enum Command {
         #[arg(long)]
         summary_json: Option<PathBuf>,
     },
+    /// The camera-to-base calibration off by known errors (`T_b_e` moved about the endoscope's
+    /// RCM in a random direction per trial): the kinematics alone and the tracker against the
+    /// truth in the camera frame (docs/tracking.md, "When the calibration is off").
+    CalibError {
+        /// Run directories (DIR/bus.log, DIR/frames).
+        #[arg(long, required = true, num_args = 1..)]
+        run: Vec<PathBuf>,
+        /// Calibration errors, `MM:DEG` (translation millimetres, rotation degrees), each a level.
+        #[arg(long, required = true, num_args = 1..)]
+        levels: Vec<String>,
+        /// Also run with `g_CB` in the state (the paper's Eq. 17-18): `MRAD:MM` per frame.
+        #[arg(long)]
+        augment: Option<String>,
+        /// Trials per run and level.
+        #[arg(long, default_value_t = 5)]
+        trials: usize,
+        /// Frames per trial.
+        #[arg(long, default_value_t = 20)]
+        frames_per_trial: usize,
+        /// Seed of the starts and the error directions.
+        #[arg(long, default_value_t = 21)]
+        seed: u64,
+        /// Fewest instrument pixels in each eye for a frame to be used.
+        #[arg(long, default_value_t = 400)]
+        min_px: u64,
+        /// Output (JSON): every run's trials.
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
     /// Summaries and plots from `converge` and `rate` outputs.
     Report {
         /// `converge` outputs.
@@ -334,6 +365,100 @@ fn open_run(dir: &Path, fcfg: &controller::config::Config) -> Result<Sequence, S
 
 fn size(seq: &Sequence) -> (usize, usize) {
     (seq.intrinsics[0].width as usize, seq.intrinsics[0].height as usize)
+}
+
+/// Two positive numbers `A:B`.
+fn pair(what: &str, s: &str) -> Result<(f64, f64), String> {
+    let bad = || format!("{what}: `{s}` is not two numbers ≥ 0 as A:B");
+    let (a, b) = s.split_once(':').ok_or_else(bad)?;
+    let (a, b): (f64, f64) = (a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?);
+    if !(a.is_finite() && b.is_finite() && a >= 0.0 && b >= 0.0) {
+        return Err(bad());
+    }
+    Ok((a, b))
+}
+
+/// `comanip-track calib-error` (`comanip_track::calib_error`).
+#[allow(clippy::too_many_arguments, reason = "the subcommand's options")]
+fn calib_error(
+    runs: &[PathBuf],
+    levels: &[String],
+    augment: Option<&str>,
+    trials: usize,
+    frames: usize,
+    seed: u64,
+    min_px: u64,
+    out: &Path,
+    common: &Common,
+) -> Result<(), String> {
+    use comanip_track::calib_error::{CalibErrorLevel, CalibErrorRun, run_level, summarise};
+    let (file, fcfg) = setup(common)?;
+    let levels: Vec<CalibErrorLevel> = levels
+        .iter()
+        .map(|l| {
+            pair("--levels", l)
+                .map(|(mm, deg)| CalibErrorLevel { translation_m: mm * 1e-3, rotation_rad: deg.to_radians() })
+        })
+        .collect::<Result<_, _>>()?;
+    let augment = augment.map(|a| pair("--augment", a).map(|(mrad, mm)| [mrad * 1e-3, mm * 1e-3])).transpose()?;
+    let seqs: Vec<(String, Sequence)> = runs
+        .iter()
+        .map(|dir| {
+            let label = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
+            open_run(dir, &fcfg).map(|s| (label, s))
+        })
+        .collect::<Result<_, _>>()?;
+    let configs = 1 + usize::from(augment.is_some());
+    let b = bar((levels.len() * configs * seqs.len() * trials) as u64);
+    let mut all = Vec::new();
+    for level in &levels {
+        for c in 0..configs {
+            let mut trials_out = Vec::new();
+            let mut particles = 0;
+            let mut name = String::new();
+            for (k, (label, seq)) in seqs.iter().enumerate() {
+                let model = build_model(seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
+                let (w, h) = size(seq);
+                let mut cfg = file.tracker(w, h);
+                if c == 1 {
+                    cfg.camera_noise = augment;
+                }
+                particles = cfg.particles;
+                name = format!("{}{}", mode_name(cfg.mode), if cfg.camera_noise.is_some() { " + g_CB" } else { "" });
+                let t =
+                    run_level(seq, label, &model, cfg, *level, trials, frames, seed + k as u64, min_px, &|| b.inc(1))
+                        .map_err(|e| e.to_string())?;
+                trials_out.extend(t);
+            }
+            all.push(CalibErrorRun { level: *level, config: name, particles, trials: trials_out });
+        }
+    }
+    b.finish_and_clear();
+    println!(
+        "| error (mm / °) | config | trials | kinematics mm median / p95 | tracker mm median / p95 | kinematics ° median | tracker ° median | tracker closer | LOST |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for r in &all {
+        let s = summarise(r);
+        println!(
+            "| {:.1} / {:.1} | {} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} | {:.2} | {} / {} | {} |",
+            s.error_mm,
+            s.error_deg,
+            s.config,
+            s.trials,
+            s.kinematics_mm.0,
+            s.kinematics_mm.1,
+            s.tracker_mm.0,
+            s.tracker_mm.1,
+            s.kinematics_deg.0,
+            s.tracker_deg.0,
+            s.tracker_closer,
+            s.frames,
+            s.lost
+        );
+    }
+    std::fs::write(out, serde_json::to_string(&all).map_err(|e| e.to_string())?)
+        .map_err(|e| format!("{}: {e}", out.display()))
 }
 
 /// `comanip-track monitor` (`comanip_track::monitor`).
@@ -533,6 +658,9 @@ fn run(cli: Cli) -> Result<(), String> {
             println!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
             std::fs::write(&out, serde_json::to_string(&res).unwrap_or_default())
                 .map_err(|e| format!("{}: {e}", out.display()))
+        }
+        Command::CalibError { run, levels, augment, trials, frames_per_trial, seed, min_px, out, common } => {
+            calib_error(&run, &levels, augment.as_deref(), trials, frames_per_trial, seed, min_px, &out, &common)
         }
         Command::Rate { run, counts, frames, out, common } => {
             let (file, fcfg) = setup(&common)?;

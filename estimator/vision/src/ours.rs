@@ -85,6 +85,9 @@ mod geom;
 mod hough;
 mod lens;
 mod profile;
+mod trace;
+
+pub use trace::{OursTrace, PairOutcome, PairReject, TraceEdgel, TraceLine, TracePair};
 
 use estimator::calib::Intrinsics;
 use estimator::calib::camera::IntrinsicsError;
@@ -297,6 +300,12 @@ pub struct OursDetector {
     cache: Vec<Option<Option<Contour>>>,
     /// Per Hough line: its refined contour's inlier points, undistorted pixels.
     cache_pts: Vec<Vec<[f64; 2]>>,
+    /// Record a trace of this frame ([`OursDetector::detect_traced`]).
+    tracing: bool,
+    /// The pairs the cheap tests turned down (traced frames only).
+    trace_rejects: Vec<(usize, usize, PairReject)>,
+    /// The trace of the last traced frame.
+    trace: OursTrace,
 }
 
 /// A contour refined in the full-resolution image.
@@ -352,6 +361,9 @@ impl OursDetector {
             pair_buf: Vec::new(),
             cache: Vec::new(),
             cache_pts: Vec::new(),
+            tracing: false,
+            trace_rejects: Vec::new(),
+            trace: OursTrace::default(),
         })
     }
 
@@ -640,7 +652,8 @@ impl OursDetector {
     }
 
     /// Checks and refines the pair `(ia, ib)` of line hypotheses.
-    fn verify(&mut self, image: &RgbView<'_>, ia: usize, ib: usize) -> Option<Found> {
+    fn verify(&mut self, image: &RgbView<'_>, ia: usize, ib: usize) -> Result<Found, PairReject> {
+        use PairReject as R;
         let (a, b) = (self.hough.lines[ia], self.hough.lines[ib]);
         let cfg = self.cfg;
         let lens = self.lens;
@@ -654,30 +667,31 @@ impl OursDetector {
         };
         let ov = [sa[0].max(sb[0]), sa[1].min(sb[1])];
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
-            return None;
+            return Err(R::Overlap);
         }
-        let coarse = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut self.col)?;
-        let mode = self.colour_mode(&coarse)?;
+        let coarse = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut self.col).ok_or(R::CoarseColour)?;
+        let mode = self.colour_mode(&coarse).ok_or(R::CoarseColour)?;
         // Both contours, refined once per frame each; their inlier points in the pair's frame.
         let range = self.line_range(o, t);
-        let ca = self.contour_of(&sampler, ia)?;
-        let cb = self.contour_of(&sampler, ib)?;
+        let ca = self.contour_of(&sampler, ia).ok_or(R::ContourA)?;
+        let cb = self.contour_of(&sampler, ib).ok_or(R::ContourB)?;
         for (which, idx) in [(0, ia), (1, ib)] {
             let samp = &mut self.samp[which];
             samp.clear();
             samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
             samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         }
-        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode)?;
+        let (span, support) =
+            self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode).ok_or(R::NoSpan)?;
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
-            return None;
+            return Err(R::ShortSpan);
         }
         if support < cfg.min_support {
-            return None;
+            return Err(R::Support);
         }
-        let mut ca = self.refit_in_span(0, ca.line, span)?;
-        let mut cb = self.refit_in_span(1, cb.line, span)?;
+        let mut ca = self.refit_in_span(0, ca.line, span).ok_or(R::Refit)?;
+        let mut cb = self.refit_in_span(1, cb.line, span).ok_or(R::Refit)?;
         // Trim ends where either contour leaves its line systematically (the wrist, a bent or
         // thinner link, a tapered tip), then refit.
         let mut span = span;
@@ -716,29 +730,29 @@ impl OursDetector {
                 span[1] -= 0.5 * WIN;
             }
             if span[1] - span[0] < cfg.min_length_px {
-                return None;
+                return Err(R::Trimmed);
             }
             let (Some(na), Some(nb)) = (self.refit_in_span(0, ca.line, span), self.refit_in_span(1, cb.line, span))
             else {
-                return None;
+                return Err(R::Refit);
             };
             (ca, cb) = (na, nb);
         }
         let len = span[1] - span[0];
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
-            return None;
+            return Err(R::Residual);
         }
         // Interior point: middle of the two contours at the span's middle.
         let sm = 0.5 * (span[0] + span[1]);
         let q = [o[0] + sm * t[0], o[1] + sm * t[1]];
         let d = [-t[1], t[0]];
-        let (la, lb) = (ca.line.hit(q, d)?, cb.line.hit(q, d)?);
+        let (la, lb) = (ca.line.hit(q, d).ok_or(R::Geometry)?, cb.line.hit(q, d).ok_or(R::Geometry)?);
         let mid = 0.5 * (la + lb);
         let inside = [q[0] + mid * d[0], q[1] + mid * d[1]];
-        let dist = self.axis_distance(&ca.line, &cb.line, inside)?;
+        let dist = self.axis_distance(&ca.line, &cb.line, inside).ok_or(R::Geometry)?;
         if !(dist >= cfg.min_depth_m && dist <= cfg.max_depth_m) {
-            return None;
+            return Err(R::AxisDistance);
         }
         // The axis's depth at both ends of the visible span must be plausible too (a tapered
         // tip seen as a cylinder would reach far beyond the range towards its apex).
@@ -746,17 +760,17 @@ impl OursDetector {
             let p = [o[0] + e * t[0], o[1] + e * t[1]];
             let z = self.axis_depth_at(&ca.line, &cb.line, inside, p).unwrap_or(f64::NAN);
             if !(z >= 0.5 * cfg.min_depth_m && z <= cfg.max_depth_m) {
-                return None;
+                return Err(R::EndDepth);
             }
         }
-        let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
+        let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col).ok_or(R::FineColour)?;
         if self.colour_mode(&fine) != Some(mode) {
-            return None;
+            return Err(R::FineColour);
         }
-        let c0 = ImageLine::new(ca.line.abc()).ok()?;
-        let c1 = ImageLine::new(cb.line.abc()).ok()?;
-        let axis = axis_from_contours(&self.kmat, &c0, &c1, inside).ok()?;
-        let axis_l = Line::from_abc(axis.abc)?;
+        let c0 = ImageLine::new(ca.line.abc()).map_err(|_| R::Axis)?;
+        let c1 = ImageLine::new(cb.line.abc()).map_err(|_| R::Axis)?;
+        let axis = axis_from_contours(&self.kmat, &c0, &c1, inside).map_err(|_| R::Axis)?;
+        let axis_l = Line::from_abc(axis.abc).ok_or(R::Axis)?;
         // Ends: the span's ends projected on the axis, mapped to measured pixels.
         let mut ends_px = [[0.0; 2]; 2];
         for (e, s) in ends_px.iter_mut().zip(span) {
@@ -794,7 +808,7 @@ impl OursDetector {
                 [x, y]
             });
             if !reach_px.iter().any(near) {
-                return None;
+                return Err(R::Border);
             }
         }
         let contrast = match mode {
@@ -808,7 +822,7 @@ impl OursDetector {
             }
         };
         let confidence = support / (1.0 + (sigma / 0.5).powi(2)) * contrast.clamp(0.0, 1.0);
-        Some(Found {
+        Ok(Found {
             det: ShaftDetection { centreline: axis, contours: [c0, c1], ends_px, confidence },
             mid: {
                 let dd = axis_l.distance(q);
@@ -843,83 +857,18 @@ impl OursDetector {
         (washed_out && luma).then_some(Evidence::Luma(sign))
     }
 
-    /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
-    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
-        let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
-        let mut col = std::mem::take(&mut self.col);
-        let lines = &self.hough.lines;
-        let cfg = self.cfg;
-        out.clear();
-        let cos_max = (25.0f64).to_radians().cos();
-        for i in 0..lines.len() {
-            for j in i + 1..lines.len() {
-                let (a, b) = (&lines[i], &lines[j]);
-                if (a.line.n[0] * b.line.n[0] + a.line.n[1] * b.line.n[1]).abs() < cos_max {
-                    continue;
-                }
-                let (o, t) = Self::pair_frame(a);
-                let proj = |p: [f64; 2]| (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1];
-                let sa = [proj(a.ends[0]), proj(a.ends[1])];
-                let (x, y) = (proj(b.ends[0]), proj(b.ends[1]));
-                let ov = [sa[0].max(x.min(y)), sa[1].min(x.max(y))];
-                let len = ov[1] - ov[0];
-                if len < 0.6 * cfg.min_length_px {
-                    continue;
-                }
-                // Widths at both ends of the overlap: the lines must not cross there.
-                let d = [-t[1], t[0]];
-                let mut ok = true;
-                let mut inside = [0.0; 2];
-                for s in [ov[0], 0.5 * (ov[0] + ov[1]), ov[1]] {
-                    let q = [o[0] + s * t[0], o[1] + s * t[1]];
-                    match (a.line.hit(q, d), b.line.hit(q, d)) {
-                        (Some(la), Some(lb)) if (la - lb).abs() >= 2.0 => {
-                            let m = 0.5 * (la + lb);
-                            inside = [q[0] + m * d[0], q[1] + m * d[1]];
-                        }
-                        _ => ok = false,
-                    }
-                }
-                if !ok {
-                    continue;
-                }
-                let Some(dist) = self.axis_distance(&a.line, &b.line, inside) else { continue };
-                if !(dist >= 0.6 * cfg.min_depth_m && dist <= 1.6 * cfg.max_depth_m) {
-                    continue;
-                }
-                // Coarse colour test on the hypotheses.
-                let Some(c) = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col) else { continue };
-                let Some(mode) = self.colour_mode(&c) else {
-                    continue;
-                };
-                // Rank by support and by how grey the interior is against the outsides.
-                let grey = match mode {
-                    Evidence::Colour => {
-                        (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0)
-                    }
-                    Evidence::Luma(_) => 0.5,
-                };
-                out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
-            }
-        }
-        self.col = col;
-        out.sort_by(|a, b| b.0.total_cmp(&a.0));
-        out
-    }
-}
-
-impl ShaftDetector for OursDetector {
-    fn name(&self) -> &'static str {
-        "ours"
-    }
-
-    fn intrinsics(&self) -> &Intrinsics {
-        &self.k
-    }
-
-    fn detect(&mut self, image: &RgbView<'_>) -> Result<Vec<ShaftDetection>, DetectError> {
+    /// [`ShaftDetector::detect`] with a record of what each stage did (for diagnostics: the
+    /// benchmark's miss classification). Slower than `detect` (the trace is allocated).
+    pub fn detect_traced(&mut self, image: &RgbView<'_>) -> Result<(Vec<ShaftDetection>, OursTrace), DetectError> {
         check_size(&self.k, image)?;
+        self.tracing = true;
+        let out = self.run(image);
+        self.tracing = false;
+        Ok((out, std::mem::take(&mut self.trace)))
+    }
+
+    /// The detection proper (the image's size checked).
+    fn run(&mut self, image: &RgbView<'_>) -> Vec<ShaftDetection> {
         let cfg = self.cfg;
         self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
@@ -936,9 +885,20 @@ impl ShaftDetector for OursDetector {
         // sharing a line, a contour or the axis with a better one is dropped).
         self.cands.clear();
         let budget = 3 * cfg.max_detections + 2;
-        for &(_, i, j) in pairs.iter().take(budget) {
-            if let Some(f) = self.verify(image, i, j) {
-                self.cands.push(f);
+        let mut outcomes: Vec<(usize, Result<[f64; 3], PairReject>)> = Vec::new();
+        for (rank, &(_, i, j)) in pairs.iter().take(budget).enumerate() {
+            match self.verify(image, i, j) {
+                Ok(f) => {
+                    if self.tracing {
+                        outcomes.push((rank, Ok(f.det.centreline.abc)));
+                    }
+                    self.cands.push(f);
+                }
+                Err(r) => {
+                    if self.tracing {
+                        outcomes.push((rank, Err(r)));
+                    }
+                }
             }
         }
         self.pair_buf = pairs;
@@ -957,7 +917,133 @@ impl ShaftDetector for OursDetector {
             }
         }
         self.found.sort_by(|a, b| b.score.total_cmp(&a.score));
-        Ok(self.found.iter().map(|f| f.det).collect())
+        if self.tracing {
+            self.record_trace(&outcomes);
+        }
+        self.found.iter().map(|f| f.det).collect()
+    }
+
+    /// Fills `self.trace` from the frame's stages (`outcomes`: per verified rank, the
+    /// centreline or the reason).
+    fn record_trace(&mut self, outcomes: &[(usize, Result<[f64; 3], PairReject>)]) {
+        let tr = &mut self.trace;
+        tr.edgels.clear();
+        tr.edgels.extend(self.edges.edgels.iter().map(|e| TraceEdgel { p: e.p, n: e.n }));
+        tr.lines.clear();
+        tr.lines.extend(self.hough.lines.iter().map(|l| TraceLine { abc: l.line.abc(), ends: l.ends, votes: l.count }));
+        tr.pairs.clear();
+        for &(i, j, r) in &self.trace_rejects {
+            tr.pairs.push(TracePair { lines: [i, j], rank: None, outcome: PairOutcome::Rejected(r), centreline: None });
+        }
+        for (rank, &(_, i, j)) in self.pair_buf.iter().enumerate() {
+            let verified = outcomes.iter().find(|o| o.0 == rank).map(|o| o.1);
+            let (outcome, centreline) = match verified {
+                None => (PairOutcome::NotVerified, None),
+                Some(Err(r)) => (PairOutcome::Rejected(r), None),
+                Some(Ok(abc)) => {
+                    let pos = self.found.iter().position(|f| f.lines == [i, j]);
+                    (pos.map_or(PairOutcome::Dropped, PairOutcome::Returned), Some(abc))
+                }
+            };
+            tr.pairs.push(TracePair { lines: [i, j], rank: Some(rank), outcome, centreline });
+        }
+    }
+
+    /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
+    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
+        let lens = self.lens;
+        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
+        let mut col = std::mem::take(&mut self.col);
+        let tracing = self.tracing;
+        let mut rejects = std::mem::take(&mut self.trace_rejects);
+        rejects.clear();
+        let lines = &self.hough.lines;
+        let cfg = self.cfg;
+        out.clear();
+        let cos_max = (25.0f64).to_radians().cos();
+        for i in 0..lines.len() {
+            for j in i + 1..lines.len() {
+                let (a, b) = (&lines[i], &lines[j]);
+                if (a.line.n[0] * b.line.n[0] + a.line.n[1] * b.line.n[1]).abs() < cos_max {
+                    continue;
+                }
+                let (o, t) = Self::pair_frame(a);
+                let proj = |p: [f64; 2]| (p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1];
+                let sa = [proj(a.ends[0]), proj(a.ends[1])];
+                let (x, y) = (proj(b.ends[0]), proj(b.ends[1]));
+                let ov = [sa[0].max(x.min(y)), sa[1].min(x.max(y))];
+                let len = ov[1] - ov[0];
+                if len < 0.6 * cfg.min_length_px {
+                    if tracing {
+                        rejects.push((i, j, PairReject::Overlap));
+                    }
+                    continue;
+                }
+                // Widths at both ends of the overlap: the lines must not cross there.
+                let d = [-t[1], t[0]];
+                let mut ok = true;
+                let mut inside = [0.0; 2];
+                for s in [ov[0], 0.5 * (ov[0] + ov[1]), ov[1]] {
+                    let q = [o[0] + s * t[0], o[1] + s * t[1]];
+                    match (a.line.hit(q, d), b.line.hit(q, d)) {
+                        (Some(la), Some(lb)) if (la - lb).abs() >= 2.0 => {
+                            let m = 0.5 * (la + lb);
+                            inside = [q[0] + m * d[0], q[1] + m * d[1]];
+                        }
+                        _ => ok = false,
+                    }
+                }
+                if !ok {
+                    if tracing {
+                        rejects.push((i, j, PairReject::Crossing));
+                    }
+                    continue;
+                }
+                let dist = self.axis_distance(&a.line, &b.line, inside);
+                if !dist.is_some_and(|dist| dist >= 0.6 * cfg.min_depth_m && dist <= 1.6 * cfg.max_depth_m) {
+                    if tracing {
+                        rejects.push((i, j, PairReject::Distance));
+                    }
+                    continue;
+                }
+                // Coarse colour test on the hypotheses.
+                let mode = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col).and_then(|c| Some((c, self.colour_mode(&c)?)));
+                let Some((c, mode)) = mode else {
+                    if tracing {
+                        rejects.push((i, j, PairReject::CoarseColour));
+                    }
+                    continue;
+                };
+                // Rank by support and by how grey the interior is against the outsides.
+                let grey = match mode {
+                    Evidence::Colour => {
+                        (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0)
+                    }
+                    Evidence::Luma(_) => 0.5,
+                };
+                out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
+            }
+        }
+        self.col = col;
+        self.trace_rejects = rejects;
+        out.sort_by(|a, b| b.0.total_cmp(&a.0));
+        out
+    }
+}
+
+impl ShaftDetector for OursDetector {
+    fn name(&self) -> &'static str {
+        "ours"
+    }
+
+    fn intrinsics(&self) -> &Intrinsics {
+        &self.k
+    }
+
+    fn detect(&mut self, image: &RgbView<'_>) -> Result<Vec<ShaftDetection>, DetectError> {
+        check_size(&self.k, image)?;
+        self.tracing = false;
+        Ok(self.run(image))
     }
 }
 

@@ -158,6 +158,13 @@ pub struct OursConfig {
     /// a long span with straight parallel edges and a grey interior is a shaft, and its end
     /// at the border may be lost in a vignetted, hazy corner).
     pub long_span_px: f64,
+    /// The frame's median chroma (`2R − G − B`, 8-bit) from which it counts as clear (default
+    /// 60: tissue under the simulated endoscope's light reads 70–120 without haze, 15–30
+    /// under smoke). Below it the colour tests' contrast thresholds scale down in proportion
+    /// (haze: the contrast normalisation of the module docs). 0 switches it off.
+    pub clear_chroma: f64,
+    /// The least scale of the contrast thresholds under haze (default 0.4).
+    pub min_contrast_scale: f64,
 }
 
 impl Default for OursConfig {
@@ -179,6 +186,8 @@ impl Default for OursConfig {
             min_support: 0.5,
             border_margin_px: 24.0,
             long_span_px: 200.0,
+            clear_chroma: 60.0,
+            min_contrast_scale: 0.4,
         }
     }
 }
@@ -251,6 +260,12 @@ impl OursConfig {
             "≥ 0 (infinite: off)",
         )?;
         check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
+        check(self.clear_chroma.is_finite() && self.clear_chroma >= 0.0, "clear_chroma", "finite and ≥ 0")?;
+        check(
+            self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0,
+            "min_contrast_scale",
+            "in (0, 1]",
+        )?;
         Ok(())
     }
 }
@@ -262,6 +277,34 @@ enum Evidence {
     Colour,
     /// Haze washed the colour out: a luma step of this sign (+1 brighter inside) on both sides.
     Luma(f64),
+}
+
+/// The frame's contrast normalisation of the colour tests (haze).
+///
+/// Smoke adds the haze's own colour to every pixel and scales the scene's contrasts by its
+/// transmittance (Koschmieder's model: `I = J·T + A·(1 − T)`), so fixed contrast thresholds
+/// chosen on clear frames reject every shaft under thick haze. The frame's median chroma
+/// (`2R − G − B`, mostly tissue) against the tissue's on a clear frame
+/// ([`OursConfig::clear_chroma`]) estimates how much colour contrast the frame has left,
+/// `scale`; the contrast thresholds (chroma and luma) and the interior's relative drop in
+/// chroma are scaled by it. `scale` is 1 on a clear frame and at least
+/// [`OursConfig::min_contrast_scale`] (below that, the tissue's own texture would pass).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Haze {
+    /// The contrast scale, in `[min_contrast_scale, 1]`.
+    scale: f64,
+}
+
+impl Haze {
+    const CLEAR: Self = Self { scale: 1.0 };
+
+    /// From the frame's median chroma and the settings.
+    fn new(median: f64, cfg: &OursConfig) -> Self {
+        if !(median.is_finite() && cfg.clear_chroma > 0.0) {
+            return Self::CLEAR;
+        }
+        Self { scale: (median / cfg.clear_chroma).clamp(cfg.min_contrast_scale.min(1.0), 1.0) }
+    }
 }
 
 /// A verified shaft before it becomes a [`ShaftDetection`].
@@ -306,6 +349,8 @@ pub struct OursDetector {
     trace_rejects: Vec<(usize, usize, PairReject)>,
     /// The trace of the last traced frame.
     trace: OursTrace,
+    /// The frame's haze estimate.
+    haze: Haze,
 }
 
 /// A contour refined in the full-resolution image.
@@ -364,6 +409,7 @@ impl OursDetector {
             tracing: false,
             trace_rejects: Vec::new(),
             trace: OursTrace::default(),
+            haze: Haze::CLEAR,
         })
     }
 
@@ -602,10 +648,11 @@ impl OursDetector {
             let inside = (i0 + i1 + i2) / 3.0;
             self.margin[i] = (out0 - inside).min(out1 - inside);
         }
-        let need = match mode {
-            Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
-            Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
-        };
+        let need = self.haze.scale
+            * match mode {
+                Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
+                Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
+            };
         let mut best: Option<(usize, usize, usize)> = None;
         let mut run: Option<(usize, usize, usize)> = None;
         let max_gap = (64.0 / STEP) as usize;
@@ -840,19 +887,22 @@ impl OursDetector {
     /// the outside); `None` when neither.
     fn colour_mode(&self, c: &profile::Interior) -> Option<Evidence> {
         let cfg = &self.cfg;
+        // Thresholds scaled by the frame's contrast ([`Haze`]).
+        let scale = self.haze.scale;
+        let ratio = 1.0 - (1.0 - cfg.max_interior_chroma_ratio) * scale;
         let colour = c.outside.iter().zip(c.near).zip(c.luma_outside).all(|((&out, near), luma_out)| {
             let inside = c.inside.max(near);
-            let luma = (c.luma_inside - luma_out).abs() >= cfg.min_luma_contrast;
-            let need = if luma { 0.5 * cfg.min_chroma_contrast } else { cfg.min_chroma_contrast };
-            out - inside >= need && inside <= cfg.max_interior_chroma_ratio * out
+            let luma = (c.luma_inside - luma_out).abs() >= scale * cfg.min_luma_contrast;
+            let need = scale * if luma { 0.5 * cfg.min_chroma_contrast } else { cfg.min_chroma_contrast };
+            out - inside >= need && inside <= ratio * out
         });
         if colour {
             return Some(Evidence::Colour);
         }
-        let washed_out = c.outside.iter().all(|&out| out < cfg.min_chroma_contrast);
+        let washed_out = c.outside.iter().all(|&out| out < scale * cfg.min_chroma_contrast);
         let steps = c.luma_outside.map(|out| c.luma_inside - out);
         let sign = steps[0].signum();
-        let luma = steps.iter().all(|d| d * sign >= 1.5 * cfg.min_luma_contrast)
+        let luma = steps.iter().all(|d| d * sign >= 1.5 * scale * cfg.min_luma_contrast)
             && c.inside.max(c.near[0]).max(c.near[1]) <= c.outside[0].max(c.outside[1]) + 3.0;
         (washed_out && luma).then_some(Evidence::Luma(sign))
     }
@@ -871,6 +921,7 @@ impl OursDetector {
     fn run(&mut self, image: &RgbView<'_>) -> Vec<ShaftDetection> {
         let cfg = self.cfg;
         self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
+        self.haze = Haze::new(f64::from(self.edges.chroma_median), &cfg);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
         self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
         let buf = std::mem::take(&mut self.pair_buf);
@@ -1009,6 +1060,11 @@ impl OursDetector {
                 // Coarse colour test on the hypotheses.
                 let mode = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col).and_then(|c| Some((c, self.colour_mode(&c)?)));
                 let Some((c, mode)) = mode else {
+                    if tracing && std::env::var_os("OURS_DBG").is_some() {
+                        if let Some(c) = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col) {
+                            eprintln!("DBG coarse {i} {j} in {:.1} near {:.1} {:.1} out {:.1} {:.1} L in {:.1} out {:.1} {:.1}", c.inside, c.near[0], c.near[1], c.outside[0], c.outside[1], c.luma_inside, c.luma_outside[0], c.luma_outside[1]);
+                        }
+                    }
                     if tracing {
                         rejects.push((i, j, PairReject::CoarseColour));
                     }

@@ -124,6 +124,9 @@ pub fn classify(trace: &OursTrace, contours: &[TrueContour; 2], visible_fraction
         return "few edgels".into();
     }
     let on = contours.map(|c| lines_on(trace, &c));
+    if std::env::var_os("OURS_DBG").is_some() {
+        eprintln!("DBG on {:?} {:?}", on[0], on[1]);
+    }
     if on.iter().any(Vec::is_empty) {
         return "no line".into();
     }
@@ -165,6 +168,10 @@ pub struct DiagCell {
     pub second_on_top: usize,
     /// Missed frames with a false detection.
     pub with_false: usize,
+    /// Frames without instrument 1 in view.
+    pub free_frames: usize,
+    /// False detections on those.
+    pub false_on_free: usize,
 }
 
 /// The true contours of instrument 1 with a visible segment.
@@ -197,10 +204,17 @@ pub fn run(
                 .detect_traced(&view)
                 .map_err(|source| ShaftBenchError::Detect { detector: det.name().to_owned(), source })?;
             progress();
+            let fam = FAMILIES[frame.spec.family].key;
+            if !frame.inst1_in_view {
+                let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
+                let s = score_frame(&dets, None, inst2);
+                let cell = d.cells.entry((level.key().to_owned(), fam.to_owned())).or_default();
+                cell.free_frames += 1;
+                cell.false_on_free += s.false_detections;
+            }
             let Some(i1) = frame.inst1.as_ref().filter(|t| t.eligible()) else { continue };
             let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
             let s = score_frame(&dets, Some(i1), inst2);
-            let fam = FAMILIES[frame.spec.family].key;
             let cell = d.cells.entry((level.key().to_owned(), fam.to_owned())).or_default();
             cell.eligible += 1;
             if s.matched.is_some() {
@@ -237,12 +251,14 @@ impl Diagnosis {
                 g.detected += c.detected;
                 g.second_on_top += c.second_on_top;
                 g.with_false += c.with_false;
+                g.free_frames += c.free_frames;
+                g.false_on_free += c.false_on_free;
                 for (k, v) in &c.classes {
                     *g.classes.entry(k.clone()).or_default() += v;
                 }
             }
-            let _ = writeln!(m, "\n| {title} | eligible | detected | missed | {} | second on top | with a false one |", classes.join(" | "));
-            let _ = writeln!(m, "|---|---|---|---|{}---|---|", "---|".repeat(classes.len()));
+            let _ = writeln!(m, "\n| {title} | eligible | detected | missed | {} | second on top | with a false one | false on instrument-free frames (n) |", classes.join(" | "));
+            let _ = writeln!(m, "|---|---|---|---|{}---|---|---|", "---|".repeat(classes.len()));
             let order: Vec<String> = if by_level {
                 ClutterLevel::ALL.iter().map(|l| l.key().to_owned()).filter(|k| groups.contains_key(k)).collect()
             } else {
@@ -252,13 +268,15 @@ impl Diagnosis {
                 let g = &groups[&key];
                 let _ = writeln!(
                     m,
-                    "| {key} | {} | {} | {} | {} | {} | {} |",
+                    "| {key} | {} | {} | {} | {} | {} | {} | {} ({}) |",
                     g.eligible,
                     g.detected,
                     g.eligible - g.detected,
                     classes.iter().map(|c| g.classes.get(c).copied().unwrap_or(0).to_string()).collect::<Vec<_>>().join(" | "),
                     g.second_on_top,
-                    g.with_false
+                    g.with_false,
+                    g.false_on_free,
+                    g.free_frames
                 );
             }
         }

@@ -261,11 +261,7 @@ impl OursConfig {
         )?;
         check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
         check(self.clear_chroma.is_finite() && self.clear_chroma >= 0.0, "clear_chroma", "finite and ≥ 0")?;
-        check(
-            self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0,
-            "min_contrast_scale",
-            "in (0, 1]",
-        )?;
+        check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
 }
@@ -653,9 +649,10 @@ impl OursDetector {
                 Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
                 Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
             };
-        let mut best: Option<(usize, usize, usize)> = None;
-        let mut run: Option<(usize, usize, usize)> = None;
-        let max_gap = (64.0 / STEP) as usize;
+        // Runs of good stations: (start, last, good stations, stations in long gaps).
+        let mut best: Option<(usize, usize, usize, usize)> = None;
+        let mut run: Option<(usize, usize, usize, usize)> = None;
+        let short_gap = (64.0 / STEP) as usize;
         for i in 0..n {
             let (lo, hi) = (i.saturating_sub(2), (i + 2).min(n - 1));
             let (mut sum, mut cnt) = (0.0, 0);
@@ -672,9 +669,17 @@ impl OursDetector {
             if !good {
                 continue;
             }
+            // Any gap is bridged: the stations on both sides have both edges on the same two
+            // contour lines and a grey interior between them, the same cylinder (crossed by
+            // another instrument in front, or its interior hidden by a highlight); a gap
+            // longer than `short_gap` is taken for an occlusion and does not count against the
+            // support.
             run = match run {
-                Some((start, last, count)) if i - last <= max_gap => Some((start, i, count + 1)),
-                _ => Some((i, i, 1)),
+                Some((start, last, count, hidden)) => {
+                    let gap = i - last - 1;
+                    Some((start, i, count + 1, hidden + if gap >= short_gap { gap } else { 0 }))
+                }
+                None => Some((i, i, 1, 0)),
             };
             if let Some(r) = run
                 && best.is_none_or(|b| r.2 > b.2)
@@ -682,9 +687,9 @@ impl OursDetector {
                 best = Some(r);
             }
         }
-        let (start, last, count) = best?;
+        let (start, last, count, hidden) = best?;
         let span = [range[0] + start as f64 * STEP, range[0] + last as f64 * STEP];
-        Some((span, count as f64 / (last - start + 1) as f64))
+        Some((span, count as f64 / (last - start + 1 - hidden).max(1) as f64))
     }
 
     /// Refits contour `which` with its inlier points inside `span`.
@@ -728,8 +733,7 @@ impl OursDetector {
             samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
             samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         }
-        let (span, support) =
-            self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode).ok_or(R::NoSpan)?;
+        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode).ok_or(R::NoSpan)?;
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
             return Err(R::ShortSpan);
@@ -959,10 +963,9 @@ impl OursDetector {
             if self.found.len() >= cfg.max_detections {
                 break;
             }
-            let clash = self
-                .found
-                .iter()
-                .any(|g| g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f));
+            let clash = self.found.iter().any(|g| {
+                g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f) || overlap(g, f)
+            });
             if !clash {
                 self.found.push(*f);
             }
@@ -1058,13 +1061,9 @@ impl OursDetector {
                     continue;
                 }
                 // Coarse colour test on the hypotheses.
-                let mode = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col).and_then(|c| Some((c, self.colour_mode(&c)?)));
+                let mode = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col)
+                    .and_then(|c| Some((c, self.colour_mode(&c)?)));
                 let Some((c, mode)) = mode else {
-                    if tracing && std::env::var_os("OURS_DBG").is_some() {
-                        if let Some(c) = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col) {
-                            eprintln!("DBG coarse {i} {j} in {:.1} near {:.1} {:.1} out {:.1} {:.1} L in {:.1} out {:.1} {:.1}", c.inside, c.near[0], c.near[1], c.outside[0], c.outside[1], c.luma_inside, c.luma_outside[0], c.luma_outside[1]);
-                        }
-                    }
                     if tracing {
                         rejects.push((i, j, PairReject::CoarseColour));
                     }
@@ -1112,6 +1111,25 @@ fn same_axis(a: &Found, b: &Found) -> bool {
         return false;
     }
     lb.distance_px(a.mid[0], a.mid[1]).abs() < 5.0 || la.distance_px(b.mid[0], b.mid[1]).abs() < 5.0
+}
+
+/// True when two nearly parallel detections (within 10°) overlap: either one's span middle
+/// lies inside the other's strip. Two shafts cannot lie over each other in the image (a second
+/// instrument crosses in front at an angle); the worse one is a contour of the better paired
+/// with something beside it.
+fn overlap(a: &Found, b: &Found) -> bool {
+    let (la, lb) = (a.det.centreline, b.det.centreline);
+    if (la.abc[0] * lb.abc[0] + la.abc[1] * lb.abc[1]).abs() < 10f64.to_radians().cos() {
+        return false;
+    }
+    let inside = |f: &Found, p: [f64; 2]| {
+        let [c0, c1] = f.det.contours;
+        let (d0, d1) = (c0.distance_px(p[0], p[1]), c1.distance_px(p[0], p[1]));
+        let (m0, m1) = (c0.distance_px(f.mid[0], f.mid[1]), c1.distance_px(f.mid[0], f.mid[1]));
+        // Same side of each contour as the strip's own middle.
+        d0 * m0 > 0.0 && d1 * m1 > 0.0
+    };
+    inside(a, b.mid) || inside(b, a.mid)
 }
 
 /// True when two detections share a contour (within 1° and 2 px at the other's span middle).

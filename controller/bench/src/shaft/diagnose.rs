@@ -124,9 +124,6 @@ pub fn classify(trace: &OursTrace, contours: &[TrueContour; 2], visible_fraction
         return "few edgels".into();
     }
     let on = contours.map(|c| lines_on(trace, &c));
-    if std::env::var_os("OURS_DBG").is_some() {
-        eprintln!("DBG on {:?} {:?}", on[0], on[1]);
-    }
     if on.iter().any(Vec::is_empty) {
         return "no line".into();
     }
@@ -191,10 +188,8 @@ pub fn run(
     progress: &(dyn Fn() + Sync),
 ) -> Result<Diagnosis, ShaftBenchError> {
     let specs = frame_specs(set, frames_per_family, &endoscope_config(set, ClutterLevel::Clean))?;
-    let mut det = OursDetector::new(*k, OursConfig::default()).map_err(|e| ShaftBenchError::Io {
-        path: "ours".into(),
-        message: e.to_string(),
-    })?;
+    let mut det = OursDetector::new(*k, OursConfig::default())
+        .map_err(|e| ShaftBenchError::Io { path: "ours".into(), message: e.to_string() })?;
     let mut d = Diagnosis::default();
     for &level in levels {
         let frames = render_frames(set, level, &specs, progress)?;
@@ -226,10 +221,12 @@ pub fn run(
                 None => "no true contours".into(),
             };
             *cell.classes.entry(class).or_default() += 1;
-            cell.second_on_top += usize::from(s.second_matches > 0 && s.matched_rank.is_none() && {
-                let e2 = inst2.and_then(|t| super::metrics::line_errors(&dets[0].centreline.abc, t));
-                e2.is_some_and(|e| e.matches())
-            });
+            cell.second_on_top += usize::from(
+                s.second_matches > 0 && s.matched_rank.is_none() && {
+                    let e2 = inst2.and_then(|t| super::metrics::line_errors(&dets[0].centreline.abc, t));
+                    e2.is_some_and(|e| e.matches())
+                },
+            );
             cell.with_false += usize::from(s.false_detections > 0);
         }
     }
@@ -257,7 +254,11 @@ impl Diagnosis {
                     *g.classes.entry(k.clone()).or_default() += v;
                 }
             }
-            let _ = writeln!(m, "\n| {title} | eligible | detected | missed | {} | second on top | with a false one | false on instrument-free frames (n) |", classes.join(" | "));
+            let _ = writeln!(
+                m,
+                "\n| {title} | eligible | detected | missed | {} | second on top | with a false one | false on instrument-free frames (n) |",
+                classes.join(" | ")
+            );
             let _ = writeln!(m, "|---|---|---|---|{}---|---|---|", "---|".repeat(classes.len()));
             let order: Vec<String> = if by_level {
                 ClutterLevel::ALL.iter().map(|l| l.key().to_owned()).filter(|k| groups.contains_key(k)).collect()
@@ -272,7 +273,11 @@ impl Diagnosis {
                     g.eligible,
                     g.detected,
                     g.eligible - g.detected,
-                    classes.iter().map(|c| g.classes.get(c).copied().unwrap_or(0).to_string()).collect::<Vec<_>>().join(" | "),
+                    classes
+                        .iter()
+                        .map(|c| g.classes.get(c).copied().unwrap_or(0).to_string())
+                        .collect::<Vec<_>>()
+                        .join(" | "),
                     g.second_on_top,
                     g.with_false,
                     g.false_on_free,

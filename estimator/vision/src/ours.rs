@@ -853,6 +853,18 @@ impl OursDetector {
                 }
                 reach = [reach[0].min(lo), reach[1].max(hi)];
             }
+            // A contour running on past a gap of any length (a second instrument crossing in
+            // front hides the part between): a run of at least 32 px where a contour has an
+            // edge at every station (those of `visible_span`, every 2 px over `range`) extends
+            // the reach; the lines of a pair of jaws run on over tissue.
+            let mut run = 0usize;
+            for (i, &h) in self.has.iter().enumerate() {
+                run = if h != 0 { run + 1 } else { 0 };
+                if run >= 16 {
+                    let (first, last) = (range[0] + (i + 1 - run) as f64 * 2.0, range[0] + i as f64 * 2.0);
+                    reach = [reach[0].min(first), reach[1].max(last)];
+                }
+            }
             let reach_px = reach.map(|sv| {
                 let p = [o[0] + sv * t[0], o[1] + sv * t[1]];
                 let (x, y) = self.lens.distort_px(p[0], p[1]);

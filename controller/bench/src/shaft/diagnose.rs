@@ -288,3 +288,69 @@ impl Diagnosis {
         m
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vision::ours::{TraceEdgel, TraceLine, TracePair};
+
+    /// Two true contours `v = 100` and `v = 130` from `u = 0` to `u = 200`.
+    fn contours() -> [TrueContour; 2] {
+        [([0.0, 1.0, -100.0], [[0.0, 100.0], [200.0, 100.0]]), ([0.0, 1.0, -130.0], [[0.0, 130.0], [200.0, 130.0]])]
+    }
+
+    /// Edgels every 2 px along both contours (normals along v) and one line on each.
+    fn trace_with_lines() -> OursTrace {
+        let mut t = OursTrace::default();
+        for v in [100.0f32, 130.0] {
+            t.edgels.extend((0..100).map(|i| TraceEdgel { p: [2.0 * i as f32, v], n: [0.0, 1.0] }));
+            t.lines.push(TraceLine {
+                abc: [0.0, 1.0, -f64::from(v) - 0.5],
+                ends: [[0.0, f64::from(v) + 0.5], [198.0, f64::from(v) + 0.5]],
+                votes: 100,
+            });
+        }
+        t
+    }
+
+    fn pair(outcome: PairOutcome, rank: Option<usize>) -> TracePair {
+        TracePair { lines: [1, 0], rank, outcome, centreline: None }
+    }
+
+    #[test]
+    fn a_miss_is_put_in_the_first_stage_that_lost_the_shaft() {
+        let c = contours();
+        // No edgels on the second contour.
+        let mut t = trace_with_lines();
+        t.edgels.retain(|e| e.p[1] < 120.0);
+        assert_eq!(classify(&t, &c, 1.0), "few edgels");
+        // Half of the contour hidden (visible fraction 0.5): its 50 edgels are all there is.
+        let mut t = trace_with_lines();
+        t.edgels.retain(|e| e.p[1] < 120.0 || e.p[0] < 100.0);
+        assert_eq!(classify(&t, &c, 0.5), "no line");
+        // Edgels but the second line 3° off.
+        let mut t = trace_with_lines();
+        let a = 3f64.to_radians();
+        t.lines[1].abc = [-a.sin(), a.cos(), -130.0];
+        assert_eq!(classify(&t, &c, 1.0), "no line");
+        // Lines, pairs at each stage: the furthest stage wins.
+        let mut t = trace_with_lines();
+        assert_eq!(classify(&t, &c, 1.0), "pair: not parallel");
+        t.pairs.push(pair(PairOutcome::Rejected(PairReject::CoarseColour), None));
+        assert_eq!(classify(&t, &c, 1.0), "pair: coarse colour");
+        t.pairs.push(pair(PairOutcome::NotVerified, Some(9)));
+        assert_eq!(classify(&t, &c, 1.0), "not verified");
+        t.pairs.push(pair(PairOutcome::Rejected(PairReject::Border), Some(2)));
+        assert_eq!(classify(&t, &c, 1.0), "verify: border");
+        t.pairs.push(pair(PairOutcome::Dropped, Some(3)));
+        assert_eq!(classify(&t, &c, 1.0), "dropped");
+        t.pairs.push(pair(PairOutcome::Returned(1), Some(4)));
+        assert_eq!(classify(&t, &c, 1.0), "returned, no match");
+        // A pair of other lines does not count.
+        let mut t = trace_with_lines();
+        t.lines.push(t.lines[0]);
+        t.lines[2].abc[2] -= 40.0;
+        t.pairs.push(TracePair { lines: [0, 2], rank: Some(0), outcome: PairOutcome::Returned(0), centreline: None });
+        assert_eq!(classify(&t, &c, 1.0), "pair: not parallel");
+    }
+}

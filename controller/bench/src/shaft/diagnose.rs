@@ -324,10 +324,12 @@ mod tests {
         let mut t = trace_with_lines();
         t.edgels.retain(|e| e.p[1] < 120.0);
         assert_eq!(classify(&t, &c, 1.0), "few edgels");
-        // Half of the contour hidden (visible fraction 0.5): its 50 edgels are all there is.
+        // Only 40 px of the second contour with edgels: few on a fully visible shaft, but all
+        // there is when only a fifth of it is visible (then both lines are there, no pair).
         let mut t = trace_with_lines();
-        t.edgels.retain(|e| e.p[1] < 120.0 || e.p[0] < 100.0);
-        assert_eq!(classify(&t, &c, 0.5), "no line");
+        t.edgels.retain(|e| e.p[1] < 120.0 || e.p[0] < 40.0);
+        assert_eq!(classify(&t, &c, 1.0), "few edgels");
+        assert_eq!(classify(&t, &c, 0.2), "pair: not parallel");
         // Edgels but the second line 3° off.
         let mut t = trace_with_lines();
         let a = 3f64.to_radians();

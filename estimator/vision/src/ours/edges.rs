@@ -37,7 +37,7 @@ pub(crate) struct EdgeBuffers {
 impl EdgeBuffers {
     /// Sets `chroma_median` from a histogram of the half-resolution chroma
     /// (1-unit bins over `[−256, 512)`).
-    fn chroma_percentiles(&mut self) {
+    fn chroma_median(&mut self) {
         const LO: f32 = -256.0;
         const N: usize = 768;
         self.hist.clear();
@@ -47,18 +47,16 @@ impl EdgeBuffers {
             self.hist[b] += 1;
         }
         let total: u32 = self.hist.iter().sum();
-        let at = |q: f32| {
-            let want = (q * total as f32).ceil().max(1.0) as u32;
-            let mut acc = 0;
-            for (i, h) in self.hist.iter().enumerate() {
-                acc += h;
-                if acc >= want {
-                    return i as f32 + LO + 0.5;
-                }
+        let want = total.div_ceil(2).max(1);
+        let mut acc = 0;
+        self.chroma_median = 0.0;
+        for (i, h) in self.hist.iter().enumerate() {
+            acc += h;
+            if acc >= want {
+                self.chroma_median = i as f32 + LO + 0.5;
+                break;
             }
-            0.0
-        };
-        self.chroma_median = at(0.5);
+        }
     }
 
     /// Fills `self.edgels`. `image` has the table's camera size (checked by the caller);
@@ -97,7 +95,7 @@ impl EdgeBuffers {
                 lrow[j] = 0.25 * luma_weight * (0.299 * r + 0.587 * g + 0.114 * bl);
             }
         }
-        self.chroma_percentiles();
+        self.chroma_median();
         // Di Zenzo gradient (Sobel / 8 on both channels), quantised direction for the NMS.
         let t2 = threshold * threshold;
         let tan22 = 0.414_213_56_f32;

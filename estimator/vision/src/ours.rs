@@ -37,7 +37,11 @@
 //!    enough on a side with a clear luma step (`min_luma_contrast`); where the haze has washed
 //!    the colour out of the tissue on both sides, a luma step of the same sign on both sides
 //!    (1.5 × `min_luma_contrast`) stands in for the colour, all the way through (the span's
-//!    stations and the final test use the same evidence). Pairs are ranked by length ×
+//!    stations and the final test use the same evidence). Haze also scales every contrast
+//!    down: the thresholds are **normalised by the frame's colour contrast** (its median
+//!    chroma against a clear frame's, `clear_chroma`, at least `min_contrast_scale`; the
+//!    required relative drop `1 − max_interior_chroma_ratio` scales alike), so a hazy frame
+//!    is judged against its own contrast, not a clear frame's. Pairs are ranked by length ×
 //!    support × greyness of the interior.
 //! 4. **Sub-pixel contours** in the full-resolution measured image, each Hough line once per
 //!    frame: profiles across the contour, sampled at undistorted positions mapped through the
@@ -53,19 +57,28 @@
 //!    that yields too few edges is retried with luma at full weight (a hazy luma-only edge).
 //! 5. **The visible span**: stations every 2 px where both contours have an inlier edge and
 //!    the interior is grey against both outsides (or one edge and a clearly grey interior);
-//!    the run with the most good stations (gaps up to 64 px, a crossing instrument) is the
-//!    shaft. Its ends are trimmed while either contour leaves its line systematically (the
+//!    the run with the most good stations is the shaft. Gaps of any length are bridged (the
+//!    stations on both sides lie on the same two contour lines with a grey interior: one
+//!    cylinder, a second instrument crossing in front); a gap over 64 px is an occlusion and
+//!    does not count against the support. Its ends are trimmed while either contour leaves its line systematically (the
 //!    wrist, a bent link, the tapered jaws), and both contours are refitted on the span.
 //! 6. **The exact axis** from the two contours, [`crate::shaft::axis_from_contours`] (the
 //!    middle line is wrong by up to pixels under perspective); the distance gate again, the
 //!    axis's depth at both ends of the span (a tapered tip seen as a cylinder would reach far
 //!    beyond the range towards its apex), the colour test on the span; a span shorter than
 //!    `long_span_px` must reach the image border (a shaft runs out of the view, a pair of jaws
-//!    does not). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
+//!    does not): either contour's edges followed past the span (gaps up to 32 px), or a run
+//!    of 32 px of edges on a contour line past a gap of any length (the part behind a crossing
+//!    instrument). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
 //!
 //! The best-ranked pairs (`3 · max_detections + 2`) are verified; the best-scoring consistent
 //! set is returned (score: confidence × √length), so a second instrument is a second valid
-//! pair, and a pair sharing a Hough line, a contour or the axis with a better one is dropped.
+//! pair, and a pair sharing a Hough line, a contour or the axis with a better one, or nearly
+//! parallel to it (within 10°) and lying in its strip, is dropped (two shafts do not lie over
+//! each other in the image).
+//!
+//! [`OursDetector::detect_traced`] records what each stage did ([`OursTrace`]: edgels, line
+//! hypotheses, every candidate pair with the test that turned it down), for diagnostics.
 //!
 //! Cost (640×480, one core): about 1 ms for the half-resolution edgels, under 1 ms for the
 //! Hough stage, the rest in the profiles; no allocation per frame once warm, except the

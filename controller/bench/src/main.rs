@@ -109,6 +109,10 @@ struct ShaftArgs {
     /// Directory of the overlay PNGs and the SVG.
     #[arg(long)]
     figures: Option<PathBuf>,
+    /// Instead of the benchmark: classify ours' misses by the stage that lost the shaft
+    /// (`shaft::diagnose`; meant for `--tuning`). Prints the tables only.
+    #[arg(long)]
+    diagnose: bool,
 }
 
 #[derive(clap::Args)]
@@ -293,6 +297,12 @@ fn shaft(a: &ShaftArgs) -> Result<String, String> {
             .map(|k| scenes::ClutterLevel::from_key(k).ok_or_else(|| format!("unknown clutter level {k}")))
             .collect::<Result<_, _>>()?,
     };
+    if a.diagnose {
+        let set = if a.tuning { scenes::SeedSet::Tuning } else { scenes::SeedSet::Report };
+        let d = shaft::diagnose::run(&shaft::intrinsics(), set, a.frames_per_family, &levels, &|| {})
+            .map_err(|e| e.to_string())?;
+        return Ok(d.markdown());
+    }
     let work_dir = std::env::temp_dir().join(format!("comanip-shaft-{}", std::process::id()));
     let opts = ShaftOptions {
         set: if a.tuning { scenes::SeedSet::Tuning } else { scenes::SeedSet::Report },

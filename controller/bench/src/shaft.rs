@@ -6,12 +6,14 @@
 //! - [`scenes`]: the scenario families, the tuning and report seed sets, the clutter levels;
 //! - [`metrics`]: eligibility, the match rule, angle and offset errors, quantiles (pure);
 //! - [`peers`]: OpenCV's EdgeDrawing/EDLines and LSD through a Python script;
-//! - [`figures`]: overlay PNGs and the SVG of the error distributions.
+//! - [`figures`]: overlay PNGs and the SVG of the error distributions;
+//! - [`diagnose`]: why ours misses a shaft (`--diagnose`).
 //!
 //! One run: for each clutter level, the frames are rendered (left eye, in parallel), then
 //! every detector runs on them one frame after another on one thread (timed per frame), the
 //! peers' script runs once on the frames written as PNGs, and every detection is scored.
 
+pub mod diagnose;
 pub mod figures;
 pub mod metrics;
 pub mod peers;

@@ -37,7 +37,11 @@
 //!    enough on a side with a clear luma step (`min_luma_contrast`); where the haze has washed
 //!    the colour out of the tissue on both sides, a luma step of the same sign on both sides
 //!    (1.5 × `min_luma_contrast`) stands in for the colour, all the way through (the span's
-//!    stations and the final test use the same evidence). Pairs are ranked by length ×
+//!    stations and the final test use the same evidence). Haze also scales every contrast
+//!    down: the thresholds are **normalised by the frame's colour contrast** (its median
+//!    chroma against a clear frame's, `clear_chroma`, at least `min_contrast_scale`; the
+//!    required relative drop `1 − max_interior_chroma_ratio` scales alike), so a hazy frame
+//!    is judged against its own contrast, not a clear frame's. Pairs are ranked by length ×
 //!    support × greyness of the interior.
 //! 4. **Sub-pixel contours** in the full-resolution measured image, each Hough line once per
 //!    frame: profiles across the contour, sampled at undistorted positions mapped through the
@@ -53,19 +57,28 @@
 //!    that yields too few edges is retried with luma at full weight (a hazy luma-only edge).
 //! 5. **The visible span**: stations every 2 px where both contours have an inlier edge and
 //!    the interior is grey against both outsides (or one edge and a clearly grey interior);
-//!    the run with the most good stations (gaps up to 64 px, a crossing instrument) is the
-//!    shaft. Its ends are trimmed while either contour leaves its line systematically (the
+//!    the run with the most good stations is the shaft. Gaps of any length are bridged (the
+//!    stations on both sides lie on the same two contour lines with a grey interior: one
+//!    cylinder, a second instrument crossing in front); a gap over 64 px is an occlusion and
+//!    does not count against the support. Its ends are trimmed while either contour leaves its line systematically (the
 //!    wrist, a bent link, the tapered jaws), and both contours are refitted on the span.
 //! 6. **The exact axis** from the two contours, [`crate::shaft::axis_from_contours`] (the
 //!    middle line is wrong by up to pixels under perspective); the distance gate again, the
 //!    axis's depth at both ends of the span (a tapered tip seen as a cylinder would reach far
 //!    beyond the range towards its apex), the colour test on the span; a span shorter than
 //!    `long_span_px` must reach the image border (a shaft runs out of the view, a pair of jaws
-//!    does not). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
+//!    does not): either contour's edges followed past the span (gaps up to 32 px), or a run
+//!    of 32 px of edges on a contour line past a gap of any length (the part behind a crossing
+//!    instrument). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
 //!
 //! The best-ranked pairs (`3 · max_detections + 2`) are verified; the best-scoring consistent
 //! set is returned (score: confidence × √length), so a second instrument is a second valid
-//! pair, and a pair sharing a Hough line, a contour or the axis with a better one is dropped.
+//! pair, and a pair sharing a Hough line, a contour or the axis with a better one, or nearly
+//! parallel to it (within 10°) and lying in its strip, is dropped (two shafts do not lie over
+//! each other in the image).
+//!
+//! [`OursDetector::detect_traced`] records what each stage did ([`OursTrace`]: edgels, line
+//! hypotheses, every candidate pair with the test that turned it down), for diagnostics.
 //!
 //! Cost (640×480, one core): about 1 ms for the half-resolution edgels, under 1 ms for the
 //! Hough stage, the rest in the profiles; no allocation per frame once warm, except the
@@ -85,6 +98,9 @@ mod geom;
 mod hough;
 mod lens;
 mod profile;
+mod trace;
+
+pub use trace::{OursTrace, PairOutcome, PairReject, TraceEdgel, TraceLine, TracePair};
 
 use estimator::calib::Intrinsics;
 use estimator::calib::camera::IntrinsicsError;
@@ -155,6 +171,13 @@ pub struct OursConfig {
     /// a long span with straight parallel edges and a grey interior is a shaft, and its end
     /// at the border may be lost in a vignetted, hazy corner).
     pub long_span_px: f64,
+    /// The frame's median chroma (`2R − G − B`, 8-bit) from which it counts as clear (default
+    /// 60: tissue under the simulated endoscope's light reads 70–120 without haze, 15–30
+    /// under smoke). Below it the colour tests' contrast thresholds scale down in proportion
+    /// (haze: the contrast normalisation of the module docs). 0 switches it off.
+    pub clear_chroma: f64,
+    /// The least scale of the contrast thresholds under haze (default 0.4).
+    pub min_contrast_scale: f64,
 }
 
 impl Default for OursConfig {
@@ -176,6 +199,8 @@ impl Default for OursConfig {
             min_support: 0.5,
             border_margin_px: 24.0,
             long_span_px: 200.0,
+            clear_chroma: 60.0,
+            min_contrast_scale: 0.4,
         }
     }
 }
@@ -248,6 +273,8 @@ impl OursConfig {
             "≥ 0 (infinite: off)",
         )?;
         check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
+        check(self.clear_chroma.is_finite() && self.clear_chroma >= 0.0, "clear_chroma", "finite and ≥ 0")?;
+        check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
 }
@@ -259,6 +286,34 @@ enum Evidence {
     Colour,
     /// Haze washed the colour out: a luma step of this sign (+1 brighter inside) on both sides.
     Luma(f64),
+}
+
+/// The frame's contrast normalisation of the colour tests (haze).
+///
+/// Smoke adds the haze's own colour to every pixel and scales the scene's contrasts by its
+/// transmittance (Koschmieder's model: `I = J·T + A·(1 − T)`), so fixed contrast thresholds
+/// chosen on clear frames reject every shaft under thick haze. The frame's median chroma
+/// (`2R − G − B`, mostly tissue) against the tissue's on a clear frame
+/// ([`OursConfig::clear_chroma`]) estimates how much colour contrast the frame has left,
+/// `scale`; the contrast thresholds (chroma and luma) and the interior's relative drop in
+/// chroma are scaled by it. `scale` is 1 on a clear frame and at least
+/// [`OursConfig::min_contrast_scale`] (below that, the tissue's own texture would pass).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Haze {
+    /// The contrast scale, in `[min_contrast_scale, 1]`.
+    scale: f64,
+}
+
+impl Haze {
+    const CLEAR: Self = Self { scale: 1.0 };
+
+    /// From the frame's median chroma and the settings.
+    fn new(median: f64, cfg: &OursConfig) -> Self {
+        if !(median.is_finite() && cfg.clear_chroma > 0.0) {
+            return Self::CLEAR;
+        }
+        Self { scale: (median / cfg.clear_chroma).clamp(cfg.min_contrast_scale.min(1.0), 1.0) }
+    }
 }
 
 /// A verified shaft before it becomes a [`ShaftDetection`].
@@ -297,6 +352,14 @@ pub struct OursDetector {
     cache: Vec<Option<Option<Contour>>>,
     /// Per Hough line: its refined contour's inlier points, undistorted pixels.
     cache_pts: Vec<Vec<[f64; 2]>>,
+    /// Record a trace of this frame ([`OursDetector::detect_traced`]).
+    tracing: bool,
+    /// The pairs the cheap tests turned down (traced frames only).
+    trace_rejects: Vec<(usize, usize, PairReject)>,
+    /// The trace of the last traced frame.
+    trace: OursTrace,
+    /// The frame's haze estimate.
+    haze: Haze,
 }
 
 /// A contour refined in the full-resolution image.
@@ -352,6 +415,10 @@ impl OursDetector {
             pair_buf: Vec::new(),
             cache: Vec::new(),
             cache_pts: Vec::new(),
+            tracing: false,
+            trace_rejects: Vec::new(),
+            trace: OursTrace::default(),
+            haze: Haze::CLEAR,
         })
     }
 
@@ -590,13 +657,15 @@ impl OursDetector {
             let inside = (i0 + i1 + i2) / 3.0;
             self.margin[i] = (out0 - inside).min(out1 - inside);
         }
-        let need = match mode {
-            Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
-            Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
-        };
-        let mut best: Option<(usize, usize, usize)> = None;
-        let mut run: Option<(usize, usize, usize)> = None;
-        let max_gap = (64.0 / STEP) as usize;
+        let need = self.haze.scale
+            * match mode {
+                Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
+                Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
+            };
+        // Runs of good stations: (start, last, good stations, stations in long gaps).
+        let mut best: Option<(usize, usize, usize, usize)> = None;
+        let mut run: Option<(usize, usize, usize, usize)> = None;
+        let short_gap = (64.0 / STEP) as usize;
         for i in 0..n {
             let (lo, hi) = (i.saturating_sub(2), (i + 2).min(n - 1));
             let (mut sum, mut cnt) = (0.0, 0);
@@ -613,9 +682,17 @@ impl OursDetector {
             if !good {
                 continue;
             }
+            // Any gap is bridged: the stations on both sides have both edges on the same two
+            // contour lines and a grey interior between them, the same cylinder (crossed by
+            // another instrument in front, or its interior hidden by a highlight); a gap
+            // longer than `short_gap` is taken for an occlusion and does not count against the
+            // support.
             run = match run {
-                Some((start, last, count)) if i - last <= max_gap => Some((start, i, count + 1)),
-                _ => Some((i, i, 1)),
+                Some((start, last, count, hidden)) => {
+                    let gap = i - last - 1;
+                    Some((start, i, count + 1, hidden + if gap >= short_gap { gap } else { 0 }))
+                }
+                None => Some((i, i, 1, 0)),
             };
             if let Some(r) = run
                 && best.is_none_or(|b| r.2 > b.2)
@@ -623,9 +700,9 @@ impl OursDetector {
                 best = Some(r);
             }
         }
-        let (start, last, count) = best?;
+        let (start, last, count, hidden) = best?;
         let span = [range[0] + start as f64 * STEP, range[0] + last as f64 * STEP];
-        Some((span, count as f64 / (last - start + 1) as f64))
+        Some((span, count as f64 / (last - start + 1 - hidden).max(1) as f64))
     }
 
     /// Refits contour `which` with its inlier points inside `span`.
@@ -640,7 +717,8 @@ impl OursDetector {
     }
 
     /// Checks and refines the pair `(ia, ib)` of line hypotheses.
-    fn verify(&mut self, image: &RgbView<'_>, ia: usize, ib: usize) -> Option<Found> {
+    fn verify(&mut self, image: &RgbView<'_>, ia: usize, ib: usize) -> Result<Found, PairReject> {
+        use PairReject as R;
         let (a, b) = (self.hough.lines[ia], self.hough.lines[ib]);
         let cfg = self.cfg;
         let lens = self.lens;
@@ -654,30 +732,30 @@ impl OursDetector {
         };
         let ov = [sa[0].max(sb[0]), sa[1].min(sb[1])];
         if ov[1] - ov[0] < 0.6 * cfg.min_length_px {
-            return None;
+            return Err(R::Overlap);
         }
-        let coarse = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut self.col)?;
-        let mode = self.colour_mode(&coarse)?;
+        let coarse = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut self.col).ok_or(R::CoarseColour)?;
+        let mode = self.colour_mode(&coarse).ok_or(R::CoarseColour)?;
         // Both contours, refined once per frame each; their inlier points in the pair's frame.
         let range = self.line_range(o, t);
-        let ca = self.contour_of(&sampler, ia)?;
-        let cb = self.contour_of(&sampler, ib)?;
+        let ca = self.contour_of(&sampler, ia).ok_or(R::ContourA)?;
+        let cb = self.contour_of(&sampler, ib).ok_or(R::ContourB)?;
         for (which, idx) in [(0, ia), (1, ib)] {
             let samp = &mut self.samp[which];
             samp.clear();
             samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
             samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         }
-        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode)?;
+        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode).ok_or(R::NoSpan)?;
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
-            return None;
+            return Err(R::ShortSpan);
         }
         if support < cfg.min_support {
-            return None;
+            return Err(R::Support);
         }
-        let mut ca = self.refit_in_span(0, ca.line, span)?;
-        let mut cb = self.refit_in_span(1, cb.line, span)?;
+        let mut ca = self.refit_in_span(0, ca.line, span).ok_or(R::Refit)?;
+        let mut cb = self.refit_in_span(1, cb.line, span).ok_or(R::Refit)?;
         // Trim ends where either contour leaves its line systematically (the wrist, a bent or
         // thinner link, a tapered tip), then refit.
         let mut span = span;
@@ -716,29 +794,29 @@ impl OursDetector {
                 span[1] -= 0.5 * WIN;
             }
             if span[1] - span[0] < cfg.min_length_px {
-                return None;
+                return Err(R::Trimmed);
             }
             let (Some(na), Some(nb)) = (self.refit_in_span(0, ca.line, span), self.refit_in_span(1, cb.line, span))
             else {
-                return None;
+                return Err(R::Refit);
             };
             (ca, cb) = (na, nb);
         }
         let len = span[1] - span[0];
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
-            return None;
+            return Err(R::Residual);
         }
         // Interior point: middle of the two contours at the span's middle.
         let sm = 0.5 * (span[0] + span[1]);
         let q = [o[0] + sm * t[0], o[1] + sm * t[1]];
         let d = [-t[1], t[0]];
-        let (la, lb) = (ca.line.hit(q, d)?, cb.line.hit(q, d)?);
+        let (la, lb) = (ca.line.hit(q, d).ok_or(R::Geometry)?, cb.line.hit(q, d).ok_or(R::Geometry)?);
         let mid = 0.5 * (la + lb);
         let inside = [q[0] + mid * d[0], q[1] + mid * d[1]];
-        let dist = self.axis_distance(&ca.line, &cb.line, inside)?;
+        let dist = self.axis_distance(&ca.line, &cb.line, inside).ok_or(R::Geometry)?;
         if !(dist >= cfg.min_depth_m && dist <= cfg.max_depth_m) {
-            return None;
+            return Err(R::AxisDistance);
         }
         // The axis's depth at both ends of the visible span must be plausible too (a tapered
         // tip seen as a cylinder would reach far beyond the range towards its apex).
@@ -746,17 +824,17 @@ impl OursDetector {
             let p = [o[0] + e * t[0], o[1] + e * t[1]];
             let z = self.axis_depth_at(&ca.line, &cb.line, inside, p).unwrap_or(f64::NAN);
             if !(z >= 0.5 * cfg.min_depth_m && z <= cfg.max_depth_m) {
-                return None;
+                return Err(R::EndDepth);
             }
         }
-        let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col)?;
+        let fine = interior(&sampler, [&ca.line, &cb.line], o, t, span, &mut self.col).ok_or(R::FineColour)?;
         if self.colour_mode(&fine) != Some(mode) {
-            return None;
+            return Err(R::FineColour);
         }
-        let c0 = ImageLine::new(ca.line.abc()).ok()?;
-        let c1 = ImageLine::new(cb.line.abc()).ok()?;
-        let axis = axis_from_contours(&self.kmat, &c0, &c1, inside).ok()?;
-        let axis_l = Line::from_abc(axis.abc)?;
+        let c0 = ImageLine::new(ca.line.abc()).map_err(|_| R::Axis)?;
+        let c1 = ImageLine::new(cb.line.abc()).map_err(|_| R::Axis)?;
+        let axis = axis_from_contours(&self.kmat, &c0, &c1, inside).map_err(|_| R::Axis)?;
+        let axis_l = Line::from_abc(axis.abc).ok_or(R::Axis)?;
         // Ends: the span's ends projected on the axis, mapped to measured pixels.
         let mut ends_px = [[0.0; 2]; 2];
         for (e, s) in ends_px.iter_mut().zip(span) {
@@ -788,13 +866,25 @@ impl OursDetector {
                 }
                 reach = [reach[0].min(lo), reach[1].max(hi)];
             }
+            // A contour running on past a gap of any length (a second instrument crossing in
+            // front hides the part between): a run of at least 32 px where a contour has an
+            // edge at every station (those of `visible_span`, every 2 px over `range`) extends
+            // the reach; the lines of a pair of jaws run on over tissue.
+            let mut run = 0usize;
+            for (i, &h) in self.has.iter().enumerate() {
+                run = if h != 0 { run + 1 } else { 0 };
+                if run >= 16 {
+                    let (first, last) = (range[0] + (i + 1 - run) as f64 * 2.0, range[0] + i as f64 * 2.0);
+                    reach = [reach[0].min(first), reach[1].max(last)];
+                }
+            }
             let reach_px = reach.map(|sv| {
                 let p = [o[0] + sv * t[0], o[1] + sv * t[1]];
                 let (x, y) = self.lens.distort_px(p[0], p[1]);
                 [x, y]
             });
             if !reach_px.iter().any(near) {
-                return None;
+                return Err(R::Border);
             }
         }
         let contrast = match mode {
@@ -808,7 +898,7 @@ impl OursDetector {
             }
         };
         let confidence = support / (1.0 + (sigma / 0.5).powi(2)) * contrast.clamp(0.0, 1.0);
-        Some(Found {
+        Ok(Found {
             det: ShaftDetection { centreline: axis, contours: [c0, c1], ends_px, confidence },
             mid: {
                 let dd = axis_l.distance(q);
@@ -826,21 +916,116 @@ impl OursDetector {
     /// the outside); `None` when neither.
     fn colour_mode(&self, c: &profile::Interior) -> Option<Evidence> {
         let cfg = &self.cfg;
+        // Thresholds scaled by the frame's contrast ([`Haze`]).
+        let scale = self.haze.scale;
+        let ratio = 1.0 - (1.0 - cfg.max_interior_chroma_ratio) * scale;
         let colour = c.outside.iter().zip(c.near).zip(c.luma_outside).all(|((&out, near), luma_out)| {
             let inside = c.inside.max(near);
-            let luma = (c.luma_inside - luma_out).abs() >= cfg.min_luma_contrast;
-            let need = if luma { 0.5 * cfg.min_chroma_contrast } else { cfg.min_chroma_contrast };
-            out - inside >= need && inside <= cfg.max_interior_chroma_ratio * out
+            let luma = (c.luma_inside - luma_out).abs() >= scale * cfg.min_luma_contrast;
+            let need = scale * if luma { 0.5 * cfg.min_chroma_contrast } else { cfg.min_chroma_contrast };
+            out - inside >= need && inside <= ratio * out
         });
         if colour {
             return Some(Evidence::Colour);
         }
-        let washed_out = c.outside.iter().all(|&out| out < cfg.min_chroma_contrast);
+        let washed_out = c.outside.iter().all(|&out| out < scale * cfg.min_chroma_contrast);
         let steps = c.luma_outside.map(|out| c.luma_inside - out);
         let sign = steps[0].signum();
-        let luma = steps.iter().all(|d| d * sign >= 1.5 * cfg.min_luma_contrast)
+        let luma = steps.iter().all(|d| d * sign >= 1.5 * scale * cfg.min_luma_contrast)
             && c.inside.max(c.near[0]).max(c.near[1]) <= c.outside[0].max(c.outside[1]) + 3.0;
         (washed_out && luma).then_some(Evidence::Luma(sign))
+    }
+
+    /// [`ShaftDetector::detect`] with a record of what each stage did (for diagnostics: the
+    /// benchmark's miss classification). Slower than `detect` (the trace is allocated).
+    pub fn detect_traced(&mut self, image: &RgbView<'_>) -> Result<(Vec<ShaftDetection>, OursTrace), DetectError> {
+        check_size(&self.k, image)?;
+        self.tracing = true;
+        let out = self.run(image);
+        self.tracing = false;
+        Ok((out, std::mem::take(&mut self.trace)))
+    }
+
+    /// The detection proper (the image's size checked).
+    fn run(&mut self, image: &RgbView<'_>) -> Vec<ShaftDetection> {
+        let cfg = self.cfg;
+        self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
+        self.haze = Haze::new(f64::from(self.edges.chroma_median), &cfg);
+        let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
+        self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
+        let buf = std::mem::take(&mut self.pair_buf);
+        let pairs = self.pairs(image, buf);
+        let n_lines = self.hough.lines.len();
+        self.cache.clear();
+        self.cache.resize(n_lines, None);
+        if self.cache_pts.len() < n_lines {
+            self.cache_pts.resize_with(n_lines, Vec::new);
+        }
+        // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
+        // sharing a line, a contour or the axis with a better one is dropped).
+        self.cands.clear();
+        let budget = 3 * cfg.max_detections + 2;
+        let mut outcomes: Vec<(usize, Result<[f64; 3], PairReject>)> = Vec::new();
+        for (rank, &(_, i, j)) in pairs.iter().take(budget).enumerate() {
+            match self.verify(image, i, j) {
+                Ok(f) => {
+                    if self.tracing {
+                        outcomes.push((rank, Ok(f.det.centreline.abc)));
+                    }
+                    self.cands.push(f);
+                }
+                Err(r) => {
+                    if self.tracing {
+                        outcomes.push((rank, Err(r)));
+                    }
+                }
+            }
+        }
+        self.pair_buf = pairs;
+        self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
+        self.found.clear();
+        for f in &self.cands {
+            if self.found.len() >= cfg.max_detections {
+                break;
+            }
+            let clash = self.found.iter().any(|g| {
+                g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f) || overlap(g, f)
+            });
+            if !clash {
+                self.found.push(*f);
+            }
+        }
+        self.found.sort_by(|a, b| b.score.total_cmp(&a.score));
+        if self.tracing {
+            self.record_trace(&outcomes);
+        }
+        self.found.iter().map(|f| f.det).collect()
+    }
+
+    /// Fills `self.trace` from the frame's stages (`outcomes`: per verified rank, the
+    /// centreline or the reason).
+    fn record_trace(&mut self, outcomes: &[(usize, Result<[f64; 3], PairReject>)]) {
+        let tr = &mut self.trace;
+        tr.edgels.clear();
+        tr.edgels.extend(self.edges.edgels.iter().map(|e| TraceEdgel { p: e.p, n: e.n }));
+        tr.lines.clear();
+        tr.lines.extend(self.hough.lines.iter().map(|l| TraceLine { abc: l.line.abc(), ends: l.ends, votes: l.count }));
+        tr.pairs.clear();
+        for &(i, j, r) in &self.trace_rejects {
+            tr.pairs.push(TracePair { lines: [i, j], rank: None, outcome: PairOutcome::Rejected(r), centreline: None });
+        }
+        for (rank, &(_, i, j)) in self.pair_buf.iter().enumerate() {
+            let verified = outcomes.iter().find(|o| o.0 == rank).map(|o| o.1);
+            let (outcome, centreline) = match verified {
+                None => (PairOutcome::NotVerified, None),
+                Some(Err(r)) => (PairOutcome::Rejected(r), None),
+                Some(Ok(abc)) => {
+                    let pos = self.found.iter().position(|f| f.lines == [i, j]);
+                    (pos.map_or(PairOutcome::Dropped, PairOutcome::Returned), Some(abc))
+                }
+            };
+            tr.pairs.push(TracePair { lines: [i, j], rank: Some(rank), outcome, centreline });
+        }
     }
 
     /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
@@ -848,6 +1033,9 @@ impl OursDetector {
         let lens = self.lens;
         let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
         let mut col = std::mem::take(&mut self.col);
+        let tracing = self.tracing;
+        let mut rejects = std::mem::take(&mut self.trace_rejects);
+        rejects.clear();
         let lines = &self.hough.lines;
         let cfg = self.cfg;
         out.clear();
@@ -865,6 +1053,9 @@ impl OursDetector {
                 let ov = [sa[0].max(x.min(y)), sa[1].min(x.max(y))];
                 let len = ov[1] - ov[0];
                 if len < 0.6 * cfg.min_length_px {
+                    if tracing {
+                        rejects.push((i, j, PairReject::Overlap));
+                    }
                     continue;
                 }
                 // Widths at both ends of the overlap: the lines must not cross there.
@@ -882,15 +1073,25 @@ impl OursDetector {
                     }
                 }
                 if !ok {
+                    if tracing {
+                        rejects.push((i, j, PairReject::Crossing));
+                    }
                     continue;
                 }
-                let Some(dist) = self.axis_distance(&a.line, &b.line, inside) else { continue };
-                if !(dist >= 0.6 * cfg.min_depth_m && dist <= 1.6 * cfg.max_depth_m) {
+                let dist = self.axis_distance(&a.line, &b.line, inside);
+                if !dist.is_some_and(|dist| dist >= 0.6 * cfg.min_depth_m && dist <= 1.6 * cfg.max_depth_m) {
+                    if tracing {
+                        rejects.push((i, j, PairReject::Distance));
+                    }
                     continue;
                 }
                 // Coarse colour test on the hypotheses.
-                let Some(c) = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col) else { continue };
-                let Some(mode) = self.colour_mode(&c) else {
+                let mode = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col)
+                    .and_then(|c| Some((c, self.colour_mode(&c)?)));
+                let Some((c, mode)) = mode else {
+                    if tracing {
+                        rejects.push((i, j, PairReject::CoarseColour));
+                    }
                     continue;
                 };
                 // Rank by support and by how grey the interior is against the outsides.
@@ -904,6 +1105,7 @@ impl OursDetector {
             }
         }
         self.col = col;
+        self.trace_rejects = rejects;
         out.sort_by(|a, b| b.0.total_cmp(&a.0));
         out
     }
@@ -920,44 +1122,8 @@ impl ShaftDetector for OursDetector {
 
     fn detect(&mut self, image: &RgbView<'_>) -> Result<Vec<ShaftDetection>, DetectError> {
         check_size(&self.k, image)?;
-        let cfg = self.cfg;
-        self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
-        let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
-        self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
-        let buf = std::mem::take(&mut self.pair_buf);
-        let pairs = self.pairs(image, buf);
-        let n_lines = self.hough.lines.len();
-        self.cache.clear();
-        self.cache.resize(n_lines, None);
-        if self.cache_pts.len() < n_lines {
-            self.cache_pts.resize_with(n_lines, Vec::new);
-        }
-        // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
-        // sharing a line, a contour or the axis with a better one is dropped).
-        self.cands.clear();
-        let budget = 3 * cfg.max_detections + 2;
-        for &(_, i, j) in pairs.iter().take(budget) {
-            if let Some(f) = self.verify(image, i, j) {
-                self.cands.push(f);
-            }
-        }
-        self.pair_buf = pairs;
-        self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
-        self.found.clear();
-        for f in &self.cands {
-            if self.found.len() >= cfg.max_detections {
-                break;
-            }
-            let clash = self
-                .found
-                .iter()
-                .any(|g| g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f));
-            if !clash {
-                self.found.push(*f);
-            }
-        }
-        self.found.sort_by(|a, b| b.score.total_cmp(&a.score));
-        Ok(self.found.iter().map(|f| f.det).collect())
+        self.tracing = false;
+        Ok(self.run(image))
     }
 }
 
@@ -970,6 +1136,25 @@ fn same_axis(a: &Found, b: &Found) -> bool {
         return false;
     }
     lb.distance_px(a.mid[0], a.mid[1]).abs() < 5.0 || la.distance_px(b.mid[0], b.mid[1]).abs() < 5.0
+}
+
+/// True when two nearly parallel detections (within 10°) overlap: either one's span middle
+/// lies inside the other's strip. Two shafts cannot lie over each other in the image (a second
+/// instrument crosses in front at an angle); the worse one is a contour of the better paired
+/// with something beside it.
+fn overlap(a: &Found, b: &Found) -> bool {
+    let (la, lb) = (a.det.centreline, b.det.centreline);
+    if (la.abc[0] * lb.abc[0] + la.abc[1] * lb.abc[1]).abs() < 10f64.to_radians().cos() {
+        return false;
+    }
+    let inside = |f: &Found, p: [f64; 2]| {
+        let [c0, c1] = f.det.contours;
+        let (d0, d1) = (c0.distance_px(p[0], p[1]), c1.distance_px(p[0], p[1]));
+        let (m0, m1) = (c0.distance_px(f.mid[0], f.mid[1]), c1.distance_px(f.mid[0], f.mid[1]));
+        // Same side of each contour as the strip's own middle.
+        d0 * m0 > 0.0 && d1 * m1 > 0.0
+    };
+    inside(a, b.mid) || inside(b, a.mid)
 }
 
 /// True when two detections share a contour (within 1° and 2 px at the other's span middle).

@@ -27,10 +27,38 @@ pub(crate) struct EdgeBuffers {
     mag2: Vec<f32>,
     dir: Vec<u8>,
     eig: Vec<[f32; 2]>,
+    hist: Vec<u32>,
     pub(crate) edgels: Vec<Edgel>,
+    /// The frame's median half-resolution chroma `2R − G − B` (8-bit units): the haze
+    /// estimate of `super::Haze`.
+    pub(crate) chroma_median: f32,
 }
 
 impl EdgeBuffers {
+    /// Sets `chroma_median` from a histogram of the half-resolution chroma
+    /// (1-unit bins over `[−256, 512)`).
+    fn chroma_median(&mut self) {
+        const LO: f32 = -256.0;
+        const N: usize = 768;
+        self.hist.clear();
+        self.hist.resize(N, 0);
+        for &c in &self.chroma {
+            let b = (c - LO).clamp(0.0, (N - 1) as f32) as usize;
+            self.hist[b] += 1;
+        }
+        let total: u32 = self.hist.iter().sum();
+        let want = total.div_ceil(2).max(1);
+        let mut acc = 0;
+        self.chroma_median = 0.0;
+        for (i, h) in self.hist.iter().enumerate() {
+            acc += h;
+            if acc >= want {
+                self.chroma_median = i as f32 + LO + 0.5;
+                break;
+            }
+        }
+    }
+
     /// Fills `self.edgels`. `image` has the table's camera size (checked by the caller);
     /// `threshold` is on the gradient magnitude (channel units per half-resolution pixel);
     /// `luma_weight` scales the luma channel against the chroma channel.
@@ -67,6 +95,7 @@ impl EdgeBuffers {
                 lrow[j] = 0.25 * luma_weight * (0.299 * r + 0.587 * g + 0.114 * bl);
             }
         }
+        self.chroma_median();
         // Di Zenzo gradient (Sobel / 8 on both channels), quantised direction for the NMS.
         let t2 = threshold * threshold;
         let tan22 = 0.414_213_56_f32;

@@ -1,0 +1,358 @@
+//! Why ours misses a shaft (`comanip-bench shaft --diagnose`): each eligible frame where
+//! ours returns no detection matching instrument 1 (the benchmark's match rule, unchanged) is
+//! put in the first stage of the detector that lost the shaft, from its trace
+//! ([`vision::ours::OursDetector::detect_traced`]) and the renderer's true contours:
+//!
+//! - `few edgels`: on one of the two true contours (its visible part), fewer than 30 % of
+//!   the half-resolution edgels a clean edge gives (one per 2 px, within 1.5 px and 10° of it);
+//! - `no line`: the edgels are there but no line hypothesis lies on that contour (within 2°,
+//!   and its span's middle within 3 px of the contour);
+//! - `pair: <test>`: lines on both contours, but every pair of them was turned down by a
+//!   cheap test (overlap, crossing, distance, coarse colour);
+//! - `not verified`: a pair passed the cheap tests but ranked beyond the verification budget;
+//! - `verify: <test>`: verified and turned down by a named test;
+//! - `dropped`: verified, then dropped in the final selection;
+//! - `returned, no match`: returned, but outside the match rule.
+//!
+//! Separately it counts the missed frames whose top detection matches the second instrument,
+//! and those with a false detection (matching no instrument).
+//!
+//! A diagnostic only: it runs on whatever set it is given, and is meant for the tuning set.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+use estimator::calib::Intrinsics;
+use sim::endoscope::label;
+use vision::ShaftDetector as _;
+use vision::ours::{OursConfig, OursDetector, OursTrace, PairOutcome, PairReject};
+
+use super::metrics::{MATCH_ANGLE_DEG, angle_deg, distance_px, score_frame};
+use super::scenes::{ClutterLevel, FAMILIES, SeedSet, frame_specs};
+use super::{RenderedFrame, ShaftBenchError, endoscope_config, render_frames};
+
+/// A true contour: line `[a, b, c]` (undistorted pixels) and its visible segment.
+type TrueContour = ([f64; 3], [[f64; 2]; 2]);
+
+/// Least fraction of a contour's expected edgels for it to count as seen.
+const MIN_EDGEL_COVERAGE: f64 = 0.3;
+
+/// The reason's key of a test.
+fn reject_key(r: PairReject) -> &'static str {
+    match r {
+        PairReject::Overlap => "overlap",
+        PairReject::Crossing => "crossing",
+        PairReject::Distance => "distance",
+        PairReject::CoarseColour => "coarse colour",
+        PairReject::ContourA | PairReject::ContourB => "contour refinement",
+        PairReject::NoSpan => "no span",
+        PairReject::ShortSpan => "short span",
+        PairReject::Support => "support",
+        PairReject::Refit => "refit",
+        PairReject::Trimmed => "trimmed short",
+        PairReject::Residual => "residual",
+        PairReject::Geometry => "geometry",
+        PairReject::AxisDistance => "axis distance",
+        PairReject::EndDepth => "end depth",
+        PairReject::FineColour => "fine colour",
+        PairReject::Axis => "axis",
+        PairReject::Border => "border",
+    }
+}
+
+/// Fraction of the expected edgels (one per 2 px of the visible part) found on contour `c`.
+fn edgel_coverage(trace: &OursTrace, c: &TrueContour, visible_fraction: f64) -> f64 {
+    let ([a, b, cc], [p, q]) = *c;
+    let len = (q[0] - p[0]).hypot(q[1] - p[1]);
+    if len < 1.0 {
+        return 0.0;
+    }
+    let t = [(q[0] - p[0]) / len, (q[1] - p[1]) / len];
+    let cos_tol = 10f64.to_radians().cos();
+    let n = trace
+        .edgels
+        .iter()
+        .filter(|e| {
+            let (x, y) = (f64::from(e.p[0]), f64::from(e.p[1]));
+            let s = (x - p[0]) * t[0] + (y - p[1]) * t[1];
+            (a * x + b * y + cc).abs() <= 1.5
+                && (0.0..=len).contains(&s)
+                && (f64::from(e.n[0]) * a + f64::from(e.n[1]) * b).abs() >= cos_tol
+        })
+        .count();
+    n as f64 * 2.0 / (len * visible_fraction.clamp(0.05, 1.0))
+}
+
+/// The line hypotheses lying on contour `c`.
+fn lines_on(trace: &OursTrace, c: &TrueContour) -> Vec<usize> {
+    let (l, [p, q]) = *c;
+    let len = (q[0] - p[0]).hypot(q[1] - p[1]).max(1e-9);
+    let t = [(q[0] - p[0]) / len, (q[1] - p[1]) / len];
+    trace
+        .lines
+        .iter()
+        .enumerate()
+        .filter(|(_, h)| {
+            let m = [0.5 * (h.ends[0][0] + h.ends[1][0]), 0.5 * (h.ends[0][1] + h.ends[1][1])];
+            let s = (m[0] - p[0]) * t[0] + (m[1] - p[1]) * t[1];
+            angle_deg(&h.abc, &l).is_some_and(|a| a <= MATCH_ANGLE_DEG)
+                && distance_px(&l, m).is_some_and(|d| d <= 3.0)
+                && (-20.0..=len + 20.0).contains(&s)
+        })
+        .map(|(i, _)| i)
+        .collect()
+}
+
+/// How far a pair got (larger: later stage).
+fn progress(o: &TracePairOutcome) -> u32 {
+    match o.0 {
+        PairOutcome::Rejected(_) if o.1.is_none() => 0,
+        PairOutcome::NotVerified => 1,
+        PairOutcome::Rejected(_) => 2,
+        PairOutcome::Dropped => 3,
+        PairOutcome::Returned(_) => 4,
+    }
+}
+
+/// A pair's outcome and its rank.
+type TracePairOutcome = (PairOutcome, Option<usize>);
+
+/// The class of a missed frame (see the module docs).
+pub fn classify(trace: &OursTrace, contours: &[TrueContour; 2], visible_fraction: f64) -> String {
+    let cov = contours.map(|c| edgel_coverage(trace, &c, visible_fraction));
+    if cov.iter().any(|&c| c < MIN_EDGEL_COVERAGE) {
+        return "few edgels".into();
+    }
+    let on = contours.map(|c| lines_on(trace, &c));
+    if on.iter().any(Vec::is_empty) {
+        return "no line".into();
+    }
+    let best = trace
+        .pairs
+        .iter()
+        .filter(|p| {
+            (on[0].contains(&p.lines[0]) && on[1].contains(&p.lines[1]))
+                || (on[1].contains(&p.lines[0]) && on[0].contains(&p.lines[1]))
+        })
+        .max_by_key(|p| progress(&(p.outcome, p.rank)));
+    match best.map(|p| (p.outcome, p.rank)) {
+        None => "pair: not parallel".into(),
+        Some((PairOutcome::Rejected(r), None)) => format!("pair: {}", reject_key(r)),
+        Some((PairOutcome::NotVerified, _)) => "not verified".into(),
+        Some((PairOutcome::Rejected(r), Some(_))) => format!("verify: {}", reject_key(r)),
+        Some((PairOutcome::Dropped, _)) => "dropped".into(),
+        Some((PairOutcome::Returned(_), _)) => "returned, no match".into(),
+    }
+}
+
+/// Counts per class, per level and per family.
+#[derive(Clone, Debug, Default)]
+pub struct Diagnosis {
+    /// `(level, family) → (eligible, detected, class → count, second on top, with a false one)`.
+    pub cells: BTreeMap<(String, String), DiagCell>,
+}
+
+/// One cell of the diagnosis.
+#[derive(Clone, Debug, Default)]
+pub struct DiagCell {
+    /// Eligible frames.
+    pub eligible: usize,
+    /// Detected (matched) frames.
+    pub detected: usize,
+    /// Missed frames per class.
+    pub classes: BTreeMap<String, usize>,
+    /// Missed frames whose top detection is the second instrument.
+    pub second_on_top: usize,
+    /// Missed frames with a false detection.
+    pub with_false: usize,
+    /// Frames without instrument 1 in view.
+    pub free_frames: usize,
+    /// False detections on those.
+    pub false_on_free: usize,
+}
+
+/// The true contours of instrument 1 with a visible segment.
+fn true_contours(frame: &RenderedFrame) -> Option<[TrueContour; 2]> {
+    let inst = frame.truth.instruments.iter().find(|i| i.label == label::INSTRUMENT)?;
+    let [c0, c1] = inst.contours.as_ref()?;
+    Some([(c0.line_ideal, c0.segment_ideal_px?), (c1.line_ideal, c1.segment_ideal_px?)])
+}
+
+/// Runs ours (default settings) traced on the frames of `set` at `levels` and classifies the
+/// misses. `progress` is called once per frame rendered and once per frame diagnosed.
+pub fn run(
+    k: &Intrinsics,
+    set: SeedSet,
+    frames_per_family: usize,
+    levels: &[ClutterLevel],
+    progress: &(dyn Fn() + Sync),
+) -> Result<Diagnosis, ShaftBenchError> {
+    let specs = frame_specs(set, frames_per_family, &endoscope_config(set, ClutterLevel::Clean))?;
+    let mut det = OursDetector::new(*k, OursConfig::default())
+        .map_err(|e| ShaftBenchError::Io { path: "ours".into(), message: e.to_string() })?;
+    let mut d = Diagnosis::default();
+    for &level in levels {
+        let frames = render_frames(set, level, &specs, progress)?;
+        for frame in &frames {
+            let view = frame.view()?;
+            let (dets, trace) = det
+                .detect_traced(&view)
+                .map_err(|source| ShaftBenchError::Detect { detector: det.name().to_owned(), source })?;
+            progress();
+            let fam = FAMILIES[frame.spec.family].key;
+            if !frame.inst1_in_view {
+                let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
+                let s = score_frame(&dets, None, inst2);
+                let cell = d.cells.entry((level.key().to_owned(), fam.to_owned())).or_default();
+                cell.free_frames += 1;
+                cell.false_on_free += s.false_detections;
+            }
+            let Some(i1) = frame.inst1.as_ref().filter(|t| t.eligible()) else { continue };
+            let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
+            let s = score_frame(&dets, Some(i1), inst2);
+            let cell = d.cells.entry((level.key().to_owned(), fam.to_owned())).or_default();
+            cell.eligible += 1;
+            if s.matched.is_some() {
+                cell.detected += 1;
+                continue;
+            }
+            let class = match true_contours(frame) {
+                Some(c) => classify(&trace, &c, i1.visible_px / i1.segment_px().max(1e-9)),
+                None => "no true contours".into(),
+            };
+            *cell.classes.entry(class).or_default() += 1;
+            cell.second_on_top += usize::from(
+                s.second_matches > 0 && s.matched_rank.is_none() && {
+                    let e2 = inst2.and_then(|t| super::metrics::line_errors(&dets[0].centreline.abc, t));
+                    e2.is_some_and(|e| e.matches())
+                },
+            );
+            cell.with_false += usize::from(s.false_detections > 0);
+        }
+    }
+    Ok(d)
+}
+
+impl Diagnosis {
+    /// The Markdown tables: per level, then per family (every level).
+    pub fn markdown(&self) -> String {
+        let mut classes: Vec<String> = self.cells.values().flat_map(|c| c.classes.keys().cloned()).collect();
+        classes.sort();
+        classes.dedup();
+        let mut m = String::new();
+        for (title, by_level) in [("level", true), ("family", false)] {
+            let mut groups: BTreeMap<String, DiagCell> = BTreeMap::new();
+            for ((level, fam), c) in &self.cells {
+                let g = groups.entry(if by_level { level.clone() } else { fam.clone() }).or_default();
+                g.eligible += c.eligible;
+                g.detected += c.detected;
+                g.second_on_top += c.second_on_top;
+                g.with_false += c.with_false;
+                g.free_frames += c.free_frames;
+                g.false_on_free += c.false_on_free;
+                for (k, v) in &c.classes {
+                    *g.classes.entry(k.clone()).or_default() += v;
+                }
+            }
+            let _ = writeln!(
+                m,
+                "\n| {title} | eligible | detected | missed | {} | second on top | with a false one | false on instrument-free frames (n) |",
+                classes.join(" | ")
+            );
+            let _ = writeln!(m, "|---|---|---|---|{}---|---|---|", "---|".repeat(classes.len()));
+            let order: Vec<String> = if by_level {
+                ClutterLevel::ALL.iter().map(|l| l.key().to_owned()).filter(|k| groups.contains_key(k)).collect()
+            } else {
+                groups.keys().cloned().collect()
+            };
+            for key in order {
+                let g = &groups[&key];
+                let _ = writeln!(
+                    m,
+                    "| {key} | {} | {} | {} | {} | {} | {} | {} ({}) |",
+                    g.eligible,
+                    g.detected,
+                    g.eligible - g.detected,
+                    classes
+                        .iter()
+                        .map(|c| g.classes.get(c).copied().unwrap_or(0).to_string())
+                        .collect::<Vec<_>>()
+                        .join(" | "),
+                    g.second_on_top,
+                    g.with_false,
+                    g.false_on_free,
+                    g.free_frames
+                );
+            }
+        }
+        m
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vision::ours::{TraceEdgel, TraceLine, TracePair};
+
+    /// Two true contours `v = 100` and `v = 130` from `u = 0` to `u = 200`.
+    fn contours() -> [TrueContour; 2] {
+        [([0.0, 1.0, -100.0], [[0.0, 100.0], [200.0, 100.0]]), ([0.0, 1.0, -130.0], [[0.0, 130.0], [200.0, 130.0]])]
+    }
+
+    /// Edgels every 2 px along both contours (normals along v) and one line on each.
+    fn trace_with_lines() -> OursTrace {
+        let mut t = OursTrace::default();
+        for v in [100.0f32, 130.0] {
+            t.edgels.extend((0..100).map(|i| TraceEdgel { p: [2.0 * i as f32, v], n: [0.0, 1.0] }));
+            t.lines.push(TraceLine {
+                abc: [0.0, 1.0, -f64::from(v) - 0.5],
+                ends: [[0.0, f64::from(v) + 0.5], [198.0, f64::from(v) + 0.5]],
+                votes: 100,
+            });
+        }
+        t
+    }
+
+    fn pair(outcome: PairOutcome, rank: Option<usize>) -> TracePair {
+        TracePair { lines: [1, 0], rank, outcome, centreline: None }
+    }
+
+    #[test]
+    fn a_miss_is_put_in_the_first_stage_that_lost_the_shaft() {
+        let c = contours();
+        // No edgels on the second contour.
+        let mut t = trace_with_lines();
+        t.edgels.retain(|e| e.p[1] < 120.0);
+        assert_eq!(classify(&t, &c, 1.0), "few edgels");
+        // Only 40 px of the second contour with edgels: few on a fully visible shaft, but all
+        // there is when only a fifth of it is visible (then both lines are there, no pair).
+        let mut t = trace_with_lines();
+        t.edgels.retain(|e| e.p[1] < 120.0 || e.p[0] < 40.0);
+        assert_eq!(classify(&t, &c, 1.0), "few edgels");
+        assert_eq!(classify(&t, &c, 0.2), "pair: not parallel");
+        // Edgels but the second line 3° off.
+        let mut t = trace_with_lines();
+        let a = 3f64.to_radians();
+        t.lines[1].abc = [-a.sin(), a.cos(), -130.0];
+        assert_eq!(classify(&t, &c, 1.0), "no line");
+        // Lines, pairs at each stage: the furthest stage wins.
+        let mut t = trace_with_lines();
+        assert_eq!(classify(&t, &c, 1.0), "pair: not parallel");
+        t.pairs.push(pair(PairOutcome::Rejected(PairReject::CoarseColour), None));
+        assert_eq!(classify(&t, &c, 1.0), "pair: coarse colour");
+        t.pairs.push(pair(PairOutcome::NotVerified, Some(9)));
+        assert_eq!(classify(&t, &c, 1.0), "not verified");
+        t.pairs.push(pair(PairOutcome::Rejected(PairReject::Border), Some(2)));
+        assert_eq!(classify(&t, &c, 1.0), "verify: border");
+        t.pairs.push(pair(PairOutcome::Dropped, Some(3)));
+        assert_eq!(classify(&t, &c, 1.0), "dropped");
+        t.pairs.push(pair(PairOutcome::Returned(1), Some(4)));
+        assert_eq!(classify(&t, &c, 1.0), "returned, no match");
+        // A pair of other lines does not count.
+        let mut t = trace_with_lines();
+        t.lines.push(t.lines[0]);
+        t.lines[2].abc[2] -= 40.0;
+        t.pairs.push(TracePair { lines: [0, 2], rank: Some(0), outcome: PairOutcome::Returned(0), centreline: None });
+        assert_eq!(classify(&t, &c, 1.0), "pair: not parallel");
+    }
+}

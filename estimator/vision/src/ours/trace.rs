@@ -1,0 +1,111 @@
+//! Diagnostics: what each stage of [`super::OursDetector`] did on one frame
+//! ([`super::OursDetector::detect_traced`]), so a benchmark can tell *why* a shaft was missed
+//! (no edgels on its contours, no line hypothesis, no candidate pair, a pair rejected by a
+//! named test, a verified pair dropped in the final selection).
+//!
+//! Pixels: undistorted (ideal pinhole) pixels throughout.
+
+use serde::Serialize;
+
+/// One half-resolution edgel: position and unit normal (modulo π), undistorted pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TraceEdgel {
+    /// Position `[u, v]`, undistorted pixels.
+    pub p: [f32; 2],
+    /// Unit normal of the edge (gradient direction modulo π).
+    pub n: [f32; 2],
+}
+
+/// One straight-line hypothesis of the Hough stage.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TraceLine {
+    /// `[a, b, c]`, `a·u + b·v + c = 0`, `a² + b² = 1`, undistorted pixels.
+    pub abc: [f64; 3],
+    /// The ends of its supported span, undistorted pixels.
+    pub ends: [[f64; 2]; 2],
+    /// Supporting half-resolution edgels.
+    pub votes: usize,
+}
+
+/// The test that turned a candidate pair of lines down (see the module docs of
+/// [`super`] for what each test is).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PairReject {
+    /// The two lines' spans overlap too little (`0.6 · min_length_px`).
+    Overlap,
+    /// The lines cross (or are closer than 2 px) over their overlap.
+    Crossing,
+    /// The cylinder's axis distance `r / sin(θ/2)` is out of range (cheap test).
+    Distance,
+    /// The strip between the lines is not a shaft's interior (coarse colour/luma test).
+    CoarseColour,
+    /// The first line's contour could not be refined in the full-resolution image.
+    ContourA,
+    /// The second line's contour could not be refined.
+    ContourB,
+    /// No run of good stations (both edges and a grey interior) along the pair.
+    NoSpan,
+    /// The visible span is shorter than `min_length_px`.
+    ShortSpan,
+    /// Too few good stations in the span (`min_support`).
+    Support,
+    /// A contour has too few edges inside the span to refit.
+    Refit,
+    /// The span fell under `min_length_px` while its ends were trimmed.
+    Trimmed,
+    /// A contour's robust residual scale exceeds `max_residual_px`.
+    Residual,
+    /// A degenerate geometry (parallel probes, no interior point).
+    Geometry,
+    /// The axis distance of the refined contours is out of range.
+    AxisDistance,
+    /// The axis's depth at an end of the span is out of range.
+    EndDepth,
+    /// The fine colour test on the span failed (or changed evidence).
+    FineColour,
+    /// The exact axis could not be computed.
+    Axis,
+    /// A short span that does not reach the image border.
+    Border,
+}
+
+/// What became of a candidate pair.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PairOutcome {
+    /// Turned down by a test.
+    Rejected(PairReject),
+    /// Passed the cheap tests but ranked beyond the verification budget.
+    NotVerified,
+    /// Verified, then dropped in the final selection (it shares a line, a contour or the axis
+    /// with a better one, or `max_detections` were already taken).
+    Dropped,
+    /// Returned, at this rank (0 = best).
+    Returned(usize),
+}
+
+/// One candidate pair of lines (indices into [`OursTrace::lines`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TracePair {
+    /// The two lines.
+    pub lines: [usize; 2],
+    /// Its rank among the pairs that passed the cheap tests (0 = best), `None` when a cheap
+    /// test turned it down.
+    pub rank: Option<usize>,
+    /// What became of it.
+    pub outcome: PairOutcome,
+    /// The verified detection's centreline `[a, b, c]` (undistorted pixels), when verified.
+    pub centreline: Option<[f64; 3]>,
+}
+
+/// Everything [`super::OursDetector::detect_traced`] records about one frame.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct OursTrace {
+    /// Every edgel, undistorted pixels.
+    pub edgels: Vec<TraceEdgel>,
+    /// The line hypotheses, best supported first.
+    pub lines: Vec<TraceLine>,
+    /// Every pair of lines within 25° of parallel.
+    pub pairs: Vec<TracePair>,
+}

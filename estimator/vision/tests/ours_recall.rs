@@ -1,0 +1,145 @@
+//! The recall mechanisms of our shaft detector on synthetic images (`vision::synth`): the
+//! colour tests' contrast normalisation under haze, a shaft split by a second instrument
+//! crossing in front found whole, and the stage trace (`OursDetector::detect_traced`).
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
+
+use estimator::calib::Intrinsics;
+use nalgebra::Vector2;
+use vision::ours::{OursConfig, OursDetector, PairOutcome};
+use vision::synth::{Cylinder, Scene, render};
+use vision::{RgbView, ShaftDetection, ShaftDetector};
+
+fn camera() -> Intrinsics {
+    vision::synth::endoscope_camera()
+}
+
+/// A shaft whose distal end is at the measured pixel `tip_px`, depth `z_m`, pointing away
+/// from the tip along the image direction `angle_deg`, tilted in depth by `tilt_deg`.
+fn shaft(k: &Intrinsics, tip_px: [f64; 2], z_m: f64, angle_deg: f64, tilt_deg: f64) -> Cylinder {
+    let p = k.undistort_px(&Vector2::new(tip_px[0], tip_px[1]));
+    let (x, y) = ((p.x - k.cx) / k.fx * z_m, (p.y - k.cy) / k.fy * z_m);
+    let (a, t) = (angle_deg.to_radians(), tilt_deg.to_radians());
+    Cylinder {
+        point_m: [x, y, z_m],
+        direction: [a.cos() * t.cos(), a.sin() * t.cos(), t.sin()],
+        radius_m: 0.004,
+        extent_m: [0.0, 0.4],
+        albedo: 0.8,
+    }
+}
+
+fn scene(shafts: Vec<Cylinder>, seed: u64) -> Scene {
+    Scene { shafts, seed, vessels: true, folds: true, noise: 4.0 }
+}
+
+/// Haze over the whole image: `I·T + A·(1 − T)` per channel (8-bit), then rounded.
+fn haze(img: &mut [u8], transmittance: f64, airlight: [f64; 3]) {
+    for px in img.chunks_exact_mut(3) {
+        for (v, a) in px.iter_mut().zip(airlight) {
+            *v = (f64::from(*v) * transmittance + a * (1.0 - transmittance)).round().clamp(0.0, 255.0) as u8;
+        }
+    }
+}
+
+fn run(k: &Intrinsics, cfg: OursConfig, img: &[u8]) -> Vec<ShaftDetection> {
+    let mut det = OursDetector::new(*k, cfg).unwrap();
+    det.detect(&RgbView::new(k.width as usize, k.height as usize, img).unwrap()).unwrap()
+}
+
+/// Angle (degrees) and offset (pixels, at the middle of the detected span) against `c`.
+fn errors(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> (f64, f64) {
+    let truth = c.axis_line(k).unwrap();
+    let (a, b) = (d.centreline.abc, truth.abc);
+    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
+    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
+    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
+    let mid = 0.5 * (m0 + m1);
+    (angle, truth.distance_px(mid.x, mid.y).abs())
+}
+
+/// The detection matching `c` (within 1° and 3 px), if any.
+fn matching<'a>(k: &Intrinsics, found: &'a [ShaftDetection], c: &Cylinder) -> Option<&'a ShaftDetection> {
+    found.iter().find(|d| {
+        let (a, o) = errors(k, d, c);
+        a < 1.0 && o < 3.0
+    })
+}
+
+const TRANSMITTANCE: f64 = 0.12;
+const AIRLIGHT: [f64; 3] = [190.0, 178.0, 172.0];
+
+#[test]
+fn a_low_contrast_shaft_under_haze_is_found_only_with_the_contrast_normalisation() {
+    let k = camera();
+    let off = OursConfig { clear_chroma: 0.0, ..OursConfig::default() };
+    for (i, &(tip, z, angle, tilt)) in
+        [([300.0, 250.0], 0.08, 20.0, 10.0), ([250.0, 200.0], 0.1, 160.0, 20.0), ([350.0, 260.0], 0.07, -60.0, 0.0)]
+            .iter()
+            .enumerate()
+    {
+        let c = shaft(&k, tip, z, angle, tilt);
+        let mut img = render(&k, &scene(vec![c], 60 + i as u64));
+        haze(&mut img, TRANSMITTANCE, AIRLIGHT);
+        let with = run(&k, OursConfig::default(), &img);
+        let without = run(&k, off, &img);
+        let d = matching(&k, &with, &c);
+        assert!(d.is_some(), "tip {tip:?}: not found under haze with the normalisation: {with:?}");
+        let (ang, offset) = errors(&k, d.unwrap(), &c);
+        println!("haze tip={tip:?} angle={ang:.4}° offset={offset:.3}px n={}", with.len());
+        assert!(ang < 0.2 && offset < 0.5, "tip {tip:?}: angle {ang}°, offset {offset} px");
+        assert!(matching(&k, &without, &c).is_none(), "tip {tip:?}: found without the normalisation too");
+    }
+}
+
+#[test]
+fn hazy_tissue_alone_gives_no_detection() {
+    let k = camera();
+    for seed in 70..76 {
+        let mut img = render(&k, &scene(vec![], seed));
+        haze(&mut img, TRANSMITTANCE, AIRLIGHT);
+        let found = run(&k, OursConfig::default(), &img);
+        assert!(found.is_empty(), "seed {seed}: {found:?}");
+    }
+}
+
+#[test]
+fn a_shaft_split_by_a_crossing_instrument_is_found_whole() {
+    let k = camera();
+    // The first shaft from the middle of the image out through the left border; a second,
+    // nearer one (80 px wide) crosses it in front at about 70°, hiding about 85 px of it.
+    let first = shaft(&k, [430.0, 260.0], 0.09, 180.0, 8.0);
+    let second = shaft(&k, [270.0, 420.0], 0.04, -110.0, 0.0);
+    let img = render(&k, &scene(vec![first, second], 81));
+    let found = run(&k, OursConfig::default(), &img);
+    let d = matching(&k, &found, &first).expect("the crossed shaft is found");
+    let (ang, off) = errors(&k, d, &first);
+    let span = (d.ends_px[0][0] - d.ends_px[1][0]).hypot(d.ends_px[0][1] - d.ends_px[1][1]);
+    println!("crossed: span {span:.0} px, angle {ang:.4}°, offset {off:.3} px, n={}", found.len());
+    assert!(ang < 0.1 && off < 0.3, "angle {ang}°, offset {off} px");
+    // Whole: from the distal end (x ≈ 430) past the crossing (x ≈ 230–310) to near the left
+    // border, not only one side of the crossing.
+    let xs = [d.ends_px[0][0], d.ends_px[1][0]];
+    let (lo, hi) = (xs[0].min(xs[1]), xs[0].max(xs[1]));
+    assert!(hi > 415.0 && lo < 60.0, "span from x = {lo:.0} to {hi:.0}");
+}
+
+#[test]
+fn the_trace_records_the_returned_pair_and_matches_detect() {
+    let k = camera();
+    let c = shaft(&k, [300.0, 250.0], 0.08, 30.0, 10.0);
+    let img = render(&k, &scene(vec![c], 90));
+    let view = RgbView::new(k.width as usize, k.height as usize, &img).unwrap();
+    let mut det = OursDetector::new(k, OursConfig::default()).unwrap();
+    let plain = det.detect(&view).unwrap();
+    let (traced, trace) = det.detect_traced(&view).unwrap();
+    assert_eq!(plain, traced);
+    assert!(!plain.is_empty());
+    assert!(!trace.edgels.is_empty() && trace.lines.len() >= 2);
+    let returned: Vec<_> = trace.pairs.iter().filter(|p| matches!(p.outcome, PairOutcome::Returned(_))).collect();
+    assert_eq!(returned.len(), plain.len());
+    let best = returned.iter().find(|p| p.outcome == PairOutcome::Returned(0)).unwrap();
+    assert_eq!(best.centreline, Some(plain[0].centreline.abc));
+    assert!(best.lines.iter().all(|&l| l < trace.lines.len()));
+    // A second call without the trace gives the same again.
+    assert_eq!(det.detect(&view).unwrap(), plain);
+}

@@ -12,7 +12,9 @@
 //!   translation applied on the left of the left eye's `g_CB`).
 //! - **Motion** (Eq. 13): each joint moves by the encoders' increment since the previous
 //!   frame plus Gaussian noise of its own standard deviation; the jaw and `g_CB` by Gaussian
-//!   noise alone (a Brownian motion, the paper's footnote 1).
+//!   noise alone (a Brownian motion, the paper's footnote 1). Ours by default estimates the
+//!   kinematic error instead ([`OffsetMotion`]): the offset `joints − encoders`,
+//!   mean-reverting towards the kinematics with a time constant.
 //! - **Measurement**: [`Mode::Paper`]: Canny edges of both images, the virtual image of each
 //!   particle's silhouette (Algorithms 1-2), chamfer distance, `s = exp(−d/τ)`, `π =
 //!   sqrt(s_l² + s_r²)` (Eq. 14-16), resampling every frame (Algorithm 3). [`Mode::Ours`]:
@@ -22,7 +24,8 @@
 //!   the best hypothesis refined locally; all particles in parallel (rayon); no allocation per
 //!   frame after start-up.
 //! - **Status** ([`Status`]): `Tracking`, `Uncertain` (the particles' tip spread too wide),
-//!   `Lost` (the best hypothesis's cost above a threshold); after a few lost frames the
+//!   `Lost` (the best hypothesis's cost above a threshold; ours: its inlier share below one,
+//!   unless the prior holds it, [`OffsetMotion::prior_lost`]); after a few lost frames the
 //!   particles are re-initialised from the kinematics (the encoders' joints).
 //!
 //! A live process calls [`Tracker::step`] once per stereo frame.

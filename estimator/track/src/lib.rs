@@ -718,7 +718,8 @@ impl Tracker {
     }
 
     /// Processes one stereo frame: motion (the encoders' increment since the previous frame
-    /// plus noise), measurement, resampling, status. On error the state is unchanged.
+    /// plus noise; with [`OffsetMotion`] the offset from the encoders reverting over the time
+    /// since the previous frame), measurement, resampling, status. On error the state is unchanged.
     /// Allocation-free in [`Mode::Ours`].
     pub fn step(&mut self, input: &FrameInput<'_>) -> Result<Estimate, StepError> {
         if let Some(j) = input.encoder_rad.iter().position(|v| !v.is_finite()) {

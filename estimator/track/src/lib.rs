@@ -588,9 +588,9 @@ impl Tracker {
     fn prior_of(&self, p: &Particle, enc: &[f64; JOINTS]) -> (f64, f64) {
         let Some(m) = &self.cfg.offset_motion else { return (0.0, 0.0) };
         let (mut e, mut mx) = (0.0, 0.0f64);
-        for j in 0..JOINTS {
-            if m.stationary_rad[j] > 0.0 {
-                let z = (p.joints[j] - enc[j] - self.offset_mean[j]) / m.stationary_rad[j];
+        for (((q, y), mean), sig) in p.joints.iter().zip(enc).zip(&self.offset_mean).zip(&m.stationary_rad) {
+            if *sig > 0.0 {
+                let z = (q - y - mean) / sig;
                 e += 0.5 * z * z;
                 mx = mx.max(z.abs());
             }

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use hw_io::calib_files::TransformJson;
 use serde::Deserialize;
-use track::{Mode, TrackerConfig};
+use track::{Mode, OffsetMotion, PriorLost, RevertTo, TrackerConfig};
 
 /// The file's schema. Units are in the key names.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -23,6 +23,8 @@ pub struct TrackFile {
     pub measurement: MeasurementSection,
     /// Filter and status.
     pub filter: FilterSection,
+    /// Ours: the motion model.
+    pub motion: MotionSection,
     /// The camera rig and the starting camera-to-base transform (the live process).
     pub rig: RigSection,
     /// How sparse and how old the arms' joint readings may be (the live process).
@@ -164,6 +166,39 @@ pub struct MeasurementSection {
     pub canny: Option<[f32; 2]>,
 }
 
+/// `[motion]`'s `model`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MotionModel {
+    /// The kinematic error as state, mean-reverting (`track::OffsetMotion`; ours' default).
+    Offset,
+    /// Eq. 13's random walk on the joints (the paper's; `[noise] joint_rad`).
+    Joints,
+}
+
+/// `[motion]` (ours). `None`: the default of `track::OffsetMotion::default_ours`.
+#[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MotionSection {
+    /// `offset` (default in ours) or `joints`; the paper's mode accepts `joints` only.
+    pub model: Option<MotionModel>,
+    /// The offset's reversion time constant, seconds (> 0).
+    pub time_constant_s: Option<f64>,
+    /// The offset's stationary standard deviation per joint, radians (≥ 0): the expected
+    /// encoder and calibration error; the spread at (re-)initialisation.
+    pub stationary_rad: Option<[f64; 6]>,
+    /// `kinematics` (default) or `start`: what the offset returns to.
+    pub revert_to: Option<RevertTo>,
+    /// Frame period when frames carry no time, seconds (0 < period ≤ 10).
+    pub nominal_period_s: Option<f64>,
+    /// LOST with the prior: the most standard deviations a plausible offset is off its mean
+    /// (> 0).
+    pub prior_lost_max_sigma: Option<f64>,
+    /// LOST with the prior: the worse shaft contour line's smallest inlier share (0..1);
+    /// negative: the rule off (the inlier share alone decides).
+    pub prior_lost_line_share: Option<f64>,
+}
+
 /// `[filter]`.
 #[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -197,6 +232,7 @@ impl Default for TrackFile {
             noise: NoiseSection::default(),
             measurement: MeasurementSection::default(),
             filter: FilterSection::default(),
+            motion: MotionSection::default(),
             rig: RigSection::default(),
             joints: JointsSection::default(),
         }
@@ -282,6 +318,39 @@ impl TrackFile {
         if j.wait_ms.is_some_and(|v| !(v.is_finite() && (0.0..=10_000.0).contains(&v))) {
             return Err(bad("joints.wait_ms", "must be a number of milliseconds in [0, 10000]"));
         }
+        let m = &f.motion;
+        if f.mode == Mode::Paper && m.model == Some(MotionModel::Offset) {
+            return Err(bad("motion.model", "offset is ours only (the paper's mode: joints)"));
+        }
+        if let Some(v) = m.time_constant_s
+            && !(v.is_finite() && v > 0.0)
+        {
+            return Err(bad("motion.time_constant_s", "must be finite and positive"));
+        }
+        if let Some(v) = m.stationary_rad
+            && let Some(j) = v.iter().position(|x| !(x.is_finite() && *x >= 0.0))
+        {
+            return Err(ConfigFileError::Value {
+                path: path.to_owned(),
+                key: "motion.stationary_rad",
+                message: format!("element {j} must be finite and non-negative"),
+            });
+        }
+        if let Some(v) = m.nominal_period_s
+            && !(v.is_finite() && v > 0.0 && v <= 10.0)
+        {
+            return Err(bad("motion.nominal_period_s", "must be in (0, 10] seconds"));
+        }
+        if let Some(v) = m.prior_lost_max_sigma
+            && !(v.is_finite() && v > 0.0)
+        {
+            return Err(bad("motion.prior_lost_max_sigma", "must be finite and positive"));
+        }
+        if let Some(v) = m.prior_lost_line_share
+            && !(v.is_finite() && v <= 1.0)
+        {
+            return Err(bad("motion.prior_lost_line_share", "must be finite and at most 1 (negative: off)"));
+        }
         f.tracker(640, 480).validate().map_err(|e| ConfigFileError::Value {
             path: path.to_owned(),
             key: e.0,
@@ -364,6 +433,36 @@ impl TrackFile {
         if let Some(v) = f.seed {
             c.seed = v;
         }
+        let m = &self.motion;
+        c.offset_motion = match (self.mode, m.model) {
+            (Mode::Paper, _) | (_, Some(MotionModel::Joints)) => None,
+            (Mode::Ours, _) => {
+                let mut o = c.offset_motion.unwrap_or_else(OffsetMotion::default_ours);
+                if let Some(v) = m.time_constant_s {
+                    o.time_constant_s = v;
+                }
+                if let Some(v) = m.stationary_rad {
+                    o.stationary_rad = v;
+                }
+                if let Some(v) = m.revert_to {
+                    o.revert_to = v;
+                }
+                if let Some(v) = m.nominal_period_s {
+                    o.nominal_period_s = v;
+                }
+                let d =
+                    OffsetMotion::default_ours().prior_lost.unwrap_or(PriorLost { max_sigma: 3.0, line_share: 0.1 });
+                let mut pl = o.prior_lost.unwrap_or(d);
+                if let Some(v) = m.prior_lost_max_sigma {
+                    pl.max_sigma = v;
+                }
+                if let Some(v) = m.prior_lost_line_share {
+                    pl.line_share = v;
+                }
+                o.prior_lost = (pl.line_share >= 0.0).then_some(pl);
+                Some(o)
+            }
+        };
         c
     }
 }
@@ -415,5 +514,39 @@ mod tests {
         let r = f.joints.resolve(2000);
         assert_eq!(r.tool, Staleness { max_gap_ns: 50_000_000, max_age_ns: 40_000_000 });
         assert_eq!(r.wait, std::time::Duration::from_millis(200));
+    }
+
+    #[test]
+    fn motion_keys_are_checked_and_applied() {
+        let x = Path::new("x.toml");
+        for (text, key) in [
+            ("[motion]\ntime_constant_s = 0.0\n", "motion.time_constant_s"),
+            ("[motion]\ntime_constant_s = nan\n", "motion.time_constant_s"),
+            ("[motion]\nstationary_rad = [0.0, 0.0, -1.0, 0.0, 0.0, 0.0]\n", "motion.stationary_rad"),
+            ("[motion]\nnominal_period_s = 11.0\n", "motion.nominal_period_s"),
+            ("[motion]\nprior_lost_max_sigma = -1.0\n", "motion.prior_lost_max_sigma"),
+            ("[motion]\nprior_lost_line_share = 1.5\n", "motion.prior_lost_line_share"),
+            ("mode = \"paper\"\n[motion]\nmodel = \"offset\"\n", "motion.model"),
+            ("[motion]\nrevert_to = \"nowhere\"\n", "revert_to"),
+            ("[motion]\nbogus = 1\n", "bogus"),
+        ] {
+            let e = TrackFile::from_toml(text, x).unwrap_err().to_string();
+            assert!(e.contains(key), "{text:?}: {e}");
+        }
+        // Defaults: ours has the offset model, the paper's mode not.
+        let d = TrackFile::from_toml("", x).unwrap().tracker(640, 480);
+        assert_eq!(d.offset_motion, Some(OffsetMotion::default_ours()));
+        let p = TrackFile::from_toml("mode = \"paper\"\n", x).unwrap().tracker(640, 480);
+        assert_eq!(p.offset_motion, None);
+        let f = TrackFile::from_toml(
+            "[motion]\ntime_constant_s = 2.5\nrevert_to = \"start\"\nprior_lost_line_share = -1.0\n",
+            x,
+        )
+        .unwrap()
+        .tracker(640, 480);
+        let o = f.offset_motion.unwrap();
+        assert_eq!((o.time_constant_s, o.revert_to, o.prior_lost), (2.5, RevertTo::Start, None));
+        let j = TrackFile::from_toml("[motion]\nmodel = \"joints\"\n", x).unwrap().tracker(640, 480);
+        assert_eq!(j.offset_motion, None);
     }
 }

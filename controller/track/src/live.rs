@@ -629,7 +629,15 @@ impl LiveTracker {
             return self.refuse(Some(&meta), TrackReasons::NOT_FINITE | extra);
         }
         let first = !self.started;
-        let est = match step_frame(&mut self.tracker, &mut self.started, None, arms.tool_rad, cams, [left, right]) {
+        let est = match step_frame(
+            &mut self.tracker,
+            &mut self.started,
+            None,
+            arms.tool_rad,
+            cams,
+            [left, right],
+            Some(meta.timestamp_ns.saturating_add(u64::from(meta.exposure_ns / 2))),
+        ) {
             Ok(e) => e,
             Err(StepError::Encoder(_) | StepError::Cameras) => {
                 return self.refuse(Some(&meta), TrackReasons::NOT_FINITE | extra);

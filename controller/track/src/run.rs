@@ -107,6 +107,11 @@ pub struct FrameResult {
     pub effective_particles: Option<f64>,
     /// Ours: the best hypothesis's share of samples on a matching edge (both eyes' mean).
     pub inlier_share: Option<f64>,
+    /// Ours with the offset model's prior LOST rule: the worse shaft contour line's inlier
+    /// share (both eyes' mean), on frames whose inlier share was below the threshold.
+    pub line_share: Option<f64>,
+    /// Not LOST thanks to the prior (the visible shaft fits where the prior says it is).
+    pub held_by_prior: bool,
     /// Re-initialised from the kinematics at this frame.
     pub reinitialised: bool,
     /// Against the renderer's ground truth (when known and a pose was published): tip position
@@ -148,7 +153,9 @@ pub fn cameras(seq: &Sequence, ecm: &[f64; 4]) -> StereoCameras {
 
 /// One stereo frame through the tracker, as the offline run and the live process do it: the
 /// first frame initialises the particles about `start_joints` (default: the encoders' `enc`,
-/// radians), then [`Tracker::step`] with the cameras `cams` and the two eyes' sRGB images.
+/// radians), then [`Tracker::step`] with the cameras `cams`, the two eyes' sRGB images and the
+/// frame's mid-exposure time `time_ns` (nanoseconds, any epoch; the offset model's time step).
+#[allow(clippy::too_many_arguments)]
 pub fn step_frame(
     tracker: &mut Tracker,
     started: &mut bool,
@@ -156,6 +163,7 @@ pub fn step_frame(
     enc: [f64; 6],
     cams: StereoCameras,
     rgb: [&[u8]; 2],
+    time_ns: Option<u64>,
 ) -> Result<track::Estimate, track::StepError> {
     if !*started {
         if let Some(j) = enc.iter().position(|v| !v.is_finite()) {
@@ -164,7 +172,7 @@ pub fn step_frame(
         tracker.initialise(&start_joints.unwrap_or(enc), &enc);
         *started = true;
     }
-    tracker.step(&FrameInput { encoder_rad: enc, cameras: cams, rgb })
+    tracker.step(&FrameInput { encoder_rad: enc, cameras: cams, rgb, time_ns })
 }
 
 /// Where a run starts and what it writes.
@@ -233,6 +241,8 @@ pub fn track(
             best_cost_px: None,
             effective_particles: None,
             inlier_share: None,
+            line_share: None,
+            held_by_prior: false,
             reinitialised: false,
             error_mm: None,
             error_deg: None,
@@ -258,7 +268,15 @@ pub fn track(
         };
         let cams = cameras(seq, &ecm);
         let t0 = std::time::Instant::now();
-        let est = match step_frame(&mut tracker, &mut started, opts.start_joints, enc, cams, [&l.rgb, &r.rgb]) {
+        let est = match step_frame(
+            &mut tracker,
+            &mut started,
+            opts.start_joints,
+            enc,
+            cams,
+            [&l.rgb, &r.rgb],
+            Some(f.t_ns),
+        ) {
             Ok(e) => e,
             Err(e) => {
                 tracing::warn!(frame = f.index, "frame refused: {e}");
@@ -296,6 +314,8 @@ pub fn track(
             best_cost_px: est.best_cost_px.is_finite().then_some(est.best_cost_px),
             effective_particles: Some(est.effective_particles),
             inlier_share: Some(tracker.last_inlier_share()).filter(|v| v.is_finite()),
+            line_share: Some(tracker.last_line_share()).filter(|v| v.is_finite()),
+            held_by_prior: est.held_by_prior,
             reinitialised: est.reinitialised,
             error_mm: err.map(|e| e.0),
             error_deg: err.map(|e| e.1),

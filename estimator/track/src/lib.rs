@@ -12,7 +12,9 @@
 //!   translation applied on the left of the left eye's `g_CB`).
 //! - **Motion** (Eq. 13): each joint moves by the encoders' increment since the previous
 //!   frame plus Gaussian noise of its own standard deviation; the jaw and `g_CB` by Gaussian
-//!   noise alone (a Brownian motion, the paper's footnote 1).
+//!   noise alone (a Brownian motion, the paper's footnote 1). Ours by default estimates the
+//!   kinematic error instead ([`OffsetMotion`]): the offset `joints − encoders`,
+//!   mean-reverting towards the kinematics with a time constant.
 //! - **Measurement**: [`Mode::Paper`]: Canny edges of both images, the virtual image of each
 //!   particle's silhouette (Algorithms 1-2), chamfer distance, `s = exp(−d/τ)`, `π =
 //!   sqrt(s_l² + s_r²)` (Eq. 14-16), resampling every frame (Algorithm 3). [`Mode::Ours`]:
@@ -22,7 +24,8 @@
 //!   the best hypothesis refined locally; all particles in parallel (rayon); no allocation per
 //!   frame after start-up.
 //! - **Status** ([`Status`]): `Tracking`, `Uncertain` (the particles' tip spread too wide),
-//!   `Lost` (the best hypothesis's cost above a threshold); after a few lost frames the
+//!   `Lost` (the best hypothesis's cost above a threshold; ours: its inlier share below one,
+//!   unless the prior holds it, [`OffsetMotion::prior_lost`]); after a few lost frames the
 //!   particles are re-initialised from the kinematics (the encoders' joints).
 //!
 //! A live process calls [`Tracker::step`] once per stereo frame.
@@ -77,6 +80,75 @@ pub enum Status {
     Uncertain,
     /// The best hypothesis does not fit (likelihood collapse): no pose is published.
     Lost,
+}
+
+/// Where [`OffsetMotion`]'s mean-reverting offset returns to without image evidence.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RevertTo {
+    /// The kinematics: the offset `b = joints − encoders` returns to zero.
+    Kinematics,
+    /// The offset the particles were (re-)initialised with ([`Tracker::initialise`]'s
+    /// `centre − encoder_rad`): a start off the kinematics is kept as the prior's mean, so only
+    /// the images can move it (the paper's convergence protocol: vision alone).
+    Start,
+}
+
+/// Ours: the motion model of the kinematic error ("lumped error"). Each particle's state is
+/// the offset `b = joints − encoders` (per joint, radians; the jaw stays a random walk, it is
+/// not encoded), propagated between frames as a mean-reverting (Ornstein-Uhlenbeck, AR(1))
+/// process `b_k = m + ρ (b_{k−1} − m) + σ √(1 − ρ²) ε`, `ρ = exp(−Δt / time_constant_s)`, `m`
+/// the mean ([`RevertTo`]), `σ` the stationary standard deviation: without image evidence the
+/// estimate returns to the kinematics with the time constant, and what the images constrain
+/// is corrected by them. The random walk on absolute joints (Eq. 13) lets the estimate wander
+/// without bound along the directions the contours do not fix (along the shaft, its roll).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OffsetMotion {
+    /// Time constant of the reversion, seconds (> 0).
+    pub time_constant_s: f64,
+    /// Stationary standard deviation of the offset per joint, radians: the expected encoder
+    /// and calibration error; also the particles' spread at (re-)initialisation.
+    pub stationary_rad: [f64; JOINTS],
+    /// What the offset returns to.
+    pub revert_to: RevertTo,
+    /// Frame period assumed when a frame has no time ([`FrameInput::time_ns`]) or its time does
+    /// not advance, seconds.
+    pub nominal_period_s: f64,
+    /// LOST with the prior: a frame whose inlier share is below
+    /// [`TrackerConfig::lost_inlier_share`] is not LOST when the best hypothesis's offset is
+    /// within `max_sigma` stationary standard deviations of the mean on every joint and each of
+    /// the shaft's two contour lines fits (its share of in-image samples on a matching edge, the
+    /// worse line, mean of both eyes, at least `line_share`): the visible part fits where the
+    /// prior says the instrument is (half of it hidden from the tip end). `None`: the inlier
+    /// share alone.
+    pub prior_lost: Option<PriorLost>,
+}
+
+/// See [`OffsetMotion::prior_lost`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PriorLost {
+    /// Largest `|b_j − m_j| / σ_j` over the joints of a plausible offset.
+    pub max_sigma: f64,
+    /// Smallest inlier share of the worse shaft contour line (mean of both eyes), 0..1.
+    pub line_share: f64,
+}
+
+impl OffsetMotion {
+    /// Defaults (tuned on seeds 2 and 3 of `docs/tracking.md`).
+    pub fn default_ours() -> Self {
+        Self {
+            time_constant_s: 1.0,
+            stationary_rad: [0.002, 0.002, 0.002, 0.004, 0.004, 0.01],
+            revert_to: RevertTo::Kinematics,
+            nominal_period_s: 0.1,
+            prior_lost: Some(PriorLost { max_sigma: 3.0, line_share: 0.1 }),
+        }
+    }
+
+    /// `ρ` for a step of `dt_s` seconds.
+    pub fn rho(&self, dt_s: f64) -> f64 {
+        (-dt_s / self.time_constant_s).exp()
+    }
 }
 
 /// The tracker's parameters (units in each field).
@@ -136,8 +208,12 @@ pub struct TrackerConfig {
     pub hold_while_lost: bool,
     /// Ours: adaptive process noise `(good_px, max_scale)`: the motion noise is scaled by
     /// `clamp(c / good_px, 1, √max_scale)²` where `c` is the previous frame's best cost per
-    /// eye (pixels): a poor fit explores more. `None`: fixed noise (the paper).
+    /// eye (pixels): a poor fit explores more. `None`: fixed noise (the paper). Not applied
+    /// with [`TrackerConfig::offset_motion`] (its innovation is fixed by the prior).
     pub adaptive_noise: Option<(f64, f64)>,
+    /// Ours: the motion model of the kinematic error ([`OffsetMotion`]) instead of Eq. 13's
+    /// random walk on the joints; `None`: Eq. 13 (the paper's mode always).
+    pub offset_motion: Option<OffsetMotion>,
     /// Seed of the noise (runs are reproducible).
     pub seed: u64,
 }
@@ -177,6 +253,10 @@ impl TrackerConfig {
             adaptive_noise: match mode {
                 Mode::Paper => None,
                 Mode::Ours => Some((3.5, 16.0)),
+            },
+            offset_motion: match mode {
+                Mode::Paper => None,
+                Mode::Ours => Some(OffsetMotion::default_ours()),
             },
             seed: 1,
         }
@@ -238,6 +318,25 @@ impl TrackerConfig {
         {
             return Err(ConfigError("adaptive_noise (good_px > 0, max_scale >= 1)"));
         }
+        if let Some(m) = &self.offset_motion {
+            if self.mode == Mode::Paper {
+                return Err(ConfigError("offset_motion (ours only)"));
+            }
+            if !pos(m.time_constant_s) {
+                return Err(ConfigError("offset_motion.time_constant_s"));
+            }
+            if !m.stationary_rad.iter().all(|&v| nonneg(v)) {
+                return Err(ConfigError("offset_motion.stationary_rad"));
+            }
+            if !(pos(m.nominal_period_s) && m.nominal_period_s <= 10.0) {
+                return Err(ConfigError("offset_motion.nominal_period_s (0 < period <= 10 s)"));
+            }
+            if let Some(p) = m.prior_lost
+                && !(pos(p.max_sigma) && p.line_share.is_finite() && (0.0..=1.0).contains(&p.line_share))
+            {
+                return Err(ConfigError("offset_motion.prior_lost (max_sigma > 0, line_share 0..=1)"));
+            }
+        }
         Ok(())
     }
 }
@@ -256,6 +355,9 @@ pub struct FrameInput<'a> {
     pub cameras: StereoCameras,
     /// Left and right sRGB images, row-major, 3 bytes a pixel, `width × height`.
     pub rgb: [&'a [u8]; 2],
+    /// The frame's mid-exposure time, nanoseconds (any epoch, the same for every frame): the
+    /// time step of [`OffsetMotion`]; `None`: its nominal period.
+    pub time_ns: Option<u64>,
 }
 
 /// Why a frame was refused (the tracker's state is unchanged).
@@ -312,6 +414,9 @@ pub struct Estimate {
     pub effective_particles: f64,
     /// `true` when the particles were re-initialised from the kinematics at this frame.
     pub reinitialised: bool,
+    /// `true` when the inlier share alone would have made the frame LOST but the prior kept
+    /// it ([`OffsetMotion::prior_lost`]).
+    pub held_by_prior: bool,
 }
 
 fn mix(a: u64, b: u64) -> u64 {
@@ -335,8 +440,11 @@ pub struct Tracker {
     idx: Vec<usize>,
     fields: [EdgeField; 2],
     last_encoder: Option<[f64; JOINTS]>,
+    last_time_ns: Option<u64>,
+    offset_mean: [f64; JOINTS],
     last_cost_px: f64,
     last_inlier_share: f64,
+    last_line_share: f64,
     frame: u64,
     lost_run: u32,
     rng: ChaCha8Rng,
@@ -358,8 +466,11 @@ impl Tracker {
             idx: vec![0; n],
             fields: [EdgeField::new(cfg.width, cfg.height), EdgeField::new(cfg.width, cfg.height)],
             last_encoder: None,
+            last_time_ns: None,
+            offset_mean: [0.0; JOINTS],
             last_cost_px: 0.0,
             last_inlier_share: f64::NAN,
+            last_line_share: f64::NAN,
             frame: 0,
             lost_run: 0,
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
@@ -393,13 +504,40 @@ impl Tracker {
         self.last_inlier_share
     }
 
+    /// Ours with [`OffsetMotion::prior_lost`]: the best hypothesis's inlier share of its worse
+    /// shaft contour line (mean of both eyes, 0..1) on the last frame it was needed (a frame
+    /// whose inlier share was below the threshold); NaN otherwise.
+    pub fn last_line_share(&self) -> f64 {
+        self.last_line_share
+    }
+
+    /// Ours with [`OffsetMotion`]: the offset's mean `m` (radians per joint; zeros when it
+    /// returns to the kinematics).
+    pub fn offset_mean(&self) -> [f64; JOINTS] {
+        self.offset_mean
+    }
+
     /// Puts the particles about `centre` (joints, radians) with the configured initial spread
     /// (the first particle exactly at `centre`), the encoders reading `encoder_rad` now (the
     /// next frame's increment is taken from it). Used at start-up from the kinematics, and by
     /// the experiments from a perturbed start.
+    /// With [`OffsetMotion`] the spread is its stationary one and the next frame's time step is
+    /// zero (the particles are put at that frame), the offset's mean is zero or, reverting to
+    /// the start, `centre − encoder_rad`.
     pub fn initialise(&mut self, centre: &[f64; JOINTS], encoder_rad: &[f64; JOINTS]) {
+        self.init_particles(centre, encoder_rad);
+        self.last_time_ns = None;
+    }
+
+    fn init_particles(&mut self, centre: &[f64; JOINTS], encoder_rad: &[f64; JOINTS]) {
         let seed = mix(self.cfg.seed, 0xA11C_E000 + self.frame);
-        let spread = self.cfg.init_spread_rad;
+        let spread = self.cfg.offset_motion.map_or(self.cfg.init_spread_rad, |m| m.stationary_rad);
+        self.offset_mean = match self.cfg.offset_motion {
+            Some(OffsetMotion { revert_to: RevertTo::Start, .. }) => {
+                core::array::from_fn(|j| centre[j] - encoder_rad[j])
+            }
+            _ => [0.0; JOINTS],
+        };
         let jaw = self.cfg.jaw_init_rad;
         self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
             let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
@@ -415,6 +553,49 @@ impl Tracker {
         self.last_encoder = Some(*encoder_rad);
         self.last_cost_px = 0.0;
         self.lost_run = 0;
+    }
+
+    /// [`OffsetMotion`]'s step: each particle's offset from the previous encoders `prev`
+    /// reverts towards the mean by `rho` plus noise (`scale` × its innovation standard
+    /// deviation), and is put back on the current encoders `enc`; the jaw and `g_CB` as in
+    /// [`Tracker::diffuse`].
+    fn diffuse_offset(&mut self, m: &OffsetMotion, enc: &[f64; JOINTS], prev: &[f64; JOINTS], rho: f64, scale: f64) {
+        let seed = mix(mix(self.cfg.seed, self.frame), 1);
+        let innov = (1.0 - rho * rho).max(0.0).sqrt();
+        let sig: [f64; JOINTS] = core::array::from_fn(|j| m.stationary_rad[j] * innov);
+        let mean = self.offset_mean;
+        let (jsig, cam) = (self.cfg.jaw_noise_rad, self.cfg.camera_noise);
+        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
+            let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
+            for j in 0..JOINTS {
+                let b = p.joints[j] - prev[j];
+                let b = mean[j] + rho * (b - mean[j]) + scale * sig[j] * r.sample::<f64, _>(StandardNormal);
+                p.joints[j] = enc[j] + b;
+            }
+            p.jaw_rad = (p.jaw_rad + scale * jsig * r.sample::<f64, _>(StandardNormal)).clamp(0.0, 1.2);
+            if let Some([sr, st]) = cam {
+                for k in 0..6 {
+                    let s = if k < 3 { sr } else { st };
+                    p.camera_delta[k] += scale * s * r.sample::<f64, _>(StandardNormal);
+                }
+            }
+        });
+    }
+
+    /// Ours with [`OffsetMotion`]: `½ Σ ((b_j − m_j) / σ_j)²` of `p` against the encoders
+    /// `enc` (the prior's negative log density up to a constant), and the largest
+    /// `|b_j − m_j| / σ_j`; zeros without it (or for a joint with `σ_j = 0`).
+    fn prior_of(&self, p: &Particle, enc: &[f64; JOINTS]) -> (f64, f64) {
+        let Some(m) = &self.cfg.offset_motion else { return (0.0, 0.0) };
+        let (mut e, mut mx) = (0.0, 0.0f64);
+        for (((q, y), mean), sig) in p.joints.iter().zip(enc).zip(&self.offset_mean).zip(&m.stationary_rad) {
+            if *sig > 0.0 {
+                let z = (q - y - mean) / sig;
+                e += 0.5 * z * z;
+                mx = mx.max(z.abs());
+            }
+        }
+        (e, mx)
     }
 
     fn diffuse(&mut self, increment: &[f64; JOINTS], scale: f64, layer: u64) {
@@ -495,9 +676,16 @@ impl Tracker {
         true
     }
 
-    fn refine(&self, start: &Particle, start_cost: f64, cams: &StereoCameras) -> (Particle, f64) {
+    /// Coordinate descent on the best hypothesis; the objective is the cost plus, with
+    /// [`OffsetMotion`], τ × the prior's negative log density (the posterior's, as the weights
+    /// `exp(−c/τ)` are the likelihood): along what the images do not fix the prior decides.
+    /// Returns the refined hypothesis and its cost (without the prior term).
+    fn refine(&self, start: &Particle, start_cost: f64, cams: &StereoCameras, enc: &[f64; JOINTS]) -> (Particle, f64) {
+        let tau = self.cfg.tau_px;
+        let objective = |p: &Particle, c: f64| c + tau * self.prior_of(p, enc).0;
         let mut best = *start;
         let mut cost = start_cost;
+        let mut best_obj = objective(&best, cost);
         let mut steps = [0.0; JOINTS + 1];
         for (s, n) in steps.iter_mut().zip(&self.cfg.joint_noise_rad) {
             *s = 2.0 * n;
@@ -513,9 +701,11 @@ impl Tracker {
                         c.jaw_rad = (c.jaw_rad + sign * step).clamp(0.0, 1.2);
                     }
                     let k = measure::cost_ours(&self.model, cams, &self.fields, &c, &self.cfg.ours);
-                    if k < cost {
+                    let o = objective(&c, k);
+                    if o < best_obj {
                         best = c;
                         cost = k;
+                        best_obj = o;
                         break;
                     }
                 }
@@ -528,7 +718,8 @@ impl Tracker {
     }
 
     /// Processes one stereo frame: motion (the encoders' increment since the previous frame
-    /// plus noise), measurement, resampling, status. On error the state is unchanged.
+    /// plus noise; with [`OffsetMotion`] the offset from the encoders reverting over the time
+    /// since the previous frame), measurement, resampling, status. On error the state is unchanged.
     /// Allocation-free in [`Mode::Ours`].
     pub fn step(&mut self, input: &FrameInput<'_>) -> Result<Estimate, StepError> {
         if let Some(j) = input.encoder_rad.iter().position(|v| !v.is_finite()) {
@@ -580,16 +771,26 @@ impl Tracker {
                 }
             }
         }
-        // Motion (Eq. 13), or initialisation from the kinematics.
+        // Time step (the offset model's ρ).
+        let dt_s = match (input.time_ns, self.last_time_ns) {
+            (Some(t), Some(t0)) if t >= t0 => Some((t - t0) as f64 * 1e-9),
+            // The first timed frame after `initialise`: the particles were put at it.
+            (Some(_), None) => Some(0.0),
+            _ => None,
+        };
+        // Motion (Eq. 13 or the offset model), or initialisation from the kinematics.
         let mut reinitialised = false;
         match self.last_encoder {
             None => {
-                self.initialise(&input.encoder_rad, &input.encoder_rad);
+                self.init_particles(&input.encoder_rad, &input.encoder_rad);
                 reinitialised = true;
             }
             Some(prev) => {
                 let inc: [f64; JOINTS] = core::array::from_fn(|j| input.encoder_rad[j] - prev[j]);
                 let scale = match self.cfg.adaptive_noise {
+                    // The offset model's innovation is not scaled: after a poor fit the prior
+                    // decides (exploring beyond it is how the filter drifted onto clutter).
+                    _ if self.cfg.offset_motion.is_some() => 1.0,
                     // After a lost frame there was nothing to fit: no extra exploration while
                     // held on the kinematics (it finds the occluder's edges).
                     Some(_) if self.cfg.hold_while_lost && self.lost_run > 0 => 1.0,
@@ -599,10 +800,19 @@ impl Tracker {
                     Some((_, max)) => max,
                     None => 1.0,
                 };
-                self.diffuse(&inc, scale, 0);
+                match self.cfg.offset_motion {
+                    Some(m) => {
+                        let dt = dt_s.filter(|d| d.is_finite() && *d <= 10.0).unwrap_or(m.nominal_period_s);
+                        self.diffuse_offset(&m, &input.encoder_rad, &prev, m.rho(dt), scale);
+                    }
+                    None => self.diffuse(&inc, scale, 0),
+                }
             }
         }
         self.last_encoder = Some(input.encoder_rad);
+        if input.time_ns.is_some() {
+            self.last_time_ns = input.time_ns;
+        }
         self.evaluate(&cams);
         let (best_i, best_cost) = match self.cfg.mode {
             Mode::Ours => {
@@ -616,7 +826,24 @@ impl Tracker {
                     self.evaluate(&cams);
                 }
                 let ok = self.weights_from_costs(self.cfg.tau_px);
-                let bi = argmin(&self.costs);
+                let bi = if self.cfg.offset_motion.is_some() {
+                    // The posterior's best: the cost plus τ × the prior's term.
+                    let tau = self.cfg.tau_px;
+                    let enc = input.encoder_rad;
+                    let mut bi = argmin(&self.costs);
+                    let mut bo = self.costs[bi] + tau * self.prior_of(&self.particles[bi], &enc).0;
+                    for (i, (p, &c)) in self.particles.iter().zip(&self.costs).enumerate() {
+                        if c.is_finite() {
+                            let o = c + tau * self.prior_of(p, &enc).0;
+                            if o < bo {
+                                (bi, bo) = (i, o);
+                            }
+                        }
+                    }
+                    bi
+                } else {
+                    argmin(&self.costs)
+                };
                 if !ok { (bi, f64::INFINITY) } else { (bi, self.costs[bi]) }
             }
             Mode::Paper => {
@@ -646,7 +873,7 @@ impl Tracker {
         let mut best = self.particles[best_i];
         let mut best_cost = best_cost;
         if self.cfg.mode == Mode::Ours && self.cfg.refine_sweeps > 0 && best_cost.is_finite() {
-            let (p, c) = self.refine(&best, best_cost, &cams);
+            let (p, c) = self.refine(&best, best_cost, &cams, &input.encoder_rad);
             best = p;
             best_cost = c;
             // The refined hypothesis replaces the worst particle.
@@ -660,11 +887,24 @@ impl Tracker {
             Mode::Paper => best_cost,
         };
         self.last_cost_px = per_eye;
+        let mut held_by_prior = false;
+        self.last_line_share = f64::NAN;
         let lost = match (self.cfg.mode, self.cfg.lost_inlier_share) {
             (Mode::Ours, Some(min)) => {
                 let (c, inl) = measure::fit_ours(&self.model, &cams, &self.fields, &best, &self.cfg.ours);
                 self.last_inlier_share = 0.5 * (inl[0] + inl[1]);
-                !(c.is_finite() && self.last_inlier_share >= min)
+                let lost = !(c.is_finite() && self.last_inlier_share >= min);
+                match self.cfg.offset_motion.and_then(|m| m.prior_lost) {
+                    Some(pl) if lost && c.is_finite() => {
+                        // The visible part fits where the prior says the instrument is.
+                        let lines = measure::shaft_line_shares(&self.model, &cams, &self.fields, &best, &self.cfg.ours);
+                        self.last_line_share = 0.5 * (lines[0] + lines[1]);
+                        let plausible = self.prior_of(&best, &input.encoder_rad).1 <= pl.max_sigma;
+                        held_by_prior = plausible && self.last_line_share >= pl.line_share;
+                        !held_by_prior
+                    }
+                    _ => lost,
+                }
             }
             _ => !(per_eye.is_finite() && per_eye <= self.cfg.lost_cost_px),
         };
@@ -688,7 +928,10 @@ impl Tracker {
             self.lost_run += 1;
             if self.lost_run >= self.cfg.reinit_after_lost {
                 let run = self.lost_run;
-                self.initialise(&input.encoder_rad, &input.encoder_rad);
+                // Back to the kinematics (plus the offset's mean: zero unless it reverts to
+                // the start), with the initial (offset model: the stationary) spread.
+                let centre: [f64; JOINTS] = core::array::from_fn(|j| input.encoder_rad[j] + self.offset_mean[j]);
+                self.init_particles(&centre, &input.encoder_rad);
                 reinitialised = true;
                 if self.cfg.hold_while_lost {
                     // Stay on the kinematics while the instrument is not found.
@@ -705,6 +948,7 @@ impl Tracker {
             best_cost_px: per_eye,
             effective_particles: ess,
             reinitialised,
+            held_by_prior: held_by_prior && status != Status::Lost,
         })
     }
 

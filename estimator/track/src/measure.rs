@@ -161,6 +161,51 @@ pub(crate) fn fit_ours(
     (total, inl)
 }
 
+/// Ours: per eye, the inlier share (samples within [`INLIER_PX`] of a matching edge, of the
+/// samples inside the image) of the worse of the shaft's two contour lines of `p`; 0 for a
+/// line with fewer than `MIN_INSIDE / 2` samples inside the image, or without contour lines.
+/// Both lines fitting is what a shaft in view gives; a straight occluder border fits one.
+pub fn shaft_line_shares(
+    model: &ToolModel,
+    cams: &StereoCameras,
+    fields: &[EdgeField; 2],
+    p: &Particle,
+    c: &OursCost,
+) -> [f64; 2] {
+    let Some(t_b_i) = model.instrument_in_base(&p.joints) else { return [0.0; 2] };
+    let eyes = cams.eyes_from_base(&p.camera_delta);
+    let g = model.geometry();
+    let ns = c.shaft_samples.max(2);
+    let mut out = [0.0; 2];
+    for (e, o) in out.iter_mut().enumerate() {
+        let t_c_i = eyes[e] * t_b_i;
+        let a = t_c_i.translation.vector;
+        let u = t_c_i.rotation * Vector3::z();
+        let Some(offs) = shaft_contour_offsets(&a, &u, g.shaft_radius_m) else { continue };
+        let mut worst = f64::INFINITY;
+        for off in offs {
+            let (mut n, mut inl) = (0usize, 0usize);
+            let mut prev: Option<(f64, f64)> = None;
+            for s in 0..ns {
+                let t = -g.shaft_modelled_m * s as f64 / (ns - 1) as f64;
+                let q = project(&cams.intrinsics[e], &(a + off + u * t));
+                if let (Some(q), Some(pq)) = (q, prev) {
+                    let phi = (q.1 - pq.1).atan2(q.0 - pq.0);
+                    if let Some(v) = sample_cost(&fields[e], 0.5 * (q.0 + pq.0), 0.5 * (q.1 + pq.1), phi, c) {
+                        n += 1;
+                        inl += usize::from(v <= INLIER_PX);
+                    }
+                }
+                prev = q;
+            }
+            let share = if 2 * n < MIN_INSIDE { 0.0 } else { inl as f64 / n as f64 };
+            worst = worst.min(share);
+        }
+        *o = worst;
+    }
+    out
+}
+
 /// Our silhouette of a hypothesis in one eye (`eye`: 0 left, 1 right) as pixel points (measured
 /// pixels): the shaft's two contour lines and the tip parts' silhouette edges, each sampled
 /// densely (for overlays; allocates into `out`).

@@ -141,7 +141,12 @@ pub fn images(model: &ToolModel, cams: &StereoCameras, truth: &Particle, seed: u
 }
 
 pub fn input<'a>(cams: &StereoCameras, k: usize, imgs: &'a [Vec<u8>; 2]) -> FrameInput<'a> {
-    FrameInput { encoder_rad: joints(k), cameras: *cams, rgb: [&imgs[0], &imgs[1]] }
+    FrameInput {
+        encoder_rad: joints(k),
+        cameras: *cams,
+        rgb: [&imgs[0], &imgs[1]],
+        time_ns: Some(k as u64 * 100_000_000),
+    }
 }
 
 /// A joint offset that moves the tip by a few millimetres.

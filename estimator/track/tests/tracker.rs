@@ -303,7 +303,8 @@ fn ours_with_the_prior_is_not_lost_when_the_tip_end_is_hidden() {
         assert!(err < 2.0, "tip end hidden, frame {k}: {err:.2} mm");
         held += usize::from(e.held_by_prior);
     }
-    eprintln!("held by the prior: {held} of 6 frames");
+    // The frames are kept by the prior's rule, not by the inlier share alone (measured: 6 of 6).
+    assert!(held >= 3, "held by the prior at {held} of 6 frames");
     for _ in 0..2 {
         let imgs = occluded(&model, &cams, &truth(k), k as u32, |_| true);
         let e = step(&mut t, &imgs, &mut k);

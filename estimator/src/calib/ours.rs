@@ -269,10 +269,6 @@ struct Refined {
 /// merged (stopped and given that candidate's pose) instead of refined to the end.
 const MERGE_SIGMAS: f64 = 0.1;
 
-/// The robust refinement has converged when a step moves the pose by less than this many
-/// standard deviations (Mahalanobis, Gauss-Newton metric over the robust scale²).
-const CONVERGED_SIGMAS: f64 = 1e-3;
-
 fn whitened_norms(set: &PreparedSet, whiten: &[Matrix2<f64>], r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<f64> {
     set.obs.iter().zip(whiten).map(|(o, w)| (w * residual(set, o, r, t)).norm()).collect()
 }
@@ -334,8 +330,7 @@ fn refine(
                 let new_cost: f64 = whitened_norms(set, &whiten, &r_new, &t_new).iter().map(|n| huber(*n, c)).sum();
                 if new_cost <= cost {
                     small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
-                        || cost - new_cost <= 1e-14 * cost
-                        || step.dot(&(h * step)) < (CONVERGED_SIGMAS * scale).powi(2);
+                        || cost - new_cost <= 1e-14 * cost;
                     t = t_new;
                     r = orthonormalize(&r_new);
                     lambda = (lambda * 0.2).max(1e-9);

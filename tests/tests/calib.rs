@@ -401,3 +401,44 @@ fn right_eye_observations_use_the_stereo_transform() {
         OursError::Prepare(PrepareError::NoRightEye { index: 0 })
     );
 }
+
+#[test]
+fn cost_only_residual_and_shared_eq10_matrices_are_bit_identical() {
+    use estimator::calib::paper::{eq10_symmetric, refine_quaternion_sym};
+    use estimator::calib::residual::residual;
+    let d = data(3, 3, 0.01, NoiseUnits::Metre, 3);
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    let r =
+        Rotation3::from_euler_angles(0.1, -0.2, 0.3).into_inner() * d.truth.rotation.to_rotation_matrix().into_inner();
+    let t = d.truth.translation.vector + Vector3::new(0.01, -0.02, 0.005);
+    for o in &set.obs {
+        assert_eq!(residual(&set, o, &r, &t), residual_and_jacobian(&set, o, &r, &t).0);
+    }
+    let sym = eq10_symmetric(&set);
+    for q0 in [Vector4::new(1.0, 0.0, 0.0, 0.0), Vector4::new(0.3, -0.5, 0.2, 0.7)] {
+        let (a, ca, ia) = refine_quaternion(&set, &q0);
+        let (b, cb, ib) = refine_quaternion_sym(&sym, &q0);
+        assert_eq!((a, ca, ia), (b, cb, ib));
+    }
+}
+
+/// Starts that enter an already refined candidate's basin are merged into it: a user start at
+/// the result's own rotation is refined first and the linear start merges into it (or the
+/// reverse); either way the pose is the converged one, within a small fraction of its standard
+/// deviation of the solve without that start.
+#[test]
+fn merged_starts_give_the_converged_pose() {
+    for (units, seed) in [(NoiseUnits::Millimetre, 11), (NoiseUnits::Metre, 12)] {
+        let d = data(3, 3, 0.01, units, seed);
+        let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
+        let a = solve_ours(&d.setup, &d.observations, &cfg).unwrap();
+        let q = a.pose.rotation;
+        let with_start = OursConfig { initial_quaternion: Some([q.w, q.i, q.j, q.k]), ..cfg };
+        let b = solve_ours(&d.setup, &d.observations, &with_start).unwrap();
+        let mut dv = SVector::<f64, 6>::zeros();
+        dv.fixed_rows_mut::<3>(0).copy_from(&(b.pose.translation.vector - a.pose.translation.vector));
+        dv.fixed_rows_mut::<3>(3).copy_from(&(b.pose.rotation * a.pose.rotation.inverse()).scaled_axis());
+        let sigmas = dv.dot(&(a.covariance.try_inverse().unwrap() * dv)).sqrt();
+        assert!(sigmas < 0.05, "{units:?}: {sigmas} standard deviations apart");
+    }
+}

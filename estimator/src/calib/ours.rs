@@ -28,10 +28,11 @@ use nalgebra::{
 
 use super::KinematicNoise;
 use super::paper::{
-    PaperError, kronecker_rotation, linear_translation, refine_quaternion, translation_given_rotation, wxyz,
+    PaperError, eq10_symmetric, kronecker_rotation, linear_translation, refine_quaternion, refine_quaternion_sym,
+    translation_given_rotation, wxyz,
 };
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
-use super::residual::{damped_step, residual_and_jacobian, residual_covariance};
+use super::residual::{damped_step, residual, residual_and_jacobian, residual_covariance};
 use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected, tip_well_inside};
 use super::{Observation, Setup};
 
@@ -250,16 +251,26 @@ fn median(v: &mut [f64]) -> f64 {
 /// Median of the norm of a 2-D standard normal vector, `√(2 ln 2)`.
 const CHI2_MEDIAN: f64 = 1.177_410_022_515_474_6;
 
+#[derive(Clone)]
 struct Refined {
     r: Matrix3<f64>,
     t: Vector3<f64>,
     whiten: Vec<Matrix2<f64>>,
     scale: f64,
     iterations: usize,
+    /// Stopped because it came within [`MERGE_SIGMAS`] of this already refined candidate
+    /// (index into the caller's `done` list), whose pose it takes.
+    merged: Option<usize>,
 }
 
+/// A candidate whose refinement comes within this many standard deviations (Mahalanobis, the
+/// current Gauss-Newton metric over the robust scale²) of an already refined candidate of the
+/// same objective (same whitening) is in that candidate's basin and converges to it: it is
+/// merged (stopped and given that candidate's pose) instead of refined to the end.
+const MERGE_SIGMAS: f64 = 0.1;
+
 fn whitened_norms(set: &PreparedSet, whiten: &[Matrix2<f64>], r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<f64> {
-    set.obs.iter().zip(whiten).map(|(o, w)| (w * residual_and_jacobian(set, o, r, t).0).norm()).collect()
+    set.obs.iter().zip(whiten).map(|(o, w)| (w * residual(set, o, r, t)).norm()).collect()
 }
 
 fn robust_scale(norms: &[f64]) -> f64 {
@@ -268,13 +279,18 @@ fn robust_scale(norms: &[f64]) -> f64 {
 }
 
 /// Robust Levenberg-Marquardt from `(r0, t0)` with fixed whitening matrices.
+///
+/// `done`: converged candidates of the same objective (same `whiten`); when the refinement
+/// comes within [`MERGE_SIGMAS`] of one, it stops and returns that one's pose, `merged` set.
 fn refine(
     set: &PreparedSet,
     cfg: &OursConfig,
     whiten: Vec<Matrix2<f64>>,
     r0: Matrix3<f64>,
     t0: Vector3<f64>,
+    done: &[(Matrix3<f64>, Vector3<f64>)],
 ) -> Refined {
+    let mut merged = None;
     let mut r = r0;
     let mut t = t0;
     let mut iterations = 0;
@@ -326,9 +342,21 @@ fn refine(
             if !accepted || small {
                 break;
             }
+            // In the basin of an already refined candidate: merged.
+            let near = |(rj, tj): &(Matrix3<f64>, Vector3<f64>)| {
+                let mut d = Vector6::zeros();
+                d.fixed_rows_mut::<3>(0).copy_from(&(t - tj));
+                d.fixed_rows_mut::<3>(3).copy_from(&Rotation3::from_matrix_unchecked(r * rj.transpose()).scaled_axis());
+                d.dot(&(h * d)) <= (MERGE_SIGMAS * scale).powi(2)
+            };
+            if let Some(j) = done.iter().position(near) {
+                (r, t) = done[j];
+                merged = Some(j);
+                break;
+            }
         }
     }
-    Refined { r, t, whiten, scale, iterations }
+    Refined { r, t, whiten, scale, iterations, merged }
 }
 
 /// True when `pose` is within `sigmas` standard deviations (Mahalanobis, `fit`'s covariance)
@@ -380,12 +408,34 @@ fn pose_of(r: &Matrix3<f64>, t: &Vector3<f64>) -> Isometry3<f64> {
 /// ([`RESIDUAL_CAP_THRESHOLDS`]; a covariance whose determinant is not positive and finite
 /// contributes no log-determinant).
 fn candidate_nll(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>, s_ref: f64) -> f64 {
-    let c = cfg.huber_k * s_ref;
-    let cap = RESIDUAL_CAP_THRESHOLDS * c;
-    let s2 = s_ref * s_ref;
-    let mut total = 0.0;
+    nll_parts(set, cfg, r, t).nll(cfg, s_ref)
+}
+
+/// The parts of a candidate's [`candidate_nll`] that do not depend on the robust scale: each
+/// observation's whitened residual norm (its own covariance; pixels without a noise model) and
+/// the sum of the log-determinants and the detector's-rule terms. Computed once per pose.
+#[derive(Clone, Debug)]
+struct NllParts {
+    norms: Vec<f64>,
+    rest: f64,
+}
+
+impl NllParts {
+    /// The negative log-likelihood at robust scale `s_ref` ([`candidate_nll`]).
+    fn nll(&self, cfg: &OursConfig, s_ref: f64) -> f64 {
+        let c = cfg.huber_k * s_ref;
+        let cap = RESIDUAL_CAP_THRESHOLDS * c;
+        let s2 = s_ref * s_ref;
+        let quad: f64 = self.norms.iter().map(|e| huber(if e.is_finite() { e.min(cap) } else { cap }, c) / s2).sum();
+        quad + self.rest
+    }
+}
+
+fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> NllParts {
+    let mut norms = Vec::with_capacity(set.obs.len());
+    let mut rest = 0.0;
     for o in &set.obs {
-        let res = residual_and_jacobian(set, o, r, t).0;
+        let res = residual(set, o, r, t);
         let (e, logdet) = match &cfg.noise {
             Some(noise) => {
                 let cov = residual_covariance(set, o, r, t, noise);
@@ -395,16 +445,16 @@ fn candidate_nll(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vect
             }
             None => (res.norm(), 0.0),
         };
-        let n = if e.is_finite() { e.min(cap) } else { cap };
-        total += huber(n, c) / s2 + 0.5 * logdet;
+        norms.push(e);
+        rest += 0.5 * logdet;
         // With a noise model: that this line was recorded at all, given where this pose puts
         // the tool (the detector's rule; −ln P(kept | line), 0 where the first-order model
         // does not apply, a bounded penalty for a tip behind the camera).
         if let Some(noise) = &cfg.noise {
-            total -= kept_given_line_ln(set, o, r, t, noise, &SelectionConfig::default());
+            rest -= kept_given_line_ln(set, o, r, t, noise, &SelectionConfig::default());
         }
     }
-    total
+    NllParts { norms, rest }
 }
 
 /// The runner-up of the candidates (`costs` their [`candidate_nll`], `ib` the best): the most
@@ -436,7 +486,7 @@ fn runner_up(
     let flip = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(sight), core::f64::consts::PI).into_inner();
     let r_m = flip * best.r;
     let t_m = point_e - r_m * mean_p;
-    let refined = refine(set, cfg, whitening(set, cfg, &r_m, &t_m), r_m, t_m);
+    let refined = refine(set, cfg, whitening(set, cfg, &r_m, &t_m), r_m, t_m, &[]);
     let ok = refined.t.iter().chain(refined.r.iter()).all(|v| v.is_finite()) && distinct(&refined.r);
     if ok {
         let c = nll_of(&refined.r, &refined.t);
@@ -462,7 +512,7 @@ fn orthonormalize(r: &Matrix3<f64>) -> Matrix3<f64> {
 pub fn observation_residuals(set: &PreparedSet, pose: &Isometry3<f64>) -> Vec<Vector2<f64>> {
     let r = pose.rotation.to_rotation_matrix().into_inner();
     let t = pose.translation.vector;
-    set.obs.iter().map(|o| residual_and_jacobian(set, o, &r, &t).0).collect()
+    set.obs.iter().map(|o| residual(set, o, &r, &t)).collect()
 }
 
 /// Pixel residual statistics of pose `T_e_t` over prepared observations (unweighted).
@@ -640,8 +690,9 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     let mut extra: Vec<Matrix3<f64>> = Vec::new();
     if let Some(r_lin) = &linear {
         let mut minima: Vec<(f64, Matrix3<f64>)> = Vec::new();
+        let sym = eq10_symmetric(set);
         for g in cube_group() {
-            let (q, cost, _) = refine_quaternion(set, &wxyz(&UnitQuaternion::from_matrix(&(g * r_lin))));
+            let (q, cost, _) = refine_quaternion_sym(&sym, &wxyz(&UnitQuaternion::from_matrix(&(g * r_lin))));
             let r = q.to_rotation_matrix().into_inner();
             let seen =
                 |m: &Matrix3<f64>| Rotation3::from_matrix_unchecked(m.transpose() * r).angle() < DISTINCT_SOLUTION_RAD;
@@ -689,37 +740,72 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     };
     let r_w = *starts.last().unwrap_or(&Matrix3::identity());
     let w0 = whitening(set, cfg, &r_w, &t_of(&r_w));
-    let firsts: Vec<Refined> = starts
-        .iter()
-        .flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) })
-        .chain(extra.iter().copied())
-        .map(|r0| refine(set, cfg, w0.clone(), r0, t_of(&r0)))
-        .collect();
+    // Refined in turn; a candidate that enters the basin of one refined before it is merged
+    // into it (`Refined::merged`), and merged candidates share their target's later passes.
+    let mut firsts: Vec<Refined> = Vec::new();
+    let mut done: Vec<(Matrix3<f64>, Vector3<f64>)> = Vec::new();
+    let mut done_at: Vec<usize> = Vec::new();
+    for r0 in
+        starts.iter().flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) }).chain(extra.iter().copied())
+    {
+        let x = refine(set, cfg, w0.clone(), r0, t_of(&r0), &done);
+        match x.merged {
+            Some(j) => firsts.push(Refined {
+                iterations: x.iterations,
+                merged: Some(done_at[j]),
+                ..firsts[done_at[j]].clone()
+            }),
+            None => {
+                done.push((x.r, x.t));
+                done_at.push(firsts.len());
+                firsts.push(x);
+            }
+        }
+    }
     let finite = |x: &Refined| x.t.iter().chain(x.r.iter()).all(|v| v.is_finite());
-    let candidates: Vec<Refined> = if cfg.noise.is_none() {
-        firsts
+    // Each distinct pose's likelihood parts, computed once ([`NllParts`]); none when refining
+    // from a given pose (one candidate: nothing to compare).
+    let parts_of =
+        |x: &Refined| -> Option<NllParts> { (from.is_none() && finite(x)).then(|| nll_parts(set, cfg, &x.r, &x.t)) };
+    let nll_at = |p: &Option<NllParts>, x: &Refined, s: f64| match p {
+        Some(p) if s.is_finite() => p.nll(cfg, s),
+        None if from.is_some() && finite(x) => 0.0,
+        _ => f64::INFINITY,
+    };
+    let (candidates, parts): (Vec<Refined>, Vec<Option<NllParts>>) = if cfg.noise.is_none() {
+        let parts = firsts.iter().map(|x| if x.merged.is_some() { None } else { parts_of(x) }).collect();
+        (firsts, parts)
     } else {
         // A second pass with the whitening refreshed at each candidate's solution, for the
         // candidates within [`SECOND_PASS_MARGIN_NATS`] of the best after the first pass (the
         // others keep their first-pass pose and are compared as they are).
         let s0 = firsts.iter().filter(|x| finite(x)).map(|x| x.scale).fold(f64::INFINITY, f64::min);
-        let nll0: Vec<f64> = firsts
-            .iter()
-            .map(|x| if finite(x) && s0.is_finite() { candidate_nll(set, cfg, &x.r, &x.t, s0) } else { f64::INFINITY })
-            .collect();
+        let parts0: Vec<Option<NllParts>> =
+            firsts.iter().map(|x| if x.merged.is_some() { None } else { parts_of(x) }).collect();
+        let nll0: Vec<f64> =
+            firsts.iter().enumerate().map(|(i, x)| nll_at(&parts0[x.merged.unwrap_or(i)], x, s0)).collect();
         let best0 = nll0.iter().copied().fold(f64::INFINITY, f64::min);
-        firsts
-            .into_iter()
-            .zip(nll0)
-            .map(|(first, c)| {
-                if c > best0 + SECOND_PASS_MARGIN_NATS {
-                    return first;
-                }
-                let w1 = whitening(set, cfg, &first.r, &first.t);
-                let second = refine(set, cfg, w1, first.r, first.t);
-                Refined { whiten: w0.clone(), ..second }
-            })
-            .collect()
+        let mut seconds: Vec<Refined> = Vec::with_capacity(firsts.len());
+        let mut parts: Vec<Option<NllParts>> = Vec::with_capacity(firsts.len());
+        for (i, (first, c)) in firsts.into_iter().zip(nll0).enumerate() {
+            if let Some(j) = first.merged {
+                let iterations = first.iterations;
+                seconds.push(Refined { iterations, merged: Some(j), ..seconds[j].clone() });
+                parts.push(None);
+                continue;
+            }
+            if c > best0 + SECOND_PASS_MARGIN_NATS {
+                seconds.push(first);
+                parts.push(parts0[i].clone());
+                continue;
+            }
+            let w1 = whitening(set, cfg, &first.r, &first.t);
+            let second = refine(set, cfg, w1, first.r, first.t, &[]);
+            let second = Refined { whiten: w0.clone(), iterations: first.iterations + second.iterations, ..second };
+            parts.push(parts_of(&second));
+            seconds.push(second);
+        }
+        (seconds, parts)
     };
     // Candidates are compared by their likelihood on all observations, each with its own
     // residual covariance (the log-determinant keeps a pose from winning by inflating its
@@ -730,7 +816,7 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     }
     let nll_of = |r: &Matrix3<f64>, t: &Vector3<f64>| candidate_nll(set, cfg, r, t, s_ref);
     let costs: Vec<f64> =
-        candidates.iter().map(|x| if finite(x) { nll_of(&x.r, &x.t) } else { f64::INFINITY }).collect();
+        candidates.iter().enumerate().map(|(i, x)| nll_at(&parts[x.merged.unwrap_or(i)], x, s_ref)).collect();
     let ib = (0..candidates.len()).min_by(|a, b| costs[*a].total_cmp(&costs[*b])).unwrap_or(0);
     let best = &candidates[ib];
     let c_best = costs[ib];

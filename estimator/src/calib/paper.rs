@@ -205,14 +205,23 @@ pub fn eq10_w(n_e: &Vector3<f64>, m_t: &Vector3<f64>) -> Matrix4<f64> {
 /// Eq. 10: `argmin_q Σ (qᵀ W q / qᵀq)²` from `q0 = [w, x, y, z]` (any non-zero 4-vector).
 /// Returns the unit quaternion, the final cost and the iterations used.
 pub fn refine_quaternion(set: &PreparedSet, q0: &Vector4<f64>) -> (UnitQuaternion<f64>, f64, usize) {
-    let sym: std::vec::Vec<Matrix4<f64>> = set
-        .obs
+    refine_quaternion_sym(&eq10_symmetric(set), q0)
+}
+
+/// Each observation's symmetric part `(W + Wᵀ)/2` of Eq. 10's `W` ([`eq10_w`]): what
+/// [`refine_quaternion_sym`] needs, computed once for several starts.
+pub fn eq10_symmetric(set: &PreparedSet) -> std::vec::Vec<Matrix4<f64>> {
+    set.obs
         .iter()
         .map(|o| {
             let w = eq10_w(&o.n_e, &o.m_t);
             (w + w.transpose()) * 0.5
         })
-        .collect();
+        .collect()
+}
+
+/// [`refine_quaternion`] on precomputed [`eq10_symmetric`] matrices (same arithmetic).
+pub fn refine_quaternion_sym(sym: &[Matrix4<f64>], q0: &Vector4<f64>) -> (UnitQuaternion<f64>, f64, usize) {
     let cost_of = |q: &Vector4<f64>| -> f64 {
         let qq = q.dot(q);
         sym.iter().map(|s| (q.dot(&(s * q)) / qq).powi(2)).sum()
@@ -229,7 +238,7 @@ pub fn refine_quaternion(set: &PreparedSet, q0: &Vector4<f64>) -> (UnitQuaternio
         it += 1;
         let mut h = Matrix4::zeros();
         let mut g = Vector4::zeros();
-        for s in &sym {
+        for s in sym {
             // q is unit here: r = qᵀSq, ∇r = 2Sq − 2 r q.
             let sq = s * q;
             let r = q.dot(&sq);

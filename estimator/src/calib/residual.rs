@@ -61,6 +61,19 @@ pub fn residual_and_jacobian(
     (res, jac)
 }
 
+/// Residual pair (pixels) of observation `o` for pose `(R, t)`, without its Jacobian: the same
+/// arithmetic as [`residual_and_jacobian`]'s residual (bit-identical), for cost evaluations.
+pub fn residual(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Vector2<f64> {
+    let rm = r * o.m_t;
+    let rp = r * o.p_t;
+    let rt = o.r_ec.transpose();
+    let p_c = rt * (rp + t - o.o_ec);
+    let d_c = rt * rm;
+    let l = set.k_inv_t * p_c.cross(&d_c);
+    let s = (l.x * l.x + l.y * l.y).sqrt();
+    Vector2::new((l.x * o.px[0].x + l.y * o.px[0].y + l.z) / s, (l.x * o.px[1].x + l.y * o.px[1].y + l.z) / s)
+}
+
 /// Jacobian (pixels per metre / radian) of observation `o`'s residual pair w.r.t. the 18
 /// frame perturbations of the simulation protocol at pose `(R, t)`: `δ_ECM` right-multiplied
 /// on the ECM end effector, `δ_PSM2`, `δ_PSM3` on PSM frames 2 and 3, each `(ρ, φ)`.

@@ -46,7 +46,7 @@ use nalgebra::{
 use super::KinematicNoise;
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
-use super::residual::{Jac6, damped_step, noise_jacobian, residual_and_jacobian, residual_covariance};
+use super::residual::{Jac6, damped_step, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
 
 /// The predicted tool tip of an observation, seen by its camera.
 #[derive(Clone, Copy, Debug)]
@@ -601,7 +601,7 @@ pub fn kept_given_line_ln(
         Model::Plain(_) => 0.0,
         Model::Selected { gain, cond, segment: (u, s_lo, s_hi), .. } => {
             let Some(tp) = tip_pixel(set, o, r, t) else { return P_FLOOR.ln() };
-            let res = residual_and_jacobian(set, o, r, t).0;
+            let res = residual(set, o, r, t);
             let s_mean = (tp.px + gain * res - o.px[0]).dot(&u);
             let s_sd = u.dot(&(cond * u)).max(1e-12).sqrt();
             let p = normal_mass(((s_lo - s_mean) / s_sd).max(-40.0), ((s_hi - s_mean) / s_sd).min(40.0));
@@ -756,7 +756,7 @@ pub fn refine_selected(
             .zip(&models)
             .map(|(o, m)| match m {
                 Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) => {
-                    let e = residual_and_jacobian(set, o, &r, &t).0;
+                    let e = residual(set, o, &r, &t);
                     e.dot(&(srr_inv * e)) / 2.0
                 }
                 Model::Out => f64::NAN,
@@ -825,7 +825,7 @@ pub fn refine_selected(
         let (mut quad, mut dof) = (0.0f64, 0.0f64);
         for (o, m) in set.obs.iter().zip(&models) {
             if let Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) = m {
-                let e = residual_and_jacobian(set, o, &r, &t).0;
+                let e = residual(set, o, &r, &t);
                 quad += e.dot(&(srr_inv * e));
                 dof += 2.0;
             }

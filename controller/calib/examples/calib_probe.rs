@@ -1,0 +1,117 @@
+//! Diagnostic probe of our pipeline on the generalisation protocol's geometries: one line per
+//! trial with the pose errors, the outcome and the selection-aware stage's shift, and the
+//! solve time. For comparing builds (`diff` the outputs) and for looking at refusals.
+//!
+//! `cargo run --release -p comanip-calib --example calib_probe -- <first seed> <geometries>
+//! <trials> [mm|m] [sigma]` (tuning geometries: seeds 9000..9019).
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
+
+use estimator::calib::ours::{OursConfig, solve_ours_prepared};
+use estimator::calib::prepare::{PreparedSet, prepare};
+use estimator::calib::selection::{SelectionConfig, refine_selected};
+use nalgebra::{Isometry3, Matrix6, Vector6};
+
+/// Mahalanobis distance (in `cov`'s standard deviations) of `truth` from `pose`.
+fn mahalanobis(pose: &Isometry3<f64>, truth: &Isometry3<f64>, cov: &Matrix6<f64>) -> f64 {
+    let mut d = Vector6::zeros();
+    d.fixed_rows_mut::<3>(0).copy_from(&(truth.translation.vector - pose.translation.vector));
+    d.fixed_rows_mut::<3>(3).copy_from(&(truth.rotation * pose.rotation.inverse()).scaled_axis());
+    cov.try_inverse().map_or(f64::NAN, |i| d.dot(&(i * d)).max(0.0).sqrt())
+}
+
+/// The guarded fit (no selection stage), its error against the truth in its own standard
+/// deviations, and the selection stage without its run-away limit.
+fn diag(set: &PreparedSet, cfg: &OursConfig, truth: &Isometry3<f64>, seed: u64, k: u64) {
+    let err = |p: &Isometry3<f64>| {
+        (
+            (p.translation.vector - truth.translation.vector).norm() * 1e3,
+            (p.rotation.inverse() * truth.rotation).angle().to_degrees(),
+        )
+    };
+    let guarded = match solve_ours_prepared(set, &OursConfig { selection: None, ..*cfg }) {
+        Ok(g) => g,
+        Err(e) => {
+            println!("{seed} {k} error {e}");
+            return;
+        }
+    };
+    let (gt, gr) = err(&guarded.pose);
+    let sd_t = (guarded.covariance[(0, 0)] + guarded.covariance[(1, 1)] + guarded.covariance[(2, 2)]).sqrt() * 1e3;
+    let mg = mahalanobis(&guarded.pose, truth, &guarded.covariance);
+    let sel = SelectionConfig { max_shift_sigmas: f64::INFINITY, ..SelectionConfig::default() };
+    let stage = match refine_selected(set, &cfg.noise.unwrap(), &guarded.pose, &sel) {
+        Ok(f) => {
+            let (st, sr) = err(&f.pose);
+            let ms = mahalanobis(&f.pose, truth, &f.covariance);
+            format!(
+                "stage et {st:.2} er {sr:.3} shift {:.1} truth@{ms:.1}sd sel {} plain {} out {}",
+                f.shift_sigmas, f.selected, f.plain, f.left_out
+            )
+        }
+        Err(e) => format!("stage error {e}"),
+    };
+    println!(
+        "{seed} {k} n={} guarded et {gt:.2} er {gr:.3} sd_t {sd_t:.2} truth@{mg:.1}sd scale {:.2} kept {} | {stage}",
+        set.obs.len(),
+        guarded.scale,
+        guarded.guard_kept
+    );
+}
+use sim::calib::{CalibProtocol, NoiseUnits, generate_calibration, random_geometry};
+
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    let first: u64 = a.get(1).map_or(9000, |s| s.parse().unwrap());
+    let n: u64 = a.get(2).map_or(5, |s| s.parse().unwrap());
+    let trials: u64 = a.get(3).map_or(3, |s| s.parse().unwrap());
+    let units = match a.get(4).map(String::as_str) {
+        Some("m") => NoiseUnits::Metre,
+        _ => NoiseUnits::Millimetre,
+    };
+    let sigma: f64 = a.get(5).map_or(0.01, |s| s.parse().unwrap());
+    let mut total = 0.0;
+    for g in 0..n {
+        let seed = first + g;
+        let draw = random_geometry(seed, g % 2 == 1).unwrap();
+        for k in 0..trials {
+            let p = CalibProtocol {
+                geometry: draw.geometry,
+                n_e: 3,
+                n_t: 3,
+                sigma,
+                units,
+                pixel_sigma_px: 0.0,
+                seed: 1000 + k,
+            };
+            let d = generate_calibration(&p).unwrap();
+            let set = prepare(&d.setup, &d.observations).unwrap();
+            let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
+            let t0 = std::time::Instant::now();
+            let r = solve_ours_prepared(&set, &cfg);
+            let dt = t0.elapsed().as_secs_f64() * 1e3;
+            total += dt;
+            if std::env::var("DIAG").is_ok() {
+                diag(&set, &cfg, &d.truth, seed, k);
+                continue;
+            }
+            let line = match r {
+                Ok(r) => {
+                    let et = (r.pose.translation.vector - d.truth.translation.vector).norm() * 1e3;
+                    let er = (r.pose.rotation.inverse() * d.truth.rotation).angle().to_degrees();
+                    let stage = match (&r.selection, &r.selection_refused) {
+                        (Some(s), _) => format!("applied shift {:.2}", s.shift_sigmas),
+                        (None, Some(e)) => format!("refused {e}"),
+                        _ => "none".into(),
+                    };
+                    format!(
+                        "et {et:.4} mm er {er:.5} deg llr {:.2} kept {} | {stage}",
+                        r.log_likelihood_ratio, r.guard_kept
+                    )
+                }
+                Err(e) => format!("error {e}"),
+            };
+            println!("{seed} {k} n={} {line} | {dt:.1} ms", set.obs.len());
+        }
+    }
+    eprintln!("total solve time {total:.0} ms");
+}

@@ -5,7 +5,9 @@
 mod common;
 
 use common::*;
-use track::{Mode, OffsetMotion, Particle, RevertTo, Status, StepError, Tracker, TrackerConfig};
+use track::{
+    Mode, OffsetMotion, Particle, RevertTo, Status, StepError, StereoCameras, ToolModel, Tracker, TrackerConfig,
+};
 
 fn config(mode: Mode, particles: usize) -> TrackerConfig {
     let mut c = TrackerConfig::new(mode, W, H);
@@ -142,22 +144,32 @@ fn occluded(
     imgs
 }
 
+/// One step of `t` at frame `k` (then the next frame).
+fn step_at(t: &mut Tracker, cams: &StereoCameras, imgs: &[Vec<u8>; 2], k: &mut usize) -> track::Estimate {
+    let e = t.step(&input(cams, *k, imgs)).unwrap();
+    *k += 1;
+    e
+}
+
+/// Frames 0-2 with the whole instrument in view, none LOST; returns the next frame's index.
+fn three_frames_in_view(t: &mut Tracker, model: &ToolModel, cams: &StereoCameras) -> usize {
+    let mut k = 0;
+    for _ in 0..3 {
+        let p = Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] };
+        let imgs = images(model, cams, &p, k as u32);
+        assert_ne!(step_at(t, cams, &imgs, &mut k).status, Status::Lost, "in view, frame {k}");
+    }
+    k
+}
+
 #[test]
 fn ours_is_lost_when_hidden_not_when_half_hidden_and_tracks_again() {
     let model = model();
     let cams = cameras(&model);
     let mut t = Tracker::new(config(Mode::Ours, 300), model.clone()).unwrap();
     let truth = |k: usize| Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] };
-    let mut k = 0;
-    let step = |t: &mut Tracker, imgs: &[Vec<u8>; 2], k: &mut usize| {
-        let e = t.step(&input(&cams, *k, imgs)).unwrap();
-        *k += 1;
-        e
-    };
-    for _ in 0..3 {
-        let imgs = images(&model, &cams, &truth(k), k as u32);
-        assert_ne!(step(&mut t, &imgs, &mut k).status, Status::Lost, "in view, frame {k}");
-    }
+    let step = |t: &mut Tracker, imgs: &[Vec<u8>; 2], k: &mut usize| step_at(t, &cams, imgs, k);
+    let mut k = three_frames_in_view(&mut t, &model, &cams);
     // The shaft's far part hidden (its contour points 120..200 of each line, the tip parts
     // in view): not lost.
     for _ in 0..4 {
@@ -284,16 +296,8 @@ fn ours_with_the_prior_is_not_lost_when_the_tip_end_is_hidden() {
     let cams = cameras(&model);
     let mut t = Tracker::new(config(Mode::Ours, 300), model.clone()).unwrap();
     let truth = |k: usize| Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] };
-    let mut k = 0;
-    let step = |t: &mut Tracker, imgs: &[Vec<u8>; 2], k: &mut usize| {
-        let e = t.step(&input(&cams, *k, imgs)).unwrap();
-        *k += 1;
-        e
-    };
-    for _ in 0..3 {
-        let imgs = images(&model, &cams, &truth(k), k as u32);
-        assert_ne!(step(&mut t, &imgs, &mut k).status, Status::Lost, "in view, frame {k}");
-    }
+    let step = |t: &mut Tracker, imgs: &[Vec<u8>; 2], k: &mut usize| step_at(t, &cams, imgs, k);
+    let mut k = three_frames_in_view(&mut t, &model, &cams);
     let mut held = 0;
     for _ in 0..6 {
         let imgs = occluded(&model, &cams, &truth(k), k as u32, |i| i >= 400 || i % 200 < 100);

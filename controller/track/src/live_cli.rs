@@ -15,36 +15,57 @@ use crate::config::TrackFile;
 use crate::input::{iso, read_stereo, read_truth_rig};
 use crate::live::{BusJoints, FrameClock, LiveCounters, LiveTracker, LoopOptions, Rig, run as run_loop};
 
-/// The command line of `comanip-track live` (see `main.rs` for each option's meaning).
-#[derive(Clone, Debug)]
+/// The command line of `comanip-track live` (flattened into the command by `main.rs`).
+#[derive(Clone, Debug, clap::Args)]
 pub struct LiveArgs {
-    /// Left and right camera_info YAML (empty: the configuration's).
+    /// The left and right eyes' camera_info YAML (default: the configuration's
+    /// `[rig] cameras`).
+    #[arg(long, num_args = 2, value_names = ["LEFT", "RIGHT"])]
     pub cameras: Vec<PathBuf>,
-    /// Joints from this candump log instead of the bus.
-    pub candump: Option<PathBuf>,
-    /// Frame time + this = the log's clock, nanoseconds.
-    pub candump_offset_ns: i64,
-    /// Map frames to the log's clock by their sequence number in this frames.txt.
-    pub candump_frames_index: Option<PathBuf>,
-    /// The bus interface (default: fulcrumd's configuration's).
+    /// The bus interface the passive listener opens (default: fulcrumd's configuration's
+    /// `[bus] iface`).
+    #[arg(long, conflicts_with = "candump")]
     pub iface: Option<String>,
-    /// The rig from a simulated run's truth.jsonl header.
+    /// Both arms' joints from a recorded candump log replayed through the bus listener
+    /// instead of the bus (replays, tests).
+    #[arg(long)]
+    pub candump: Option<PathBuf>,
+    /// Added to each frame's timestamp to get the candump log's clock, nanoseconds (0: the
+    /// frames carry the log's clock, as `comanip-camera images` plays a recorded run).
+    #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
+    pub candump_offset_ns: i64,
+    /// Instead of an offset: a frame's time on the log's clock is the recorded time of its
+    /// sequence number in this frames.txt (frames played with `comanip-camera images
+    /// --paced`, stamped live).
+    #[arg(long, requires = "candump", conflicts_with = "candump_offset_ns")]
+    pub candump_frames_index: Option<PathBuf>,
+    /// Take the rig (hand-eye, the endoscope arm in the tool arm's base, the instrument) from
+    /// a simulated run's truth.jsonl header (an exact calibration) instead of the config.
+    #[arg(long)]
     pub rig_from_truth: Option<PathBuf>,
     /// Frame service.
+    #[arg(long, default_value = hw_io::ipc::DEFAULT_FRAME_SERVICE)]
     pub frame_service: String,
-    /// Calibration service.
+    /// Calibration service (`comanip-calib live`).
+    #[arg(long, default_value = hw_io::ipc::DEFAULT_CALIBRATION_SERVICE)]
     pub calibration_service: String,
     /// Output service.
+    #[arg(long, default_value = hw_io::ipc::DEFAULT_TRACK_SERVICE)]
     pub output_service: String,
     /// Stop after this many frames.
+    #[arg(long)]
     pub frames: Option<u64>,
-    /// Idle timeout after the first frame, seconds.
+    /// Stop when no frame came for this long after the first one, seconds (default: never).
+    #[arg(long)]
     pub idle_timeout_s: Option<f64>,
-    /// Seconds between status lines.
+    /// Seconds between two status lines on the log.
+    #[arg(long, default_value_t = 5.0)]
     pub status_every_s: f64,
-    /// Summary JSON.
+    /// Write the run's summary here (JSON) at exit.
+    #[arg(long)]
     pub summary_json: Option<PathBuf>,
-    /// Every sample as JSON Lines.
+    /// Also write every published sample here (JSON Lines), for tests and offline checks.
+    #[arg(long)]
     pub samples_jsonl: Option<PathBuf>,
 }
 

@@ -95,55 +95,8 @@ enum Command {
     /// The live process: frames from the frame service, both arms' joints from the bus, the
     /// calibration from `comanip-calib live`; one TrackSample per frame on the track service.
     Live {
-        /// The left and right eyes' camera_info YAML (default: the configuration's
-        /// `[rig] cameras`).
-        #[arg(long, num_args = 2, value_names = ["LEFT", "RIGHT"])]
-        cameras: Vec<PathBuf>,
-        /// The bus interface the passive listener opens (default: fulcrumd's configuration's
-        /// `[bus] iface`).
-        #[arg(long, conflicts_with = "candump")]
-        iface: Option<String>,
-        /// Both arms' joints from a recorded candump log replayed through the bus listener
-        /// instead of the bus (replays, tests).
-        #[arg(long)]
-        candump: Option<PathBuf>,
-        /// Added to each frame's timestamp to get the candump log's clock, nanoseconds (0: the
-        /// frames carry the log's clock, as `comanip-camera images` plays a recorded run).
-        #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
-        candump_offset_ns: i64,
-        /// Instead of an offset: a frame's time on the log's clock is the recorded time of its
-        /// sequence number in this frames.txt (frames played with `comanip-camera images
-        /// --paced`, stamped live).
-        #[arg(long, requires = "candump", conflicts_with = "candump_offset_ns")]
-        candump_frames_index: Option<PathBuf>,
-        /// Take the rig (hand-eye, the endoscope arm in the tool arm's base, the instrument) from
-        /// a simulated run's truth.jsonl header (an exact calibration) instead of the config.
-        #[arg(long)]
-        rig_from_truth: Option<PathBuf>,
-        /// Frame service.
-        #[arg(long, default_value = hw_io::ipc::DEFAULT_FRAME_SERVICE)]
-        frame_service: String,
-        /// Calibration service (`comanip-calib live`).
-        #[arg(long, default_value = hw_io::ipc::DEFAULT_CALIBRATION_SERVICE)]
-        calibration_service: String,
-        /// Output service.
-        #[arg(long, default_value = hw_io::ipc::DEFAULT_TRACK_SERVICE)]
-        output_service: String,
-        /// Stop after this many frames.
-        #[arg(long)]
-        frames: Option<u64>,
-        /// Stop when no frame came for this long after the first one, seconds (default: never).
-        #[arg(long)]
-        idle_timeout_s: Option<f64>,
-        /// Seconds between two status lines on the log.
-        #[arg(long, default_value_t = 5.0)]
-        status_every_s: f64,
-        /// Write the run's summary here (JSON) at exit.
-        #[arg(long)]
-        summary_json: Option<PathBuf>,
-        /// Also write every published sample here (JSON Lines), for tests and offline checks.
-        #[arg(long)]
-        samples_jsonl: Option<PathBuf>,
+        #[command(flatten)]
+        args: comanip_track::live_cli::LiveArgs,
         #[command(flatten)]
         common: Common,
     },
@@ -582,40 +535,8 @@ fn run(cli: Cli) -> Result<(), String> {
             );
             Ok(())
         }
-        Command::Live {
-            cameras,
-            candump,
-            candump_offset_ns,
-            candump_frames_index,
-            iface,
-            rig_from_truth,
-            frame_service,
-            calibration_service,
-            output_service,
-            frames,
-            idle_timeout_s,
-            status_every_s,
-            summary_json,
-            samples_jsonl,
-            common,
-        } => {
+        Command::Live { args, common } => {
             let (file, fcfg) = setup(&common)?;
-            let args = comanip_track::live_cli::LiveArgs {
-                cameras,
-                candump,
-                candump_offset_ns,
-                candump_frames_index,
-                iface,
-                rig_from_truth,
-                frame_service,
-                calibration_service,
-                output_service,
-                frames,
-                idle_timeout_s,
-                status_every_s,
-                summary_json,
-                samples_jsonl,
-            };
             comanip_track::live_cli::run(&file, &fcfg, &args).map_err(|e| e.to_string())
         }
         Command::Monitor { service, format, out, count, idle_timeout_s, summary_json } => {

@@ -549,6 +549,111 @@ impl Periodic {
     }
 }
 
+// ---------------------------------------------------------------------------------------------
+// A worker thread below the threads that feed it
+
+/// Niceness added to a time-shared thread by [`lower_current_thread`] (the kernel's weight
+/// ratio per nice step is about 1.25: five steps give the other threads about 3× the CPU).
+pub const LOWER_NICE_STEPS: i32 = 5;
+
+/// What [`lower_current_thread`] did to the calling thread's scheduling.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Lowered {
+    /// A real-time thread (`SCHED_FIFO` or `SCHED_RR`, `policy` names it) moved from priority
+    /// `from` to `to` = `from` − 1, same policy.
+    RealTime {
+        /// `"SCHED_FIFO"` or `"SCHED_RR"`.
+        policy: &'static str,
+        /// Priority before (1..=99).
+        from: i32,
+        /// Priority after.
+        to: i32,
+    },
+    /// A time-shared thread (`SCHED_OTHER`, `SCHED_BATCH`) moved from niceness `from` to `to`
+    /// (at most 19).
+    Niced {
+        /// Niceness before (−20..=19).
+        from: i32,
+        /// Niceness after.
+        to: i32,
+    },
+    /// Nothing was changed; the reason says why (already at the lowest priority of its
+    /// policy, `SCHED_IDLE`, or a call the kernel refused).
+    Unchanged {
+        /// Why, for the log.
+        reason: String,
+    },
+}
+
+impl fmt::Display for Lowered {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::RealTime { policy, from, to } => write!(f, "{policy} priority {from} -> {to}"),
+            Self::Niced { from, to } => write!(f, "nice {from} -> {to}"),
+            Self::Unchanged { reason } => write!(f, "unchanged: {reason}"),
+        }
+    }
+}
+
+/// Puts the calling thread (and every thread it creates afterwards, which inherit it) just
+/// below the process's other threads: a real-time thread one priority lower in the same policy,
+/// a time-shared one [`LOWER_NICE_STEPS`] nicer (per-thread niceness, Linux). Needs no
+/// privilege (lowering is always allowed). Used by the image processes: their bus listener
+/// thread keeps the process's priority, the heavy per-frame work runs below it, so a long
+/// frame never makes the listener fall behind the bus on a busy CPU (docs/hil.md). Never
+/// fails: a refusal is reported as [`Lowered::Unchanged`].
+pub fn lower_current_thread() -> Lowered {
+    // SAFETY: plain syscalls on the calling thread (pid 0); `param` is a valid out-pointer.
+    let policy = unsafe { libc::sched_getscheduler(0) };
+    if policy < 0 {
+        return Lowered::Unchanged { reason: format!("sched_getscheduler: {}", Errno::last()) };
+    }
+    let policy = policy & !SCHED_RESET_ON_FORK;
+    if policy == libc::SCHED_FIFO || policy == libc::SCHED_RR {
+        let name = if policy == libc::SCHED_FIFO { "SCHED_FIFO" } else { "SCHED_RR" };
+        let mut param = libc::sched_param { sched_priority: 0 };
+        // SAFETY: as above.
+        if unsafe { libc::sched_getparam(0, &mut param) } != 0 {
+            return Lowered::Unchanged { reason: format!("sched_getparam: {}", Errno::last()) };
+        }
+        let from = param.sched_priority;
+        if from <= 1 {
+            return Lowered::Unchanged { reason: format!("{name} priority {from} is already the lowest") };
+        }
+        let to = libc::sched_param { sched_priority: from - 1 };
+        // SAFETY: as above.
+        if unsafe { libc::sched_setscheduler(0, policy, &to) } != 0 {
+            return Lowered::Unchanged {
+                reason: format!("sched_setscheduler({name}, {}): {}", from - 1, Errno::last()),
+            };
+        }
+        return Lowered::RealTime { policy: name, from, to: from - 1 };
+    }
+    if policy == libc::SCHED_IDLE {
+        return Lowered::Unchanged { reason: "SCHED_IDLE is already below every other policy".into() };
+    }
+    // SAFETY: gettid has no arguments and cannot fail.
+    let tid = unsafe { libc::gettid() };
+    let Ok(who) = libc::id_t::try_from(tid) else {
+        return Lowered::Unchanged { reason: format!("thread id {tid} out of range") };
+    };
+    Errno::clear();
+    // SAFETY: as above; -1 is a valid niceness, hence the errno check.
+    let from = unsafe { libc::getpriority(libc::PRIO_PROCESS, who) };
+    if from == -1 && Errno::last_raw() != 0 {
+        return Lowered::Unchanged { reason: format!("getpriority: {}", Errno::last()) };
+    }
+    let to = (from + LOWER_NICE_STEPS).min(19);
+    if to == from {
+        return Lowered::Unchanged { reason: format!("nice {from} is already the lowest") };
+    }
+    // SAFETY: as above.
+    if unsafe { libc::setpriority(libc::PRIO_PROCESS, who, to) } != 0 {
+        return Lowered::Unchanged { reason: format!("setpriority(nice {to}): {}", Errno::last()) };
+    }
+    Lowered::Niced { from, to }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -805,6 +910,78 @@ mod tests {
     #[test]
     fn apply_refusal_path_in_a_child_process() {
         run_child("rt::tests::child_apply_refusal_path");
+    }
+
+    /// The niceness of the calling thread (Linux: per thread).
+    fn thread_nice() -> i32 {
+        // SAFETY: gettid cannot fail; getpriority on the calling thread's id.
+        let tid = libc::id_t::try_from(unsafe { libc::gettid() }).unwrap();
+        // SAFETY: as above.
+        unsafe { libc::getpriority(libc::PRIO_PROCESS, tid) }
+    }
+
+    /// The calling thread's (policy, priority).
+    fn thread_sched() -> (libc::c_int, libc::c_int) {
+        let mut q = libc::sched_param { sched_priority: 0 };
+        // SAFETY: pid 0 is the calling thread; `q` is a valid out-pointer.
+        assert_eq!(unsafe { libc::sched_getparam(0, &mut q) }, 0);
+        // SAFETY: as above.
+        (unsafe { libc::sched_getscheduler(0) }, q.sched_priority)
+    }
+
+    /// Sets the calling thread's policy and priority; true on success.
+    fn set_thread_sched(policy: libc::c_int, priority: libc::c_int) -> bool {
+        let p = libc::sched_param { sched_priority: priority };
+        // SAFETY: pid 0 is the calling thread; `p` is a valid sched_param.
+        unsafe { libc::sched_setscheduler(0, policy, &p) == 0 }
+    }
+
+    #[test]
+    fn a_lowered_thread_is_nicer_than_the_threads_beside_it_and_its_children_inherit() {
+        // On a fresh thread, so the test harness's threads keep their niceness.
+        std::thread::spawn(|| {
+            let before = thread_nice();
+            let sibling = std::thread::spawn(thread_nice);
+            let lowered = lower_current_thread();
+            let after = thread_nice();
+            let child = std::thread::spawn(thread_nice).join().unwrap();
+            assert_eq!(sibling.join().unwrap(), before, "a thread started before keeps its niceness");
+            if before >= 19 {
+                assert!(matches!(lowered, Lowered::Unchanged { .. }), "{lowered}");
+                assert_eq!(after, before);
+            } else {
+                assert_eq!(lowered, Lowered::Niced { from: before, to: (before + LOWER_NICE_STEPS).min(19) });
+                assert_eq!(after, (before + LOWER_NICE_STEPS).min(19));
+                assert_eq!(child, after, "threads created afterwards inherit it");
+            }
+            // Again and again: it saturates at 19 and then says so.
+            for _ in 0..8 {
+                lower_current_thread();
+            }
+            assert_eq!(thread_nice(), 19);
+            assert!(matches!(lower_current_thread(), Lowered::Unchanged { .. }));
+        })
+        .join()
+        .unwrap();
+    }
+
+    #[test]
+    fn a_lowered_real_time_thread_is_one_priority_below_in_the_same_policy() {
+        std::thread::spawn(|| {
+            if !set_thread_sched(libc::SCHED_RR, 10) {
+                eprintln!("SCHED_RR refused here ({}): the real-time path is not exercised", Errno::last());
+                return;
+            }
+            assert_eq!(lower_current_thread(), Lowered::RealTime { policy: "SCHED_RR", from: 10, to: 9 });
+            assert_eq!(thread_sched(), (libc::SCHED_RR, 9));
+            let child = std::thread::spawn(thread_sched);
+            assert_eq!(child.join().unwrap(), (libc::SCHED_RR, 9), "threads created afterwards inherit it");
+            assert!(set_thread_sched(libc::SCHED_FIFO, 1));
+            assert!(matches!(lower_current_thread(), Lowered::Unchanged { .. }), "FIFO 1 is the floor");
+            assert_eq!(thread_sched(), (libc::SCHED_FIFO, 1));
+        })
+        .join()
+        .unwrap();
     }
 
     #[test]

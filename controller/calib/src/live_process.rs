@@ -339,6 +339,14 @@ pub fn run(cfg: &Resolved, stop: &AtomicBool, request: &AtomicBool) -> Result<Li
     info!("listening on {} for the endoscope arm (passive: this process never sends)", file.bus.iface);
     let fopts = PublisherOptions { subscriber_buffer: cfg.fulcrumd.output.subscriber_buffer, ..Default::default() };
     let fulcrum = FulcrumReader::spawn(cfg.fulcrum_service.clone(), fopts)?;
+    // The collection and the solves run below the two reader threads started above: a solve
+    // (tens of milliseconds, more on a slow machine) never keeps them from the bus.
+    match controller::rt::lower_current_thread() {
+        controller::rt::Lowered::Unchanged { reason } => {
+            warn!(%reason, "the collecting thread could not be put below the bus listener")
+        }
+        l => info!(collecting_thread = %l, "the collecting thread runs below the bus and fulcrum readers"),
+    }
     let ipc_err = |service: &str, e: &dyn std::fmt::Display| LiveError::Ipc {
         service: service.to_string(),
         message: e.to_string(),

@@ -1003,6 +1003,10 @@ struct BusLog {
     tpdos_after_last_sync: u64,
     /// TPDOs in the whole log.
     tpdos: u64,
+    /// Frames other than SYNC and the overflow burst ([`OVERFLOW_COB_ID`]) from the burst's
+    /// first frame to the first SYNC after it (0 without a burst): frames that may have met the
+    /// daemon's full queue in the overflow scenario.
+    others_during_burst: u64,
 }
 
 impl BusLog {
@@ -1025,10 +1029,18 @@ fn bus_log(a: &Artifacts) -> BusLog {
     let mut r = CandumpReader::new(BufReader::new(f));
     let mut by_id = BTreeMap::new();
     let (mut after_last_sync, mut tpdos_after_last_sync, mut tpdos) = (0, 0, 0);
+    let (mut in_burst, mut others_during_burst) = (false, 0);
     while let Some(rec) = r.next_record().expect("bus.log is a candump log") {
         let fr = rec.timed.frame;
         let id = fr.id().raw() | if fr.is_extended() { 1 << 31 } else { 0 };
         *by_id.entry(id).or_insert(0) += 1;
+        if id == u32::from(OVERFLOW_COB_ID) {
+            in_burst = true;
+        } else if id == 0x080 {
+            in_burst = false;
+        } else if in_burst {
+            others_during_burst += 1;
+        }
         if id == 0x080 {
             after_last_sync = 0;
             tpdos_after_last_sync = 0;
@@ -1039,7 +1051,7 @@ fn bus_log(a: &Artifacts) -> BusLog {
             tpdos += tpdo;
         }
     }
-    BusLog { by_id, after_last_sync, tpdos_after_last_sync, tpdos }
+    BusLog { by_id, after_last_sync, tpdos_after_last_sync, tpdos, others_during_burst }
 }
 
 fn u(v: &Value) -> u64 {
@@ -1566,7 +1578,22 @@ fn hil_receive_queue_overflow_is_counted() {
     // have made its cycle incomplete without a missing TPDO on the bus (the cycles were checked
     // against the candump log, check_candump_replay).
     assert_eq!(bus.count(u32::from(OVERFLOW_COB_ID)), sent, "candump saw the whole burst");
-    assert_eq!(read + dropped, sent, "burst frames read + dropped = sent: {acq}");
+    // The kernel's count is of every frame it dropped, the burst's or not: a frame that arrived
+    // while the queue was full is dropped too. In the loaded guest an answer to the SYNC sent
+    // just before the stop can come after the burst's first frames (once: node 3's TPDO 51 ms
+    // late, landing after the burst): so each burst frame was read or dropped, and any drop
+    // beyond the burst is one of the other frames logged from the burst to the next SYNC.
+    let extra = (read + dropped)
+        .checked_sub(sent)
+        .unwrap_or_else(|| panic!("burst frames read + dropped >= sent: {read} + {dropped} < {sent}: {acq}"));
+    assert!(
+        extra <= bus.others_during_burst,
+        "{extra} drops beyond the burst, but only {} other frames on the bus during it: {acq}",
+        bus.others_during_burst
+    );
+    if extra > 0 {
+        eprintln!("{extra} of the {} other frames during the burst met the full queue", bus.others_during_burst);
+    }
     // Reported while running (the periodic warning, or the last one at exit), with the total.
     assert!(
         log.contains("CAN frames dropped by the kernel") && log.contains(&format!("; {dropped} since start-up)")),

@@ -37,6 +37,10 @@ use serde_json::Value;
 use sim::score::Detected;
 use sim::truth_file::{At, TruthFile, score_detections};
 
+#[path = "support/workspace_bin.rs"]
+mod support;
+use support::workspace_bin;
+
 const FULCRUMD: &str = env!("CARGO_BIN_EXE_fulcrumd");
 /// Set (to the artifacts directory) only in the guest run of a test.
 const SCENARIO_DIR_ENV: &str = "HIL_SCENARIO_DIR";
@@ -308,33 +312,6 @@ fn track_bin() -> PathBuf {
 fn camera_bin() -> PathBuf {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
     BIN.get_or_init(|| workspace_bin("comanip-camera", "comanip-camera")).clone()
-}
-
-/// Binary `bin` of workspace package `package`, built by cargo for the same profile as this
-/// test: `$CARGO build -p package --bin bin`; cargo rebuilds it only when stale.
-fn workspace_bin(package: &str, bin: &str) -> PathBuf {
-    let exe = std::env::current_exe().expect("current_exe");
-    // target/<profile dir>/deps/<this test>
-    let profile_dir = exe.parent().and_then(Path::parent).expect("test binary in target/<profile>/deps");
-    let target_dir = profile_dir.parent().expect("target dir");
-    let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
-        Some("debug") => "test".to_string(), // what `cargo test` builds binaries with
-        Some("release") => "release".to_string(),
-        Some(other) => other.to_string(),
-        None => panic!("unexpected target layout: {}", exe.display()),
-    };
-    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    let out = Command::new(&cargo)
-        .args(["build", "--quiet", "-p", package, "--bin", bin, "--profile", &profile])
-        .arg("--target-dir")
-        .arg(target_dir)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap_or_else(|e| panic!("running cargo to build {bin}: {e}"));
-    assert!(out.status.success(), "cargo build {bin} failed:\n{}", String::from_utf8_lossy(&out.stderr));
-    let path = profile_dir.join(bin);
-    assert!(path.is_file(), "{} was not built", path.display());
-    path
 }
 
 /// Where the artifacts of `test` go: under cargo's target tmp dir (not under /tmp: the guest

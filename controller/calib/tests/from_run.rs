@@ -3,34 +3,14 @@
 //! ground truth at each frame's time, and the command writes its report.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
-use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use comanip_calib::bus_run::read_run;
 use estimator::kinematics::Achilles;
 
-/// Builds `bin` of `package` with the profile of this test binary and returns its path (as
-/// `controller/tests/hil_vcan.rs` does).
-fn workspace_bin(package: &str, bin: &str) -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    let profile_dir = exe.parent().and_then(Path::parent).unwrap();
-    let target_dir = profile_dir.parent().unwrap();
-    let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
-        Some("debug") => "test".to_string(),
-        Some(other) => other.to_string(),
-        None => panic!("unexpected target layout: {}", exe.display()),
-    };
-    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    let out = Command::new(&cargo)
-        .args(["build", "--quiet", "-p", package, "--bin", bin, "--profile", &profile])
-        .arg("--target-dir")
-        .arg(target_dir)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "cargo build {bin}: {}", String::from_utf8_lossy(&out.stderr));
-    profile_dir.join(bin)
-}
+#[path = "../../tests/support/workspace_bin.rs"]
+mod support;
+use support::workspace_bin;
 
 #[test]
 fn bus_joints_match_the_frames_truth_and_the_report_is_written() {

@@ -10,28 +10,9 @@ use comanip_track::input::{Sequence, read_sequence};
 use comanip_track::live::{Incoming, MemoryFrame};
 use hw_io::frame::{FrameMeta, ImageLayout, PixelFormat};
 
-/// Builds `bin` of `package` with the profile of this test binary and returns its path (as
-/// `controller/calib/tests/from_run.rs` does).
-pub fn workspace_bin(package: &str, bin: &str) -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    let profile_dir = exe.parent().and_then(Path::parent).unwrap();
-    let target_dir = profile_dir.parent().unwrap();
-    let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
-        Some("debug") => "test".to_string(),
-        Some(other) => other.to_string(),
-        None => panic!("unexpected target layout: {}", exe.display()),
-    };
-    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    let out = Command::new(&cargo)
-        .args(["build", "--quiet", "-p", package, "--bin", bin, "--profile", &profile])
-        .arg("--target-dir")
-        .arg(target_dir)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "cargo build {bin}: {}", String::from_utf8_lossy(&out.stderr));
-    profile_dir.join(bin)
-}
+#[path = "../../../tests/support/workspace_bin.rs"]
+mod support;
+pub use support::workspace_bin;
 
 /// A rendered run in `dir/run` (bus.log, frames/).
 pub fn generate(dir: &Path) -> PathBuf {

@@ -908,3 +908,34 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         selection_refused: None,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::{add_weighted_gram, mirror_upper};
+    use crate::calib::residual::Jac6;
+    use nalgebra::Matrix6;
+
+    /// The upper-triangle Gauss-Newton sum, mirrored, is the full product's sum bit for bit.
+    #[test]
+    fn upper_triangle_gram_sum_is_the_full_sum_bit_for_bit() {
+        // Deterministic, irregular values over several magnitudes and both signs.
+        let mut x = 0.123_456_789_f64;
+        let mut next = || {
+            x = (x * 3.987_654_321 + 0.314_159).fract();
+            (x - 0.5) * 10f64.powi(((x * 7.0) as i32) - 3)
+        };
+        let mut full = Matrix6::zeros();
+        let mut upper = Matrix6::zeros();
+        for _ in 0..200 {
+            let j = Jac6::from_fn(|_, _| next());
+            let wgt = next().abs().min(1.0);
+            full += j.transpose() * j * wgt;
+            add_weighted_gram(&mut upper, &j, wgt);
+        }
+        mirror_upper(&mut upper);
+        for (a, b) in full.iter().zip(upper.iter()) {
+            assert_eq!(a.to_bits(), b.to_bits(), "{a} vs {b}");
+        }
+        assert!(full.iter().any(|v| *v != 0.0));
+    }
+}

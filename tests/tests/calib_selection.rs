@@ -7,6 +7,7 @@ use estimator::calib::ours::{OursConfig, solve_ours_prepared};
 use estimator::calib::prepare::prepare;
 use estimator::calib::selection::{
     SelectionConfig, SelectionError, box_probability, box_probability_gradient, normal_mass, selection_likelihood,
+    standard_bivariate_box,
 };
 use estimator::calib::{KinematicNoise, pose_errors};
 use nalgebra::{Isometry3, Matrix2, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3, Vector6};
@@ -88,6 +89,37 @@ fn box_probability_short_cuts_and_quadrature_match_a_fine_simpson_rule() {
         let (p, want) = (box_probability(&sneg, &lo, &hi), box_probability_by_simpson(&sneg, &lo, &hi));
         assert!(((p - want) / want).abs() < 3e-7, "box {lo:?}..{hi:?}: {p} vs Simpson {want}");
     }
+}
+
+#[test]
+fn standard_bivariate_box_matches_a_fine_simpson_rule() {
+    // Genz's algorithm (both of its branches, |r| below and above 0.925, either sign) against
+    // the Simpson reference, over boxes inside, across and in the tails of the distribution.
+    let rs = [0.0, 0.1, -0.29, 0.31, -0.6, 0.74, 0.8, -0.9, 0.93, -0.95, 0.99, -0.999];
+    let boxes = [
+        (-1.0, 2.0, -0.5, 3.0),
+        (-6.5, 6.5, -9.0, 9.0),
+        (2.0, 5.0, 1.5, 7.0),
+        (-5.0, -2.5, -2.6, -1.6),
+        (-0.3, 0.4, 3.0, 8.0),
+        (-7.0, -3.7, -1.3, 4.9),
+        (0.7, 2.1, -6.6, -6.4),
+        (-2.2, 4.3, 4.4, 10.0),
+    ];
+    let mut checked = 0;
+    for &r in &rs {
+        for &(a1, b1, a2, b2) in &boxes {
+            let s = Matrix2::new(1.0, r, r, 1.0);
+            let want = box_probability_by_simpson(&s, &Vector2::new(a1, a2), &Vector2::new(b1, b2));
+            let p = standard_bivariate_box(a1, b1, a2, b2, r);
+            let ok = if want > 1e-10 { ((p - want) / want).abs() < 3e-7 } else { (p - want).abs() < 1e-17 };
+            assert!(ok, "r {r}, box [{a1}, {b1}] × [{a2}, {b2}]: {p} vs Simpson {want}");
+            checked += 1;
+        }
+    }
+    assert_eq!(checked, rs.len() * boxes.len());
+    // Empty intervals hold nothing.
+    assert_eq!(standard_bivariate_box(1.0, 1.0, -1.0, 1.0, 0.5), 0.0);
 }
 
 #[test]

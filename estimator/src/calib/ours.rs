@@ -269,13 +269,32 @@ struct Refined {
 /// merged (stopped and given that candidate's pose) instead of refined to the end.
 const MERGE_SIGMAS: f64 = 0.1;
 
-fn whitened_norms(set: &PreparedSet, whiten: &[Matrix2<f64>], r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<f64> {
-    set.obs.iter().zip(whiten).map(|(o, w)| (w * residual(set, o, r, t)).norm()).collect()
+/// The robust scale of whitened residual norms (their median over that of a 2-D standard
+/// normal's norm, at least `1e-12`); `scratch` is overwritten.
+fn robust_scale_with(norms: &[f64], scratch: &mut Vec<f64>) -> f64 {
+    scratch.clear();
+    scratch.extend_from_slice(norms);
+    (median(scratch) / CHI2_MEDIAN).max(1e-12)
 }
 
-fn robust_scale(norms: &[f64]) -> f64 {
-    let mut v = norms.to_vec();
-    (median(&mut v) / CHI2_MEDIAN).max(1e-12)
+/// `h += jᵀ j · wgt` on the upper triangle only (each element the same arithmetic as the full
+/// product, so [`mirror_upper`] afterwards gives the full product's sum bit for bit).
+fn add_weighted_gram(h: &mut Matrix6<f64>, j: &super::residual::Jac6, wgt: f64) {
+    for b in 0..6 {
+        let (j0b, j1b) = (j[(0, b)], j[(1, b)]);
+        for a in 0..=b {
+            h[(a, b)] += (j[(0, a)] * j0b + j[(1, a)] * j1b) * wgt;
+        }
+    }
+}
+
+/// Copies the upper triangle of `h` onto its lower triangle.
+fn mirror_upper(h: &mut Matrix6<f64>) {
+    for b in 0..6 {
+        for a in 0..b {
+            h[(b, a)] = h[(a, b)];
+        }
+    }
 }
 
 /// Robust Levenberg-Marquardt from `(r0, t0)` with fixed whitening matrices.
@@ -297,27 +316,32 @@ fn refine(
     let mut scale = 1.0;
     {
         let mut lambda = 1e-4;
+        // Buffers reused by every iteration.
+        let mut norms = Vec::with_capacity(set.obs.len());
+        let mut evals = Vec::with_capacity(set.obs.len());
+        let mut scratch = Vec::with_capacity(set.obs.len());
         for _ in 0..cfg.max_iterations {
             iterations += 1;
             let mut h = Matrix6::zeros();
             let mut g = Vector6::zeros();
-            let mut norms = Vec::with_capacity(set.obs.len());
-            let mut evals = Vec::with_capacity(set.obs.len());
+            norms.clear();
+            evals.clear();
             for (o, w) in set.obs.iter().zip(&whiten) {
                 let (res, jac) = residual_and_jacobian(set, o, &r, &t);
                 let (e, j) = (w * res, w * jac);
                 norms.push(e.norm());
                 evals.push((e, j));
             }
-            scale = robust_scale(&norms);
+            scale = robust_scale_with(&norms, &mut scratch);
             let c = cfg.huber_k * scale;
             let mut cost = 0.0;
             for ((e, j), n) in evals.iter().zip(&norms) {
                 let wgt = if *n <= c { 1.0 } else { c / n };
-                h += j.transpose() * j * wgt;
+                add_weighted_gram(&mut h, j, wgt);
                 g += j.transpose() * e * wgt;
                 cost += huber(*n, c);
             }
+            mirror_upper(&mut h);
             let mut accepted = false;
             let mut small = false;
             while lambda < 1e10 {
@@ -327,7 +351,12 @@ fn refine(
                 };
                 let t_new = t + step.fixed_rows::<3>(0);
                 let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
-                let new_cost: f64 = whitened_norms(set, &whiten, &r_new, &t_new).iter().map(|n| huber(*n, c)).sum();
+                let new_cost: f64 = set
+                    .obs
+                    .iter()
+                    .zip(&whiten)
+                    .map(|(o, w)| huber((w * residual(set, o, &r_new, &t_new)).norm(), c))
+                    .sum();
                 if new_cost <= cost {
                     small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
                         || cost - new_cost <= 1e-14 * cost;
@@ -878,4 +907,35 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         selection: None,
         selection_refused: None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{add_weighted_gram, mirror_upper};
+    use crate::calib::residual::Jac6;
+    use nalgebra::Matrix6;
+
+    /// The upper-triangle Gauss-Newton sum, mirrored, is the full product's sum bit for bit.
+    #[test]
+    fn upper_triangle_gram_sum_is_the_full_sum_bit_for_bit() {
+        // Deterministic, irregular values over several magnitudes and both signs.
+        let mut x = 0.123_456_789_f64;
+        let mut next = || {
+            x = (x * 3.987_654_321 + 0.314_159).fract();
+            (x - 0.5) * 10f64.powi(((x * 7.0) as i32) - 3)
+        };
+        let mut full = Matrix6::zeros();
+        let mut upper = Matrix6::zeros();
+        for _ in 0..200 {
+            let j = Jac6::from_fn(|_, _| next());
+            let wgt = next().abs().min(1.0);
+            full += j.transpose() * j * wgt;
+            add_weighted_gram(&mut upper, &j, wgt);
+        }
+        mirror_upper(&mut upper);
+        for (a, b) in full.iter().zip(upper.iter()) {
+            assert_eq!(a.to_bits(), b.to_bits(), "{a} vs {b}");
+        }
+        assert!(full.iter().any(|v| *v != 0.0));
+    }
 }

@@ -28,8 +28,21 @@ fn dist_and_grad(l: &Vector3<f64>, u: &Vector2<f64>) -> (f64, nalgebra::RowVecto
     (r, g)
 }
 
+/// The image line `l` (homogeneous, ideal pixels) of the tool axis of observation `o` at pose
+/// `(R, t)`, from `a = R p + t − o_ec` (the line's point relative to the camera centre, metres,
+/// `{e}`) and `Rm` (its direction, `{e}`): `l = K⁻ᵀ R_ecᵀ (a × Rm)` (a rotation commutes with
+/// the cross product, so the point and direction need not be taken into the camera frame).
+fn image_line(set: &PreparedSet, o: &Prepared, a: &Vector3<f64>, rm: &Vector3<f64>) -> Vector3<f64> {
+    set.k_inv_t * o.r_ec.tr_mul(&a.cross(rm))
+}
+
 /// Residual pair (pixels) of observation `o` for pose `(R, t)` and its Jacobian w.r.t.
 /// `(t, δφ)`.
+///
+/// With `n = a × Rm` (`a = R p + t − o_ec`, `{e}`) and each residual `r_j = g_j l`,
+/// `l = K⁻ᵀ R_ecᵀ n`, the row is `vᵀ ∂n`, `v = R_ec K⁻¹ g_jᵀ`: `∂n/∂t = −[Rm]×` and, as
+/// `R ← exp(δφ^) R` moves both `Rp` and `Rm`, `∂n/∂δφ = [Rm]×[Rp]× − [a]×[Rm]×`; so with
+/// `c = v × Rm` the row is `(−c, c × Rp − (v × a) × Rm)`: cross products only.
 pub fn residual_and_jacobian(
     set: &PreparedSet,
     o: &Prepared,
@@ -38,25 +51,20 @@ pub fn residual_and_jacobian(
 ) -> (Vector2<f64>, Jac6) {
     let rm = r * o.m_t;
     let rp = r * o.p_t;
-    let rt = o.r_ec.transpose();
-    // The line's point (robot 2's RCM, or the fulcrum) and direction in the camera frame.
-    let p_c = rt * (rp + t - o.o_ec);
-    let d_c = rt * rm;
-    let nv = p_c.cross(&d_c);
-    let l = set.k_inv_t * nv;
-    let dn_dt = -skew(&d_c) * rt;
-    // R ← exp(δφ^) R moves both: ∂(Rm)/∂δφ = −[Rm]×, ∂(Rp)/∂δφ = −[Rp]×.
-    let dn_dphi = skew(&p_c) * rt * (-skew(&rm)) + skew(&d_c) * rt * skew(&rp);
-    let mut dn = SMatrix::<f64, 3, 6>::zeros();
-    dn.fixed_view_mut::<3, 3>(0, 0).copy_from(&dn_dt);
-    dn.fixed_view_mut::<3, 3>(0, 3).copy_from(&dn_dphi);
-    let dl = set.k_inv_t * dn;
+    let a = rp + t - o.o_ec;
+    let l = image_line(set, o, &a, &rm);
     let mut res = Vector2::zeros();
     let mut jac = Jac6::zeros();
     for j in 0..2 {
         let (rj, g) = dist_and_grad(&l, &o.px[j]);
         res[j] = rj;
-        jac.set_row(j, &(g * dl));
+        let v = o.r_ec * set.k_inv_t.tr_mul(&g.transpose());
+        let c = v.cross(&rm);
+        let dphi = c.cross(&rp) - v.cross(&a).cross(&rm);
+        for k in 0..3 {
+            jac[(j, k)] = -c[k];
+            jac[(j, k + 3)] = dphi[k];
+        }
     }
     (res, jac)
 }
@@ -66,10 +74,7 @@ pub fn residual_and_jacobian(
 pub fn residual(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Vector2<f64> {
     let rm = r * o.m_t;
     let rp = r * o.p_t;
-    let rt = o.r_ec.transpose();
-    let p_c = rt * (rp + t - o.o_ec);
-    let d_c = rt * rm;
-    let l = set.k_inv_t * p_c.cross(&d_c);
+    let l = image_line(set, o, &(rp + t - o.o_ec), &rm);
     let s = (l.x * l.x + l.y * l.y).sqrt();
     Vector2::new((l.x * o.px[0].x + l.y * o.px[0].y + l.z) / s, (l.x * o.px[1].x + l.y * o.px[1].y + l.z) / s)
 }

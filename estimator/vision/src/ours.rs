@@ -69,13 +69,21 @@
 //!    `long_span_px` must reach the image border (a shaft runs out of the view, a pair of jaws
 //!    does not): either contour's edges followed past the span (gaps up to 32 px), or a run
 //!    of 32 px of edges on a contour line past a gap of any length (the part behind a crossing
-//!    instrument). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
+//!    instrument); or be slender, at least `slender_span_widths` shaft widths long (a pair of
+//!    jaws is a few widths long at most; a shaft cut short by a crossing instrument, or whose
+//!    contours fade in a vignetted, defocused, hazy border region, keeps a slender part).
+//!    `ends_px` are the span's ends on the axis, mapped back to measured pixels.
 //!
-//! The best-ranked pairs (`3 · max_detections + 2`) are verified; the best-scoring consistent
-//! set is returned (score: confidence × √length), so a second instrument is a second valid
-//! pair, and a pair sharing a Hough line, a contour or the axis with a better one, or nearly
-//! parallel to it (within 10°) and lying in its strip, is dropped (two shafts do not lie over
-//! each other in the image).
+//! The best-ranked pairs (`3 · max_detections + 2`) are verified, not counting the pairs
+//! whose two lines both lie in the strip of a shaft already verified and nearly parallel to
+//! it (its duplicates: a near second instrument has several lines per contour, rim and
+//! highlights, whose pairs would otherwise fill the budget before the first instrument's
+//! pair is reached); the best-scoring consistent set is returned (score: confidence ×
+//! √length), so a second instrument is a second valid pair, and a pair sharing a Hough line,
+//! a contour or the axis with a better one, or nearly parallel to it (within 10°) and lying
+//! in its strip, or continuing it past an end of its span nearly in line (within 30°, from
+//! within half a width of that end: its wrist and jaws), is dropped (two shafts do not lie
+//! over each other in the image, and a crossing one does not start where another ends).
 //!
 //! [`OursDetector::detect_traced`] records what each stage did ([`OursTrace`]: edgels, line
 //! hypotheses, every candidate pair with the test that turned it down), for diagnostics.
@@ -1314,6 +1322,9 @@ mod tests {
         assert!(!within_strip(&shaft, &hough_line([120.0, 225.0], [280.0, 225.0])));
         // A contour of a crossing instrument through the strip at 30°: not.
         let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
-        assert!(!within_strip(&shaft, &hough_line([200.0 - 80.0 * c, 200.0 - 80.0 * s], [200.0 + 80.0 * c, 200.0 + 80.0 * s])));
+        assert!(!within_strip(
+            &shaft,
+            &hough_line([200.0 - 80.0 * c, 200.0 - 80.0 * s], [200.0 + 80.0 * c, 200.0 + 80.0 * s])
+        ));
     }
 }

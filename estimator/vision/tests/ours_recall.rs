@@ -1,6 +1,7 @@
 //! The recall mechanisms of our shaft detector on synthetic images (`vision::synth`): the
 //! colour tests' contrast normalisation under haze, a shaft split by a second instrument
-//! crossing in front found whole, and the stage trace (`OursDetector::detect_traced`).
+//! crossing in front found whole, a slender span inside the image passing the border test
+//! (a stub not), and the stage trace (`OursDetector::detect_traced`).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
@@ -156,7 +157,7 @@ fn a_slender_span_inside_the_image_passes_the_border_test_and_a_stub_does_not() 
         let img = render(&k, &scene(vec![c], 40 + i as u64));
         let found = run(&k, OursConfig::default(), &img);
         assert!(matching(&k, &found, &c).is_some(), "slender span at {angle}°: {found:?}");
-        assert!(matching(&k, &run(&k, off, &img), &c).is_none(), "border test off at {angle}°");
+        assert!(matching(&k, &run(&k, off, &img), &c).is_none(), "slender waiver off at {angle}°");
         // 16 mm (about 53 px, 2 widths): a stub, still turned down.
         c.extent_m = [0.0, 0.016];
         let img = render(&k, &scene(vec![c], 40 + i as u64));

@@ -17,6 +17,11 @@
 //! Separately it counts the missed frames whose top detection matches the second instrument,
 //! and those with a false detection (matching no instrument).
 //!
+//! With `SHAFT_DIAG_FRAMES` set in the environment, each missed frame (`MISS level family
+//! seed class ...`, with every ranked pair's outcome, `*` on the pairs of the true contours,
+//! `=1`/`=2` on those matching an instrument) and each frame without instrument 1 that has a
+//! false detection (`FALSE ...`) is printed to stderr: a debugging aid, not part of the tables.
+//!
 //! A diagnostic only: it runs on whatever set it is given, and is meant for the tuning set.
 
 use std::collections::BTreeMap;
@@ -214,7 +219,14 @@ pub fn run(
                         .filter(|p| p.rank.is_some())
                         .map(|p| format!("{:?}:{:?}", p.rank, p.outcome))
                         .collect();
-                    eprintln!("FALSE {} {} {} dets={:?} pairs=[{}]", level.key(), fam, frame.spec.seed, dets.iter().map(|d| (d.centreline.abc, d.confidence, d.ends_px)).collect::<Vec<_>>(), outs.join(" "));
+                    eprintln!(
+                        "FALSE {} {} {} dets={:?} pairs=[{}]",
+                        level.key(),
+                        fam,
+                        frame.spec.seed,
+                        dets.iter().map(|d| (d.centreline.abc, d.confidence, d.ends_px)).collect::<Vec<_>>(),
+                        outs.join(" ")
+                    );
                 }
             }
             let Some(i1) = frame.inst1.as_ref().filter(|t| t.eligible()) else { continue };

@@ -69,13 +69,21 @@
 //!    `long_span_px` must reach the image border (a shaft runs out of the view, a pair of jaws
 //!    does not): either contour's edges followed past the span (gaps up to 32 px), or a run
 //!    of 32 px of edges on a contour line past a gap of any length (the part behind a crossing
-//!    instrument). `ends_px` are the span's ends on the axis, mapped back to measured pixels.
+//!    instrument); or be slender, at least `slender_span_widths` shaft widths long (a pair of
+//!    jaws is a few widths long at most; a shaft cut short by a crossing instrument, or whose
+//!    contours fade in a vignetted, defocused, hazy border region, keeps a slender part).
+//!    `ends_px` are the span's ends on the axis, mapped back to measured pixels.
 //!
-//! The best-ranked pairs (`3 · max_detections + 2`) are verified; the best-scoring consistent
-//! set is returned (score: confidence × √length), so a second instrument is a second valid
-//! pair, and a pair sharing a Hough line, a contour or the axis with a better one, or nearly
-//! parallel to it (within 10°) and lying in its strip, is dropped (two shafts do not lie over
-//! each other in the image).
+//! The best-ranked pairs (`3 · max_detections + 2`) are verified, not counting the pairs
+//! whose two lines both lie in the strip of a shaft already verified and nearly parallel to
+//! it (its duplicates: a near second instrument has several lines per contour, rim and
+//! highlights, whose pairs would otherwise fill the budget before the first instrument's
+//! pair is reached); the best-scoring consistent set is returned (score: confidence ×
+//! √length), so a second instrument is a second valid pair, and a pair sharing a Hough line,
+//! a contour or the axis with a better one, or nearly parallel to it (within 10°) and lying
+//! in its strip, or continuing it past an end of its span nearly in line (within 30°, from
+//! within half a width of that end: its wrist and jaws), is dropped (two shafts do not lie
+//! over each other in the image, and a crossing one does not start where another ends).
 //!
 //! [`OursDetector::detect_traced`] records what each stage did ([`OursTrace`]: edgels, line
 //! hypotheses, every candidate pair with the test that turned it down), for diagnostics.
@@ -178,6 +186,12 @@ pub struct OursConfig {
     pub clear_chroma: f64,
     /// The least scale of the contrast thresholds under haze (default 0.4).
     pub min_contrast_scale: f64,
+    /// A visible span at least this many shaft widths long (the width between the contours
+    /// at the span's middle, undistorted pixels) is waived from the border test, as a span
+    /// of `long_span_px` is (default 4; infinite: off). A pair of jaws or a tapered tip is
+    /// at most a few widths long; a shaft cut short by a crossing instrument, or whose
+    /// contours fade before the border, keeps a slender straight part.
+    pub slender_span_widths: f64,
 }
 
 impl Default for OursConfig {
@@ -201,6 +215,7 @@ impl Default for OursConfig {
             long_span_px: 200.0,
             clear_chroma: 60.0,
             min_contrast_scale: 0.4,
+            slender_span_widths: 4.0,
         }
     }
 }
@@ -274,6 +289,11 @@ impl OursConfig {
         )?;
         check(!self.long_span_px.is_nan() && self.long_span_px >= 0.0, "long_span_px", "≥ 0")?;
         check(self.clear_chroma.is_finite() && self.clear_chroma >= 0.0, "clear_chroma", "finite and ≥ 0")?;
+        check(
+            !self.slender_span_widths.is_nan() && self.slender_span_widths > 0.0,
+            "slender_span_widths",
+            "> 0 (infinite: off)",
+        )?;
         check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
@@ -322,6 +342,10 @@ struct Found {
     det: ShaftDetection,
     /// The axis point at the span's middle, undistorted pixels.
     mid: [f64; 2],
+    /// The span's ends on the axis, undistorted pixels.
+    ends: [[f64; 2]; 2],
+    /// The width between the contours at the span's middle, undistorted pixels.
+    width: f64,
     lines: [usize; 2],
     score: f64,
 }
@@ -360,6 +384,8 @@ pub struct OursDetector {
     trace: OursTrace,
     /// The frame's haze estimate.
     haze: Haze,
+    /// The ranks of the pairs skipped as duplicates of a verified shaft (traced frames only).
+    redundant: Vec<usize>,
 }
 
 /// A contour refined in the full-resolution image.
@@ -419,6 +445,7 @@ impl OursDetector {
             trace_rejects: Vec::new(),
             trace: OursTrace::default(),
             haze: Haze::CLEAR,
+            redundant: Vec::new(),
         })
     }
 
@@ -837,14 +864,20 @@ impl OursDetector {
         let axis_l = Line::from_abc(axis.abc).ok_or(R::Axis)?;
         // Ends: the span's ends projected on the axis, mapped to measured pixels.
         let mut ends_px = [[0.0; 2]; 2];
-        for (e, s) in ends_px.iter_mut().zip(span) {
+        let mut ends = [[0.0; 2]; 2];
+        for ((e, u), s) in ends_px.iter_mut().zip(&mut ends).zip(span) {
             let p = [o[0] + s * t[0], o[1] + s * t[1]];
             let dd = axis_l.distance(p);
             let f = [p[0] - dd * axis_l.n[0], p[1] - dd * axis_l.n[1]];
+            *u = f;
             let (x, y) = self.lens.distort_px(f[0], f[1]);
             *e = [x, y];
         }
-        if cfg.border_margin_px.is_finite() && len < cfg.long_span_px {
+        // A slender span (many widths long) is waived too: a pair of jaws is at most a few
+        // shaft widths long, while a shaft cut short by a crossing instrument or faded into
+        // a vignetted, hazy border region keeps its slender straight part.
+        let slender = len >= cfg.slender_span_widths * (la - lb).abs();
+        if cfg.border_margin_px.is_finite() && len < cfg.long_span_px && !slender {
             let (w, h) = (f64::from(self.k.width) - 1.0, f64::from(self.k.height) - 1.0);
             let near = |p: &[f64; 2]| p[0].min(p[1]).min(w - p[0]).min(h - p[1]) <= cfg.border_margin_px;
             // The contours' edges may run on past the span's colour evidence (haze, vignetting):
@@ -904,6 +937,8 @@ impl OursDetector {
                 let dd = axis_l.distance(q);
                 [q[0] - dd * axis_l.n[0], q[1] - dd * axis_l.n[1]]
             },
+            ends,
+            width: (la - lb).abs(),
             lines: [ia, ib],
             score: confidence * len.sqrt(),
         })
@@ -966,7 +1001,23 @@ impl OursDetector {
         self.cands.clear();
         let budget = 3 * cfg.max_detections + 2;
         let mut outcomes: Vec<(usize, Result<[f64; 3], PairReject>)> = Vec::new();
-        for (rank, &(_, i, j)) in pairs.iter().take(budget).enumerate() {
+        let mut verified = 0usize;
+        self.redundant.clear();
+        for (rank, &(_, i, j)) in pairs.iter().enumerate() {
+            if verified >= budget {
+                break;
+            }
+            // A duplicate of a shaft already verified (both lines in its strip, nearly
+            // parallel) does not take a place in the budget: a near second instrument has
+            // several lines per contour (rim, highlights) whose pairs would fill it.
+            let (a, b) = (&self.hough.lines[i], &self.hough.lines[j]);
+            if self.cands.iter().any(|f| within_strip(f, a) && within_strip(f, b)) {
+                if self.tracing {
+                    self.redundant.push(rank);
+                }
+                continue;
+            }
+            verified += 1;
             match self.verify(image, i, j) {
                 Ok(f) => {
                     if self.tracing {
@@ -989,7 +1040,11 @@ impl OursDetector {
                 break;
             }
             let clash = self.found.iter().any(|g| {
-                g.lines.iter().any(|l| f.lines.contains(l)) || same_axis(g, f) || shares_contour(g, f) || overlap(g, f)
+                g.lines.iter().any(|l| f.lines.contains(l))
+                    || same_axis(g, f)
+                    || shares_contour(g, f)
+                    || overlap(g, f)
+                    || continues(g, f)
             });
             if !clash {
                 self.found.push(*f);
@@ -1017,6 +1072,7 @@ impl OursDetector {
         for (rank, &(_, i, j)) in self.pair_buf.iter().enumerate() {
             let verified = outcomes.iter().find(|o| o.0 == rank).map(|o| o.1);
             let (outcome, centreline) = match verified {
+                None if self.redundant.contains(&rank) => (PairOutcome::Redundant, None),
                 None => (PairOutcome::NotVerified, None),
                 Some(Err(r)) => (PairOutcome::Rejected(r), None),
                 Some(Ok(abc)) => {
@@ -1157,6 +1213,46 @@ fn overlap(a: &Found, b: &Found) -> bool {
     inside(a, b.mid) || inside(b, a.mid)
 }
 
+/// True when detection `f` continues the better one `g` past an end of its span, nearly in
+/// line (within 30°), starting within half a shaft width of the end: the wrist and jaws of the
+/// instrument whose shaft `g` is (a second instrument crosses a shaft, it does not start
+/// where the shaft's span ends).
+fn continues(g: &Found, f: &Found) -> bool {
+    let (lg, lf) = (g.det.centreline, f.det.centreline);
+    if (lg.abc[0] * lf.abc[0] + lg.abc[1] * lf.abc[1]).abs() < 30f64.to_radians().cos() {
+        return false;
+    }
+    let [a, b] = g.ends;
+    let len = (b[0] - a[0]).hypot(b[1] - a[1]);
+    if len <= 0.0 {
+        return false;
+    }
+    let t = [(b[0] - a[0]) / len, (b[1] - a[1]) / len];
+    let w = 0.5 * g.width.max(20.0);
+    let s = f.ends.map(|p| (p[0] - a[0]) * t[0] + (p[1] - a[1]) * t[1]);
+    let lat = f.ends.map(|p| ((p[0] - a[0]) * t[1] - (p[1] - a[1]) * t[0]).abs());
+    let (near, far) = if s[0] <= s[1] { (0, 1) } else { (1, 0) };
+    // Past the end at `len`: its nearer end within half a width of that end, along and across.
+    let beyond_end = s[near] >= len - w && lat[near] <= w;
+    // Past the start at 0: its farther-out end (the larger `s`) within half a width of it.
+    let beyond_start = s[far] <= w && lat[far] <= w;
+    beyond_end || beyond_start
+}
+
+/// True when Hough line `l` lies in the strip of the verified shaft `f`: within 10° of its
+/// axis, and its span's middle between its two contours (or within 1.5 px outside one).
+fn within_strip(f: &Found, l: &LineCand) -> bool {
+    let axis = f.det.centreline.abc;
+    if (axis[0] * l.line.n[0] + axis[1] * l.line.n[1]).abs() < 10f64.to_radians().cos() {
+        return false;
+    }
+    let p = [0.5 * (l.ends[0][0] + l.ends[1][0]), 0.5 * (l.ends[0][1] + l.ends[1][1])];
+    f.det.contours.iter().all(|c| {
+        let (d, m) = (c.distance_px(p[0], p[1]), c.distance_px(f.mid[0], f.mid[1]));
+        d * m.signum() >= -1.5
+    })
+}
+
 /// True when two detections share a contour (within 1° and 2 px at the other's span middle).
 fn shares_contour(a: &Found, b: &Found) -> bool {
     a.det.contours.iter().any(|ca| {
@@ -1167,4 +1263,68 @@ fn shares_contour(a: &Found, b: &Found) -> bool {
                 && (ca.distance_px(a.mid[0], a.mid[1]).abs() - cb.distance_px(a.mid[0], a.mid[1]).abs()).abs() < 2.0
         })
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A verified shaft along the horizontal `v = y`, contours `y ± half`, span from `u = u0`
+    /// to `u = u1` (undistorted pixels), or along a line through `(u0, y)` at `angle_deg`.
+    fn found(u0: f64, u1: f64, y: f64, half: f64, angle_deg: f64) -> Found {
+        let (c, s) = (angle_deg.to_radians().cos(), angle_deg.to_radians().sin());
+        // Normal (-s, c); the line through (u0, y).
+        let line = |off: f64| ImageLine::new([-s, c, -(-s * u0 + c * y) - off]).unwrap();
+        let at = |u: f64| [u0 + (u - u0) * c, y + (u - u0) * s];
+        Found {
+            det: ShaftDetection {
+                centreline: line(0.0),
+                contours: [line(-half), line(half)],
+                ends_px: [at(u0), at(u1)],
+                confidence: 1.0,
+            },
+            mid: at(0.5 * (u0 + u1)),
+            ends: [at(u0), at(u1)],
+            width: 2.0 * half,
+            lines: [0, 1],
+            score: 1.0,
+        }
+    }
+
+    #[test]
+    fn a_detection_continuing_past_a_shafts_end_is_its_jaws() {
+        let shaft = found(100.0, 300.0, 200.0, 15.0, 0.0);
+        // In line past the end, and tilted 20° (an articulated wrist) from the end.
+        assert!(continues(&shaft, &found(305.0, 380.0, 200.0, 8.0, 0.0)));
+        assert!(continues(&shaft, &found(302.0, 380.0, 203.0, 8.0, 20.0)));
+        // Past the start (the span's other end), too.
+        assert!(continues(&shaft, &found(20.0, 95.0, 200.0, 8.0, 0.0)));
+        // A second shaft crossing this one at 25°, its span through the middle: not jaws.
+        assert!(!continues(&shaft, &found(150.0, 350.0, 180.0, 15.0, 25.0)));
+        // Starting past the end but far off the axis (another instrument beside it): not.
+        assert!(!continues(&shaft, &found(305.0, 380.0, 240.0, 8.0, 0.0)));
+        // Perpendicular at the end: not.
+        assert!(!continues(&shaft, &found(300.0, 380.0, 200.0, 8.0, 90.0)));
+    }
+
+    fn hough_line(p: [f64; 2], q: [f64; 2]) -> LineCand {
+        let l = Line::from_abc([q[1] - p[1], p[0] - q[0], q[0] * p[1] - p[0] * q[1]]).unwrap();
+        LineCand { line: l, ends: [p, q], count: 50 }
+    }
+
+    #[test]
+    fn only_lines_inside_a_verified_shafts_strip_and_along_it_are_its_duplicates() {
+        let shaft = found(100.0, 300.0, 200.0, 15.0, 0.0);
+        // A rim line 5 px inside a contour, and the contour itself (within 1.5 px): inside.
+        assert!(within_strip(&shaft, &hough_line([120.0, 190.0], [280.0, 190.0])));
+        assert!(within_strip(&shaft, &hough_line([120.0, 214.0], [280.0, 216.0])));
+        // A tissue edge 10 px outside: not.
+        assert!(!within_strip(&shaft, &hough_line([120.0, 225.0], [280.0, 225.0])));
+        // A contour of a crossing instrument through the strip at 30°: not.
+        let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+        assert!(!within_strip(
+            &shaft,
+            &hough_line([200.0 - 80.0 * c, 200.0 - 80.0 * s], [200.0 + 80.0 * c, 200.0 + 80.0 * s])
+        ));
+    }
 }

@@ -1,6 +1,7 @@
 //! The recall mechanisms of our shaft detector on synthetic images (`vision::synth`): the
 //! colour tests' contrast normalisation under haze, a shaft split by a second instrument
-//! crossing in front found whole, and the stage trace (`OursDetector::detect_traced`).
+//! crossing in front found whole, a slender span inside the image passing the border test
+//! (a stub not), and the stage trace (`OursDetector::detect_traced`).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
@@ -142,4 +143,25 @@ fn the_trace_records_the_returned_pair_and_matches_detect() {
     assert!(best.lines.iter().all(|&l| l < trace.lines.len()));
     // A second call without the trace gives the same again.
     assert_eq!(det.detect(&view).unwrap(), plain);
+}
+
+#[test]
+fn a_slender_span_inside_the_image_passes_the_border_test_and_a_stub_does_not() {
+    let k = camera();
+    let off = OursConfig { slender_span_widths: f64::INFINITY, ..OursConfig::default() };
+    // 120 mm from the lens: about 27 px wide. 45 mm of shaft (about 150 px, 5.6 widths) in
+    // the middle of the image, neither end near the border.
+    for (i, &angle) in [10.0, 75.0, -40.0].iter().enumerate() {
+        let mut c = shaft(&k, [260.0, 220.0], 0.12, angle, 0.0);
+        c.extent_m = [0.0, 0.045];
+        let img = render(&k, &scene(vec![c], 40 + i as u64));
+        let found = run(&k, OursConfig::default(), &img);
+        assert!(matching(&k, &found, &c).is_some(), "slender span at {angle}°: {found:?}");
+        assert!(matching(&k, &run(&k, off, &img), &c).is_none(), "slender waiver off at {angle}°");
+        // 16 mm (about 53 px, 2 widths): a stub, still turned down.
+        c.extent_m = [0.0, 0.016];
+        let img = render(&k, &scene(vec![c], 40 + i as u64));
+        let found = run(&k, OursConfig::default(), &img);
+        assert!(matching(&k, &found, &c).is_none(), "stub at {angle}°: {found:?}");
+    }
 }

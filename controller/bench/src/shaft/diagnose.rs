@@ -17,6 +17,11 @@
 //! Separately it counts the missed frames whose top detection matches the second instrument,
 //! and those with a false detection (matching no instrument).
 //!
+//! With `SHAFT_DIAG_FRAMES` set in the environment, each missed frame (`MISS level family
+//! seed class ...`, with every ranked pair's outcome, `*` on the pairs of the true contours,
+//! `=1`/`=2` on those matching an instrument) and each frame without instrument 1 that has a
+//! false detection (`FALSE ...`) is printed to stderr: a debugging aid, not part of the tables.
+//!
 //! A diagnostic only: it runs on whatever set it is given, and is meant for the tuning set.
 
 use std::collections::BTreeMap;
@@ -107,7 +112,7 @@ fn lines_on(trace: &OursTrace, c: &TrueContour) -> Vec<usize> {
 fn progress(o: &TracePairOutcome) -> u32 {
     match o.0 {
         PairOutcome::Rejected(_) if o.1.is_none() => 0,
-        PairOutcome::NotVerified => 1,
+        PairOutcome::NotVerified | PairOutcome::Redundant => 1,
         PairOutcome::Rejected(_) => 2,
         PairOutcome::Dropped => 3,
         PairOutcome::Returned(_) => 4,
@@ -139,6 +144,7 @@ pub fn classify(trace: &OursTrace, contours: &[TrueContour; 2], visible_fraction
         None => "pair: not parallel".into(),
         Some((PairOutcome::Rejected(r), None)) => format!("pair: {}", reject_key(r)),
         Some((PairOutcome::NotVerified, _)) => "not verified".into(),
+        Some((PairOutcome::Redundant, _)) => "skipped as a duplicate".into(),
         Some((PairOutcome::Rejected(r), Some(_))) => format!("verify: {}", reject_key(r)),
         Some((PairOutcome::Dropped, _)) => "dropped".into(),
         Some((PairOutcome::Returned(_), _)) => "returned, no match".into(),
@@ -206,6 +212,22 @@ pub fn run(
                 let cell = d.cells.entry((level.key().to_owned(), fam.to_owned())).or_default();
                 cell.free_frames += 1;
                 cell.false_on_free += s.false_detections;
+                if s.false_detections > 0 && std::env::var_os("SHAFT_DIAG_FRAMES").is_some() {
+                    let outs: Vec<String> = trace
+                        .pairs
+                        .iter()
+                        .filter(|p| p.rank.is_some())
+                        .map(|p| format!("{:?}:{:?}", p.rank, p.outcome))
+                        .collect();
+                    eprintln!(
+                        "FALSE {} {} {} dets={:?} pairs=[{}]",
+                        level.key(),
+                        fam,
+                        frame.spec.seed,
+                        dets.iter().map(|d| (d.centreline.abc, d.confidence, d.ends_px)).collect::<Vec<_>>(),
+                        outs.join(" ")
+                    );
+                }
             }
             let Some(i1) = frame.inst1.as_ref().filter(|t| t.eligible()) else { continue };
             let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
@@ -220,6 +242,39 @@ pub fn run(
                 Some(c) => classify(&trace, &c, i1.visible_px / i1.segment_px().max(1e-9)),
                 None => "no true contours".into(),
             };
+            if std::env::var_os("SHAFT_DIAG_FRAMES").is_some() {
+                let on = true_contours(frame).map(|c| c.map(|c| lines_on(&trace, &c)));
+                let mut pairs: Vec<String> = Vec::new();
+                for p in &trace.pairs {
+                    let mark = on.as_ref().is_some_and(|on| {
+                        (on[0].contains(&p.lines[0]) && on[1].contains(&p.lines[1]))
+                            || (on[1].contains(&p.lines[0]) && on[0].contains(&p.lines[1]))
+                    });
+                    let e2 = p.centreline.and_then(|abc| inst2.and_then(|t| super::metrics::line_errors(&abc, t)));
+                    let e1 = p.centreline.and_then(|abc| super::metrics::line_errors(&abc, i1));
+                    if p.rank.is_some() || mark {
+                        pairs.push(format!(
+                            "{}{:?}:{:?}{}{}",
+                            if mark { "*" } else { "" },
+                            p.rank,
+                            p.outcome,
+                            if e1.is_some_and(|e| e.matches()) { "=1" } else { "" },
+                            if e2.is_some_and(|e| e.matches()) { "=2" } else { "" }
+                        ));
+                    }
+                }
+                eprintln!(
+                    "MISS {} {} {} class={} lines={} on={:?} vis={:.0} pairs=[{}]",
+                    level.key(),
+                    fam,
+                    frame.spec.seed,
+                    class,
+                    trace.lines.len(),
+                    on,
+                    i1.visible_px,
+                    pairs.join(" ")
+                );
+            }
             *cell.classes.entry(class).or_default() += 1;
             cell.second_on_top += usize::from(
                 s.second_matches > 0 && s.matched_rank.is_none() && {

@@ -78,6 +78,10 @@ pub enum PairOutcome {
     Rejected(PairReject),
     /// Passed the cheap tests but ranked beyond the verification budget.
     NotVerified,
+    /// Passed the cheap tests but not verified: both its lines lie in the strip of a shaft
+    /// already verified and nearly parallel to it (a duplicate of that shaft: a rim or
+    /// highlight line inside it), so it does not take a place in the verification budget.
+    Redundant,
     /// Verified, then dropped in the final selection (it shares a line, a contour or the axis
     /// with a better one, or `max_detections` were already taken).
     Dropped,

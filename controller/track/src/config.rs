@@ -29,6 +29,35 @@ pub struct TrackFile {
     pub rig: RigSection,
     /// How sparse and how old the arms' joint readings may be (the live process).
     pub joints: JointsSection,
+    /// Ours: re-seeding from the detected shaft (offline commands).
+    pub proposal: ProposalSection,
+}
+
+/// `[proposal]` (ours): re-seeding the particles from the shaft detected by `vision::ours`
+/// in both eyes (`track::ProposalConfig`; docs/tracking.md "Re-seeding from the detected
+/// shaft"). Off unless `enabled = true`; an absent key takes `ProposalConfig::default`. Used by
+/// the offline commands (`run`, `converge`, `scenes`, `noise`, `calib-error`), not by `live`.
+#[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ProposalSection {
+    /// On/off (default off).
+    pub enabled: Option<bool>,
+    /// Hypotheses on the axis per triggered frame.
+    pub count: Option<usize>,
+    /// Tried when the previous best's inlier share (0..1) is below this.
+    pub trigger_share: Option<f64>,
+    /// The best hypothesis on the axis must reach this inlier share (0..1).
+    pub accept_share: Option<f64>,
+    /// ... and beat the previous best's by this (0..1).
+    pub margin: Option<f64>,
+    /// Slide along the axis, standard deviation, metres.
+    pub slide_sigma_m: Option<f64>,
+    /// Roll about the axis, standard deviation, radians.
+    pub roll_sigma_rad: Option<f64>,
+    /// The detection is ignored beyond this angle from the previous best's axis, radians.
+    pub max_angle_rad: Option<f64>,
+    /// ... or this distance from its instrument origin, metres.
+    pub max_distance_m: Option<f64>,
 }
 
 /// `[joints]` (the live process): how far apart and how old the arms' joint readings around a
@@ -235,6 +264,7 @@ impl Default for TrackFile {
             motion: MotionSection::default(),
             rig: RigSection::default(),
             joints: JointsSection::default(),
+            proposal: ProposalSection::default(),
         }
     }
 }
@@ -463,6 +493,26 @@ impl TrackFile {
                 Some(o)
             }
         };
+        let p = &self.proposal;
+        c.proposal = p.enabled.unwrap_or(false).then(|| {
+            let mut o = track::ProposalConfig::default();
+            let set = |dst: &mut f64, v: Option<f64>| {
+                if let Some(v) = v {
+                    *dst = v;
+                }
+            };
+            if let Some(v) = p.count {
+                o.count = v;
+            }
+            set(&mut o.trigger_share, p.trigger_share);
+            set(&mut o.accept_share, p.accept_share);
+            set(&mut o.margin, p.margin);
+            set(&mut o.slide_sigma_m, p.slide_sigma_m);
+            set(&mut o.roll_sigma_rad, p.roll_sigma_rad);
+            set(&mut o.max_angle_rad, p.max_angle_rad);
+            set(&mut o.max_distance_m, p.max_distance_m);
+            o
+        });
         c
     }
 }

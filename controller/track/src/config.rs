@@ -193,6 +193,11 @@ pub struct MeasurementSection {
     pub edge_threshold: Option<f32>,
     /// Paper: Canny thresholds `[low, high]`.
     pub canny: Option<[f32; 2]>,
+    /// Ours: the edge threshold adapted to the frame's contrast `[reference, noise_factor]`
+    /// (`track::EdgeContrast`: the clear frame's 99.9th percentile of the Sobel magnitude, and
+    /// the floor in multiples of the frame's median); absent: the default (`[75, 2.5]` in
+    /// ours); a reference at or below 0: the fixed threshold.
+    pub edge_contrast: Option<[f32; 2]>,
 }
 
 /// `[motion]`'s `model`.
@@ -434,6 +439,11 @@ impl TrackFile {
         }
         if let Some(v) = m.canny {
             c.canny_px = v;
+        }
+        if let Some([r, k]) = m.edge_contrast {
+            // A reference at or below 0: the fixed threshold.
+            c.edge_contrast =
+                (r > 0.0 || r.is_nan()).then_some(track::EdgeContrast { reference_px: r, noise_factor: k });
         }
         let f = &self.filter;
         if let Some(v) = f.anneal_layers {

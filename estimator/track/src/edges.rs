@@ -48,6 +48,21 @@ pub struct EdgeField {
     env_v: Vec<u32>,
     env_z: Vec<f32>,
     edge_count: usize,
+    threshold_used: f32,
+}
+
+/// A contrast-adaptive threshold for [`EdgeField::compute_ours_adaptive`]: the Sobel magnitude
+/// threshold `t` becomes `max(t · min(1, p / reference_px)², noise_factor · median)`, at most
+/// `t`, where `p` is the frame's 99.9th percentile of the gradient magnitude (the strongest
+/// contrasts: the instrument's contours on a clear frame) and `median` its median (the sensor
+/// noise and texture floor). A hazy frame, whose contrasts smoke has scaled down, is judged
+/// against its own contrast; a clear frame keeps `t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EdgeContrast {
+    /// The 99.9th percentile of a clear frame's gradient magnitude, Sobel units (> 0).
+    pub reference_px: f32,
+    /// The threshold never goes below this many times the frame's median magnitude (≥ 0).
+    pub noise_factor: f32,
 }
 
 const BIG: f32 = 1e12;
@@ -71,6 +86,7 @@ impl EdgeField {
             env_v: vec![0; width.max(height) + 1],
             env_z: vec![0.0; width.max(height) + 2],
             edge_count: 0,
+            threshold_used: 0.0,
         }
     }
 
@@ -99,6 +115,23 @@ impl EdgeField {
     /// Sobel-scaled: a step of `s` grey levels gives `4·s`); then the distance field.
     /// Allocation-free.
     pub fn compute_ours(&mut self, rgb: &[u8], threshold: f32) -> Result<(), ImageError> {
+        self.compute_ours_adaptive(rgb, threshold, None)
+    }
+
+    /// The Sobel threshold (magnitude units) the last [`EdgeField::compute_ours_adaptive`] used.
+    pub fn threshold_used(&self) -> f32 {
+        self.threshold_used
+    }
+
+    /// [`EdgeField::compute_ours`] with the threshold adapted to the frame's contrast
+    /// ([`EdgeContrast`]; `None`: `threshold` as given). Allocation-free (a histogram of the
+    /// magnitude on the stack).
+    pub fn compute_ours_adaptive(
+        &mut self,
+        rgb: &[u8],
+        threshold: f32,
+        contrast: Option<EdgeContrast>,
+    ) -> Result<(), ImageError> {
         let (w, h) = (self.width, self.height);
         if rgb.len() != w * h * 3 {
             return Err(ImageError::Size { len: rgb.len(), width: w, height: h, channels: 3 });
@@ -120,6 +153,35 @@ impl EdgeField {
                 self.gdir[r1 + x] = gy;
             }
         }
+        let threshold = match contrast {
+            None => threshold,
+            Some(c) => {
+                // Histogram of the magnitude, 1 unit per bin up to 1023.
+                let mut hist = [0u32; 1024];
+                let mut n = 0u64;
+                for y in 1..h - 1 {
+                    for &m in &self.mag[y * w + 1..y * w + w - 1] {
+                        hist[(m as usize).min(1023)] += 1;
+                        n += 1;
+                    }
+                }
+                let at = |q: f64| {
+                    let k = (q * n as f64).ceil() as u64;
+                    let mut acc = 0u64;
+                    for (b, &c) in hist.iter().enumerate() {
+                        acc += u64::from(c);
+                        if acc >= k {
+                            return b as f32 + 0.5;
+                        }
+                    }
+                    1023.5
+                };
+                let (median, top) = (at(0.5), at(0.999));
+                let scale = (top / c.reference_px).min(1.0);
+                (threshold * scale * scale).max(c.noise_factor * median).min(threshold)
+            }
+        };
+        self.threshold_used = threshold;
         self.edge.fill(false);
         let mut count = 0;
         for y in 1..h - 1 {

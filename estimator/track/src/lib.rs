@@ -43,7 +43,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
 
-pub use edges::{EdgeField, ImageError};
+pub use edges::{EdgeContrast, EdgeField, ImageError};
 pub use measure::OursCost;
 pub use model::{ModelError, Part, PartMesh, StereoCameras, ToolGeometry, ToolModel};
 pub use proposal::{AxisError, ProposalConfig, ShaftAxis};
@@ -219,6 +219,9 @@ pub struct TrackerConfig {
     /// Ours: re-seeding from the detected shaft's axis ([`ProposalConfig`],
     /// [`Tracker::set_shaft_axis`]); `None`: off.
     pub proposal: Option<ProposalConfig>,
+    /// Ours: the edge threshold adapted to each frame's contrast ([`EdgeContrast`]: smoke);
+    /// `None`: [`TrackerConfig::edge_threshold`] as given.
+    pub edge_contrast: Option<EdgeContrast>,
     /// Seed of the noise (runs are reproducible).
     pub seed: u64,
 }
@@ -264,6 +267,10 @@ impl TrackerConfig {
                 Mode::Ours => Some(OffsetMotion::default_ours()),
             },
             proposal: None,
+            edge_contrast: match mode {
+                Mode::Paper => None,
+                Mode::Ours => Some(EdgeContrast { reference_px: 75.0, noise_factor: 2.5 }),
+            },
             seed: 1,
         }
     }
@@ -342,6 +349,14 @@ impl TrackerConfig {
             {
                 return Err(ConfigError("offset_motion.prior_lost (max_sigma > 0, line_share 0..=1)"));
             }
+        }
+        if let Some(c) = &self.edge_contrast
+            && !(c.reference_px.is_finite()
+                && c.reference_px > 0.0
+                && c.noise_factor.is_finite()
+                && c.noise_factor >= 0.0)
+        {
+            return Err(ConfigError("edge_contrast (reference_px > 0, noise_factor >= 0)"));
         }
         if let Some(p) = &self.proposal {
             if self.mode == Mode::Paper {
@@ -801,9 +816,12 @@ impl Tracker {
         // Edges, once per frame.
         match self.cfg.mode {
             Mode::Ours => {
-                let th = self.cfg.edge_threshold;
+                let (th, ec) = (self.cfg.edge_threshold, self.cfg.edge_contrast);
                 let [f0, f1] = &mut self.fields;
-                let (a, b) = rayon::join(|| f0.compute_ours(input.rgb[0], th), || f1.compute_ours(input.rgb[1], th));
+                let (a, b) = rayon::join(
+                    || f0.compute_ours_adaptive(input.rgb[0], th, ec),
+                    || f1.compute_ours_adaptive(input.rgb[1], th, ec),
+                );
                 a.and(b).map_err(|source| StepError::Image { eye: "left", source })?;
             }
             Mode::Paper => {

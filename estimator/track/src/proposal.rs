@@ -52,7 +52,12 @@ pub enum AxisError {
 
 /// The plane through eye `e`'s centre and its image line `abc` (undistorted pixels), in the
 /// base frame: `(n, d)` with `n·X + d = 0`, `|n| = 1`.
-fn plane_in_base(cams: &StereoCameras, eyes: &[Isometry3<f64>; 2], e: usize, abc: &[f64; 3]) -> Option<(Vector3<f64>, f64)> {
+fn plane_in_base(
+    cams: &StereoCameras,
+    eyes: &[Isometry3<f64>; 2],
+    e: usize,
+    abc: &[f64; 3],
+) -> Option<(Vector3<f64>, f64)> {
     if !abc.iter().all(|v| v.is_finite()) || abc[0].hypot(abc[1]) < 1e-12 {
         return None;
     }

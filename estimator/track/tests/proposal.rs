@@ -151,12 +151,14 @@ fn a_far_start_converges_by_re_seeding_from_the_detected_axis() {
     assert_eq!(n0, 0);
     assert!(without > 5.0, "the measurement alone must not bring a 13 mm start back ({without:.2} mm)");
     assert!(n1 >= 1 && with < 2.0, "re-seeded {n1} times, last frame {with:.2} mm off");
-    // An axis where there is no shaft (1.5 cm to the side, within the consistency gate) is
+    // An axis where there is no shaft (1.5 cm to the side in the image, within the gate) is
     // never accepted: its hypotheses find no edges.
     let wrong_axis = |q: &[f64; 6]| {
         let (o, d) = axis_of(&model, q);
-        let side = d.cross(&Vector3::new(0.3, 0.2, 1.0)).normalize();
-        Some(ShaftAxis { point_m: o + side * 0.015, dir: d, ends_m: None })
+        // Across the view (the cameras look along `d × (0.3, 0.2, 1)`, common::cameras).
+        let view = d.cross(&Vector3::new(0.3, 0.2, 1.0)).normalize();
+        let across = d.cross(&view);
+        Some(ShaftAxis { point_m: o + across * 0.015, dir: d, ends_m: None })
     };
     let (_, n2) = run_far_start(true, wrong_axis);
     assert_eq!(n2, 0, "re-seeded on an axis without a shaft");

@@ -577,6 +577,59 @@ mod tests {
     }
 
     #[test]
+    fn proposal_and_edge_contrast_keys_are_checked_and_applied() {
+        let x = Path::new("x.toml");
+        for (text, key) in [
+            (
+                "[proposal]
+enabled = true
+count = 0
+",
+                "proposal.count",
+            ),
+            (
+                "[proposal]
+enabled = true
+accept_share = 1.5
+",
+                "proposal.trigger_share",
+            ),
+            (
+                "[proposal]
+enabled = true
+slide_sigma_m = -0.1
+",
+                "proposal.slide_sigma_m",
+            ),
+            (
+                "[proposal]
+enabled = true
+max_distance_m = 0.0
+",
+                "proposal.max_angle_rad",
+            ),
+            ("mode = \"paper\"\n[proposal]\nenabled = true\n", "proposal (ours only)"),
+            ("[proposal]\nbogus = 1\n", "bogus"),
+            ("[measurement]\nedge_contrast = [nan, 1.0]\n", "edge_contrast"),
+            ("[measurement]\nedge_contrast = [75.0, -1.0]\n", "edge_contrast"),
+        ] {
+            let e = TrackFile::from_toml(text, x).unwrap_err().to_string();
+            assert!(e.contains(key), "{text:?}: {e}");
+        }
+        // Off by default; the keys reach the tracker's configuration.
+        let d = TrackFile::from_toml("", x).unwrap().tracker(640, 480);
+        assert_eq!(d.proposal, None);
+        assert_eq!(d.edge_contrast, Some(track::EdgeContrast { reference_px: 75.0, noise_factor: 2.5 }));
+        let t =
+            "[proposal]\nenabled = true\ncount = 32\nroll_sigma_rad = 0.1\n[measurement]\nedge_contrast = [0.0, 0.0]\n";
+        let c = TrackFile::from_toml(t, x).unwrap().tracker(640, 480);
+        let p = c.proposal.unwrap();
+        assert_eq!((p.count, p.roll_sigma_rad), (32, 0.1));
+        assert_eq!(p.accept_share, track::ProposalConfig::default().accept_share);
+        assert_eq!(c.edge_contrast, None);
+    }
+
+    #[test]
     fn motion_keys_are_checked_and_applied() {
         let x = Path::new("x.toml");
         for (text, key) in [

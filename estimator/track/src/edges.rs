@@ -362,6 +362,49 @@ mod tests {
         best
     }
 
+    /// A 64×64 frame: noise of ±`noise` grey levels and a vertical step of `step` levels at
+    /// `x = 32`.
+    fn step_frame(step: u8, noise: u8) -> Vec<u8> {
+        let (w, h) = (64usize, 64usize);
+        let mut s = 12_345u32;
+        let mut rgb = vec![0u8; w * h * 3];
+        for y in 0..h {
+            for x in 0..w {
+                s ^= s << 13;
+                s ^= s >> 17;
+                s ^= s << 5;
+                let v = 100 + if x >= 32 { step } else { 0 } + (s % (2 * u32::from(noise) + 1)) as u8;
+                rgb[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[v, v, v]);
+            }
+        }
+        rgb
+    }
+
+    #[test]
+    fn the_contrast_adaptive_threshold_finds_a_faded_step_and_keeps_a_clear_frames() {
+        let c = EdgeContrast { reference_px: 75.0, noise_factor: 2.5 };
+        let on_step = |f: &EdgeField| (2..62).filter(|&y| (30..34).any(|x| f.edges()[y * 64 + x])).count();
+        let off_step = |f: &EdgeField| {
+            (2..62).map(|y| (2..28).chain(36..62).filter(|&x| f.edges()[y * 64 + x]).count()).sum::<usize>()
+        };
+        let mut f = EdgeField::new(64, 64);
+        // Clear: a step of 40 levels (Sobel magnitude 160) keeps the fixed threshold.
+        f.compute_ours_adaptive(&step_frame(40, 2), 60.0, Some(c)).unwrap();
+        assert_eq!(f.threshold_used(), 60.0);
+        assert!(on_step(&f) >= 58);
+        // Faded to 8 levels (magnitude 32, under 60): the fixed threshold loses it, the
+        // adaptive one finds it without taking the noise.
+        f.compute_ours(&step_frame(8, 2), 60.0).unwrap();
+        assert_eq!(on_step(&f), 0);
+        f.compute_ours_adaptive(&step_frame(8, 2), 60.0, Some(c)).unwrap();
+        assert!(f.threshold_used() < 32.0, "threshold {}", f.threshold_used());
+        assert!(on_step(&f) >= 58, "{} rows with the step", on_step(&f));
+        assert!(off_step(&f) < 20, "{} noise edges", off_step(&f));
+        // A frame of noise alone: the floor (2.5 × the median) keeps the noise out.
+        f.compute_ours_adaptive(&step_frame(0, 6), 60.0, Some(c)).unwrap();
+        assert!(off_step(&f) < 40, "{} noise edges at threshold {}", off_step(&f), f.threshold_used());
+    }
+
     #[test]
     fn distance_transform_matches_brute_force_and_points_at_an_edge() {
         let (w, h) = (23, 17);

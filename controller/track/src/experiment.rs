@@ -307,7 +307,7 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
             .iter()
             .filter(|t| {
                 t.converged_at.zip(t.reseeded_at).is_some_and(|(c, k)| c >= k)
-                    && !t.converged_at.zip(t.reinitialised_at).is_some_and(|(c, k)| c >= k)
+                    && t.converged_at.zip(t.reinitialised_at).is_none_or(|(c, k)| c < k)
             })
             .count(),
         position_mm: median_p95(&mut p),

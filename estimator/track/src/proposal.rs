@@ -291,8 +291,10 @@ impl ProposalConfig {
             Some("proposal.trigger_share/accept_share/margin (0..=1)")
         } else if !nonneg(self.slide_sigma_m) || !nonneg(self.roll_sigma_rad) {
             Some("proposal.slide_sigma_m/roll_sigma_rad (>= 0)")
-        } else if !(self.max_angle_rad.is_finite() && self.max_angle_rad > 0.0)
-            || !(self.max_distance_m.is_finite() && self.max_distance_m > 0.0)
+        } else if !(self.max_angle_rad.is_finite()
+            && self.max_angle_rad > 0.0
+            && self.max_distance_m.is_finite()
+            && self.max_distance_m > 0.0)
         {
             Some("proposal.max_angle_rad/max_distance_m (> 0)")
         } else {

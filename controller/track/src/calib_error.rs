@@ -215,6 +215,10 @@ mod tests {
             step_ms: 1.0,
             kinematics: vec![Some((3.0, 1.0)); 4],
             reinitialised_at: None,
+            reseeded_at: None,
+            inlier_share: Vec::new(),
+            axis_detected: Vec::new(),
+            reseed_share: Vec::new(),
         };
         let run = CalibErrorRun {
             level: CalibErrorLevel { translation_m: 0.002, rotation_rad: 0.01 },

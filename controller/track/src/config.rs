@@ -29,6 +29,35 @@ pub struct TrackFile {
     pub rig: RigSection,
     /// How sparse and how old the arms' joint readings may be (the live process).
     pub joints: JointsSection,
+    /// Ours: re-seeding from the detected shaft (offline commands).
+    pub proposal: ProposalSection,
+}
+
+/// `[proposal]` (ours): re-seeding the particles from the shaft detected by `vision::ours`
+/// in both eyes (`track::ProposalConfig`; docs/tracking.md "Re-seeding from the detected
+/// shaft"). Off unless `enabled = true`; an absent key takes `ProposalConfig::default`. Used by
+/// the offline commands (`run`, `converge`, `scenes`, `noise`, `calib-error`), not by `live`.
+#[derive(Clone, Copy, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ProposalSection {
+    /// On/off (default off).
+    pub enabled: Option<bool>,
+    /// Hypotheses on the axis per triggered frame.
+    pub count: Option<usize>,
+    /// Tried when the previous best's inlier share (0..1) is below this.
+    pub trigger_share: Option<f64>,
+    /// The best hypothesis on the axis must reach this inlier share (0..1).
+    pub accept_share: Option<f64>,
+    /// ... and beat the previous best's by this (0..1).
+    pub margin: Option<f64>,
+    /// Slide along the axis, standard deviation, metres.
+    pub slide_sigma_m: Option<f64>,
+    /// Roll about the axis, standard deviation, radians.
+    pub roll_sigma_rad: Option<f64>,
+    /// The detection is ignored beyond this angle from the previous best's axis, radians.
+    pub max_angle_rad: Option<f64>,
+    /// ... or this distance from its instrument origin, metres.
+    pub max_distance_m: Option<f64>,
 }
 
 /// `[joints]` (the live process): how far apart and how old the arms' joint readings around a
@@ -164,6 +193,11 @@ pub struct MeasurementSection {
     pub edge_threshold: Option<f32>,
     /// Paper: Canny thresholds `[low, high]`.
     pub canny: Option<[f32; 2]>,
+    /// Ours: the edge threshold adapted to the frame's contrast `[reference, noise_factor]`
+    /// (`track::EdgeContrast`: the clear frame's 99.9th percentile of the Sobel magnitude, and
+    /// the floor in multiples of the frame's median); absent: the default (`[75, 2.5]` in
+    /// ours); a reference at or below 0: the fixed threshold.
+    pub edge_contrast: Option<[f32; 2]>,
 }
 
 /// `[motion]`'s `model`.
@@ -235,6 +269,7 @@ impl Default for TrackFile {
             motion: MotionSection::default(),
             rig: RigSection::default(),
             joints: JointsSection::default(),
+            proposal: ProposalSection::default(),
         }
     }
 }
@@ -405,6 +440,11 @@ impl TrackFile {
         if let Some(v) = m.canny {
             c.canny_px = v;
         }
+        if let Some([r, k]) = m.edge_contrast {
+            // A reference at or below 0: the fixed threshold.
+            c.edge_contrast =
+                (r > 0.0 || r.is_nan()).then_some(track::EdgeContrast { reference_px: r, noise_factor: k });
+        }
         let f = &self.filter;
         if let Some(v) = f.anneal_layers {
             c.anneal_layers = v;
@@ -463,6 +503,26 @@ impl TrackFile {
                 Some(o)
             }
         };
+        let p = &self.proposal;
+        c.proposal = p.enabled.unwrap_or(false).then(|| {
+            let mut o = track::ProposalConfig::default();
+            let set = |dst: &mut f64, v: Option<f64>| {
+                if let Some(v) = v {
+                    *dst = v;
+                }
+            };
+            if let Some(v) = p.count {
+                o.count = v;
+            }
+            set(&mut o.trigger_share, p.trigger_share);
+            set(&mut o.accept_share, p.accept_share);
+            set(&mut o.margin, p.margin);
+            set(&mut o.slide_sigma_m, p.slide_sigma_m);
+            set(&mut o.roll_sigma_rad, p.roll_sigma_rad);
+            set(&mut o.max_angle_rad, p.max_angle_rad);
+            set(&mut o.max_distance_m, p.max_distance_m);
+            o
+        });
         c
     }
 }
@@ -514,6 +574,59 @@ mod tests {
         let r = f.joints.resolve(2000);
         assert_eq!(r.tool, Staleness { max_gap_ns: 50_000_000, max_age_ns: 40_000_000 });
         assert_eq!(r.wait, std::time::Duration::from_millis(200));
+    }
+
+    #[test]
+    fn proposal_and_edge_contrast_keys_are_checked_and_applied() {
+        let x = Path::new("x.toml");
+        for (text, key) in [
+            (
+                "[proposal]
+enabled = true
+count = 0
+",
+                "proposal.count",
+            ),
+            (
+                "[proposal]
+enabled = true
+accept_share = 1.5
+",
+                "proposal.trigger_share",
+            ),
+            (
+                "[proposal]
+enabled = true
+slide_sigma_m = -0.1
+",
+                "proposal.slide_sigma_m",
+            ),
+            (
+                "[proposal]
+enabled = true
+max_distance_m = 0.0
+",
+                "proposal.max_angle_rad",
+            ),
+            ("mode = \"paper\"\n[proposal]\nenabled = true\n", "proposal (ours only)"),
+            ("[proposal]\nbogus = 1\n", "bogus"),
+            ("[measurement]\nedge_contrast = [nan, 1.0]\n", "edge_contrast"),
+            ("[measurement]\nedge_contrast = [75.0, -1.0]\n", "edge_contrast"),
+        ] {
+            let e = TrackFile::from_toml(text, x).unwrap_err().to_string();
+            assert!(e.contains(key), "{text:?}: {e}");
+        }
+        // Off by default; the keys reach the tracker's configuration.
+        let d = TrackFile::from_toml("", x).unwrap().tracker(640, 480);
+        assert_eq!(d.proposal, None);
+        assert_eq!(d.edge_contrast, Some(track::EdgeContrast { reference_px: 75.0, noise_factor: 2.5 }));
+        let t =
+            "[proposal]\nenabled = true\ncount = 32\nroll_sigma_rad = 0.1\n[measurement]\nedge_contrast = [0.0, 0.0]\n";
+        let c = TrackFile::from_toml(t, x).unwrap().tracker(640, 480);
+        let p = c.proposal.unwrap();
+        assert_eq!((p.count, p.roll_sigma_rad), (32, 0.1));
+        assert_eq!(p.accept_share, track::ProposalConfig::default().accept_share);
+        assert_eq!(c.edge_contrast, None);
     }
 
     #[test]

@@ -43,6 +43,19 @@ pub struct Trial {
     /// from the kinematics (after LOST frames).
     #[serde(default)]
     pub reinitialised_at: Option<usize>,
+    /// First frame (within the trial) at which the tracker re-initialised from the detected
+    /// shaft (`[proposal]`).
+    #[serde(default)]
+    pub reseeded_at: Option<usize>,
+    /// Per frame: the best hypothesis's inlier share (0..1; ours).
+    #[serde(default)]
+    pub inlier_share: Vec<Option<f64>>,
+    /// Per frame (`[proposal]`): the shaft's axis detected in both eyes.
+    #[serde(default)]
+    pub axis_detected: Vec<bool>,
+    /// Per frame (`[proposal]`): the best hypothesis on the axis's inlier share, when tried.
+    #[serde(default)]
+    pub reseed_share: Vec<Option<f64>>,
 }
 
 /// The results of one mode on a set of trials.
@@ -180,6 +193,10 @@ fn trial_of(label: &str, first: usize, initial: (f64, f64), res: &[FrameResult])
         step_ms: res.iter().map(|r| r.step_ms).sum::<f64>() / n,
         kinematics: res.iter().map(|r| r.kinematics_error_mm.zip(r.kinematics_error_deg)).collect(),
         reinitialised_at: res.iter().skip(1).position(|r| r.reinitialised).map(|k| k + 1),
+        reseeded_at: res.iter().position(|r| r.reseeded_from_vision),
+        inlier_share: res.iter().map(|r| r.inlier_share).collect(),
+        axis_detected: res.iter().map(|r| r.axis_detected).collect(),
+        reseed_share: res.iter().map(|r| r.reseed_share).collect(),
     }
 }
 
@@ -208,6 +225,9 @@ pub struct Summary {
     pub converged: usize,
     /// … of which converged at or after a re-initialisation from the kinematics.
     pub converged_after_reinit: usize,
+    /// … of which converged at or after a re-initialisation from the detected shaft, with
+    /// no re-initialisation from the kinematics before convergence.
+    pub converged_after_vision_reseed: usize,
     /// Position error after convergence, mm (median, p95).
     pub position_mm: (f64, f64),
     /// Orientation error after convergence, degrees (median, p95).
@@ -281,6 +301,14 @@ pub fn summarise(r: &ConvergeResults, tail: usize) -> Summary {
             .trials
             .iter()
             .filter(|t| t.converged_at.zip(t.reinitialised_at).is_some_and(|(c, k)| c >= k))
+            .count(),
+        converged_after_vision_reseed: r
+            .trials
+            .iter()
+            .filter(|t| {
+                t.converged_at.zip(t.reseeded_at).is_some_and(|(c, k)| c >= k)
+                    && t.converged_at.zip(t.reinitialised_at).is_none_or(|(c, k)| c < k)
+            })
             .count(),
         position_mm: median_p95(&mut p),
         orientation_deg: median_p95(&mut a),

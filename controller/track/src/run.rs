@@ -114,6 +114,17 @@ pub struct FrameResult {
     pub held_by_prior: bool,
     /// Re-initialised from the kinematics at this frame.
     pub reinitialised: bool,
+    /// Re-initialised about a hypothesis on the detected shaft's axis at this frame
+    /// (`[proposal]`, docs/tracking.md "Re-seeding from the detected shaft").
+    #[serde(default)]
+    pub reseeded_from_vision: bool,
+    /// With `[proposal]`: the shaft's axis was detected in both eyes and triangulated.
+    #[serde(default)]
+    pub axis_detected: bool,
+    /// With `[proposal]`: the best hypothesis on the detected axis's inlier share (0..1), on
+    /// frames where re-seeding was tried.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reseed_share: Option<f64>,
     /// Against the renderer's ground truth (when known and a pose was published): tip position
     /// error, millimetres.
     pub error_mm: Option<f64>,
@@ -175,6 +186,37 @@ pub fn step_frame(
     tracker.step(&FrameInput { encoder_rad: enc, cameras: cams, rgb, time_ns })
 }
 
+/// Our shaft detector (`vision::ours`) on both eyes, triangulated into the shaft's axis for
+/// [`Tracker::set_shaft_axis`] (the tracker's re-seeding, `[proposal]`).
+pub struct AxisDetector {
+    eyes: [vision::ours::OursDetector; 2],
+}
+
+impl AxisDetector {
+    /// Detectors for `seq`'s two cameras (default settings).
+    pub fn new(seq: &Sequence) -> Result<Self, RunError> {
+        let make = |k| {
+            vision::ours::OursDetector::new(k, vision::ours::OursConfig::default())
+                .map_err(|e| RunError::Model(format!("shaft detector: {e}")))
+        };
+        Ok(Self { eyes: [make(seq.intrinsics[0])?, make(seq.intrinsics[1])?] })
+    }
+
+    /// The best detection in each eye triangulated (base frame), `None` when either eye has
+    /// none or the two do not give an axis. Images: sRGB bytes of each eye, the cameras' size.
+    pub fn axis(&mut self, cams: &StereoCameras, rgb: [&[u8]; 2]) -> Option<track::ShaftAxis> {
+        use vision::ShaftDetector;
+        let mut det = [None, None];
+        for (e, d) in det.iter_mut().enumerate() {
+            let k = cams.intrinsics[e];
+            let view = vision::RgbView::new(k.width as usize, k.height as usize, rgb[e]).ok()?;
+            *d = self.eyes[e].detect(&view).ok()?.into_iter().next();
+        }
+        let [Some(l), Some(r)] = det else { return None };
+        track::proposal::triangulate_axis(cams, [l.centreline.abc, r.centreline.abc], Some(l.ends_px)).ok()
+    }
+}
+
 /// Where a run starts and what it writes.
 pub struct RunOptions<'a> {
     /// First frame (index into the sequence).
@@ -222,6 +264,10 @@ pub fn track(
     opts: &RunOptions<'_>,
 ) -> Result<Vec<FrameResult>, RunError> {
     let mut tracker = Tracker::new(cfg, model.clone())?;
+    let mut axes = match cfg.proposal {
+        Some(_) => Some(AxisDetector::new(seq)?),
+        None => None,
+    };
     let mut out = Vec::new();
     let mut started = false;
     let mut sil = Vec::new();
@@ -244,6 +290,9 @@ pub fn track(
             line_share: None,
             held_by_prior: false,
             reinitialised: false,
+            reseeded_from_vision: false,
+            axis_detected: false,
+            reseed_share: None,
             error_mm: None,
             error_deg: None,
             kinematics_error_mm: None,
@@ -268,6 +317,12 @@ pub fn track(
         };
         let cams = cameras(seq, &ecm);
         let t0 = std::time::Instant::now();
+        let mut axis_detected = false;
+        if let Some(d) = axes.as_mut() {
+            let a = d.axis(&cams, [&l.rgb, &r.rgb]);
+            axis_detected = a.is_some();
+            tracker.set_shaft_axis(a);
+        }
         let est = match step_frame(
             &mut tracker,
             &mut started,
@@ -317,6 +372,9 @@ pub fn track(
             line_share: Some(tracker.last_line_share()).filter(|v| v.is_finite()),
             held_by_prior: est.held_by_prior,
             reinitialised: est.reinitialised,
+            reseeded_from_vision: est.reseeded_from_vision,
+            axis_detected,
+            reseed_share: Some(tracker.last_reseed_share()).filter(|v| v.is_finite()),
             error_mm: err.map(|e| e.0),
             error_deg: err.map(|e| e.1),
             kinematics_error_mm: kin.map(|k| k.0),

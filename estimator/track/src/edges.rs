@@ -48,6 +48,21 @@ pub struct EdgeField {
     env_v: Vec<u32>,
     env_z: Vec<f32>,
     edge_count: usize,
+    threshold_used: f32,
+}
+
+/// A contrast-adaptive threshold for [`EdgeField::compute_ours_adaptive`]: the Sobel magnitude
+/// threshold `t` becomes `max(t · min(1, p / reference_px)², noise_factor · median)`, at most
+/// `t`, where `p` is the frame's 99.9th percentile of the gradient magnitude (the strongest
+/// contrasts: the instrument's contours on a clear frame) and `median` its median (the sensor
+/// noise and texture floor). A hazy frame, whose contrasts smoke has scaled down, is judged
+/// against its own contrast; a clear frame keeps `t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EdgeContrast {
+    /// The 99.9th percentile of a clear frame's gradient magnitude, Sobel units (> 0).
+    pub reference_px: f32,
+    /// The threshold never goes below this many times the frame's median magnitude (≥ 0).
+    pub noise_factor: f32,
 }
 
 const BIG: f32 = 1e12;
@@ -71,6 +86,7 @@ impl EdgeField {
             env_v: vec![0; width.max(height) + 1],
             env_z: vec![0.0; width.max(height) + 2],
             edge_count: 0,
+            threshold_used: 0.0,
         }
     }
 
@@ -99,6 +115,23 @@ impl EdgeField {
     /// Sobel-scaled: a step of `s` grey levels gives `4·s`); then the distance field.
     /// Allocation-free.
     pub fn compute_ours(&mut self, rgb: &[u8], threshold: f32) -> Result<(), ImageError> {
+        self.compute_ours_adaptive(rgb, threshold, None)
+    }
+
+    /// The Sobel threshold (magnitude units) the last [`EdgeField::compute_ours_adaptive`] used.
+    pub fn threshold_used(&self) -> f32 {
+        self.threshold_used
+    }
+
+    /// [`EdgeField::compute_ours`] with the threshold adapted to the frame's contrast
+    /// ([`EdgeContrast`]; `None`: `threshold` as given). Allocation-free (a histogram of the
+    /// magnitude on the stack).
+    pub fn compute_ours_adaptive(
+        &mut self,
+        rgb: &[u8],
+        threshold: f32,
+        contrast: Option<EdgeContrast>,
+    ) -> Result<(), ImageError> {
         let (w, h) = (self.width, self.height);
         if rgb.len() != w * h * 3 {
             return Err(ImageError::Size { len: rgb.len(), width: w, height: h, channels: 3 });
@@ -120,6 +153,35 @@ impl EdgeField {
                 self.gdir[r1 + x] = gy;
             }
         }
+        let threshold = match contrast {
+            None => threshold,
+            Some(c) => {
+                // Histogram of the magnitude, 1 unit per bin up to 1023.
+                let mut hist = [0u32; 1024];
+                let mut n = 0u64;
+                for y in 1..h - 1 {
+                    for &m in &self.mag[y * w + 1..y * w + w - 1] {
+                        hist[(m as usize).min(1023)] += 1;
+                        n += 1;
+                    }
+                }
+                let at = |q: f64| {
+                    let k = (q * n as f64).ceil() as u64;
+                    let mut acc = 0u64;
+                    for (b, &c) in hist.iter().enumerate() {
+                        acc += u64::from(c);
+                        if acc >= k {
+                            return b as f32 + 0.5;
+                        }
+                    }
+                    1023.5
+                };
+                let (median, top) = (at(0.5), at(0.999));
+                let scale = (top / c.reference_px).min(1.0);
+                (threshold * scale * scale).max(c.noise_factor * median).min(threshold)
+            }
+        };
+        self.threshold_used = threshold;
         self.edge.fill(false);
         let mut count = 0;
         for y in 1..h - 1 {
@@ -298,6 +360,49 @@ mod tests {
             }
         }
         best
+    }
+
+    /// A 64×64 frame: noise of ±`noise` grey levels and a vertical step of `step` levels at
+    /// `x = 32`.
+    fn step_frame(step: u8, noise: u8) -> Vec<u8> {
+        let (w, h) = (64usize, 64usize);
+        let mut s = 12_345u32;
+        let mut rgb = vec![0u8; w * h * 3];
+        for y in 0..h {
+            for x in 0..w {
+                s ^= s << 13;
+                s ^= s >> 17;
+                s ^= s << 5;
+                let v = 100 + if x >= 32 { step } else { 0 } + (s % (2 * u32::from(noise) + 1)) as u8;
+                rgb[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[v, v, v]);
+            }
+        }
+        rgb
+    }
+
+    #[test]
+    fn the_contrast_adaptive_threshold_finds_a_faded_step_and_keeps_a_clear_frames() {
+        let c = EdgeContrast { reference_px: 75.0, noise_factor: 2.5 };
+        let on_step = |f: &EdgeField| (2..62).filter(|&y| (30..34).any(|x| f.edges()[y * 64 + x])).count();
+        let off_step = |f: &EdgeField| {
+            (2..62).map(|y| (2..28).chain(36..62).filter(|&x| f.edges()[y * 64 + x]).count()).sum::<usize>()
+        };
+        let mut f = EdgeField::new(64, 64);
+        // Clear: a step of 40 levels (Sobel magnitude 160) keeps the fixed threshold.
+        f.compute_ours_adaptive(&step_frame(40, 2), 60.0, Some(c)).unwrap();
+        assert_eq!(f.threshold_used(), 60.0);
+        assert!(on_step(&f) >= 58);
+        // Faded to 8 levels (magnitude 32, under 60): the fixed threshold loses it, the
+        // adaptive one finds it without taking the noise.
+        f.compute_ours(&step_frame(8, 2), 60.0).unwrap();
+        assert_eq!(on_step(&f), 0);
+        f.compute_ours_adaptive(&step_frame(8, 2), 60.0, Some(c)).unwrap();
+        assert!(f.threshold_used() < 32.0, "threshold {}", f.threshold_used());
+        assert!(on_step(&f) >= 58, "{} rows with the step", on_step(&f));
+        assert!(off_step(&f) < 20, "{} noise edges", off_step(&f));
+        // A frame of noise alone: the floor (2.5 × the median) keeps the noise out.
+        f.compute_ours_adaptive(&step_frame(0, 6), 60.0, Some(c)).unwrap();
+        assert!(off_step(&f) < 40, "{} noise edges at threshold {}", off_step(&f), f.threshold_used());
     }
 
     #[test]

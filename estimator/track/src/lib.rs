@@ -33,6 +33,7 @@
 pub mod edges;
 pub mod measure;
 pub mod model;
+pub mod proposal;
 pub mod resample;
 
 use estimator::kinematics::JOINTS;
@@ -42,9 +43,10 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
 
-pub use edges::{EdgeField, ImageError};
+pub use edges::{EdgeContrast, EdgeField, ImageError};
 pub use measure::OursCost;
 pub use model::{ModelError, Part, PartMesh, StereoCameras, ToolGeometry, ToolModel};
+pub use proposal::{AxisError, ProposalConfig, ShaftAxis};
 
 /// One hypothesis of the state.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -214,6 +216,12 @@ pub struct TrackerConfig {
     /// Ours: the motion model of the kinematic error ([`OffsetMotion`]) instead of Eq. 13's
     /// random walk on the joints; `None`: Eq. 13 (the paper's mode always).
     pub offset_motion: Option<OffsetMotion>,
+    /// Ours: re-seeding from the detected shaft's axis ([`ProposalConfig`],
+    /// [`Tracker::set_shaft_axis`]); `None`: off.
+    pub proposal: Option<ProposalConfig>,
+    /// Ours: the edge threshold adapted to each frame's contrast ([`EdgeContrast`]: smoke);
+    /// `None`: [`TrackerConfig::edge_threshold`] as given.
+    pub edge_contrast: Option<EdgeContrast>,
     /// Seed of the noise (runs are reproducible).
     pub seed: u64,
 }
@@ -257,6 +265,11 @@ impl TrackerConfig {
             offset_motion: match mode {
                 Mode::Paper => None,
                 Mode::Ours => Some(OffsetMotion::default_ours()),
+            },
+            proposal: None,
+            edge_contrast: match mode {
+                Mode::Paper => None,
+                Mode::Ours => Some(EdgeContrast { reference_px: 75.0, noise_factor: 2.5 }),
             },
             seed: 1,
         }
@@ -335,6 +348,22 @@ impl TrackerConfig {
                 && !(pos(p.max_sigma) && p.line_share.is_finite() && (0.0..=1.0).contains(&p.line_share))
             {
                 return Err(ConfigError("offset_motion.prior_lost (max_sigma > 0, line_share 0..=1)"));
+            }
+        }
+        if let Some(c) = &self.edge_contrast
+            && !(c.reference_px.is_finite()
+                && c.reference_px > 0.0
+                && c.noise_factor.is_finite()
+                && c.noise_factor >= 0.0)
+        {
+            return Err(ConfigError("edge_contrast (reference_px > 0, noise_factor >= 0)"));
+        }
+        if let Some(p) = &self.proposal {
+            if self.mode == Mode::Paper {
+                return Err(ConfigError("proposal (ours only)"));
+            }
+            if let Some(f) = p.invalid_field() {
+                return Err(ConfigError(f));
             }
         }
         Ok(())
@@ -417,6 +446,10 @@ pub struct Estimate {
     /// `true` when the inlier share alone would have made the frame LOST but the prior kept
     /// it ([`OffsetMotion::prior_lost`]).
     pub held_by_prior: bool,
+    /// Ours with [`TrackerConfig::proposal`]: the particles were re-initialised this frame
+    /// about a hypothesis on the detected shaft's axis (a re-initialisation from vision, not
+    /// from the kinematics).
+    pub reseeded_from_vision: bool,
 }
 
 fn mix(a: u64, b: u64) -> u64 {
@@ -448,6 +481,14 @@ pub struct Tracker {
     frame: u64,
     lost_run: u32,
     rng: ChaCha8Rng,
+    /// The detected shaft's axis for the next step ([`Tracker::set_shaft_axis`]).
+    axis: Option<ShaftAxis>,
+    /// The previous frame's best hypothesis (refined), or the initial centre.
+    last_best: Option<Particle>,
+    /// Hypotheses on the detected axis and their costs (preallocated).
+    proposals: Vec<Particle>,
+    prop_costs: Vec<f64>,
+    last_reseed_share: f64,
 }
 
 impl Tracker {
@@ -474,6 +515,11 @@ impl Tracker {
             frame: 0,
             lost_run: 0,
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            axis: None,
+            last_best: None,
+            proposals: vec![p0; cfg.proposal.map_or(0, |p| p.count)],
+            prop_costs: vec![f64::INFINITY; cfg.proposal.map_or(0, |p| p.count)],
+            last_reseed_share: f64::NAN,
             cfg,
         })
     }
@@ -509,6 +555,19 @@ impl Tracker {
     /// whose inlier share was below the threshold); NaN otherwise.
     pub fn last_line_share(&self) -> f64 {
         self.last_line_share
+    }
+
+    /// Gives the next [`Tracker::step`] the shaft's axis detected in this frame's images (base
+    /// frame; [`proposal::triangulate_axis`]), used when [`TrackerConfig::proposal`] is set;
+    /// `None`: no detection. Taken by that step (the next one has none unless set again).
+    pub fn set_shaft_axis(&mut self, axis: Option<ShaftAxis>) {
+        self.axis = axis;
+    }
+
+    /// Ours with [`TrackerConfig::proposal`]: the inlier share (0..1) of the best hypothesis
+    /// on the detected axis on the last frame re-seeding was tried; NaN when it was not.
+    pub fn last_reseed_share(&self) -> f64 {
+        self.last_reseed_share
     }
 
     /// Ours with [`OffsetMotion`]: the offset's mean `m` (radians per joint; zeros when it
@@ -553,6 +612,7 @@ impl Tracker {
         self.last_encoder = Some(*encoder_rad);
         self.last_cost_px = 0.0;
         self.lost_run = 0;
+        self.last_best = Some(Particle { joints: *centre, jaw_rad: jaw, camera_delta: [0.0; 6] });
     }
 
     /// [`OffsetMotion`]'s step: each particle's offset from the previous encoders `prev`
@@ -680,9 +740,16 @@ impl Tracker {
     /// [`OffsetMotion`], τ × the prior's negative log density (the posterior's, as the weights
     /// `exp(−c/τ)` are the likelihood): along what the images do not fix the prior decides.
     /// Returns the refined hypothesis and its cost (without the prior term).
-    fn refine(&self, start: &Particle, start_cost: f64, cams: &StereoCameras, enc: &[f64; JOINTS]) -> (Particle, f64) {
+    fn refine(
+        &self,
+        start: &Particle,
+        start_cost: f64,
+        cams: &StereoCameras,
+        enc: &[f64; JOINTS],
+        with_prior: bool,
+    ) -> (Particle, f64) {
         let tau = self.cfg.tau_px;
-        let objective = |p: &Particle, c: f64| c + tau * self.prior_of(p, enc).0;
+        let objective = |p: &Particle, c: f64| if with_prior { c + tau * self.prior_of(p, enc).0 } else { c };
         let mut best = *start;
         let mut cost = start_cost;
         let mut best_obj = objective(&best, cost);
@@ -749,9 +816,12 @@ impl Tracker {
         // Edges, once per frame.
         match self.cfg.mode {
             Mode::Ours => {
-                let th = self.cfg.edge_threshold;
+                let (th, ec) = (self.cfg.edge_threshold, self.cfg.edge_contrast);
                 let [f0, f1] = &mut self.fields;
-                let (a, b) = rayon::join(|| f0.compute_ours(input.rgb[0], th), || f1.compute_ours(input.rgb[1], th));
+                let (a, b) = rayon::join(
+                    || f0.compute_ours_adaptive(input.rgb[0], th, ec),
+                    || f1.compute_ours_adaptive(input.rgb[1], th, ec),
+                );
                 a.and(b).map_err(|source| StepError::Image { eye: "left", source })?;
             }
             Mode::Paper => {
@@ -808,6 +878,15 @@ impl Tracker {
                     None => self.diffuse(&inc, scale, 0),
                 }
             }
+        }
+        // Re-seeding from the detected shaft (ours), before the cloud is measured.
+        let axis = self.axis.take();
+        let mut reseeded_from_vision = false;
+        self.last_reseed_share = f64::NAN;
+        if let (Mode::Ours, Some(pc), Some(axis), Some(prev)) =
+            (self.cfg.mode, self.cfg.proposal, axis, self.last_encoder)
+        {
+            reseeded_from_vision = self.reseed_from_axis(&pc, &axis, &cams, &input.encoder_rad, &prev);
         }
         self.last_encoder = Some(input.encoder_rad);
         if input.time_ns.is_some() {
@@ -873,7 +952,7 @@ impl Tracker {
         let mut best = self.particles[best_i];
         let mut best_cost = best_cost;
         if self.cfg.mode == Mode::Ours && self.cfg.refine_sweeps > 0 && best_cost.is_finite() {
-            let (p, c) = self.refine(&best, best_cost, &cams, &input.encoder_rad);
+            let (p, c) = self.refine(&best, best_cost, &cams, &input.encoder_rad, true);
             best = p;
             best_cost = c;
             // The refined hypothesis replaces the worst particle.
@@ -882,6 +961,7 @@ impl Tracker {
             self.costs[wi] = best_cost;
             self.weights[wi] = self.weights[best_i].max(self.weights[wi]);
         }
+        self.last_best = Some(best);
         let per_eye = match self.cfg.mode {
             Mode::Ours => best_cost / 2.0,
             Mode::Paper => best_cost,
@@ -949,7 +1029,80 @@ impl Tracker {
             effective_particles: ess,
             reinitialised,
             held_by_prior: held_by_prior && status != Status::Lost,
+            reseeded_from_vision,
         })
+    }
+
+    /// [`ProposalConfig`]'s rule on this frame (the edge fields computed, the particles moved
+    /// to it): `true` when the particles were re-initialised about a hypothesis on `axis`.
+    /// `prev`: the previous frame's encoders. Allocation-free.
+    fn reseed_from_axis(
+        &mut self,
+        pc: &ProposalConfig,
+        axis: &ShaftAxis,
+        cams: &StereoCameras,
+        enc: &[f64; JOINTS],
+        prev: &[f64; JOINTS],
+    ) -> bool {
+        let Some(last) = self.last_best else { return false };
+        // The reference: the previous best moved with the encoders (same offset).
+        let mut reference = last;
+        for j in 0..JOINTS {
+            reference.joints[j] = enc[j] + (last.joints[j] - prev[j]);
+        }
+        let (_, inl) = measure::fit_ours(&self.model, cams, &self.fields, &reference, &self.cfg.ours);
+        let ref_share = 0.5 * (inl[0] + inl[1]);
+        if ref_share >= pc.trigger_share || !proposal::axis_consistent(&self.model, &reference.joints, axis, pc) {
+            return false;
+        }
+        // The reference put on the axis once; every hypothesis is solved from there.
+        let Some(q_axis) = proposal::joints_for_axis(&self.model, &reference.joints, axis, 0.0, 0.0) else {
+            return false;
+        };
+        let distal = proposal::slide_to_distal_end(&self.model, &q_axis, axis);
+        let seed = mix(mix(self.cfg.seed, self.frame), 0x5EED_A715);
+        let model = &self.model;
+        let (fields, oc) = (&self.fields, self.cfg.ours);
+        let n = self.proposals.len();
+        self.proposals.par_iter_mut().zip(self.prop_costs.par_iter_mut()).enumerate().for_each(|(i, (p, c))| {
+            let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
+            // Half about the detected distal end (when there is one), half about the reference.
+            let centre = if i < n / 2 { distal.unwrap_or(0.0) } else { 0.0 };
+            let first = i == 0 || i == n / 2;
+            let slide = if first { centre } else { centre + pc.slide_sigma_m * r.sample::<f64, _>(StandardNormal) };
+            let roll = if first { 0.0 } else { pc.roll_sigma_rad * r.sample::<f64, _>(StandardNormal) };
+            *p = reference;
+            // Every other hypothesis with a jaw angle drawn over the jaws' range.
+            if i % 2 == 1 {
+                p.jaw_rad = r.random_range(0.0..0.8);
+            }
+            let target = proposal::instrument_on_axis(model, &q_axis, axis, slide, roll);
+            match target.and_then(|t| proposal::solve_instrument_pose(model, &q_axis, &t, 8)) {
+                Some(q) => {
+                    p.joints = q;
+                    *c = measure::cost_ours(model, cams, fields, p, &oc);
+                }
+                None => *c = f64::INFINITY,
+            }
+        });
+        let bi = argmin(&self.prop_costs);
+        let c0 = self.prop_costs[bi];
+        if !c0.is_finite() {
+            return false;
+        }
+        let (best, _) = self.refine(&self.proposals[bi], c0, cams, enc, false);
+        let (c, inl) = measure::fit_ours(&self.model, cams, &self.fields, &best, &self.cfg.ours);
+        let share = 0.5 * (inl[0] + inl[1]);
+        self.last_reseed_share = share;
+        if !(c.is_finite() && share >= pc.accept_share && share >= ref_share + pc.margin) {
+            return false;
+        }
+        let jaw = best.jaw_rad;
+        self.init_particles(&best.joints, enc);
+        for p in &mut self.particles {
+            p.jaw_rad = jaw;
+        }
+        true
     }
 
     fn pose_of(&self, p: &Particle, cams: &StereoCameras) -> Option<TrackedPose> {

@@ -343,12 +343,13 @@ pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
     Ok(times)
 }
 
-/// Puts this thread, and the rayon workers that share a frame's work (created now, inheriting
-/// it), below the bus listener started before (`controller::rt::lower_current_thread`): on a
-/// busy CPU a frame's step (hundreds of milliseconds on a slow machine) must not keep the
-/// listener from the bus, or every frame's joints read as stale (seen in the one-CPU HIL guest,
-/// docs/hil.md). Logged, never fatal.
-fn lower_the_tracking_threads() {
+/// Makes the calling thread the tracking thread: puts it below the bus listener started before
+/// (`controller::rt::lower_current_thread`; on a busy CPU a frame's step, hundreds of
+/// milliseconds on a slow machine, must not keep the listener from the bus, or every frame's
+/// joints read as stale: seen in the one-CPU HIL guest, docs/hil.md), then builds rayon's
+/// global pool now, so that its workers inherit the lowered priority. Call it once, before any
+/// rayon use; logged, never fatal (a pool that already exists keeps its threads and says so).
+pub fn become_the_tracking_thread() {
     let lowered = controller::rt::lower_current_thread();
     match &lowered {
         controller::rt::Lowered::Unchanged { reason } => {
@@ -357,7 +358,7 @@ fn lower_the_tracking_threads() {
         l => tracing::info!(tracking_thread = %l, "the tracking threads run below the bus listener"),
     }
     if let Err(e) = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("track-{i}")).build_global() {
-        tracing::warn!(error = %e, "rayon's workers already exist: they keep the process's priority");
+        tracing::warn!(error = %e, "rayon's pool already exists: its workers keep their priority");
     }
 }
 
@@ -367,7 +368,7 @@ pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs)
     let idle_timeout = args.idle_timeout_s.map(|s| positive_seconds("--idle-timeout-s", s)).transpose()?;
     let mut live = build(file, fcfg, args)?;
     let mut joints = open_joints(fcfg, args, &file.joints.resolve(fcfg.cycle.period_us))?;
-    lower_the_tracking_threads();
+    become_the_tracking_thread();
     install_stop_handlers();
     let mut frames = FrameSubscriber::connect(&args.frame_service, &PublisherOptions::frames())
         .map_err(|e| ipc_err("frame service")(&e))?;

@@ -22,6 +22,8 @@ fn the_counter_sees_allocations_and_the_live_loop_allocates_nothing_per_frame() 
     assert!(COUNT.load(Ordering::SeqCst) >= 1 && v.len() == 3);
 
     let dir = tempfile::tempdir().unwrap();
+    // The tracking thread as the process sets it up: below the listener, rayon's pool built.
+    comanip_track::live_cli::become_the_tracking_thread();
     let run_dir = common::generate(dir.path());
     let seq = common::sequence(&run_dir);
     let fcfg = controller::config::Config::default();

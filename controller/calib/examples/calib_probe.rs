@@ -8,6 +8,7 @@
 
 use estimator::calib::ours::{OursConfig, solve_ours_prepared};
 use estimator::calib::prepare::{PreparedSet, prepare};
+use estimator::calib::hausman::move_test;
 use estimator::calib::selection::{SelectionConfig, refine_selected};
 use nalgebra::{Isometry3, Matrix6, Vector6};
 
@@ -38,13 +39,27 @@ fn diag(set: &PreparedSet, cfg: &OursConfig, truth: &Isometry3<f64>, seed: u64, 
     let (gt, gr) = err(&guarded.pose);
     let sd_t = (guarded.covariance[(0, 0)] + guarded.covariance[(1, 1)] + guarded.covariance[(2, 2)]).sqrt() * 1e3;
     let mg = mahalanobis(&guarded.pose, truth, &guarded.covariance);
-    let sel = SelectionConfig { max_shift_sigmas: f64::INFINITY, ..SelectionConfig::default() };
-    let stage = match refine_selected(set, &cfg.noise.unwrap(), &guarded.pose, &sel) {
+    let sel = SelectionConfig { false_refusal_probability: 0.0, ..SelectionConfig::default() };
+    let stage = match refine_selected(set, &cfg.noise.unwrap(), &guarded.pose, &guarded.covariance, &sel) {
         Ok(f) => {
             let (st, sr) = err(&f.pose);
             let ms = mahalanobis(&f.pose, truth, &f.covariance);
+            let mut d = Vector6::zeros();
+            d.fixed_rows_mut::<3>(0).copy_from(&(f.pose.translation.vector - guarded.pose.translation.vector));
+            d.fixed_rows_mut::<3>(3).copy_from(&(f.pose.rotation * guarded.pose.rotation.inverse()).scaled_axis());
+            let p = SelectionConfig::default().false_refusal_probability;
+            let h = match move_test(&d, &guarded.covariance, &f.covariance, p) {
+                Some(t) => format!(
+                    "hausman {:.1}/{} limit {:.1} {}",
+                    t.statistic,
+                    t.dof,
+                    t.limit,
+                    if t.passes() { "pass" } else { "REFUSE" }
+                ),
+                None => "hausman n/a REFUSE".into(),
+            };
             format!(
-                "stage et {st:.2} er {sr:.3} shift {:.1} truth@{ms:.1}sd sel {} plain {} out {}",
+                "stage et {st:.2} er {sr:.3} shift {:.1} {h} truth@{ms:.1}sd sel {} plain {} out {}",
                 f.shift_sigmas, f.selected, f.plain, f.left_out
             )
         }

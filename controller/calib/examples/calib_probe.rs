@@ -8,7 +8,6 @@
 
 use estimator::calib::ours::{OursConfig, solve_ours_prepared};
 use estimator::calib::prepare::{PreparedSet, prepare};
-use estimator::calib::hausman::move_test;
 use estimator::calib::selection::{SelectionConfig, refine_selected};
 use nalgebra::{Isometry3, Matrix6, Vector6};
 
@@ -44,15 +43,11 @@ fn diag(set: &PreparedSet, cfg: &OursConfig, truth: &Isometry3<f64>, seed: u64, 
         Ok(f) => {
             let (st, sr) = err(&f.pose);
             let ms = mahalanobis(&f.pose, truth, &f.covariance);
-            let mut d = Vector6::zeros();
-            d.fixed_rows_mut::<3>(0).copy_from(&(f.pose.translation.vector - guarded.pose.translation.vector));
-            d.fixed_rows_mut::<3>(3).copy_from(&(f.pose.rotation * guarded.pose.rotation.inverse()).scaled_axis());
-            let p = SelectionConfig::default().false_refusal_probability;
-            let h = match move_test(&d, &guarded.covariance, &f.covariance, p) {
+            let h = match f.move_test {
                 Some(t) => format!(
-                    "hausman {:.1}/{} limit {:.1} {}",
+                    "hausman {:.1} (rank {}) limit {:.1} {}",
                     t.statistic,
-                    t.dof,
+                    t.hausman_rank,
                     t.limit,
                     if t.passes() { "pass" } else { "REFUSE" }
                 ),

@@ -12,14 +12,22 @@
 //! poses, each scaled by its own dispersion, the stage leaving some lines out), so `Σ_g − Σ_s`
 //! need not be positive definite. The test is computed in the stage's whitened coordinates
 //! (invariant to the units of translation and rotation): with `Σ_s = L Lᵀ` and the eigen
-//! decomposition `L⁻¹ Σ_g L⁻ᵀ = V Λ Vᵀ`, the difference is `L V (Λ − I) Vᵀ Lᵀ`. Only the
-//! directions where the stage is more efficient by at least [`MIN_VARIANCE_GAIN`]
-//! (`λ_i − 1 ≥ 0.05`: the difference's variance at least 5 % of the stage's) are tested — the
-//! generalised inverse of the difference with that stated rank; the others carry no
-//! Hausman information (the two estimators are equally precise there, or the stage is less
-//! precise) and are left out of the statistic and of its degrees of freedom. The result
-//! states the rank it used. With rank 0 nothing can be tested and the move is not refused by
-//! this test.
+//! decomposition `L⁻¹ Σ_g L⁻ᵀ = V Λ Vᵀ`, the difference is `L V (Λ − I) Vᵀ Lᵀ`, and the
+//! move's whitened components `y = Vᵀ L⁻¹ d` are independent under the hypothesis. Each
+//! direction's variance:
+//! - where the stage is more efficient by at least [`MIN_VARIANCE_GAIN`] (`λ_i − 1 ≥ 0.05`):
+//!   Hausman's `λ_i − 1` (the positive part of the difference);
+//! - elsewhere the efficiency argument does not hold (the two fits are equally precise there,
+//!   or the stage, which leaves some lines out, is less precise) and `λ_i − 1` is no variance:
+//!   the largest variance the difference of two consistent estimators with variances `1` and
+//!   `λ_i` can have whatever their correlation, `(1 + √λ_i)²` (Cauchy-Schwarz). Conservative:
+//!   a move there is refused only when no correlation explains it, so a stage that diverges in
+//!   a direction the guarded fit already determined is still refused.
+//!
+//! The statistic `Σ_i y_i² / v_i` then has all six directions, each of variance at most 1
+//! under the hypothesis, and is compared with the χ²₆ quantile at one minus the stated
+//! false-refusal probability (exact on the Hausman directions, conservative on the others).
+//! The result states how many directions were Hausman's (`hausman_rank`).
 
 use nalgebra::{Matrix6, Vector6};
 
@@ -33,17 +41,20 @@ pub struct MoveTest {
     /// `dᵀ (Σ_g − Σ_s)⁺ d` on the tested directions (dimensionless; χ² with `dof` degrees of
     /// freedom when both estimators are consistent).
     pub statistic: f64,
-    /// Degrees of freedom: the number of tested directions (0-6).
+    /// Degrees of freedom (6: every direction is tested).
     pub dof: usize,
+    /// Directions judged by Hausman's variance `λ_i − 1` (0-6); the others by the
+    /// Cauchy-Schwarz bound (module docs).
+    pub hausman_rank: usize,
     /// The refusal limit: the χ² quantile of `dof` degrees of freedom at one minus the
-    /// false-refusal probability (0 when `dof` is 0).
+    /// false-refusal probability.
     pub limit: f64,
 }
 
 impl MoveTest {
-    /// True when the move is within the limit (always when nothing could be tested).
+    /// True when the move is within the limit.
     pub fn passes(&self) -> bool {
-        self.dof == 0 || self.statistic <= self.limit
+        self.statistic <= self.limit
     }
 }
 
@@ -64,17 +75,19 @@ pub fn move_test(d: &Vector6<f64>, start_cov: &Matrix6<f64>, stage_cov: &Matrix6
     let m = sym(&(l_inv * start_cov * l_inv.transpose()));
     let eig = m.symmetric_eigen();
     let z = l_inv * d;
-    let (mut statistic, mut dof) = (0.0, 0usize);
+    let (mut statistic, mut hausman_rank) = (0.0, 0usize);
     for i in 0..6 {
-        let gain = eig.eigenvalues[i] - 1.0;
-        if gain >= MIN_VARIANCE_GAIN {
-            let y = eig.eigenvectors.column(i).dot(&z);
-            statistic += y * y / gain;
-            dof += 1;
-        }
+        let lambda = eig.eigenvalues[i].max(0.0);
+        let var = if lambda - 1.0 >= MIN_VARIANCE_GAIN {
+            hausman_rank += 1;
+            lambda - 1.0
+        } else {
+            (1.0 + lambda.sqrt()).powi(2)
+        };
+        let y = eig.eigenvectors.column(i).dot(&z);
+        statistic += y * y / var;
     }
-    let limit = if dof == 0 { 0.0 } else { chi2_quantile(dof, 1.0 - false_refusal) };
-    Some(MoveTest { statistic, dof, limit })
+    Some(MoveTest { statistic, dof: 6, hausman_rank, limit: chi2_quantile(6, 1.0 - false_refusal) })
 }
 
 /// Survival function `P(X > x)` of the χ² distribution with `k ≥ 1` degrees of freedom (closed
@@ -171,7 +184,7 @@ mod tests {
         for i in 0..6 {
             let d = c.column(i).into_owned();
             let t = move_test(&d, &g, &s, 1e-3).unwrap();
-            assert_eq!(t.dof, 6);
+            assert_eq!((t.dof, t.hausman_rank), (6, 6));
             assert!((t.statistic - 1.0).abs() < 1e-9, "{}", t.statistic);
             assert!(t.passes());
         }
@@ -193,19 +206,22 @@ mod tests {
         let l = s.cholesky().unwrap().l();
         let lam = Vector6::new(4.0, 2.0, 1.0, 1.0, 0.5, 0.25);
         let g = l * Matrix6::from_diagonal(&lam) * l.transpose();
-        // A move along the first whitened direction (2 sd of the difference: √3 · 2) and a
-        // large one along the fifth (not tested: the stage is less precise there).
+        // A move along the first whitened direction: 2 sd of the difference (Hausman: √3 · 2)
+        // and 1 sd along the sixth by the Cauchy-Schwarz bound ((1 + √0.25)² = 2.25).
         let mut z = Vector6::zeros();
         z[0] = 2.0 * 3f64.sqrt();
-        z[4] = 100.0;
+        z[5] = 1.5;
         let t = move_test(&(l * z), &g, &s, 1e-3).unwrap();
-        assert_eq!(t.dof, 2);
-        assert!((t.statistic - 4.0).abs() < 1e-9, "{t:?}");
-        assert!((t.limit - chi2_quantile(2, 0.999)).abs() < 1e-12 && t.passes());
-        // Nothing more efficient anywhere: nothing tested.
+        assert_eq!((t.dof, t.hausman_rank), (6, 2));
+        assert!((t.statistic - 5.0).abs() < 1e-9, "{t:?}");
+        assert!((t.limit - chi2_quantile(6, 0.999)).abs() < 1e-12 && t.passes());
+        // The stage nowhere more efficient, and a move of 50 sd of the guarded fit along a
+        // direction it determined (a diverged stage): refused though no Hausman direction.
+        let mut z = Vector6::zeros();
+        z[2] = 50.0;
         let t0 = move_test(&(l * z), &s, &s, 1e-3).unwrap();
-        assert_eq!((t0.dof, t0.statistic), (0, 0.0));
-        assert!(t0.passes());
+        assert_eq!(t0.hausman_rank, 0);
+        assert!((t0.statistic - 2500.0 / 4.0).abs() < 1e-6 && !t0.passes(), "{t0:?}");
     }
 
     #[test]

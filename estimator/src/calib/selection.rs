@@ -437,9 +437,15 @@ pub struct SelectionConfig {
     /// The stage's result is refused when its move from the guarded fit fails the
     /// Hausman-type test ([`super::hausman`]) at this false-refusal probability (the
     /// probability of refusing when both fits are consistent; dimensionless, in `(0, 1)`);
-    /// 0 disables the test (the move is still reported).
+    /// 0 disables the refusal (the test is still reported, at
+    /// [`DEFAULT_FALSE_REFUSAL_PROBABILITY`]).
     pub false_refusal_probability: f64,
 }
+
+/// The default of [`SelectionConfig::false_refusal_probability`]: 1e-3 (a stage consistent
+/// with the guarded fit is refused once in a thousand datasets; the limit is the χ²₆ quantile
+/// 22.46).
+pub const DEFAULT_FALSE_REFUSAL_PROBABILITY: f64 = 1e-3;
 
 impl Default for SelectionConfig {
     /// Tuned on seeds 5000-5059 of the metre reading at σ = 0.01 (the sweep uses 1000-1029).
@@ -449,7 +455,7 @@ impl Default for SelectionConfig {
             plain_guard_sigmas: 0.5,
             outlier_threshold: 9.2,
             max_iterations: 50,
-            false_refusal_probability: 1e-3,
+            false_refusal_probability: DEFAULT_FALSE_REFUSAL_PROBABILITY,
         }
     }
 }
@@ -710,8 +716,10 @@ pub struct SelectionFit {
     /// How far the stage moved from its start, in standard deviations of the start's
     /// Gauss-Newton metric on all observations (dimensionless; for information).
     pub shift_sigmas: f64,
-    /// The Hausman-type test of the move against the guarded fit's covariance
-    /// ([`super::hausman::move_test`]); `None` when the test is disabled.
+    /// The Hausman-type test of the move against the guarded fit's covariance and the stage's
+    /// at its start ([`super::hausman::move_test`]; at
+    /// [`DEFAULT_FALSE_REFUSAL_PROBABILITY`] when the refusal is disabled); `None` when it could
+    /// not be computed (refusal disabled).
     pub move_test: Option<MoveTest>,
 }
 
@@ -858,16 +866,20 @@ pub fn refine_selected(
     d.fixed_rows_mut::<3>(0).copy_from(&(t - ts));
     d.fixed_rows_mut::<3>(3).copy_from(&Rotation3::from_matrix_unchecked(r * rs.transpose()).scaled_axis());
     let sigmas = start_metric.map_or(f64::INFINITY, |m| d.dot(&(m * d)).max(0.0).sqrt());
-    // The move judged by the covariance of the difference of the two fits (Hausman).
-    let test = if cfg.false_refusal_probability > 0.0 {
-        match move_test(&d, start_covariance, &covariance, cfg.false_refusal_probability) {
-            Some(t) if t.passes() => Some(t),
-            Some(t) => return Err(SelectionError::RanAway { sigmas, statistic: t.statistic, dof: t.dof, limit: t.limit }),
-            None => return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN }),
-        }
-    } else {
-        None
-    };
+    // The move judged by the covariance of the difference of the two fits (Hausman). The
+    // stage's covariance is taken at its start (its information where both fits should be
+    // under the hypothesis), so a stage that ran off to where its information vanishes
+    // cannot widen its own yardstick.
+    let enforce = cfg.false_refusal_probability > 0.0;
+    let p = if enforce { cfg.false_refusal_probability } else { DEFAULT_FALSE_REFUSAL_PROBABILITY };
+    let stage_cov = start_metric.and_then(|m| m.try_inverse());
+    let test = stage_cov.and_then(|c| move_test(&d, start_covariance, &c, p));
+    match test {
+        Some(t) if t.passes() || !enforce => {}
+        Some(t) => return Err(SelectionError::RanAway { sigmas, statistic: t.statistic, dof: t.dof, limit: t.limit }),
+        None if enforce => return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN }),
+        None => {}
+    }
     Ok(SelectionFit {
         pose: Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r)),
         selected: counts.0,

@@ -45,7 +45,9 @@ fn main() {
     let rho = units.metres();
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let draw18 = |rng: &mut ChaCha8Rng| -> SVector<f64, 18> {
-        SVector::<f64, 18>::from_fn(|j, _| rng.sample::<f64, _>(StandardNormal) * sigma * if j % 6 < 3 { rho } else { 1.0 })
+        SVector::<f64, 18>::from_fn(|j, _| {
+            rng.sample::<f64, _>(StandardNormal) * sigma * if j % 6 < 3 { rho } else { 1.0 }
+        })
     };
     let part = |d: &SVector<f64, 18>, k: usize| -> Isometry3<f64> {
         se3_exp(

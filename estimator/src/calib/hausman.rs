@@ -62,7 +62,12 @@ impl MoveTest {
 /// covariance `start_cov` and the stage's `stage_cov` (both of `(t m, δφ rad)`), refusing with
 /// probability `false_refusal` (in `(0, 1)`) when both estimators are consistent. `None` when
 /// an input is not finite or the stage's covariance is not positive definite.
-pub fn move_test(d: &Vector6<f64>, start_cov: &Matrix6<f64>, stage_cov: &Matrix6<f64>, false_refusal: f64) -> Option<MoveTest> {
+pub fn move_test(
+    d: &Vector6<f64>,
+    start_cov: &Matrix6<f64>,
+    stage_cov: &Matrix6<f64>,
+    false_refusal: f64,
+) -> Option<MoveTest> {
     if !(d.iter().chain(start_cov.iter()).chain(stage_cov.iter()).all(|v| v.is_finite())
         && false_refusal > 0.0
         && false_refusal < 1.0)

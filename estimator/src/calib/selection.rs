@@ -877,7 +877,9 @@ pub fn refine_selected(
     match test {
         Some(t) if t.passes() || !enforce => {}
         Some(t) => return Err(SelectionError::RanAway { sigmas, statistic: t.statistic, dof: t.dof, limit: t.limit }),
-        None if enforce => return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN }),
+        None if enforce => {
+            return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN });
+        }
         None => {}
     }
     Ok(SelectionFit {

@@ -105,7 +105,7 @@ pub fn chi2_survival(k: usize, x: f64) -> f64 {
         return 1.0;
     }
     let h = 0.5 * x;
-    if k % 2 == 0 {
+    if k.is_multiple_of(2) {
         // e^{−x/2} Σ_{j<k/2} (x/2)^j / j!
         let (mut term, mut sum) = (1.0, 1.0);
         for j in 1..k / 2 {

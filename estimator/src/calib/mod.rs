@@ -38,12 +38,14 @@
 
 pub mod camera;
 pub mod crb;
+pub mod hausman;
 pub mod ours;
 pub mod paper;
 pub mod prepare;
 pub mod rcm_arms;
 pub mod residual;
 pub mod selection;
+pub mod sigma_point;
 
 use nalgebra::{Isometry3, SMatrix, Vector3};
 use serde::{Deserialize, Serialize};

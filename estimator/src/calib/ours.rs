@@ -50,6 +50,11 @@ pub const DEFAULT_MIN_LOG_LIKELIHOOD_RATIO: f64 = 6.907_755_278_982_137;
 /// so the reported log-likelihood ratio, is finite by construction.
 pub const RESIDUAL_CAP_THRESHOLDS: f64 = 1e6;
 
+/// A border-guarded refit that lands farther than this from the previous fit, in standard
+/// deviations of the previous fit's covariance (Mahalanobis), ends the guard: the guard
+/// removes a bias, it does not find another solution.
+pub const GUARD_MAX_SHIFT_SIGMAS: f64 = 20.0;
+
 /// Options of our pipeline.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OursConfig {
@@ -631,7 +636,7 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
         match solve_once(&sub, cfg, Some(&result.pose)) {
             // A guarded refit must stay within the full fit's confidence region (the guard
             // removes a bias, it does not find another solution); else the guard stops.
-            Ok(next) if !within(&result, &next.pose, SelectionConfig::default().max_shift_sigmas) => break,
+            Ok(next) if !within(&result, &next.pose, GUARD_MAX_SHIFT_SIGMAS) => break,
             Ok(mut next) => {
                 next.guard_kept = sub.obs.len();
                 next.alternative = result.alternative;
@@ -658,7 +663,7 @@ pub fn apply_selection_stage(
     cfg: &SelectionConfig,
     mut result: OursResult,
 ) -> OursResult {
-    match refine_selected(set, noise, &result.pose, cfg) {
+    match refine_selected(set, noise, &result.pose, &result.covariance, cfg) {
         Ok(fit) => {
             result.covariance = fit.covariance;
             result.pose = fit.pose;

@@ -44,6 +44,7 @@ use nalgebra::{
 };
 
 use super::KinematicNoise;
+use super::hausman::{MoveTest, move_test};
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, damped_step, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
@@ -606,10 +607,18 @@ pub struct SelectionConfig {
     pub outlier_threshold: f64,
     /// Levenberg-Marquardt iterations per pass (two passes).
     pub max_iterations: usize,
-    /// The stage's result is refused when it lies farther than this from its start, in
-    /// standard deviations of the start's Gauss-Newton metric.
-    pub max_shift_sigmas: f64,
+    /// The stage's result is refused when its move from the guarded fit fails the
+    /// Hausman-type test ([`super::hausman`]) at this false-refusal probability (the
+    /// probability of refusing when both fits are consistent; dimensionless, in `(0, 1)`);
+    /// 0 disables the refusal (the test is still reported, at
+    /// [`DEFAULT_FALSE_REFUSAL_PROBABILITY`]).
+    pub false_refusal_probability: f64,
 }
+
+/// The default of [`SelectionConfig::false_refusal_probability`]: 1e-3 (a stage consistent
+/// with the guarded fit is refused once in a thousand datasets; the limit is the χ²₆ quantile
+/// 22.46).
+pub const DEFAULT_FALSE_REFUSAL_PROBABILITY: f64 = 1e-3;
 
 impl Default for SelectionConfig {
     /// Tuned on seeds 5000-5059 of the metre reading at σ = 0.01 (the sweep uses 1000-1029).
@@ -619,7 +628,7 @@ impl Default for SelectionConfig {
             plain_guard_sigmas: 0.5,
             outlier_threshold: 9.2,
             max_iterations: 50,
-            max_shift_sigmas: 20.0,
+            false_refusal_probability: DEFAULT_FALSE_REFUSAL_PROBABILITY,
         }
     }
 }
@@ -878,8 +887,13 @@ pub struct SelectionFit {
     /// used, scaled by their dispersion (whitened squared residual per degree of freedom).
     pub covariance: Matrix6<f64>,
     /// How far the stage moved from its start, in standard deviations of the start's
-    /// Gauss-Newton metric (dimensionless).
+    /// Gauss-Newton metric on all observations (dimensionless; for information).
     pub shift_sigmas: f64,
+    /// The Hausman-type test of the move against the guarded fit's covariance and the stage's
+    /// at its start ([`super::hausman::move_test`]; at
+    /// [`DEFAULT_FALSE_REFUSAL_PROBABILITY`] when the refusal is disabled); `None` when it could
+    /// not be computed (refusal disabled).
+    pub move_test: Option<MoveTest>,
 }
 
 /// Why the selection-aware stage was not applied (our pipeline then keeps the guarded fit).
@@ -891,23 +905,35 @@ pub enum SelectionError {
     /// The Gauss-Newton matrix at the solution is singular.
     #[error("the information matrix at the solution is singular")]
     Singular,
-    /// The stage moved farther from the robust fit than the first-order model can be trusted
-    /// (typically beyond the noise the protocol was designed for).
-    #[error("the selection-aware fit moved {sigmas:.1} standard deviations from the robust fit (limit {max:.1})")]
+    /// The stage's move from the guarded fit is not explained by the two fits' noise: its
+    /// Hausman statistic `dᵀ (Σ_guarded − Σ_stage)⁺ d` is above the χ² limit
+    /// ([`super::hausman`]; typically beyond the noise the first-order model was made for).
+    /// A statistic of NaN: the test could not be computed (covariance not positive definite).
+    #[error(
+        "the selection-aware fit moved {sigmas:.1} standard deviations from the guarded fit; Hausman statistic {statistic:.1} on {dof} degrees of freedom (limit {limit:.1})"
+    )]
     RanAway {
-        /// The move, standard deviations.
+        /// The move in standard deviations of the stage's Gauss-Newton metric at its start on
+        /// all observations (for information).
         sigmas: f64,
-        /// The limit.
-        max: f64,
+        /// The Hausman statistic (dimensionless, χ²).
+        statistic: f64,
+        /// Its degrees of freedom.
+        dof: usize,
+        /// The limit: the χ² quantile at one minus the false-refusal probability.
+        limit: f64,
     },
 }
 
-/// Maximum likelihood of the kept lines from `start` (`T_e_t`, metres), under `noise` and the
-/// selection (module docs); `None` when no observation can be modelled.
+/// Maximum likelihood of the kept lines from `start` (`T_e_t`, metres; the guarded fit, with
+/// its covariance `start_covariance` of `(t m, δφ rad)`), under `noise` and the selection
+/// (module docs). Refused when no observation can be modelled, the information is singular,
+/// or the move from `start` fails the Hausman-type test ([`super::hausman`]).
 pub fn refine_selected(
     set: &PreparedSet,
     noise: &KinematicNoise,
     start: &Isometry3<f64>,
+    start_covariance: &Matrix6<f64>,
     cfg: &SelectionConfig,
 ) -> Result<SelectionFit, SelectionError> {
     let mut r = start.rotation.to_rotation_matrix().into_inner();
@@ -1013,8 +1039,21 @@ pub fn refine_selected(
     d.fixed_rows_mut::<3>(0).copy_from(&(t - ts));
     d.fixed_rows_mut::<3>(3).copy_from(&Rotation3::from_matrix_unchecked(r * rs.transpose()).scaled_axis());
     let sigmas = start_metric.map_or(f64::INFINITY, |m| d.dot(&(m * d)).max(0.0).sqrt());
-    if !(sigmas.is_finite() && sigmas <= cfg.max_shift_sigmas) {
-        return Err(SelectionError::RanAway { sigmas, max: cfg.max_shift_sigmas });
+    // The move judged by the covariance of the difference of the two fits (Hausman). The
+    // stage's covariance is taken at its start (its information where both fits should be
+    // under the hypothesis), so a stage that ran off to where its information vanishes
+    // cannot widen its own yardstick.
+    let enforce = cfg.false_refusal_probability > 0.0;
+    let p = if enforce { cfg.false_refusal_probability } else { DEFAULT_FALSE_REFUSAL_PROBABILITY };
+    let stage_cov = start_metric.and_then(|m| m.try_inverse());
+    let test = stage_cov.and_then(|c| move_test(&d, start_covariance, &c, p));
+    match test {
+        Some(t) if t.passes() || !enforce => {}
+        Some(t) => return Err(SelectionError::RanAway { sigmas, statistic: t.statistic, dof: t.dof, limit: t.limit }),
+        None if enforce => {
+            return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN });
+        }
+        None => {}
     }
     Ok(SelectionFit {
         pose: Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r)),
@@ -1024,6 +1063,7 @@ pub fn refine_selected(
         iterations,
         covariance,
         shift_sigmas: sigmas,
+        move_test: test,
     })
 }
 

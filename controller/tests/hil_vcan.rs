@@ -1622,19 +1622,26 @@ fn hil_live_camera_frames_in_order_on_the_bus_clock() {
     let cam = &r["camera"];
     let received = u(&f["received"]);
     assert!(received >= 5, "frames received: {f}");
-    assert_eq!(u(&cam["published"]), received, "every published frame arrived: {cam} {f}");
-    for k in ["missed", "rejected", "restarts", "timestamps_not_increasing"] {
+    // Every published frame arrived or was counted missed: the frame service keeps 2 frames per
+    // subscriber (bounded shared memory), so a guest stall of more than two frame periods
+    // before the monitor runs overwrites one (seen once in a clean-clone CI run: 98 received,
+    // 2 missed of 100, the monitor's oldest frame 768 ms old). A transport that loses frames
+    // for any other reason would miss far more than a tenth.
+    let missed = u(&f["missed"]);
+    assert_eq!(u(&cam["published"]), received + missed, "every published frame arrived or was counted: {cam} {f}");
+    assert!(missed * 10 <= u(&cam["published"]), "frames missed: {f}");
+    for k in ["rejected", "restarts", "timestamps_not_increasing"] {
         assert_eq!(f[k], 0, "{k}: {f}");
     }
     assert_eq!(f["first_sequence"], 0);
-    assert_eq!(u(&f["last_sequence"]), received - 1);
+    assert_eq!(u(&f["last_sequence"]), received + missed - 1);
     assert_eq!(f["format"], format!("{}×{} rgb8 ×2", CAMERA_SIZE.0, CAMERA_SIZE.1));
     // On the frame grid; the frames between first and last were either received or skipped.
     let (t_first, t_last) = (u(&f["first_timestamp_ns"]), u(&f["last_timestamp_ns"]));
     let period = 1_000_000_000 / CAMERA_FPS;
     assert_eq!((t_last - t_first) % period, 0, "timestamps off the frame grid: {f}");
     let slots = (t_last - t_first) / period + 1;
-    assert!(slots >= received && slots <= received + u(&f["source_dropped"]), "{slots} slots: {f}");
+    assert!(slots >= received + missed && slots <= received + missed + u(&f["source_dropped"]), "{slots} slots: {f}");
     assert_eq!(u(&f["source_dropped"]), u(&cam["skipped"]), "{cam} {f}");
     // Filmed on the bus clock: the first exposure starts after the first recorded SYNC
     // (CLOCK_MONOTONIC); frames whose exposure ends after the last SYNC (the daemon stopped,

@@ -162,14 +162,21 @@ fn three_frames_in_view(t: &mut Tracker, model: &ToolModel, cams: &StereoCameras
     k
 }
 
-#[test]
-fn ours_is_lost_when_hidden_not_when_half_hidden_and_tracks_again() {
+/// Ours (300 particles) on the synthetic scene, three frames tracked in view: the model, the
+/// cameras, the tracker and the next frame index.
+fn ours_tracking_in_view() -> (ToolModel, StereoCameras, Tracker, usize) {
     let model = model();
     let cams = cameras(&model);
     let mut t = Tracker::new(config(Mode::Ours, 300), model.clone()).unwrap();
+    let k = three_frames_in_view(&mut t, &model, &cams);
+    (model, cams, t, k)
+}
+
+#[test]
+fn ours_is_lost_when_hidden_not_when_half_hidden_and_tracks_again() {
+    let (model, cams, mut t, mut k) = ours_tracking_in_view();
     let truth = |k: usize| Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] };
     let step = |t: &mut Tracker, imgs: &[Vec<u8>; 2], k: &mut usize| step_at(t, &cams, imgs, k);
-    let mut k = three_frames_in_view(&mut t, &model, &cams);
     // The shaft's far part hidden (its contour points 120..200 of each line, the tip parts
     // in view): not lost.
     for _ in 0..4 {
@@ -292,12 +299,9 @@ fn with_a_biased_encoder_vision_beats_the_kinematics() {
 /// LOST and stays near the truth (the encoders are exact here); all of it hidden is LOST.
 #[test]
 fn ours_with_the_prior_is_not_lost_when_the_tip_end_is_hidden() {
-    let model = model();
-    let cams = cameras(&model);
-    let mut t = Tracker::new(config(Mode::Ours, 300), model.clone()).unwrap();
+    let (model, cams, mut t, mut k) = ours_tracking_in_view();
     let truth = |k: usize| Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] };
     let step = |t: &mut Tracker, imgs: &[Vec<u8>; 2], k: &mut usize| step_at(t, &cams, imgs, k);
-    let mut k = three_frames_in_view(&mut t, &model, &cams);
     let mut held = 0;
     for _ in 0..6 {
         let imgs = occluded(&model, &cams, &truth(k), k as u32, |i| i >= 400 || i % 200 < 100);

@@ -82,7 +82,7 @@ pub fn perturb(ecm_in_tool_base: &Isometry3<f64>, level: &CalibErrorLevel, rng: 
 /// Runs `trials` trials of `frames` frames on `seq` at `level`: each with its own random
 /// direction of the error, started on the encoders, the camera from the moved `T_b_e`. Trials
 /// start at random frames with the instrument visible in both eyes (`min_px` pixels each) for
-/// the whole trial (as [`converge`]).
+/// the whole trial (as [`converge`]). `progress` is called after each tracked frame.
 #[allow(clippy::too_many_arguments, reason = "an experiment's parameters, each named at the call")]
 pub fn run_level(
     seq: &Sequence,

@@ -67,8 +67,25 @@ pub struct ConvergeResults {
     pub particles: usize,
     /// Frame rate of the sequences, frames per second.
     pub fps: f64,
+    /// The motion model (`crate::run::motion_name`): `offset` (the kinematic error as state,
+    /// ours' default) or `joints` (the random walk over the joints; the paper's mode's only
+    /// one); empty in files written before it was recorded.
+    #[serde(default)]
+    pub motion: String,
     /// The trials.
     pub trials: Vec<Trial>,
+}
+
+impl ConvergeResults {
+    /// The name plots and tables give these results: `paper`, `ours (offset)`, `ours
+    /// (random walk)`, or the bare mode when the motion model was not recorded.
+    pub fn label(&self) -> String {
+        match (self.mode.as_str(), self.motion.as_str()) {
+            ("ours", "offset") => "ours (offset)".into(),
+            ("ours", "joints") => "ours (random walk)".into(),
+            (m, _) => m.into(),
+        }
+    }
 }
 
 /// A joint offset moving the tip by `dp` (metres) and turning it by `dr` (rotation vector,
@@ -107,6 +124,8 @@ fn random_unit(r: &mut ChaCha8Rng) -> Vector3<f64> {
 /// the instrument visible in both eyes (at least `min_px` pixels) for the whole trial (`frames`
 /// frames), started from the
 /// encoders' joints moved so that the tip is `pos_m` away and turned by `rot_rad`.
+/// `noise_rad`: standard deviation of the Gaussian noise added to every joint's encoder
+/// reading, radians (0: none). `progress` is called after each tracked frame.
 #[allow(clippy::too_many_arguments)]
 pub fn converge(
     seq: &Sequence,
@@ -157,7 +176,7 @@ pub fn converge(
                 count: frames,
                 start_joints: Some(start),
                 overlay: None,
-                progress: &|_| {},
+                progress: &|_| progress(),
                 encoder_noise,
             },
         )?;
@@ -166,7 +185,6 @@ pub fn converge(
             Some(crate::run::errors(&(cameras(seq, &ecm).left_from_base * tip), &tr))
         });
         out.push(trial_of(label, first, init.unwrap_or((f64::NAN, f64::NAN)), &res));
-        progress();
     }
     Ok(out)
 }

@@ -9,7 +9,7 @@ use comanip_track::config::TrackFile;
 use comanip_track::experiment::{self, ConvergeResults, RatePoint};
 use comanip_track::input::{Sequence, read_sequence};
 use comanip_track::robustness::{self, NoiseLevel, NoiseSweep, SceneRun};
-use comanip_track::run::{RunOptions, build_model, mode_name, track, write_jsonl};
+use comanip_track::run::{RunOptions, build_model, mode_name, motion_name, track, write_jsonl};
 use track::Mode;
 
 #[derive(Parser)]
@@ -281,12 +281,16 @@ enum Command {
     },
 }
 
-fn bar(total: u64) -> indicatif::ProgressBar {
+/// A progress bar on standard error counting `total` `unit`s (`frames`, `trials`), with the
+/// bar's message (`set_message`) before it; hidden when standard error is not a terminal
+/// (CI, output sent to a file).
+fn bar(total: u64, unit: &str) -> indicatif::ProgressBar {
     if !std::io::stderr().is_terminal() {
         return indicatif::ProgressBar::hidden();
     }
     let b = indicatif::ProgressBar::new(total);
-    if let Ok(style) = indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {elapsed} (eta {eta})") {
+    let template = format!("{{msg}} {{bar:40}} {{pos}}/{{len}} {unit} {{elapsed}} (eta {{eta}})");
+    if let Ok(style) = indicatif::ProgressStyle::with_template(&template) {
         b.set_style(style);
     }
     b
@@ -362,7 +366,7 @@ fn calib_error(
         })
         .collect::<Result<_, _>>()?;
     let configs = 1 + usize::from(augment.is_some());
-    let b = bar((levels.len() * configs * seqs.len() * trials) as u64);
+    let b = bar((levels.len() * configs * seqs.len() * trials * frames) as u64, "frames");
     let mut all = Vec::new();
     for level in &levels {
         for c in 0..configs {
@@ -499,7 +503,7 @@ fn run(cli: Cli) -> Result<(), String> {
                 std::fs::create_dir_all(d).map_err(|e| format!("{}: {e}", d.display()))?;
             }
             let n = count.unwrap_or(usize::MAX);
-            let b = bar(seq.frames.len().saturating_sub(first).min(n) as u64);
+            let b = bar(seq.frames.len().saturating_sub(first).min(n) as u64, "frames");
             let res = track(
                 &seq,
                 &model,
@@ -546,7 +550,7 @@ fn run(cli: Cli) -> Result<(), String> {
             let (file, fcfg) = setup(&common)?;
             let mut all = Vec::new();
             let mut cfg0 = None;
-            let b = bar((trials * run.len()) as u64);
+            let b = bar((trials * run.len() * frames_per_trial) as u64, "frames");
             for (k, dir) in run.iter().enumerate() {
                 let seq = open_run(dir, &fcfg)?;
                 let model = build_model(&seq, &file.tool, &fcfg).map_err(|e| e.to_string())?;
@@ -554,6 +558,7 @@ fn run(cli: Cli) -> Result<(), String> {
                 let cfg = file.tracker(w, h);
                 cfg0 = Some(cfg);
                 let label = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
+                b.set_message(label.clone());
                 let t = experiment::converge(
                     &seq,
                     &label,
@@ -573,8 +578,13 @@ fn run(cli: Cli) -> Result<(), String> {
             }
             b.finish_and_clear();
             let cfg = cfg0.ok_or("no run")?;
-            let res =
-                ConvergeResults { mode: mode_name(cfg.mode).into(), particles: cfg.particles, fps: 0.0, trials: all };
+            let res = ConvergeResults {
+                mode: mode_name(cfg.mode).into(),
+                particles: cfg.particles,
+                fps: 0.0,
+                motion: motion_name(&cfg).into(),
+                trials: all,
+            };
             let s = experiment::summarise(&res, 5);
             println!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
             std::fs::write(&out, serde_json::to_string(&res).unwrap_or_default())
@@ -591,7 +601,9 @@ fn run(cli: Cli) -> Result<(), String> {
             let first = seq.frames.iter().position(|f| f.truth.is_some_and(|t| t.instrument_px[0] > 400)).unwrap_or(0);
             let mut points: Vec<RatePoint> =
                 std::fs::read_to_string(&out).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
+            let b = bar((counts.len() * (frames + 1)) as u64, "frames");
             for n in counts {
+                b.set_message(format!("{n} particles"));
                 let mut cfg = file.tracker(w, h);
                 cfg.particles = n;
                 let res = track(
@@ -603,7 +615,7 @@ fn run(cli: Cli) -> Result<(), String> {
                         count: frames + 1,
                         start_joints: None,
                         overlay: None,
-                        progress: &|_| {},
+                        progress: &|_| b.inc(1),
                         encoder_noise: None,
                     },
                 )
@@ -611,10 +623,17 @@ fn run(cli: Cli) -> Result<(), String> {
                 // The first frame initialises (and warms the caches): not counted.
                 let mut ms: Vec<f64> = res.iter().skip(1).filter(|r| r.step_ms > 0.0).map(|r| r.step_ms).collect();
                 let (med, _) = experiment::median_p95(&mut ms);
-                println!("{} {n} particles: median {med:.1} ms per frame = {:.2} fps", mode_name(cfg.mode), 1e3 / med);
+                b.suspend(|| {
+                    println!(
+                        "{} {n} particles: median {med:.1} ms per frame = {:.2} fps",
+                        mode_name(cfg.mode),
+                        1e3 / med
+                    );
+                });
                 points.retain(|p| !(p.mode == mode_name(cfg.mode) && p.particles == n));
                 points.push(RatePoint { mode: mode_name(cfg.mode).into(), particles: n, step_ms: med, fps: 1e3 / med });
             }
+            b.finish_and_clear();
             points.sort_by(|a, b| (a.mode.as_str(), a.particles).cmp(&(b.mode.as_str(), b.particles)));
             std::fs::write(&out, serde_json::to_string_pretty(&points).unwrap_or_default())
                 .map_err(|e| format!("{}: {e}", out.display()))
@@ -628,12 +647,13 @@ fn run(cli: Cli) -> Result<(), String> {
                 let label = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
                 seqs.push((seq, model, label));
             }
-            let b = bar((trials * run.len() * sigmas_mrad.len()) as u64);
+            let b = bar((trials * run.len() * sigmas_mrad.len() * frames_per_trial) as u64, "frames");
             let mut levels = Vec::new();
             for &sigma in &sigmas_mrad {
                 if !(sigma.is_finite() && sigma >= 0.0) {
                     return Err(format!("--sigmas-mrad {sigma}: must be finite and >= 0"));
                 }
+                b.set_message(format!("σ {sigma} mrad"));
                 let mut all = Vec::new();
                 let mut cfg0 = None;
                 for (k, (seq, model, label)) in seqs.iter().enumerate() {
@@ -662,6 +682,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     mode: mode_name(cfg.mode).into(),
                     particles: cfg.particles,
                     fps: 0.0,
+                    motion: motion_name(&cfg).into(),
                     trials: all,
                 };
                 let sm = experiment::summarise(&res, 5);
@@ -687,7 +708,7 @@ fn run(cli: Cli) -> Result<(), String> {
                 let (w, h) = size(&seq);
                 let cfg = file.tracker(w, h);
                 let label = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into());
-                let b = bar(seq.frames.len() as u64);
+                let b = bar(seq.frames.len() as u64, "frames");
                 let r = robustness::scene(&seq, &label, condition, &model, cfg, min_px, &|k| b.set_position(k as u64))
                     .map_err(|e| e.to_string())?;
                 b.finish_and_clear();

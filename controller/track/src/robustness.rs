@@ -37,8 +37,11 @@ fn perr(path: &Path) -> impl Fn(String) -> PlotError + '_ {
     move |message| PlotError { path: path.display().to_string(), message }
 }
 
-/// After-convergence median tip error against the noise level, one line per mode, and the
-/// kinematics alone (dashed) on the same frames; the converged trials' share is in the table.
+/// Median tip error over every frame of every trial (converged or not, LOST frames left out)
+/// against the noise level, one line per sweep (labelled by [`ConvergeResults::label`]), and
+/// the kinematics alone (dashed) over the first sweep's frames (the same frames and noise
+/// draws as the others' when they were run with the same settings and seed); the converged
+/// trials' share is in the table.
 pub fn plot_noise(path: &Path, sweeps: &[NoiseSweep], tail: usize, title: &str) -> Result<(), PlotError> {
     let e = perr(path);
     let root = SVGBackend::new(path, (720, 420)).into_drawing_area();
@@ -54,24 +57,24 @@ pub fn plot_noise(path: &Path, sweeps: &[NoiseSweep], tail: usize, title: &str) 
     chart
         .configure_mesh()
         .x_desc("joint-sensor noise σ per joint, mrad")
-        .y_desc("tip error, mm (median)")
+        .y_desc("tip error, mm (median, all frames)")
         .draw()
         .map_err(|x| e(x.to_string()))?;
     for (ci, s) in sweeps.iter().enumerate() {
         let colour = Palette99::pick(ci).to_rgba();
-        let mode = s.levels.first().map_or_else(String::new, |l| l.results.mode.clone());
+        let name = s.levels.first().map_or_else(String::new, |l| l.results.label());
+        let trials = s.levels.first().map_or(0, |l| l.results.trials.len());
         let mut tr = Vec::new();
         let mut kin = Vec::new();
         for l in &s.levels {
             let sm = crate::experiment::summarise(&l.results, tail);
-            // Over every frame of every trial (LOST left out): converged or not.
             tr.push((l.sigma_mrad, sm.all_position_mm.0.clamp(0.1, 30.0)));
             kin.push((l.sigma_mrad, sm.all_kinematics_mm.0.clamp(0.1, 30.0)));
         }
         chart
             .draw_series(LineSeries::new(tr.clone(), colour.stroke_width(2)))
             .map_err(|x| e(x.to_string()))?
-            .label(format!("{mode}: tracker, all frames"))
+            .label(format!("{name}: tracker ({trials} trials per level)"))
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2)));
         chart.draw_series(tr.iter().map(|p| Circle::new(*p, 4, colour.filled()))).map_err(|x| e(x.to_string()))?;
         if ci == 0 {
@@ -93,63 +96,88 @@ pub fn plot_noise(path: &Path, sweeps: &[NoiseSweep], tail: usize, title: &str) 
     root.present().map_err(|x| e(x.to_string()))
 }
 
-/// Median tip error per frame of the trials, one line per (mode, noise level) (the paper's
-/// Fig. 11).
+/// Median over the trials of frame `k`'s error (mm, clamped to 0.1-30 for the log scale; a
+/// frame without a pose counts as 30), per frame `k`; `pick` takes a trial's per-frame errors.
+fn median_per_frame(
+    trials: &[crate::experiment::Trial],
+    frames: usize,
+    pick: impl Fn(&crate::experiment::Trial) -> &[Option<(f64, f64)>],
+) -> Vec<(f64, f64)> {
+    let mut med = Vec::new();
+    for k in 0..frames {
+        let mut v: Vec<f64> =
+            trials.iter().filter_map(|t| pick(t).get(k).map(|x| x.map_or(30.0, |y| y.0.clamp(0.1, 30.0)))).collect();
+        if v.is_empty() {
+            continue;
+        }
+        v.sort_by(f64::total_cmp);
+        med.push((k as f64, v[v.len() / 2]));
+    }
+    med
+}
+
+/// The paper's Fig. 11: median tip error per frame of the trajectories, one panel per noise
+/// level (the levels of the first sweep), in each one line per sweep (labelled by
+/// [`ConvergeResults::label`]) and the kinematics alone (dashed) over the first sweep's
+/// trajectories.
 pub fn plot_noise_frames(path: &Path, sweeps: &[NoiseSweep], title: &str) -> Result<(), PlotError> {
     let e = perr(path);
-    let root = SVGBackend::new(path, (720, 420)).into_drawing_area();
+    let sigmas: Vec<f64> = sweeps.first().map(|s| s.levels.iter().map(|l| l.sigma_mrad).collect()).unwrap_or_default();
+    let panels = sigmas.len().max(1);
+    let root = SVGBackend::new(path, (360 * panels as u32 + 20, 440)).into_drawing_area();
     root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
+    let root = root.titled(title, ("sans-serif", 18)).map_err(|x| e(x.to_string()))?;
     let frames = sweeps
         .iter()
         .flat_map(|s| s.levels.iter().flat_map(|l| l.results.trials.iter().map(|t| t.errors.len())))
         .max()
         .unwrap_or(1);
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(10)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0f64..frames as f64, (0.1f64..30f64).log_scale())
-        .map_err(|x| e(x.to_string()))?;
-    chart
-        .configure_mesh()
-        .x_desc("frame of the trajectory (10 fps)")
-        .y_desc("tip error, mm (median over trajectories)")
-        .draw()
-        .map_err(|x| e(x.to_string()))?;
-    let mut ci = 0;
-    for s in sweeps {
-        for l in &s.levels {
+    for (pi, (area, &sigma)) in root.split_evenly((1, panels)).iter().zip(&sigmas).enumerate() {
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("σ = {sigma} mrad per joint"), ("sans-serif", 15))
+            .margin(8)
+            .x_label_area_size(40)
+            .y_label_area_size(if pi == 0 { 60 } else { 40 })
+            .build_cartesian_2d(0f64..(frames.saturating_sub(1).max(1)) as f64, (0.1f64..30f64).log_scale())
+            .map_err(|x| e(x.to_string()))?;
+        let mut mesh = chart.configure_mesh();
+        mesh.x_desc("frame of the trajectory (10 fps)");
+        if pi == 0 {
+            mesh.y_desc("tip error, mm (median over trajectories)");
+        }
+        mesh.draw().map_err(|x| e(x.to_string()))?;
+        let mut kinematics = None;
+        for (ci, s) in sweeps.iter().enumerate() {
+            let Some(l) = s.levels.iter().find(|l| l.sigma_mrad == sigma) else { continue };
             let colour = Palette99::pick(ci).to_rgba();
-            ci += 1;
-            let mut med = Vec::new();
-            for k in 0..frames {
-                let mut v: Vec<f64> = l
-                    .results
-                    .trials
-                    .iter()
-                    .filter_map(|t| t.errors.get(k).map(|x| x.map_or(30.0, |y| y.0.clamp(0.1, 30.0))))
-                    .collect();
-                if v.is_empty() {
-                    continue;
-                }
-                v.sort_by(f64::total_cmp);
-                med.push((k as f64, v[v.len() / 2]));
-            }
+            let med = median_per_frame(&l.results.trials, frames, |t| &t.errors);
             chart
                 .draw_series(LineSeries::new(med, colour.stroke_width(2)))
                 .map_err(|x| e(x.to_string()))?
-                .label(format!("{} σ = {} mrad", l.results.mode, l.sigma_mrad))
+                .label(format!("{} ({} trajectories)", l.results.label(), l.results.trials.len()))
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2)));
+            if kinematics.is_none() {
+                kinematics = Some(median_per_frame(&l.results.trials, frames, |t| &t.kinematics));
+            }
+        }
+        if let Some(kin) = kinematics {
+            let grey = BLACK.mix(0.5);
+            chart
+                .draw_series(DashedLineSeries::new(kin, 6, 4, grey.stroke_width(2)))
+                .map_err(|x| e(x.to_string()))?
+                .label("kinematics alone (noisy encoders)")
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey));
+        }
+        if pi == 0 {
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::UpperLeft)
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|x| e(x.to_string()))?;
         }
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|x| e(x.to_string()))?;
     root.present().map_err(|x| e(x.to_string()))
 }
 
@@ -510,5 +538,83 @@ mod tests {
         let c = summarise_condition(&r);
         assert_eq!((c.frames, c.lost, c.uncertain), (7, 0, 1));
         assert_eq!(c.position_mm.0, 0.6);
+    }
+
+    fn trial(errors: &[Option<f64>], kinematics: f64) -> crate::experiment::Trial {
+        crate::experiment::Trial {
+            sequence: "s".into(),
+            first: 0,
+            initial: (0.0, 0.0),
+            errors: errors.iter().map(|e| e.map(|x| (x, 0.1))).collect(),
+            status: errors.iter().map(|e| if e.is_some() { "TRACKING" } else { "LOST" }.to_string()).collect(),
+            converged_at: None,
+            step_ms: 1.0,
+            kinematics: errors.iter().map(|_| Some((kinematics, 0.2))).collect(),
+            reinitialised_at: None,
+            reseeded_at: None,
+            inlier_share: Vec::new(),
+            axis_detected: Vec::new(),
+            reseed_share: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn median_per_frame_counts_a_frame_without_pose_as_the_top_of_the_scale() {
+        let t = [trial(&[Some(1.0), None], 0.5), trial(&[Some(2.0), None], 0.5), trial(&[Some(3.0), Some(0.01)], 0.5)];
+        let m = median_per_frame(&t, 2, |t| &t.errors);
+        // Frame 0: 1, 2, 3 -> 2; frame 1: 30 (LOST), 30 (LOST), 0.1 (clamped) -> 30.
+        assert_eq!(m, vec![(0.0, 2.0), (1.0, 30.0)]);
+        assert_eq!(median_per_frame(&t, 2, |t| &t.kinematics), vec![(0.0, 0.5), (1.0, 0.5)]);
+    }
+
+    #[test]
+    fn results_are_named_by_mode_and_motion_model_and_old_files_still_read() {
+        let old = r#"{"mode":"ours","particles":10,"fps":0.0,"trials":[]}"#;
+        let r: ConvergeResults = serde_json::from_str(old).unwrap();
+        assert_eq!((r.motion.as_str(), r.label().as_str()), ("", "ours"));
+        let named = |mode: &str, motion: &str| {
+            ConvergeResults { mode: mode.into(), particles: 1, fps: 0.0, motion: motion.into(), trials: Vec::new() }
+                .label()
+        };
+        assert_eq!(named("ours", "offset"), "ours (offset)");
+        assert_eq!(named("ours", "joints"), "ours (random walk)");
+        assert_eq!(named("paper", "joints"), "paper");
+    }
+
+    #[test]
+    fn the_trajectory_plot_has_a_panel_per_level_with_each_mode_and_the_kinematics() {
+        let sweep = |mode: &str, motion: &str, err: f64| NoiseSweep {
+            pos_mm: 0.0,
+            rot_deg: 0.0,
+            levels: [1.0, 3.0]
+                .iter()
+                .map(|&sigma_mrad| NoiseLevel {
+                    sigma_mrad,
+                    results: ConvergeResults {
+                        mode: mode.into(),
+                        particles: 1,
+                        fps: 0.0,
+                        motion: motion.into(),
+                        trials: vec![trial(&[Some(err); 3], 2.0), trial(&[Some(err); 3], 2.0)],
+                    },
+                })
+                .collect(),
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.svg");
+        plot_noise_frames(&path, &[sweep("ours", "offset", 0.5), sweep("paper", "joints", 8.0)], "title").unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        for text in
+            ["σ = 1 mrad per joint", "σ = 3 mrad per joint", "ours (offset) (2 trajectories)", "paper (2 trajectories)"]
+        {
+            assert!(svg.contains(text), "{text} missing");
+        }
+        // The legend (first panel only) names the kinematics once.
+        assert_eq!(svg.matches("kinematics alone").count(), 1);
+        let path = dir.path().join("l.svg");
+        plot_noise(&path, &[sweep("ours", "offset", 0.5), sweep("paper", "joints", 8.0)], 5, "title").unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(svg.contains("ours (offset): tracker (2 trials per level)"));
+        assert!(svg.contains("paper: tracker (2 trials per level)"));
     }
 }

@@ -410,3 +410,9 @@ pub fn mode_name(m: Mode) -> &'static str {
         Mode::Ours => "ours",
     }
 }
+
+/// The motion model of `cfg`: `offset` (the kinematic error as state, `track::OffsetMotion`)
+/// or `joints` (the random walk over the joints).
+pub fn motion_name(cfg: &TrackerConfig) -> &'static str {
+    if cfg.offset_motion.is_some() { "offset" } else { "joints" }
+}

@@ -60,6 +60,7 @@ pub fn plot_noise(path: &Path, sweeps: &[NoiseSweep], tail: usize, title: &str) 
         .y_desc("tip error, mm (median, all frames)")
         .draw()
         .map_err(|x| e(x.to_string()))?;
+    let mut kinematics = Vec::new();
     for (ci, s) in sweeps.iter().enumerate() {
         let colour = Palette99::pick(ci).to_rgba();
         let name = s.levels.first().map_or_else(String::new, |l| l.results.label());
@@ -78,17 +79,18 @@ pub fn plot_noise(path: &Path, sweeps: &[NoiseSweep], tail: usize, title: &str) 
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2)));
         chart.draw_series(tr.iter().map(|p| Circle::new(*p, 4, colour.filled()))).map_err(|x| e(x.to_string()))?;
         if ci == 0 {
-            let grey = BLACK.mix(0.5);
-            chart
-                .draw_series(DashedLineSeries::new(kin, 6, 4, grey.stroke_width(2)))
-                .map_err(|x| e(x.to_string()))?
-                .label("kinematics alone (noisy encoders)")
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey));
+            kinematics = kin;
         }
     }
+    let grey = BLACK.mix(0.5);
+    chart
+        .draw_series(DashedLineSeries::new(kinematics, 6, 4, grey.stroke_width(2)))
+        .map_err(|x| e(x.to_string()))?
+        .label("kinematics alone (noisy encoders)")
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey.stroke_width(2)));
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
+        .position(SeriesLabelPosition::LowerRight)
         .background_style(WHITE.mix(0.8))
         .border_style(BLACK)
         .draw()
@@ -166,12 +168,12 @@ pub fn plot_noise_frames(path: &Path, sweeps: &[NoiseSweep], title: &str) -> Res
                 .draw_series(DashedLineSeries::new(kin, 6, 4, grey.stroke_width(2)))
                 .map_err(|x| e(x.to_string()))?
                 .label("kinematics alone (noisy encoders)")
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey));
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey.stroke_width(2)));
         }
         if pi == 0 {
             chart
                 .configure_series_labels()
-                .position(SeriesLabelPosition::UpperLeft)
+                .position(SeriesLabelPosition::LowerRight)
                 .background_style(WHITE.mix(0.8))
                 .border_style(BLACK)
                 .draw()

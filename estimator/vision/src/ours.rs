@@ -372,6 +372,12 @@ pub struct OursDetector {
     cands: Vec<Found>,
     found: Vec<Found>,
     pair_buf: Vec<(f64, usize, usize)>,
+    /// The geometric candidate pairs of the frame: `(score bound, i, j, overlap)`.
+    geo_buf: Vec<(f64, usize, usize, [f64; 2])>,
+    /// Their order by score bound (indices into `geo_buf`), and the scored ones waiting:
+    /// `(score, index into geo_buf)`.
+    geo_order: Vec<usize>,
+    scored: Vec<(f64, usize)>,
     /// Per Hough line of the frame: its refined contour (`None`: not yet refined).
     cache: Vec<Option<Option<Contour>>>,
     /// Per Hough line: its refined contour's inlier points, undistorted pixels.
@@ -439,6 +445,9 @@ impl OursDetector {
             cands: Vec::new(),
             found: Vec::new(),
             pair_buf: Vec::new(),
+            geo_buf: Vec::new(),
+            geo_order: Vec::new(),
+            scored: Vec::new(),
             cache: Vec::new(),
             cache_pts: Vec::new(),
             tracing: false,
@@ -988,8 +997,17 @@ impl OursDetector {
         self.haze = Haze::new(f64::from(self.edges.chroma_median), &cfg);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
         self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
+        self.trace_rejects.clear();
         let buf = std::mem::take(&mut self.pair_buf);
-        let pairs = self.pairs(image, buf);
+        // Traced frames rank every pair (the trace records them all); otherwise the pairs are
+        // scored lazily, in the order of their score bounds, only as far as the verification
+        // reaches (the same pairs verified in the same order).
+        let pairs = if self.tracing {
+            self.pairs(image, buf)
+        } else {
+            self.geometric_pairs();
+            buf
+        };
         let n_lines = self.hough.lines.len();
         self.cache.clear();
         self.cache.resize(n_lines, None);
@@ -1003,18 +1021,20 @@ impl OursDetector {
         let mut outcomes: Vec<(usize, Result<[f64; 3], PairReject>)> = Vec::new();
         let mut verified = 0usize;
         self.redundant.clear();
-        for (rank, &(_, i, j)) in pairs.iter().enumerate() {
-            if verified >= budget {
+        let mut lazy = LazyRanking::new(self, image);
+        let mut rank = 0usize;
+        while verified < budget {
+            let Some((i, j)) = (if self.tracing { pairs.get(rank).map(|p| (p.1, p.2)) } else { lazy.next(self) }) else {
                 break;
-            }
+            };
             // A duplicate of a shaft already verified (both lines in its strip, nearly
             // parallel) does not take a place in the budget: a near second instrument has
             // several lines per contour (rim, highlights) whose pairs would fill it.
-            let (a, b) = (&self.hough.lines[i], &self.hough.lines[j]);
-            if self.cands.iter().any(|f| within_strip(f, a) && within_strip(f, b)) {
+            if self.is_duplicate(i, j) {
                 if self.tracing {
                     self.redundant.push(rank);
                 }
+                rank += 1;
                 continue;
             }
             verified += 1;
@@ -1031,6 +1051,7 @@ impl OursDetector {
                     }
                 }
             }
+            rank += 1;
         }
         self.pair_buf = pairs;
         self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
@@ -1084,17 +1105,16 @@ impl OursDetector {
         }
     }
 
-    /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
-    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
-        let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
-        let mut col = std::mem::take(&mut self.col);
+    /// The candidate pairs of line hypotheses that pass the cheap geometric tests (nearly
+    /// parallel, overlapping, not crossing, a plausible axis distance), in generation order:
+    /// `(upper bound of the ranking score, i, j, overlap along i's frame)`. The ranking score
+    /// ([`Self::pair_score`]) is the bound times the interior's greyness, in `[0, 1]`.
+    fn geometric_pairs(&mut self) {
         let tracing = self.tracing;
-        let mut rejects = std::mem::take(&mut self.trace_rejects);
-        rejects.clear();
+        let mut out = std::mem::take(&mut self.geo_buf);
+        out.clear();
         let lines = &self.hough.lines;
         let cfg = self.cfg;
-        out.clear();
         let cos_max = (25.0f64).to_radians().cos();
         for i in 0..lines.len() {
             for j in i + 1..lines.len() {
@@ -1110,7 +1130,7 @@ impl OursDetector {
                 let len = ov[1] - ov[0];
                 if len < 0.6 * cfg.min_length_px {
                     if tracing {
-                        rejects.push((i, j, PairReject::Overlap));
+                        self.trace_rejects.push((i, j, PairReject::Overlap));
                     }
                     continue;
                 }
@@ -1130,38 +1150,66 @@ impl OursDetector {
                 }
                 if !ok {
                     if tracing {
-                        rejects.push((i, j, PairReject::Crossing));
+                        self.trace_rejects.push((i, j, PairReject::Crossing));
                     }
                     continue;
                 }
                 let dist = self.axis_distance(&a.line, &b.line, inside);
                 if !dist.is_some_and(|dist| dist >= 0.6 * cfg.min_depth_m && dist <= 1.6 * cfg.max_depth_m) {
                     if tracing {
-                        rejects.push((i, j, PairReject::Distance));
+                        self.trace_rejects.push((i, j, PairReject::Distance));
                     }
                     continue;
                 }
-                // Coarse colour test on the hypotheses.
-                let mode = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col)
-                    .and_then(|c| Some((c, self.colour_mode(&c)?)));
-                let Some((c, mode)) = mode else {
-                    if tracing {
-                        rejects.push((i, j, PairReject::CoarseColour));
-                    }
-                    continue;
-                };
-                // Rank by support and by how grey the interior is against the outsides.
-                let grey = match mode {
-                    Evidence::Colour => {
-                        (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0)
-                    }
-                    Evidence::Luma(_) => 0.5,
-                };
-                out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
+                out.push((len * (a.count.min(b.count) as f64), i, j, ov));
             }
         }
-        self.col = col;
-        self.trace_rejects = rejects;
+        self.geo_buf = out;
+    }
+
+    /// The ranking score of a geometric candidate pair (`bound`, lines `i`, `j`, overlap `ov`
+    /// along `i`'s frame): `bound` × how grey the interior is against the outsides, after the
+    /// coarse colour test on the hypotheses (`None`: turned down).
+    fn pair_score(&mut self, sampler: &Sampler<'_>, bound: f64, i: usize, j: usize, ov: [f64; 2]) -> Option<f64> {
+        let (a, b) = (&self.hough.lines[i], &self.hough.lines[j]);
+        let (o, t) = Self::pair_frame(a);
+        let c = interior(sampler, [&a.line, &b.line], o, t, ov, &mut self.col)?;
+        let mode = self.colour_mode(&c)?;
+        // Rank by support and by how grey the interior is against the outsides.
+        let grey = match mode {
+            Evidence::Colour => (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0),
+            Evidence::Luma(_) => 0.5,
+        };
+        Some(bound * grey)
+    }
+
+    /// True when both lines of the pair lie in the strip of a shaft already verified and
+    /// nearly parallel to it ([`within_strip`]): a duplicate of that shaft.
+    fn is_duplicate(&self, i: usize, j: usize) -> bool {
+        let (a, b) = (&self.hough.lines[i], &self.hough.lines[j]);
+        self.cands.iter().any(|f| within_strip(f, a) && within_strip(f, b))
+    }
+
+    /// Every candidate pair of line hypotheses, best first (cheap tests only: the geometric
+    /// ones and the coarse colour test), as `(score, i, j)`; for the trace, which records
+    /// every pair.
+    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
+        let lens = self.lens;
+        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
+        out.clear();
+        self.geometric_pairs();
+        let geo = std::mem::take(&mut self.geo_buf);
+        for &(bound, i, j, ov) in &geo {
+            match self.pair_score(&sampler, bound, i, j, ov) {
+                Some(score) => out.push((score, i, j)),
+                None => {
+                    if self.tracing {
+                        self.trace_rejects.push((i, j, PairReject::CoarseColour));
+                    }
+                }
+            }
+        }
+        self.geo_buf = geo;
         out.sort_by(|a, b| b.0.total_cmp(&a.0));
         out
     }
@@ -1180,6 +1228,68 @@ impl ShaftDetector for OursDetector {
         check_size(&self.k, image)?;
         self.tracing = false;
         Ok(self.run(image))
+    }
+}
+
+/// The candidate pairs in ranking order (score descending, generation order on ties, as a
+/// stable sort of every scored pair would give), scored lazily: a pair's coarse colour test
+/// (the costly part of the ranking) is run only when its score bound could place it before
+/// the best pair scored so far, and not at all once it is a duplicate of a verified shaft (it
+/// would be skipped when reached: the verified shafts only grow).
+struct LazyRanking<'a> {
+    image: RgbView<'a>,
+    /// Next position in `geo_order`.
+    next: usize,
+}
+
+impl<'a> LazyRanking<'a> {
+    /// Orders the frame's geometric candidates (`det.geo_buf`) by score bound.
+    fn new(det: &mut OursDetector, image: &RgbView<'a>) -> Self {
+        let geo = &det.geo_buf;
+        det.geo_order.clear();
+        det.scored.clear();
+        if !det.tracing {
+            det.geo_order.extend(0..geo.len());
+            det.geo_order.sort_by(|&x, &y| geo[y].0.total_cmp(&geo[x].0).then(x.cmp(&y)));
+        }
+        Self { image: *image, next: 0 }
+    }
+
+    /// The next pair `(i, j)` in ranking order, `None` when none is left.
+    fn next(&mut self, det: &mut OursDetector) -> Option<(usize, usize)> {
+        let lens = det.lens;
+        let sampler = Sampler { image: &self.image, lens: &lens, luma_weight: det.cfg.profile_luma_weight };
+        // The best scored pair: highest score, earliest generated on ties.
+        fn best(scored: &[(f64, usize)]) -> Option<(usize, (f64, usize))> {
+            scored.iter().copied().enumerate().reduce(|b, c| match c.1.0.total_cmp(&b.1.0) {
+                std::cmp::Ordering::Greater => c,
+                std::cmp::Ordering::Equal if c.1.1 < b.1.1 => c,
+                _ => b,
+            })
+        }
+        while let Some(&g) = det.geo_order.get(self.next) {
+            let (bound, i, j, ov) = det.geo_buf[g];
+            // A pair not scored yet ranks after the best scored one when its bound is lower
+            // (or equal and it was generated later): the best one is next.
+            if let Some((_, (s, bg))) = best(&det.scored) {
+                match bound.total_cmp(&s) {
+                    std::cmp::Ordering::Less => break,
+                    std::cmp::Ordering::Equal if g > bg => break,
+                    _ => {}
+                }
+            }
+            self.next += 1;
+            if det.is_duplicate(i, j) {
+                continue;
+            }
+            if let Some(score) = det.pair_score(&sampler, bound, i, j, ov) {
+                det.scored.push((score, g));
+            }
+        }
+        let (k, (_, g)) = best(&det.scored)?;
+        det.scored.swap_remove(k);
+        let (_, i, j, _) = det.geo_buf[g];
+        Some((i, j))
     }
 }
 

@@ -24,19 +24,23 @@ impl Sampler<'_> {
         if !(x >= 0.0 && y >= 0.0 && x < (w - 1) as f64 && y < (h - 1) as f64) {
             return None;
         }
-        let (x0, y0) = (x as usize, y as usize);
+        // In range (checked above): truncation is the floor.
+        let (x0, y0) = (x as u32 as usize, y as u32 as usize);
         let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let d = self.image.data();
         let i = 3 * (y0 * w + x0);
         let j = i + 3 * w;
-        let px = |k: usize| {
-            let (r, g, b) = (f64::from(d[k]), f64::from(d[k + 1]), f64::from(d[k + 2]));
-            (2.0 * r - g - b, 0.299 * r + 0.587 * g + 0.114 * b)
+        let (Some(top), Some(bot)) = (d.get(i..i + 6), d.get(j..j + 6)) else { return None };
+        // Chroma `2R − G − B` and luma ×1000 (BT.601 weights) of a pixel, exact in integers;
+        // bilinear weights applied once per channel.
+        let px = |s: &[u8], k: usize| {
+            let (r, g, b) = (i32::from(s[k]), i32::from(s[k + 1]), i32::from(s[k + 2]));
+            (f64::from(2 * r - g - b), f64::from(299 * r + 587 * g + 114 * b))
         };
-        let (a, b, c, e) = (px(i), px(i + 3), px(j), px(j + 3));
+        let (a, b, c, e) = (px(top, 0), px(top, 3), px(bot, 0), px(bot, 3));
         let top = (a.0 + fx * (b.0 - a.0), a.1 + fx * (b.1 - a.1));
         let bot = (c.0 + fx * (e.0 - c.0), c.1 + fx * (e.1 - c.1));
-        Some((top.0 + fy * (bot.0 - top.0), top.1 + fy * (bot.1 - top.1)))
+        Some((top.0 + fy * (bot.0 - top.0), 0.001 * (top.1 + fy * (bot.1 - top.1))))
     }
 
     /// The edge across `line` at `p` (a point of the line, undistorted pixels): the sub-pixel

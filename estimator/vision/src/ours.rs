@@ -1024,7 +1024,8 @@ impl OursDetector {
         let mut lazy = LazyRanking::new(self, image);
         let mut rank = 0usize;
         while verified < budget {
-            let Some((i, j)) = (if self.tracing { pairs.get(rank).map(|p| (p.1, p.2)) } else { lazy.next(self) }) else {
+            let Some((i, j)) = (if self.tracing { pairs.get(rank).map(|p| (p.1, p.2)) } else { lazy.next(self) })
+            else {
                 break;
             };
             // A duplicate of a shaft already verified (both lines in its strip, nearly
@@ -1259,38 +1260,64 @@ impl<'a> LazyRanking<'a> {
     fn next(&mut self, det: &mut OursDetector) -> Option<(usize, usize)> {
         let lens = det.lens;
         let sampler = Sampler { image: &self.image, lens: &lens, luma_weight: det.cfg.profile_luma_weight };
-        // The best scored pair: highest score, earliest generated on ties.
-        fn best(scored: &[(f64, usize)]) -> Option<(usize, (f64, usize))> {
-            scored.iter().copied().enumerate().reduce(|b, c| match c.1.0.total_cmp(&b.1.0) {
-                std::cmp::Ordering::Greater => c,
-                std::cmp::Ordering::Equal if c.1.1 < b.1.1 => c,
-                _ => b,
-            })
-        }
-        while let Some(&g) = det.geo_order.get(self.next) {
-            let (bound, i, j, ov) = det.geo_buf[g];
-            // A pair not scored yet ranks after the best scored one when its bound is lower
-            // (or equal and it was generated later): the best one is next.
-            if let Some((_, (s, bg))) = best(&det.scored) {
-                match bound.total_cmp(&s) {
-                    std::cmp::Ordering::Less => break,
-                    std::cmp::Ordering::Equal if g > bg => break,
-                    _ => {}
-                }
-            }
-            self.next += 1;
-            if det.is_duplicate(i, j) {
-                continue;
-            }
-            if let Some(score) = det.pair_score(&sampler, bound, i, j, ov) {
-                det.scored.push((score, g));
-            }
-        }
-        let (k, (_, g)) = best(&det.scored)?;
-        det.scored.swap_remove(k);
-        let (_, i, j, _) = det.geo_buf[g];
-        Some((i, j))
+        let order = std::mem::take(&mut det.geo_order);
+        let mut scored = std::mem::take(&mut det.scored);
+        let geo = std::mem::take(&mut det.geo_buf);
+        let bounds = &geo;
+        let g = next_in_rank(
+            &order,
+            &mut self.next,
+            &mut scored,
+            |g| bounds[g].0,
+            |g| {
+                let (bound, i, j, ov) = bounds[g];
+                if det.is_duplicate(i, j) { None } else { det.pair_score(&sampler, bound, i, j, ov) }
+            },
+        );
+        det.geo_buf = geo;
+        det.geo_order = order;
+        det.scored = scored;
+        g.map(|g| (det.geo_buf[g].1, det.geo_buf[g].2))
     }
+}
+
+/// The next item in ranking order (score descending, index ascending on ties) of the items
+/// `order` (sorted by `bound` descending, index ascending on ties; `bound(g) ≥ score(g)`),
+/// scoring them lazily: from `order[*next]` on, each is scored (`None`: not ranked) only while
+/// it could rank before the best one scored so far; `scored` holds the scored ones waiting.
+fn next_in_rank(
+    order: &[usize],
+    next: &mut usize,
+    scored: &mut Vec<(f64, usize)>,
+    bound: impl Fn(usize) -> f64,
+    mut score: impl FnMut(usize) -> Option<f64>,
+) -> Option<usize> {
+    // The best scored item: highest score, lowest index on ties.
+    fn best(scored: &[(f64, usize)]) -> Option<(usize, (f64, usize))> {
+        scored.iter().copied().enumerate().reduce(|b, c| match c.1.0.total_cmp(&b.1.0) {
+            std::cmp::Ordering::Greater => c,
+            std::cmp::Ordering::Equal if c.1.1 < b.1.1 => c,
+            _ => b,
+        })
+    }
+    while let Some(&g) = order.get(*next) {
+        // An item not scored yet ranks after the best scored one when its bound is lower
+        // (or equal and its index higher): the best one is next.
+        if let Some((_, (s, bg))) = best(scored) {
+            match bound(g).total_cmp(&s) {
+                std::cmp::Ordering::Less => break,
+                std::cmp::Ordering::Equal if g > bg => break,
+                _ => {}
+            }
+        }
+        *next += 1;
+        if let Some(sc) = score(g) {
+            scored.push((sc, g));
+        }
+    }
+    let (k, (_, g)) = best(scored)?;
+    scored.swap_remove(k);
+    Some(g)
 }
 
 /// True when two detections have nearly the same axis (within 3°, and each one's span middle
@@ -1415,6 +1442,94 @@ mod tests {
         assert!(!continues(&shaft, &found(305.0, 380.0, 240.0, 8.0, 0.0)));
         // Perpendicular at the end: not.
         assert!(!continues(&shaft, &found(300.0, 380.0, 200.0, 8.0, 90.0)));
+    }
+
+    #[test]
+    fn the_lazy_ranking_gives_the_pairs_in_the_order_of_the_full_ranking() {
+        use crate::synth::{Cylinder, Scene, endoscope_camera, render};
+        let k = endoscope_camera();
+        let cyl = |point_m: [f64; 3], direction: [f64; 3], albedo: f64| Cylinder {
+            point_m,
+            direction,
+            radius_m: 0.004,
+            extent_m: [0.0, 0.4],
+            albedo,
+        };
+        // Two crossing shafts over folded, veined tissue: many line hypotheses and pairs.
+        let scene = Scene {
+            shafts: vec![
+                cyl([0.01, 0.005, 0.08], [-1.0, 0.2, 0.15], 0.8),
+                cyl([0.01, 0.03, 0.09], [-1.0, 0.25, 0.1], 0.6),
+                cyl([-0.01, 0.02, 0.05], [0.3, -1.0, 0.1], 0.4),
+            ],
+            seed: 5,
+            vessels: true,
+            folds: true,
+            noise: 4.0,
+        };
+        let img = render(&k, &scene);
+        let view = RgbView::new(k.width as usize, k.height as usize, &img).unwrap();
+        let mut det = OursDetector::new(k, OursConfig { max_lines: 100, ..OursConfig::default() }).unwrap();
+        let cfg = det.cfg;
+        det.edges.run(&view, &det.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
+        det.haze = Haze::new(f64::from(det.edges.chroma_median), &cfg);
+        det.hough.run(&det.edges.edgels, 12, cfg.max_lines);
+        let full = det.pairs(&view, Vec::new());
+        assert!(full.len() >= 4, "only {} pairs of {} lines", full.len(), det.hough.lines.len());
+        det.geometric_pairs();
+        assert!(det.geo_buf.len() > full.len(), "some pairs fail the coarse colour test");
+        let mut lazy = LazyRanking::new(&mut det, &view);
+        let mut order = Vec::new();
+        while let Some(p) = lazy.next(&mut det) {
+            order.push(p);
+        }
+        let want: Vec<(usize, usize)> = full.iter().map(|p| (p.1, p.2)).collect();
+        assert_eq!(order, want);
+    }
+
+    #[test]
+    fn lazy_ranking_matches_a_full_sort_and_scores_only_what_it_needs() {
+        // Pseudo-random bounds and scores (score ≤ bound, some not ranked, ties included).
+        let mut x = 12345u64;
+        let mut rnd = || {
+            x = x.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            (x >> 33) as f64 / (1u64 << 31) as f64
+        };
+        for trial in 0..50 {
+            let n = 5 + trial * 3;
+            let bounds: Vec<f64> = (0..n).map(|_| (rnd() * 10.0).round()).collect();
+            let scores: Vec<Option<f64>> = bounds
+                .iter()
+                .map(|&b| (rnd() > 0.2).then(|| if rnd() < 0.2 { b } else { (b * rnd() * 4.0).round() / 4.0 }))
+                .collect();
+            let mut full: Vec<usize> = (0..n).filter(|&g| scores[g].is_some()).collect();
+            full.sort_by(|&a, &b| scores[b].unwrap().total_cmp(&scores[a].unwrap()).then(a.cmp(&b)));
+            let mut order: Vec<usize> = (0..n).collect();
+            order.sort_by(|&a, &b| bounds[b].total_cmp(&bounds[a]).then(a.cmp(&b)));
+            let (mut next, mut scored, mut calls) = (0, Vec::new(), 0);
+            let mut got = Vec::new();
+            // Only the first three in ranking order: fewer items are scored than exist.
+            for _ in 0..3.min(full.len()) {
+                let g = next_in_rank(
+                    &order,
+                    &mut next,
+                    &mut scored,
+                    |g| bounds[g],
+                    |g| {
+                        calls += 1;
+                        scores[g]
+                    },
+                );
+                got.push(g.unwrap());
+            }
+            assert_eq!(got, full[..got.len()], "trial {trial}");
+            assert!(calls <= n);
+            // Then the rest.
+            while let Some(g) = next_in_rank(&order, &mut next, &mut scored, |g| bounds[g], |g| scores[g]) {
+                got.push(g);
+            }
+            assert_eq!(got, full, "trial {trial}");
+        }
     }
 
     fn hough_line(p: [f64; 2], q: [f64; 2]) -> LineCand {

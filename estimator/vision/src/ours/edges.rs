@@ -207,3 +207,40 @@ impl EdgeBuffers {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_chroma_median_is_the_median_bin_of_the_half_resolution_chroma() {
+        let k = crate::synth::endoscope_camera();
+        let table = HalfResTable::new(&k);
+        let (w, h) = (k.width as usize, k.height as usize);
+        // A left half of strong red (chroma ≈ 300), a right half of grey, and a ramp of
+        // greenish rows (negative chroma), so that bins on both sides of zero are used.
+        let mut data = vec![0u8; w * h * 3];
+        for y in 0..h {
+            for x in 0..w {
+                let p = &mut data[3 * (y * w + x)..3 * (y * w + x) + 3];
+                let v = ((x * 13 + y * 7) % 50) as u8;
+                p.copy_from_slice(&if y < 60 {
+                    [40, 120 + v, 90]
+                } else if x < 300 {
+                    [200 + v, 60, 50]
+                } else {
+                    [120 + v, 118, 121]
+                });
+            }
+        }
+        let image = RgbView::new(w, h, &data).unwrap();
+        let mut e = EdgeBuffers::default();
+        e.run(&image, &table, 6.0, 1.0);
+        // The median bin of ⌊chroma + 256⌋ (chroma of each 2×2 block's mean), by sorting.
+        let mut bins: Vec<i64> = e.chroma.iter().map(|c| ((c + 256.0).floor() as i64).clamp(0, 767)).collect();
+        bins.sort_unstable();
+        let want = bins[bins.len().div_ceil(2) - 1] as f32 - 256.0 + 0.5;
+        assert_eq!(e.chroma_median, want);
+        assert!(e.chroma.iter().any(|&c| c < 0.0) && e.chroma.iter().any(|&c| c > 200.0));
+    }
+}

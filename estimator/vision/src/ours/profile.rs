@@ -67,20 +67,13 @@ impl Sampler<'_> {
         // the few pixels of a profile is under 10⁻⁴ px).
         let kf = kk as f64;
         let rows = [-0.75, 0.75].map(|side| {
-            let at = |t: f64| self.lens.distort_px(p[0] + t * line.n[0] + side * dir[0], p[1] + t * line.n[1] + side * dir[1]);
-            let (lo, mid, hi) = (at(-kf), at(0.0), at(kf));
-            // x(s) = mid + s·b + s²·c, s = k / kk ∈ [−1, 1].
-            let b = [0.5 * (hi.0 - lo.0), 0.5 * (hi.1 - lo.1)];
-            let c = [0.5 * (hi.0 + lo.0) - mid.0, 0.5 * (hi.1 + lo.1) - mid.1];
-            ([mid.0, mid.1], b, c)
+            let q = [p[0] + side * dir[0], p[1] + side * dir[1]];
+            ProfileRow::new(self.lens, q, line.n, kf)
         });
         for (idx, k) in (-(kk as isize)..=kk as isize).enumerate() {
             let sk = k as f64 / kf;
-            let pos = |r: &([f64; 2], [f64; 2], [f64; 2])| {
-                (r.0[0] + sk * (r.1[0] + sk * r.2[0]), r.0[1] + sk * (r.1[1] + sk * r.2[1]))
-            };
-            let (xa, ya) = pos(&rows[0]);
-            let (xb, yb) = pos(&rows[1]);
+            let (xa, ya) = rows[0].at(sk);
+            let (xb, yb) = rows[1].at(sk);
             let a = self.measured(xa, ya)?;
             let b = self.measured(xb, yb)?;
             vals[idx] = (0.5 * (a.0 + b.0), 0.5 * (a.1 + b.1));
@@ -127,6 +120,35 @@ impl Sampler<'_> {
         let off = swx / sw - kk as f64;
         let b = peak;
         (off.abs() <= gate_px).then_some((off, b))
+    }
+}
+
+/// The measured positions along one row of a profile, `q + t·n` for `t ∈ [−half, half]`
+/// (undistorted pixels in): the lens mapping at both ends and the middle, quadratic in
+/// between, `x(s) = mid + s·b + s²·c` with `s = t / half`.
+#[derive(Clone, Copy, Debug)]
+struct ProfileRow {
+    mid: [f64; 2],
+    b: [f64; 2],
+    c: [f64; 2],
+}
+
+impl ProfileRow {
+    #[inline]
+    fn new(lens: &Lens, q: [f64; 2], n: [f64; 2], half: f64) -> Self {
+        let at = |t: f64| lens.distort_px(q[0] + t * n[0], q[1] + t * n[1]);
+        let (lo, mid, hi) = (at(-half), at(0.0), at(half));
+        Self {
+            mid: [mid.0, mid.1],
+            b: [0.5 * (hi.0 - lo.0), 0.5 * (hi.1 - lo.1)],
+            c: [0.5 * (hi.0 + lo.0) - mid.0, 0.5 * (hi.1 + lo.1) - mid.1],
+        }
+    }
+
+    /// The measured position at `s = t / half`, `s ∈ [−1, 1]`.
+    #[inline]
+    fn at(&self, s: f64) -> (f64, f64) {
+        (self.mid[0] + s * (self.b[0] + s * self.c[0]), self.mid[1] + s * (self.b[1] + s * self.c[1]))
     }
 }
 
@@ -205,4 +227,80 @@ pub(crate) fn interior(
         luma_inside: med[5],
         luma_outside: [med[6], med[7]],
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use estimator::calib::Intrinsics;
+
+    fn camera() -> Intrinsics {
+        Intrinsics {
+            fx: 400.0,
+            fy: 400.0,
+            cx: 319.5,
+            cy: 239.5,
+            skew: 0.0,
+            width: 640,
+            height: 480,
+            distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
+        }
+    }
+
+    #[test]
+    fn the_profile_rows_follow_the_lens_within_a_thousandth_of_a_pixel() {
+        let lens = Lens::new(&camera());
+        let mut worst = 0.0f64;
+        // Profiles across the whole image, corners included, at every orientation.
+        for (qx, qy) in [(5.0, 5.0), (320.0, 240.0), (630.0, 470.0), (100.0, 400.0), (600.0, 30.0), (-10.0, 250.0)] {
+            for deg in (0..180).step_by(15) {
+                let a = f64::from(deg).to_radians();
+                let n = [a.cos(), a.sin()];
+                for half in [4.0, 5.0, 8.0] {
+                    let row = ProfileRow::new(&lens, [qx, qy], n, half);
+                    for k in -8..=8 {
+                        let t = f64::from(k) * half / 8.0;
+                        let exact = lens.distort_px(qx + t * n[0], qy + t * n[1]);
+                        let got = row.at(t / half);
+                        worst = worst.max((got.0 - exact.0).hypot(got.1 - exact.1));
+                    }
+                }
+            }
+        }
+        assert!(worst < 1e-3, "worst {worst} px");
+    }
+
+    #[test]
+    fn a_sample_is_the_bilinear_chroma_and_luma_of_the_four_pixels() {
+        let k = camera();
+        let lens = Lens::new(&k);
+        let (w, h) = (k.width as usize, k.height as usize);
+        let data: Vec<u8> = (0..w * h * 3).map(|i| ((i * 7919 + (i / 3) * 31) % 256) as u8).collect();
+        let image = RgbView::new(w, h, &data).unwrap();
+        let s = Sampler { image: &image, lens: &lens, luma_weight: 1.0 };
+        let px = |x: usize, y: usize| {
+            let p = image.pixel(x, y).map(f64::from);
+            (2.0 * p[0] - p[1] - p[2], 0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2])
+        };
+        let mut n = 0;
+        for i in 0..400 {
+            let (u, v) = (f64::from(i) * 1.61 % 660.0 - 10.0, f64::from(i) * 2.37 % 500.0 - 10.0);
+            let (x, y) = lens.distort_px(u, v);
+            let got = s.sample(u, v);
+            if !(x >= 0.0 && y >= 0.0 && x < (w - 1) as f64 && y < (h - 1) as f64) {
+                assert!(got.is_none(), "({u}, {v}) → ({x}, {y}) is outside");
+                continue;
+            }
+            let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+            let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+            let lerp = |a: f64, b: f64, f: f64| a + f * (b - a);
+            let (a, b, c, d) = (px(x0, y0), px(x0 + 1, y0), px(x0, y0 + 1), px(x0 + 1, y0 + 1));
+            let want =
+                (lerp(lerp(a.0, b.0, fx), lerp(c.0, d.0, fx), fy), lerp(lerp(a.1, b.1, fx), lerp(c.1, d.1, fx), fy));
+            let got = got.unwrap();
+            assert!((got.0 - want.0).abs() < 1e-9 && (got.1 - want.1).abs() < 1e-9, "{got:?} vs {want:?}");
+            n += 1;
+        }
+        assert!(n > 300);
+    }
 }

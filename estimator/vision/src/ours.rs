@@ -42,7 +42,13 @@
 //!    chroma against a clear frame's, `clear_chroma`, at least `min_contrast_scale`; the
 //!    required relative drop `1 − max_interior_chroma_ratio` scales alike), so a hazy frame
 //!    is judged against its own contrast, not a clear frame's. Pairs are ranked by length ×
-//!    support × greyness of the interior.
+//!    support × greyness of the interior. The colour test samples the image across the strip
+//!    (scattered reads: with a crossing second instrument a frame has hundreds of pairs), so
+//!    the ranking is **lazy**: the pairs are taken in the order of their score bound (length ×
+//!    support, the greyness being at most 1) and each is scored only when it could rank before
+//!    the best one scored so far, and not at all once it duplicates a verified shaft (it
+//!    would be passed over anyway); the verification sees the same pairs in the same order as
+//!    a full ranking would give (`next_in_rank`, tested against a full sort).
 //! 4. **Sub-pixel contours** in the full-resolution measured image, each Hough line once per
 //!    frame: profiles across the contour, sampled at undistorted positions mapped through the
 //!    lens (so each edge found is directly an undistorted point on the straight contour), two
@@ -90,7 +96,10 @@
 //!
 //! Cost (640×480, one core): about 1 ms for the half-resolution edgels, under 1 ms for the
 //! Hough stage, the rest in the profiles; no allocation per frame once warm, except the
-//! returned vector.
+//! returned vector. A profile sample is a bilinear read of the chroma and luma (integer
+//! channels, one interpolation per channel); along each of a profile's two rows the lens
+//! mapping is computed at both ends and the middle and is quadratic in between (under
+//! 10⁻³ px from the exact mapping, tested; the profiles are most of the time).
 //!
 //! ## Confidence
 //!
@@ -372,6 +381,12 @@ pub struct OursDetector {
     cands: Vec<Found>,
     found: Vec<Found>,
     pair_buf: Vec<(f64, usize, usize)>,
+    /// The geometric candidate pairs of the frame: `(score bound, i, j, overlap)`.
+    geo_buf: Vec<(f64, usize, usize, [f64; 2])>,
+    /// Their order by score bound (indices into `geo_buf`), and the scored ones waiting:
+    /// `(score, index into geo_buf)`.
+    geo_order: Vec<usize>,
+    scored: Vec<(f64, usize)>,
     /// Per Hough line of the frame: its refined contour (`None`: not yet refined).
     cache: Vec<Option<Option<Contour>>>,
     /// Per Hough line: its refined contour's inlier points, undistorted pixels.
@@ -439,6 +454,9 @@ impl OursDetector {
             cands: Vec::new(),
             found: Vec::new(),
             pair_buf: Vec::new(),
+            geo_buf: Vec::new(),
+            geo_order: Vec::new(),
+            scored: Vec::new(),
             cache: Vec::new(),
             cache_pts: Vec::new(),
             tracing: false,
@@ -988,8 +1006,17 @@ impl OursDetector {
         self.haze = Haze::new(f64::from(self.edges.chroma_median), &cfg);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
         self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
+        self.trace_rejects.clear();
         let buf = std::mem::take(&mut self.pair_buf);
-        let pairs = self.pairs(image, buf);
+        // Traced frames rank every pair (the trace records them all); otherwise the pairs are
+        // scored lazily, in the order of their score bounds, only as far as the verification
+        // reaches (the same pairs verified in the same order).
+        let pairs = if self.tracing {
+            self.pairs(image, buf)
+        } else {
+            self.geometric_pairs();
+            buf
+        };
         let n_lines = self.hough.lines.len();
         self.cache.clear();
         self.cache.resize(n_lines, None);
@@ -1003,18 +1030,21 @@ impl OursDetector {
         let mut outcomes: Vec<(usize, Result<[f64; 3], PairReject>)> = Vec::new();
         let mut verified = 0usize;
         self.redundant.clear();
-        for (rank, &(_, i, j)) in pairs.iter().enumerate() {
-            if verified >= budget {
+        let mut lazy = LazyRanking::new(self, image);
+        let mut rank = 0usize;
+        while verified < budget {
+            let Some((i, j)) = (if self.tracing { pairs.get(rank).map(|p| (p.1, p.2)) } else { lazy.next(self) })
+            else {
                 break;
-            }
+            };
             // A duplicate of a shaft already verified (both lines in its strip, nearly
             // parallel) does not take a place in the budget: a near second instrument has
             // several lines per contour (rim, highlights) whose pairs would fill it.
-            let (a, b) = (&self.hough.lines[i], &self.hough.lines[j]);
-            if self.cands.iter().any(|f| within_strip(f, a) && within_strip(f, b)) {
+            if self.is_duplicate(i, j) {
                 if self.tracing {
                     self.redundant.push(rank);
                 }
+                rank += 1;
                 continue;
             }
             verified += 1;
@@ -1031,6 +1061,7 @@ impl OursDetector {
                     }
                 }
             }
+            rank += 1;
         }
         self.pair_buf = pairs;
         self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
@@ -1084,17 +1115,16 @@ impl OursDetector {
         }
     }
 
-    /// The candidate pairs of line hypotheses, best first (cheap geometric tests only).
-    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
-        let lens = self.lens;
-        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
-        let mut col = std::mem::take(&mut self.col);
+    /// The candidate pairs of line hypotheses that pass the cheap geometric tests (nearly
+    /// parallel, overlapping, not crossing, a plausible axis distance), in generation order:
+    /// `(upper bound of the ranking score, i, j, overlap along i's frame)`. The ranking score
+    /// ([`Self::pair_score`]) is the bound times the interior's greyness, in `[0, 1]`.
+    fn geometric_pairs(&mut self) {
         let tracing = self.tracing;
-        let mut rejects = std::mem::take(&mut self.trace_rejects);
-        rejects.clear();
+        let mut out = std::mem::take(&mut self.geo_buf);
+        out.clear();
         let lines = &self.hough.lines;
         let cfg = self.cfg;
-        out.clear();
         let cos_max = (25.0f64).to_radians().cos();
         for i in 0..lines.len() {
             for j in i + 1..lines.len() {
@@ -1110,7 +1140,7 @@ impl OursDetector {
                 let len = ov[1] - ov[0];
                 if len < 0.6 * cfg.min_length_px {
                     if tracing {
-                        rejects.push((i, j, PairReject::Overlap));
+                        self.trace_rejects.push((i, j, PairReject::Overlap));
                     }
                     continue;
                 }
@@ -1130,38 +1160,66 @@ impl OursDetector {
                 }
                 if !ok {
                     if tracing {
-                        rejects.push((i, j, PairReject::Crossing));
+                        self.trace_rejects.push((i, j, PairReject::Crossing));
                     }
                     continue;
                 }
                 let dist = self.axis_distance(&a.line, &b.line, inside);
                 if !dist.is_some_and(|dist| dist >= 0.6 * cfg.min_depth_m && dist <= 1.6 * cfg.max_depth_m) {
                     if tracing {
-                        rejects.push((i, j, PairReject::Distance));
+                        self.trace_rejects.push((i, j, PairReject::Distance));
                     }
                     continue;
                 }
-                // Coarse colour test on the hypotheses.
-                let mode = interior(&sampler, [&a.line, &b.line], o, t, ov, &mut col)
-                    .and_then(|c| Some((c, self.colour_mode(&c)?)));
-                let Some((c, mode)) = mode else {
-                    if tracing {
-                        rejects.push((i, j, PairReject::CoarseColour));
-                    }
-                    continue;
-                };
-                // Rank by support and by how grey the interior is against the outsides.
-                let grey = match mode {
-                    Evidence::Colour => {
-                        (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0)
-                    }
-                    Evidence::Luma(_) => 0.5,
-                };
-                out.push((len * (a.count.min(b.count) as f64) * grey, i, j));
+                out.push((len * (a.count.min(b.count) as f64), i, j, ov));
             }
         }
-        self.col = col;
-        self.trace_rejects = rejects;
+        self.geo_buf = out;
+    }
+
+    /// The ranking score of a geometric candidate pair (`bound`, lines `i`, `j`, overlap `ov`
+    /// along `i`'s frame): `bound` × how grey the interior is against the outsides, after the
+    /// coarse colour test on the hypotheses (`None`: turned down).
+    fn pair_score(&mut self, sampler: &Sampler<'_>, bound: f64, i: usize, j: usize, ov: [f64; 2]) -> Option<f64> {
+        let (a, b) = (&self.hough.lines[i], &self.hough.lines[j]);
+        let (o, t) = Self::pair_frame(a);
+        let c = interior(sampler, [&a.line, &b.line], o, t, ov, &mut self.col)?;
+        let mode = self.colour_mode(&c)?;
+        // Rank by support and by how grey the interior is against the outsides.
+        let grey = match mode {
+            Evidence::Colour => (1.0 - c.inside.max(0.0) / c.outside[0].min(c.outside[1]).max(1e-9)).clamp(0.0, 1.0),
+            Evidence::Luma(_) => 0.5,
+        };
+        Some(bound * grey)
+    }
+
+    /// True when both lines of the pair lie in the strip of a shaft already verified and
+    /// nearly parallel to it ([`within_strip`]): a duplicate of that shaft.
+    fn is_duplicate(&self, i: usize, j: usize) -> bool {
+        let (a, b) = (&self.hough.lines[i], &self.hough.lines[j]);
+        self.cands.iter().any(|f| within_strip(f, a) && within_strip(f, b))
+    }
+
+    /// Every candidate pair of line hypotheses, best first (cheap tests only: the geometric
+    /// ones and the coarse colour test), as `(score, i, j)`; for the trace, which records
+    /// every pair.
+    fn pairs(&mut self, image: &RgbView<'_>, mut out: Vec<(f64, usize, usize)>) -> Vec<(f64, usize, usize)> {
+        let lens = self.lens;
+        let sampler = Sampler { image, lens: &lens, luma_weight: self.cfg.profile_luma_weight };
+        out.clear();
+        self.geometric_pairs();
+        let geo = std::mem::take(&mut self.geo_buf);
+        for &(bound, i, j, ov) in &geo {
+            match self.pair_score(&sampler, bound, i, j, ov) {
+                Some(score) => out.push((score, i, j)),
+                None => {
+                    if self.tracing {
+                        self.trace_rejects.push((i, j, PairReject::CoarseColour));
+                    }
+                }
+            }
+        }
+        self.geo_buf = geo;
         out.sort_by(|a, b| b.0.total_cmp(&a.0));
         out
     }
@@ -1181,6 +1239,94 @@ impl ShaftDetector for OursDetector {
         self.tracing = false;
         Ok(self.run(image))
     }
+}
+
+/// The candidate pairs in ranking order (score descending, generation order on ties, as a
+/// stable sort of every scored pair would give), scored lazily: a pair's coarse colour test
+/// (the costly part of the ranking) is run only when its score bound could place it before
+/// the best pair scored so far, and not at all once it is a duplicate of a verified shaft (it
+/// would be skipped when reached: the verified shafts only grow).
+struct LazyRanking<'a> {
+    image: RgbView<'a>,
+    /// Next position in `geo_order`.
+    next: usize,
+}
+
+impl<'a> LazyRanking<'a> {
+    /// Orders the frame's geometric candidates (`det.geo_buf`) by score bound.
+    fn new(det: &mut OursDetector, image: &RgbView<'a>) -> Self {
+        let geo = &det.geo_buf;
+        det.geo_order.clear();
+        det.scored.clear();
+        if !det.tracing {
+            det.geo_order.extend(0..geo.len());
+            det.geo_order.sort_by(|&x, &y| geo[y].0.total_cmp(&geo[x].0).then(x.cmp(&y)));
+        }
+        Self { image: *image, next: 0 }
+    }
+
+    /// The next pair `(i, j)` in ranking order, `None` when none is left.
+    fn next(&mut self, det: &mut OursDetector) -> Option<(usize, usize)> {
+        let lens = det.lens;
+        let sampler = Sampler { image: &self.image, lens: &lens, luma_weight: det.cfg.profile_luma_weight };
+        let order = std::mem::take(&mut det.geo_order);
+        let mut scored = std::mem::take(&mut det.scored);
+        let geo = std::mem::take(&mut det.geo_buf);
+        let bounds = &geo;
+        let g = next_in_rank(
+            &order,
+            &mut self.next,
+            &mut scored,
+            |g| bounds[g].0,
+            |g| {
+                let (bound, i, j, ov) = bounds[g];
+                if det.is_duplicate(i, j) { None } else { det.pair_score(&sampler, bound, i, j, ov) }
+            },
+        );
+        det.geo_buf = geo;
+        det.geo_order = order;
+        det.scored = scored;
+        g.map(|g| (det.geo_buf[g].1, det.geo_buf[g].2))
+    }
+}
+
+/// The next item in ranking order (score descending, index ascending on ties) of the items
+/// `order` (sorted by `bound` descending, index ascending on ties; `bound(g) ≥ score(g)`),
+/// scoring them lazily: from `order[*next]` on, each is scored (`None`: not ranked) only while
+/// it could rank before the best one scored so far; `scored` holds the scored ones waiting.
+fn next_in_rank(
+    order: &[usize],
+    next: &mut usize,
+    scored: &mut Vec<(f64, usize)>,
+    bound: impl Fn(usize) -> f64,
+    mut score: impl FnMut(usize) -> Option<f64>,
+) -> Option<usize> {
+    // The best scored item: highest score, lowest index on ties.
+    fn best(scored: &[(f64, usize)]) -> Option<(usize, (f64, usize))> {
+        scored.iter().copied().enumerate().reduce(|b, c| match c.1.0.total_cmp(&b.1.0) {
+            std::cmp::Ordering::Greater => c,
+            std::cmp::Ordering::Equal if c.1.1 < b.1.1 => c,
+            _ => b,
+        })
+    }
+    while let Some(&g) = order.get(*next) {
+        // An item not scored yet ranks after the best scored one when its bound is lower
+        // (or equal and its index higher): the best one is next.
+        if let Some((_, (s, bg))) = best(scored) {
+            match bound(g).total_cmp(&s) {
+                std::cmp::Ordering::Less => break,
+                std::cmp::Ordering::Equal if g > bg => break,
+                _ => {}
+            }
+        }
+        *next += 1;
+        if let Some(sc) = score(g) {
+            scored.push((sc, g));
+        }
+    }
+    let (k, (_, g)) = best(scored)?;
+    scored.swap_remove(k);
+    Some(g)
 }
 
 /// True when two detections have nearly the same axis (within 3°, and each one's span middle
@@ -1305,6 +1451,94 @@ mod tests {
         assert!(!continues(&shaft, &found(305.0, 380.0, 240.0, 8.0, 0.0)));
         // Perpendicular at the end: not.
         assert!(!continues(&shaft, &found(300.0, 380.0, 200.0, 8.0, 90.0)));
+    }
+
+    #[test]
+    fn the_lazy_ranking_gives_the_pairs_in_the_order_of_the_full_ranking() {
+        use crate::synth::{Cylinder, Scene, endoscope_camera, render};
+        let k = endoscope_camera();
+        let cyl = |point_m: [f64; 3], direction: [f64; 3], albedo: f64| Cylinder {
+            point_m,
+            direction,
+            radius_m: 0.004,
+            extent_m: [0.0, 0.4],
+            albedo,
+        };
+        // Two crossing shafts over folded, veined tissue: many line hypotheses and pairs.
+        let scene = Scene {
+            shafts: vec![
+                cyl([0.01, 0.005, 0.08], [-1.0, 0.2, 0.15], 0.8),
+                cyl([0.01, 0.03, 0.09], [-1.0, 0.25, 0.1], 0.6),
+                cyl([-0.01, 0.02, 0.05], [0.3, -1.0, 0.1], 0.4),
+            ],
+            seed: 5,
+            vessels: true,
+            folds: true,
+            noise: 4.0,
+        };
+        let img = render(&k, &scene);
+        let view = RgbView::new(k.width as usize, k.height as usize, &img).unwrap();
+        let mut det = OursDetector::new(k, OursConfig { max_lines: 100, ..OursConfig::default() }).unwrap();
+        let cfg = det.cfg;
+        det.edges.run(&view, &det.table, cfg.edge_threshold as f32, cfg.luma_weight as f32);
+        det.haze = Haze::new(f64::from(det.edges.chroma_median), &cfg);
+        det.hough.run(&det.edges.edgels, 12, cfg.max_lines);
+        let full = det.pairs(&view, Vec::new());
+        assert!(full.len() >= 4, "only {} pairs of {} lines", full.len(), det.hough.lines.len());
+        det.geometric_pairs();
+        assert!(det.geo_buf.len() > full.len(), "some pairs fail the coarse colour test");
+        let mut lazy = LazyRanking::new(&mut det, &view);
+        let mut order = Vec::new();
+        while let Some(p) = lazy.next(&mut det) {
+            order.push(p);
+        }
+        let want: Vec<(usize, usize)> = full.iter().map(|p| (p.1, p.2)).collect();
+        assert_eq!(order, want);
+    }
+
+    #[test]
+    fn lazy_ranking_matches_a_full_sort_and_scores_only_what_it_needs() {
+        // Pseudo-random bounds and scores (score ≤ bound, some not ranked, ties included).
+        let mut x = 12345u64;
+        let mut rnd = || {
+            x = x.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            (x >> 33) as f64 / (1u64 << 31) as f64
+        };
+        for trial in 0..50 {
+            let n = 5 + trial * 3;
+            let bounds: Vec<f64> = (0..n).map(|_| (rnd() * 10.0).round()).collect();
+            let scores: Vec<Option<f64>> = bounds
+                .iter()
+                .map(|&b| (rnd() > 0.2).then(|| if rnd() < 0.2 { b } else { (b * rnd() * 4.0).round() / 4.0 }))
+                .collect();
+            let mut full: Vec<usize> = (0..n).filter(|&g| scores[g].is_some()).collect();
+            full.sort_by(|&a, &b| scores[b].unwrap().total_cmp(&scores[a].unwrap()).then(a.cmp(&b)));
+            let mut order: Vec<usize> = (0..n).collect();
+            order.sort_by(|&a, &b| bounds[b].total_cmp(&bounds[a]).then(a.cmp(&b)));
+            let (mut next, mut scored, mut calls) = (0, Vec::new(), 0);
+            let mut got = Vec::new();
+            // Only the first three in ranking order: fewer items are scored than exist.
+            for _ in 0..3.min(full.len()) {
+                let g = next_in_rank(
+                    &order,
+                    &mut next,
+                    &mut scored,
+                    |g| bounds[g],
+                    |g| {
+                        calls += 1;
+                        scores[g]
+                    },
+                );
+                got.push(g.unwrap());
+            }
+            assert_eq!(got, full[..got.len()], "trial {trial}");
+            assert!(calls <= n);
+            // Then the rest.
+            while let Some(g) = next_in_rank(&order, &mut next, &mut scored, |g| bounds[g], |g| scores[g]) {
+                got.push(g);
+            }
+            assert_eq!(got, full, "trial {trial}");
+        }
     }
 
     fn hough_line(p: [f64; 2], q: [f64; 2]) -> LineCand {

@@ -28,6 +28,8 @@ pub(crate) struct EdgeBuffers {
     dir: Vec<u8>,
     eig: Vec<[f32; 2]>,
     hist: Vec<u32>,
+    /// One row of the structure tensor `(gx², gy², gx·gy)` summed over both channels.
+    tensor: [Vec<f32>; 3],
     pub(crate) edgels: Vec<Edgel>,
     /// The frame's median half-resolution chroma `2R − G − B` (8-bit units): the haze
     /// estimate of `super::Haze`.
@@ -35,17 +37,10 @@ pub(crate) struct EdgeBuffers {
 }
 
 impl EdgeBuffers {
-    /// Sets `chroma_median` from a histogram of the half-resolution chroma
-    /// (1-unit bins over `[−256, 512)`).
+    /// Sets `chroma_median` from the histogram of the half-resolution chroma filled by
+    /// `run` (1-unit bins over `[−256, 512)`).
     fn chroma_median(&mut self) {
         const LO: f32 = -256.0;
-        const N: usize = 768;
-        self.hist.clear();
-        self.hist.resize(N, 0);
-        for &c in &self.chroma {
-            let b = (c - LO).clamp(0.0, (N - 1) as f32) as usize;
-            self.hist[b] += 1;
-        }
         let total: u32 = self.hist.iter().sum();
         let want = total.div_ceil(2).max(1);
         let mut acc = 0;
@@ -78,6 +73,10 @@ impl EdgeBuffers {
         self.eig.resize(n, [0.0; 2]);
         let w = image.width();
         let data = image.data();
+        // Histogram of the chroma (1-unit bins over [−256, 512)), for the frame's median.
+        const HIST_BINS: usize = 768;
+        self.hist.clear();
+        self.hist.resize(HIST_BINS, 0);
         // Half-resolution means.
         for i in 0..h2 {
             let r0 = &data[3 * (2 * i) * w..3 * (2 * i + 1) * w];
@@ -90,6 +89,11 @@ impl EdgeBuffers {
                 let r = u32::from(a[0]) + u32::from(a[3]) + u32::from(b[0]) + u32::from(b[3]);
                 let g = u32::from(a[1]) + u32::from(a[4]) + u32::from(b[1]) + u32::from(b[4]);
                 let bl = u32::from(a[2]) + u32::from(a[5]) + u32::from(b[2]) + u32::from(b[5]);
+                // The chroma's bin: ⌊(2R − G − B)/4⌋ + 256, clamped (exactly the bin of the
+                // mean below, computed in integers).
+                let c4 = 2 * r as i32 - g as i32 - bl as i32;
+                let bin = ((c4 >> 2) + 256).clamp(0, HIST_BINS as i32 - 1) as usize;
+                self.hist[bin] += 1;
                 let (r, g, bl) = (r as f32, g as f32, bl as f32);
                 crow[j] = 0.25 * (2.0 * r - g - bl);
                 lrow[j] = 0.25 * luma_weight * (0.299 * r + 0.587 * g + 0.114 * bl);
@@ -99,25 +103,38 @@ impl EdgeBuffers {
         // Di Zenzo gradient (Sobel / 8 on both channels), quantised direction for the NMS.
         let t2 = threshold * threshold;
         let tan22 = 0.414_213_56_f32;
+        for t in &mut self.tensor {
+            t.clear();
+            t.resize(w2 - 2, 0.0);
+        }
         for i in 1..h2 - 1 {
             fn rows(ch: &[f32], i: usize, w2: usize) -> (&[f32], &[f32], &[f32]) {
                 (&ch[(i - 1) * w2..i * w2], &ch[i * w2..(i + 1) * w2], &ch[(i + 1) * w2..(i + 2) * w2])
             }
-            let (c0, c1, c2) = rows(&self.chroma, i, w2);
-            let (l0, l1, l2) = rows(&self.luma, i, w2);
-            for j in 1..w2 - 1 {
-                let (a, c, b) = {
-                    let mut acc = (0.0f32, 0.0f32, 0.0f32);
-                    for (u, m, d) in [(c0, c1, c2), (l0, l1, l2)] {
-                        let gx = (u[j + 1] + 2.0 * m[j + 1] + d[j + 1]) - (u[j - 1] + 2.0 * m[j - 1] + d[j - 1]);
-                        let gy = (d[j - 1] + 2.0 * d[j] + d[j + 1]) - (u[j - 1] + 2.0 * u[j] + u[j + 1]);
-                        let (gx, gy) = (gx * 0.125, gy * 0.125);
-                        acc.0 += gx * gx;
-                        acc.1 += gy * gy;
-                        acc.2 += gx * gy;
-                    }
-                    acc
+            // The structure tensor of the row, branch-free (vectorised): Sobel / 8 on both
+            // channels, `(gx², gy², gx·gy)` summed.
+            {
+                let n = w2 - 2;
+                let (c0, c1, c2) = rows(&self.chroma, i, w2);
+                let (l0, l1, l2) = rows(&self.luma, i, w2);
+                let [ta, tc, tb] = &mut self.tensor;
+                let (ta, tc, tb) = (&mut ta[..n], &mut tc[..n], &mut tb[..n]);
+                let sobel = |u: &[f32], m: &[f32], d: &[f32], k: usize| {
+                    let (u, m, d) = (&u[k..k + 3], &m[k..k + 3], &d[k..k + 3]);
+                    let gx = (u[2] + 2.0 * m[2] + d[2]) - (u[0] + 2.0 * m[0] + d[0]);
+                    let gy = (d[0] + 2.0 * d[1] + d[2]) - (u[0] + 2.0 * u[1] + u[2]);
+                    (gx * 0.125, gy * 0.125)
                 };
+                for k in 0..n {
+                    let (gxc, gyc) = sobel(c0, c1, c2, k);
+                    let (gxl, gyl) = sobel(l0, l1, l2, k);
+                    ta[k] = (0.0 + gxc * gxc) + gxl * gxl;
+                    tc[k] = (0.0 + gyc * gyc) + gyl * gyl;
+                    tb[k] = (0.0 + gxc * gyc) + gxl * gyl;
+                }
+            }
+            for j in 1..w2 - 1 {
+                let (a, c, b) = (self.tensor[0][j - 1], self.tensor[1][j - 1], self.tensor[2][j - 1]);
                 let tr = a + c;
                 if tr < t2 {
                     continue;
@@ -188,5 +205,42 @@ impl EdgeBuffers {
                 self.edgels.push(Edgel { p: pos, n: [nx, ny] });
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_chroma_median_is_the_median_bin_of_the_half_resolution_chroma() {
+        let k = crate::synth::endoscope_camera();
+        let table = HalfResTable::new(&k);
+        let (w, h) = (k.width as usize, k.height as usize);
+        // A left half of strong red (chroma ≈ 300), a right half of grey, and a ramp of
+        // greenish rows (negative chroma), so that bins on both sides of zero are used.
+        let mut data = vec![0u8; w * h * 3];
+        for y in 0..h {
+            for x in 0..w {
+                let p = &mut data[3 * (y * w + x)..3 * (y * w + x) + 3];
+                let v = ((x * 13 + y * 7) % 50) as u8;
+                p.copy_from_slice(&if y < 60 {
+                    [40, 120 + v, 90]
+                } else if x < 300 {
+                    [200 + v, 60, 50]
+                } else {
+                    [120 + v, 118, 121]
+                });
+            }
+        }
+        let image = RgbView::new(w, h, &data).unwrap();
+        let mut e = EdgeBuffers::default();
+        e.run(&image, &table, 6.0, 1.0);
+        // The median bin of ⌊chroma + 256⌋ (chroma of each 2×2 block's mean), by sorting.
+        let mut bins: Vec<i64> = e.chroma.iter().map(|c| ((c + 256.0).floor() as i64).clamp(0, 767)).collect();
+        bins.sort_unstable();
+        let want = bins[bins.len().div_ceil(2) - 1] as f32 - 256.0 + 0.5;
+        assert_eq!(e.chroma_median, want);
+        assert!(e.chroma.iter().any(|&c| c < 0.0) && e.chroma.iter().any(|&c| c > 200.0));
     }
 }

@@ -56,7 +56,8 @@ fn a_linear_start_in_the_wrong_basin_does_not_give_the_mirror() {
 
 #[test]
 fn the_ambiguity_error_carries_both_candidates_and_their_likelihoods() {
-    let d = generate_calibration(&protocol(9001, true, 0.01, NoiseUnits::Millimetre, 1000)).unwrap();
+    // Geometry 9010: the runner-up (the mirror) puts the shafts in front of the camera too.
+    let d = generate_calibration(&protocol(9010, false, 0.01, NoiseUnits::Millimetre, 1000)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
     let ok = solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() }).unwrap();
     // Demand more evidence than the data hold: the same decision becomes a typed refusal.
@@ -69,9 +70,23 @@ fn the_ambiguity_error_carries_both_candidates_and_their_likelihoods() {
             assert!(log_likelihood_ratio < m && m == min);
             assert!(angle_deg > 10.0, "the runner-up is a distinct solution: {angle_deg}°");
             assert!(pose_errors(&best.pose, &d.truth).rotation_rad.to_degrees() < 2.0);
+            assert!(estimator::calib::ours::explains_shafts(&set, &runner_up.pose));
         }
         other => panic!("{other:?}"),
     }
+}
+
+#[test]
+fn a_runner_up_that_puts_the_shafts_behind_the_camera_is_no_rival() {
+    // Geometry 9011, millimetre reading: the mirror fits the lines nearly as well, but puts the
+    // shafts where no instrument is; even an absurd demand for evidence is no ambiguity then.
+    let d = generate_calibration(&protocol(9011, true, 0.01, NoiseUnits::Millimetre, 1000)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    let cfg = OursConfig { noise: d.noise, min_log_likelihood_ratio: 1e12, ..OursConfig::default() };
+    let o = solve_ours_prepared(&set, &cfg).unwrap();
+    assert!(!estimator::calib::ours::explains_shafts(&set, &o.alternative));
+    assert!(o.log_likelihood_ratio < 1e12);
+    assert!(pose_errors(&o.pose, &d.truth).rotation_rad.to_degrees() < 2.0);
 }
 
 #[test]
@@ -120,5 +135,53 @@ fn the_visible_shaft_region_probability_matches_sampling() {
         assert!((p - mc).abs() < 4e-3, "{d:?}: quadrature {p}, sampling {mc}");
         // Larger than the box alone, which it contains.
         assert!(p > estimator::calib::selection::box_probability(&s, &lo, &hi));
+    }
+}
+
+#[test]
+fn a_mirror_or_a_far_pose_does_not_explain_where_the_shafts_were_seen() {
+    use estimator::calib::ours::{SHAFT_MARGIN, explains_shafts, shaft_explanation};
+    use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
+    let d = generate_calibration(&protocol(9003, false, 0.0, NoiseUnits::Millimetre, 0)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    let n = set.obs.len();
+    // The truth puts every noiseless shaft in front of the camera, on the instrument.
+    assert_eq!(shaft_explanation(&set, &d.truth, SHAFT_MARGIN), (0, 0));
+    assert!(explains_shafts(&set, &d.truth));
+    // The mirror: 180° about the line of sight from the mean optical centre to robot 2's RCM,
+    // the RCM kept in place. Its lines are the truth's lines; its shafts are behind the camera.
+    let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / n as f64;
+    let rcm = d.truth.translation.vector;
+    let flip = UnitQuaternion::from_axis_angle(&Unit::new_normalize(rcm - mean_c), std::f64::consts::PI);
+    let mirror = Isometry3::from_parts(Translation3::from(rcm), flip * d.truth.rotation);
+    let (behind, off) = shaft_explanation(&set, &mirror, SHAFT_MARGIN);
+    assert!(behind + off > n / 2, "mirror: {behind} behind, {off} off of {n}");
+    assert!(!explains_shafts(&set, &mirror));
+    // The truth pushed 100× farther from the mean optical centre: every shaft in front, but
+    // off the instrument (its image would be a hundred times shorter).
+    let far = Isometry3::from_parts(Translation3::from(mean_c + (rcm - mean_c) * 100.0), d.truth.rotation);
+    let (behind, off) = shaft_explanation(&set, &far, SHAFT_MARGIN);
+    assert!(off > n / 2, "far: {behind} behind, {off} off of {n}");
+    assert!(!explains_shafts(&set, &far));
+}
+
+#[test]
+fn a_solution_that_does_not_explain_the_shafts_is_never_returned() {
+    use estimator::calib::ours::explains_shafts;
+    // Tuning geometry 9000, metre reading, σ = 0.01, trial seed 1019: before the check the most
+    // likely candidate was a mirror pushed 47 km away (every shaft off the instrument), and the
+    // selection-aware stage was applied to it: a wrong pose with exit 0.
+    let d = generate_calibration(&protocol(9000, false, 0.01, NoiseUnits::Metre, 1019)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    match solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() }) {
+        Ok(o) => {
+            assert!(explains_shafts(&set, &o.pose), "returned a pose that does not explain the shafts");
+            let e = pose_errors(&o.pose, &d.truth);
+            assert!(e.rotation_rad.to_degrees() < 90.0, "{e:?}");
+        }
+        Err(OursError::ShaftsNotExplained { behind, off_shaft, observations, .. }) => {
+            assert!(behind + off_shaft > observations / 10, "{behind} + {off_shaft} of {observations}");
+        }
+        Err(e) => panic!("unexpected error {e}"),
     }
 }

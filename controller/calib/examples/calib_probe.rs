@@ -6,7 +6,7 @@
 //! <trials> [mm|m] [sigma]` (tuning geometries: seeds 9000..9019).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
-use estimator::calib::ours::{OursConfig, solve_ours_prepared};
+use estimator::calib::ours::{OursConfig, shaft_explanation, solve_ours_prepared};
 use estimator::calib::prepare::{PreparedSet, prepare};
 use estimator::calib::selection::{SelectionConfig, refine_selected};
 use nalgebra::{Isometry3, Matrix6, Vector6};
@@ -113,9 +113,11 @@ fn main() {
                         (None, Some(e)) => format!("refused {e}"),
                         _ => "none".into(),
                     };
+                    let (b, o) = shaft_explanation(&set, &r.pose, 0.5);
+                    let (tb, to) = shaft_explanation(&set, &d.truth, 0.5);
                     format!(
-                        "et {et:.4} mm er {er:.5} deg llr {:.2} kept {} | {stage}",
-                        r.log_likelihood_ratio, r.guard_kept
+                        "et {et:.4} mm er {er:.5} deg llr {:.2} kept {} scale {:.2} behind {b} off {o} truth {tb} {to} | {stage}",
+                        r.log_likelihood_ratio, r.guard_kept, r.scale
                     )
                 }
                 Err(e) => format!("error {e}"),

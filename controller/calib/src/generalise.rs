@@ -140,6 +140,7 @@ pub fn gen_trial(g: &GeometryDraw, units: NoiseUnits, sigma: f64, seed: u64) -> 
         Ok(r) if r.selection_refused.is_none() => OursOutcome::Returned(pose_errors(&r.pose, &d.truth)),
         Ok(_) => OursOutcome::Refused("selection"),
         Err(estimator::calib::ours::OursError::Ambiguous { .. }) => OursOutcome::Refused("ambiguous"),
+        Err(estimator::calib::ours::OursError::ShaftsNotExplained { .. }) => OursOutcome::Refused("unexplained"),
         Err(_) => OursOutcome::Refused("other"),
     };
     GenTrial { paper, ours }

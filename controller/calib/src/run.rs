@@ -196,6 +196,7 @@ fn ours_kind(e: &OursError) -> &'static str {
         OursError::Prepare(p) => prepare_kind(p),
         OursError::Ambiguous { .. } => "ambiguous",
         OursError::NoConvergence => "no_convergence",
+        OursError::ShaftsNotExplained { .. } => "shafts_not_explained",
         OursError::NoiseModel => "input",
         _ => "degenerate",
     }

@@ -55,6 +55,24 @@ pub const RESIDUAL_CAP_THRESHOLDS: f64 = 1e6;
 /// removes a bias, it does not find another solution.
 pub const GUARD_MAX_SHIFT_SIGMAS: f64 = 20.0;
 
+/// A candidate is an explanation of the data only when it puts at most this share of the
+/// observations where no shaft can be ([`shaft_explanation`]: behind the camera, or off the
+/// physical shaft by more than [`SHAFT_MARGIN`]): a line's image cannot tell its side of the
+/// camera nor where along it the shaft lies, so a mirror of the solution, or a solution pushed
+/// to a far distance, fits the lines as well as the true pose while placing the detected
+/// shafts where no instrument is. Fixed in advance: the true pose of a simulated dataset
+/// leaves out 0-2 % at σ ≤ 0.01 in metres (noise pushes tips across the camera plane), a
+/// mirror or far pose 15-100 %.
+pub const MAX_UNEXPLAINED_SHARE: f64 = 0.1;
+
+/// How far beyond the physical shaft (the segment from robot 2's RCM, or the line's known
+/// point, to the tool tip) an observed line point may meet the tool axis, in insertions,
+/// before the observation counts as not explained ([`shaft_explanation`]). Generous: under
+/// large kinematic noise (10 mm per frame) a fit slides along the axis by centimetres, and
+/// 2-4 % of a true pose's observations meet it more than half an insertion beyond the shaft;
+/// a pose pushed to a far distance puts them metres to kilometres off.
+pub const SHAFT_MARGIN: f64 = 2.0;
+
 /// Options of our pipeline.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OursConfig {
@@ -67,7 +85,8 @@ pub struct OursConfig {
     /// Refuse the result ([`OursError::Ambiguous`]) when the runner-up candidate (a distinct
     /// solution, typically the mirror ≈180° about the line of sight) has a negative
     /// log-likelihood less than this above the best one (natural log, dimensionless; see
-    /// [`DEFAULT_MIN_LOG_LIKELIHOOD_RATIO`]).
+    /// [`DEFAULT_MIN_LOG_LIKELIHOOD_RATIO`]). Only candidates that explain where the shafts
+    /// were seen ([`explains_shafts`]) take part: one that does not is no rival.
     pub min_log_likelihood_ratio: f64,
     /// Border guard (with a noise model only): keep observations whose predicted tool tip is
     /// at least this many standard deviations inside the image; 0 disables it.
@@ -151,6 +170,26 @@ pub enum OursError {
     /// Every candidate ended with a non-finite pose.
     #[error("the refinement diverged: no candidate ended with a finite pose")]
     NoConvergence,
+    /// No candidate puts the detected shafts where an instrument can be: the most likely
+    /// candidate puts `behind` observations behind the camera and `off_shaft` off the
+    /// physical shaft, of `observations` (more than [`MAX_UNEXPLAINED_SHARE`]); typically a
+    /// mirror solution or one pushed to a far distance, when the kinematic noise swamps the
+    /// lines' parallax.
+    #[error(
+        "no solution explains where the shafts were seen: the most likely candidate puts {behind} of {observations} observed shafts behind the camera and {off_shaft} off the instrument's shaft (at most {max_share:.0}% allowed); the kinematic noise is too large for these motions, or the data are wrong"
+    )]
+    ShaftsNotExplained {
+        /// Observations put behind the camera by the most likely candidate.
+        behind: usize,
+        /// Observations put off the physical shaft by it.
+        off_shaft: usize,
+        /// Observations.
+        observations: usize,
+        /// [`MAX_UNEXPLAINED_SHARE`] in percent.
+        max_share: f64,
+        /// The most likely candidate, `T_e_t` (metres).
+        pose: Box<Isometry3<f64>>,
+    },
     /// The normal matrix at the solution is singular (no covariance).
     #[error("the normal matrix at the solution is singular: the pose is not locally observable")]
     Singular,
@@ -184,7 +223,8 @@ pub struct OursResult {
     /// model is right; pixels without a noise model).
     pub scale: f64,
     /// The runner-up: the most likely candidate that is a distinct solution (more than
-    /// [`DISTINCT_SOLUTION_RAD`] away in rotation), typically the mirror; when every start
+    /// [`DISTINCT_SOLUTION_RAD`] away in rotation) and explains where the shafts were seen
+    /// ([`explains_shafts`]), typically the mirror; when every start
     /// converged to the best, the best's mirror (180° about the line of sight to robot 2's
     /// RCM), refined if that converges elsewhere.
     pub alternative: Isometry3<f64>,
@@ -549,6 +589,67 @@ pub fn observation_residuals(set: &PreparedSet, pose: &Isometry3<f64>) -> Vec<Ve
     set.obs.iter().map(|o| residual(set, o, &r, &t)).collect()
 }
 
+/// Where the tool axis is seen at an observed line point: for the ray through ideal pixel `u`
+/// (camera frame, direction `K⁻¹ [u, 1]ᵀ`, unit depth) and the tool axis of pose `(R, t)`
+/// (`T_e_t`), their closest approach: `(depth, s)`, the ray's depth there (metres, camera
+/// frame; negative: behind the camera) and the axis point's position along the tool from the
+/// line's known point (metres, `s = 0` at robot 2's RCM or [`Prepared::p_t`], `s =`
+/// [`Prepared::insertion_m`] at the tip). `None` when the ray is parallel to the axis (within
+/// 1e-12, relative) or a value is not finite.
+fn axis_seen_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    u: &Vector2<f64>,
+) -> Option<(f64, f64)> {
+    let p = o.r_ec.tr_mul(&(r * o.p_t + t - o.o_ec));
+    let d = o.r_ec.tr_mul(&(r * o.m_t));
+    let v = set.k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0));
+    let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
+    let (vp, dp) = (v.dot(&p), d.dot(&p));
+    let denom = a * c - b * b;
+    if !(denom.abs() > 1e-12 * a * c) {
+        return None;
+    }
+    // Closest approach of λ v and p + s d: λ = (c v·p − b d·p) / (ac − b²), s = (b v·p − a d·p) / (ac − b²).
+    let lambda = (c * vp - b * dp) / denom;
+    let s = (b * vp - a * dp) / denom / c.sqrt();
+    (lambda.is_finite() && s.is_finite()).then_some((lambda, s))
+}
+
+/// How pose `T_e_t` explains where the shaft was seen: `(behind, off_shaft)`, the observations
+/// whose two observed line points both meet the tool axis behind the camera, and those (in
+/// front) whose line points meet the axis outside the physical shaft, farther than `margin`
+/// times the insertion from the segment between the line's known point (robot 2's RCM) and
+/// the tip. The line model cannot tell a line's side of the camera, nor where along the line
+/// the shaft is; the images can.
+pub fn shaft_explanation(set: &PreparedSet, pose: &Isometry3<f64>, margin: f64) -> (usize, usize) {
+    let r = pose.rotation.to_rotation_matrix().into_inner();
+    let t = pose.translation.vector;
+    let (mut behind, mut off) = (0, 0);
+    for o in &set.obs {
+        let seen: Vec<Option<(f64, f64)>> = o.px.iter().map(|u| axis_seen_at(set, o, &r, &t, u)).collect();
+        if seen.iter().all(|x| x.is_some_and(|(z, _)| z <= 0.0)) {
+            behind += 1;
+        } else {
+            let len = o.insertion_m.abs().max(1e-9);
+            if seen.iter().flatten().any(|(_, s)| *s < -margin * len || *s > (1.0 + margin) * len) {
+                off += 1;
+            }
+        }
+    }
+    (behind, off)
+}
+
+/// True when pose `T_e_t` explains where the shafts were seen: at most
+/// [`MAX_UNEXPLAINED_SHARE`] of the observations unexplained ([`shaft_explanation`] with
+/// [`SHAFT_MARGIN`]).
+pub fn explains_shafts(set: &PreparedSet, pose: &Isometry3<f64>) -> bool {
+    let (behind, off) = shaft_explanation(set, pose, SHAFT_MARGIN);
+    ((behind + off) as f64) <= MAX_UNEXPLAINED_SHARE * set.obs.len() as f64
+}
+
 /// Pixel residual statistics of pose `T_e_t` over prepared observations (unweighted).
 pub fn residual_stats(set: &PreparedSet, pose: &Isometry3<f64>) -> ResidualStats {
     let mut d: Vec<f64> = observation_residuals(set, pose).iter().flat_map(|r| [r[0].abs(), r[1].abs()]).collect();
@@ -664,6 +765,12 @@ pub fn apply_selection_stage(
     mut result: OursResult,
 ) -> OursResult {
     match refine_selected(set, noise, &result.pose, &result.covariance, cfg) {
+        // The stage's pose must explain the shafts as the guarded fit does.
+        Ok(fit) if !explains_shafts(set, &fit.pose) => {
+            let (behind, off_shaft) = shaft_explanation(set, &fit.pose, SHAFT_MARGIN);
+            result.selection_refused =
+                Some(SelectionError::ShaftsNotExplained { behind, off_shaft, observations: set.obs.len() });
+        }
         Ok(fit) => {
             result.covariance = fit.covariance;
             result.pose = fit.pose;
@@ -851,7 +958,27 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     let nll_of = |r: &Matrix3<f64>, t: &Vector3<f64>| candidate_nll(set, cfg, r, t, s_ref);
     let costs: Vec<f64> =
         candidates.iter().enumerate().map(|(i, x)| nll_at(&parts[x.merged.unwrap_or(i)], x, s_ref)).collect();
-    let ib = (0..candidates.len()).min_by(|a, b| costs[*a].total_cmp(&costs[*b])).unwrap_or(0);
+    // Only candidates that put the detected shafts where an instrument can be are
+    // explanations of the data ([`explains_shafts`]); the others are left out of the choice
+    // and of the ambiguity decision.
+    let explains: Vec<bool> =
+        candidates.iter().map(|x| finite(x) && explains_shafts(set, &pose_of(&x.r, &x.t))).collect();
+    let argmin = |c: &[f64], ok: &dyn Fn(usize) -> bool| {
+        (0..c.len()).filter(|i| ok(*i) && c[*i].is_finite()).min_by(|a, b| c[*a].total_cmp(&c[*b]))
+    };
+    let Some(ib) = argmin(&costs, &|i| explains[i]) else {
+        let i = argmin(&costs, &|_| true).ok_or(OursError::NoConvergence)?;
+        let pose = pose_of(&candidates[i].r, &candidates[i].t);
+        let (behind, off_shaft) = shaft_explanation(set, &pose, SHAFT_MARGIN);
+        return Err(OursError::ShaftsNotExplained {
+            behind,
+            off_shaft,
+            observations: set.obs.len(),
+            max_share: MAX_UNEXPLAINED_SHARE * 100.0,
+            pose: Box::new(pose),
+        });
+    };
+    let costs: Vec<f64> = costs.iter().zip(&explains).map(|(c, ok)| if *ok { *c } else { f64::INFINITY }).collect();
     let best = &candidates[ib];
     let c_best = costs[ib];
     let (alt_pose, c_alt) = if from.is_some() {
@@ -861,7 +988,8 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     };
     let llr = (c_alt - c_best).max(0.0);
     let best_pose = pose_of(&best.r, &best.t);
-    if from.is_none() && llr < cfg.min_log_likelihood_ratio {
+    // A runner-up that does not explain the shafts is no rival, however likely its lines.
+    if from.is_none() && llr < cfg.min_log_likelihood_ratio && explains_shafts(set, &alt_pose) {
         return Err(OursError::Ambiguous {
             best: Box::new(Candidate { pose: best_pose, nll: c_best }),
             runner_up: Box::new(Candidate { pose: alt_pose, nll: c_alt }),

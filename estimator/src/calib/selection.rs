@@ -923,6 +923,20 @@ pub enum SelectionError {
         /// The limit: the χ² quantile at one minus the false-refusal probability.
         limit: f64,
     },
+    /// The stage's pose puts more than [`super::ours::MAX_UNEXPLAINED_SHARE`] of the
+    /// observed shafts behind the camera or off the instrument's shaft
+    /// ([`super::ours::shaft_explanation`]), where the guarded fit did not.
+    #[error(
+        "the selection-aware fit puts {behind} of {observations} observed shafts behind the camera and {off_shaft} off the instrument's shaft"
+    )]
+    ShaftsNotExplained {
+        /// Observations put behind the camera.
+        behind: usize,
+        /// Observations put off the physical shaft.
+        off_shaft: usize,
+        /// Observations.
+        observations: usize,
+    },
 }
 
 /// Maximum likelihood of the kept lines from `start` (`T_e_t`, metres; the guarded fit, with

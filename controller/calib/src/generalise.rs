@@ -85,7 +85,8 @@ pub enum OursOutcome {
     /// A pose with exit 0.
     Returned(PoseErrors),
     /// A typed refusal: `"ambiguous"`, `"selection"` (the selection-aware stage cannot model
-    /// the data) or `"other"` (degenerate, no convergence).
+    /// the data), `"unexplained"` (no candidate puts the shafts where an instrument can be;
+    /// counted with `"other"` in the tables) or `"other"` (degenerate, no convergence).
     Refused(&'static str),
 }
 

@@ -609,7 +609,7 @@ fn axis_seen_at(
     let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
     let (vp, dp) = (v.dot(&p), d.dot(&p));
     let denom = a * c - b * b;
-    if !(denom.abs() > 1e-12 * a * c) {
+    if denom.is_nan() || denom.abs() <= 1e-12 * a * c {
         return None;
     }
     // Closest approach of λ v and p + s d: λ = (c v·p − b d·p) / (ac − b²), s = (b v·p − a d·p) / (ac − b²).

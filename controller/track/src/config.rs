@@ -15,6 +15,9 @@ pub struct TrackFile {
     pub mode: Mode,
     /// Particles (`--particles` overrides).
     pub particles: Option<usize>,
+    /// Threads of the particle loops, the tracking thread included (`--threads` overrides); 0
+    /// or absent: the processors available to the process (`TrackerConfig::threads`).
+    pub threads: Option<usize>,
     /// The instrument on the tool arm.
     pub tool: ToolSection,
     /// Process noise.
@@ -262,6 +265,7 @@ impl Default for TrackFile {
         Self {
             mode: Mode::Ours,
             particles: None,
+            threads: None,
             tool: ToolSection::default(),
             noise: NoiseSection::default(),
             measurement: MeasurementSection::default(),
@@ -406,6 +410,9 @@ impl TrackFile {
         let mut c = TrackerConfig::new(self.mode, width, height);
         if let Some(n) = self.particles {
             c.particles = n;
+        }
+        if let Some(n) = self.threads {
+            c.threads = n;
         }
         let n = &self.noise;
         if let Some(v) = n.joint_rad {

@@ -713,14 +713,14 @@ impl Tracker {
                 self.workers.for_each_mut3(&mut self.costs, &mut self.weights, &mut self.tips, |i, c, wt, t| {
                     let p = &particles[i];
                     VIRTUAL.with(|img| {
-                            let mut img = img.borrow_mut();
-                            img.resize(w * h, 0);
-                            let (pi, d) = measure::paper_score(model, cams, fields, p, tau, &mut img);
-                            *wt = pi;
-                            *c = d;
-                        });
-                        *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
+                        let mut img = img.borrow_mut();
+                        img.resize(w * h, 0);
+                        let (pi, d) = measure::paper_score(model, cams, fields, p, tau, &mut img);
+                        *wt = pi;
+                        *c = d;
                     });
+                    *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
+                });
             }
         }
     }

@@ -167,12 +167,7 @@ impl Workers {
 
     /// Calls `f(i, &mut a[i], &mut b[i])` for every index `i < min(a.len(), b.len())`, in
     /// parallel (see [`Workers::for_each_range`]).
-    pub fn for_each_mut2<A: Send, B: Send, F: Fn(usize, &mut A, &mut B) + Sync>(
-        &self,
-        a: &mut [A],
-        b: &mut [B],
-        f: F,
-    ) {
+    pub fn for_each_mut2<A: Send, B: Send, F: Fn(usize, &mut A, &mut B) + Sync>(&self, a: &mut [A], b: &mut [B], f: F) {
         let n = a.len().min(b.len());
         let (pa, pb) = (RawSlice::new(&mut a[..n]), RawSlice::new(&mut b[..n]));
         self.for_each_range(n, |r| {

@@ -282,25 +282,35 @@ fn worker(sh: &Shared) {
     }
 }
 
-/// A mutable slice shared between threads, each of which takes disjoint ranges of it.
-struct RawSlice<T> {
+/// A mutable slice (borrowed for `'a`) shared between threads, each of which takes disjoint
+/// ranges of it.
+struct RawSlice<'a, T> {
     ptr: *mut T,
     len: usize,
+    _borrow: std::marker::PhantomData<&'a mut [T]>,
 }
+
+impl<T> Clone for RawSlice<'_, T> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<T> Copy for RawSlice<'_, T> {}
 
 // SAFETY: a `RawSlice` only hands out disjoint `&mut [T]` ranges (the callers' contract), each
 // used by one thread, which is what `&mut [T]: Send` needs: `T: Send`.
-unsafe impl<T: Send> Sync for RawSlice<T> {}
+unsafe impl<T: Send> Sync for RawSlice<'_, T> {}
 
-impl<T> RawSlice<T> {
-    fn new(s: &mut [T]) -> Self {
-        Self { ptr: s.as_mut_ptr(), len: s.len() }
+impl<'a, T> RawSlice<'a, T> {
+    fn new(s: &'a mut [T]) -> Self {
+        Self { ptr: s.as_mut_ptr(), len: s.len(), _borrow: std::marker::PhantomData }
     }
 
     /// # Safety
-    /// `r` lies within `0..len`, the slice it came from is still mutably borrowed, and no other
-    /// range overlapping `r` is in use at the same time.
-    unsafe fn range(&self, r: Range<usize>) -> &mut [T] {
+    /// `r` lies within `0..len`, and no other range overlapping `r` is in use at the same time
+    /// (the slice stays borrowed for `'a`).
+    unsafe fn range(self, r: Range<usize>) -> &'a mut [T] {
         debug_assert!(r.start <= r.end && r.end <= self.len);
         // SAFETY: the caller's contract (within bounds of a live, exclusively borrowed slice;
         // no overlapping range in use).

@@ -62,4 +62,20 @@ fn the_counter_sees_allocations_and_the_live_loop_allocates_nothing_per_frame() 
         "the frames were tracked ({posed} poses of {}), not refused: {reasons:?}",
         out.len()
     );
+    // The tracker's worker threads were started from the lowered tracking thread: same nice.
+    let nice = |stat: &str| -> i64 {
+        // Fields after the command's closing parenthesis: state is field 3, nice field 19.
+        let rest = &stat[stat.rfind(')').unwrap() + 2..];
+        rest.split_whitespace().nth(16).unwrap().parse().unwrap()
+    };
+    let mine = nice(&std::fs::read_to_string("/proc/thread-self/stat").unwrap());
+    let mut workers = 0;
+    for t in std::fs::read_dir("/proc/self/task").unwrap() {
+        let t = t.unwrap().path();
+        if std::fs::read_to_string(t.join("comm")).unwrap().starts_with("track-") {
+            workers += 1;
+            assert_eq!(nice(&std::fs::read_to_string(t.join("stat")).unwrap()), mine, "{}", t.display());
+        }
+    }
+    assert_eq!(workers, track::workers::available_threads() - 1, "the tracker's worker threads");
 }

@@ -559,6 +559,11 @@ mod tests {
         assert!(e.to_string().contains("rig.hand_eye"), "{e}");
         let e = TrackFile::from_toml("particles = 0\n", Path::new("x.toml")).unwrap_err();
         assert!(e.to_string().contains("particles"), "{e}");
+        let e = TrackFile::from_toml("threads = 5000\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("threads"), "{e}");
+        let f = TrackFile::from_toml("threads = 3\n", Path::new("x.toml")).unwrap();
+        assert_eq!(f.tracker(640, 480).threads, 3);
+        assert_eq!(TrackFile::default().tracker(640, 480).threads, 0, "default: the machine's processors");
         let e = TrackFile::from_toml("[joints]\ntool_max_age_ms = nan\n", Path::new("x.toml")).unwrap_err();
         assert!(e.to_string().contains("joints.tool_max_age_ms"), "{e}");
         let e = TrackFile::from_toml("[joints]\nendoscope_max_gap_ms = 0.0\n", Path::new("x.toml")).unwrap_err();

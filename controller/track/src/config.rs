@@ -15,6 +15,9 @@ pub struct TrackFile {
     pub mode: Mode,
     /// Particles (`--particles` overrides).
     pub particles: Option<usize>,
+    /// Threads of the particle loops, the tracking thread included (`--threads` overrides); 0
+    /// or absent: the processors available to the process (`TrackerConfig::threads`).
+    pub threads: Option<usize>,
     /// The instrument on the tool arm.
     pub tool: ToolSection,
     /// Process noise.
@@ -262,6 +265,7 @@ impl Default for TrackFile {
         Self {
             mode: Mode::Ours,
             particles: None,
+            threads: None,
             tool: ToolSection::default(),
             noise: NoiseSection::default(),
             measurement: MeasurementSection::default(),
@@ -406,6 +410,9 @@ impl TrackFile {
         let mut c = TrackerConfig::new(self.mode, width, height);
         if let Some(n) = self.particles {
             c.particles = n;
+        }
+        if let Some(n) = self.threads {
+            c.threads = n;
         }
         let n = &self.noise;
         if let Some(v) = n.joint_rad {
@@ -552,6 +559,11 @@ mod tests {
         assert!(e.to_string().contains("rig.hand_eye"), "{e}");
         let e = TrackFile::from_toml("particles = 0\n", Path::new("x.toml")).unwrap_err();
         assert!(e.to_string().contains("particles"), "{e}");
+        let e = TrackFile::from_toml("threads = 5000\n", Path::new("x.toml")).unwrap_err();
+        assert!(e.to_string().contains("threads"), "{e}");
+        let f = TrackFile::from_toml("threads = 3\n", Path::new("x.toml")).unwrap();
+        assert_eq!(f.tracker(640, 480).threads, 3);
+        assert_eq!(TrackFile::default().tracker(640, 480).threads, 0, "default: the machine's processors");
         let e = TrackFile::from_toml("[joints]\ntool_max_age_ms = nan\n", Path::new("x.toml")).unwrap_err();
         assert!(e.to_string().contains("joints.tool_max_age_ms"), "{e}");
         let e = TrackFile::from_toml("[joints]\nendoscope_max_gap_ms = 0.0\n", Path::new("x.toml")).unwrap_err();

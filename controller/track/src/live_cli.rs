@@ -346,9 +346,9 @@ pub fn read_frame_times(path: &Path) -> Result<Vec<u64>, LiveCliError> {
 /// Makes the calling thread the tracking thread: puts it below the bus listener started before
 /// (`controller::rt::lower_current_thread`; on a busy CPU a frame's step, hundreds of
 /// milliseconds on a slow machine, must not keep the listener from the bus, or every frame's
-/// joints read as stale: seen in the one-CPU HIL guest, docs/hil.md), then builds rayon's
-/// global pool now, so that its workers inherit the lowered priority. Call it once, before any
-/// rayon use; logged, never fatal (a pool that already exists keeps its threads and says so).
+/// joints read as stale: seen in the one-CPU HIL guest, docs/hil.md). The tracker's worker
+/// threads (`track::Workers`) are started by its first step, from this thread, so they inherit
+/// the lowered priority: call it before the first frame. Logged, never fatal.
 pub fn become_the_tracking_thread() {
     let lowered = controller::rt::lower_current_thread();
     match &lowered {
@@ -356,9 +356,6 @@ pub fn become_the_tracking_thread() {
             tracing::warn!(%reason, "the tracking thread could not be put below the bus listener")
         }
         l => tracing::info!(tracking_thread = %l, "the tracking threads run below the bus listener"),
-    }
-    if let Err(e) = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("track-{i}")).build_global() {
-        tracing::warn!(error = %e, "rayon's pool already exists: its workers keep their priority");
     }
 }
 
@@ -380,6 +377,7 @@ pub fn run(file: &TrackFile, fcfg: &controller::config::Config, args: &LiveArgs)
     tracing::info!(
         mode = crate::run::mode_name(cfg.mode),
         particles = cfg.particles,
+        threads = if cfg.threads == 0 { track::workers::available_threads() } else { cfg.threads },
         width = cfg.width,
         height = cfg.height,
         frames = %args.frame_service,

@@ -62,6 +62,10 @@ struct Common {
     /// Particles (overrides the configuration).
     #[arg(long)]
     particles: Option<usize>,
+    /// Threads of the particle loops, the tracking thread included (overrides the
+    /// configuration's `threads`; 0: the processors available to the process).
+    #[arg(long)]
+    threads: Option<usize>,
 }
 
 #[derive(Subcommand)]
@@ -306,6 +310,9 @@ fn setup(common: &Common) -> Result<(TrackFile, controller::config::Config), Str
     }
     if let Some(n) = common.particles {
         file.particles = Some(n);
+    }
+    if let Some(n) = common.threads {
+        file.threads = Some(n);
     }
     let fcfg = match &common.fulcrumd_config {
         Some(p) => controller::config::Config::load(p).map_err(|e| e.to_string())?,

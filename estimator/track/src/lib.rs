@@ -21,8 +21,9 @@
 //!   the shaft's two contour lines in closed form plus the tip parts' precomputed candidate
 //!   edges, sampled and looked up in each eye's distance field (computed once per frame),
 //!   oriented (edge direction) and truncated (clutter, occlusion), annealed over a few layers,
-//!   the best hypothesis refined locally; all particles in parallel (rayon); no allocation per
-//!   frame after start-up.
+//!   the best hypothesis refined locally; all particles in parallel on the tracker's own worker
+//!   threads ([`workers`]: started at the first frame, loops handed over without a queue); no
+//!   allocation per frame after start-up, in any thread.
 //! - **Status** ([`Status`]): `Tracking`, `Uncertain` (the particles' tip spread too wide),
 //!   `Lost` (the best hypothesis's cost above a threshold; ours: its inlier share below one,
 //!   unless the prior holds it, [`OffsetMotion::prior_lost`]); after a few lost frames the
@@ -35,13 +36,14 @@ pub mod measure;
 pub mod model;
 pub mod proposal;
 pub mod resample;
+pub mod workers;
 
 use estimator::kinematics::JOINTS;
 use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use rayon::prelude::*;
+pub use workers::Workers;
 
 pub use edges::{EdgeContrast, EdgeField, ImageError};
 pub use measure::OursCost;
@@ -224,6 +226,11 @@ pub struct TrackerConfig {
     pub edge_contrast: Option<EdgeContrast>,
     /// Seed of the noise (runs are reproducible).
     pub seed: u64,
+    /// Threads of the particle loops, the stepping thread included (its [`Workers`], started by
+    /// the first [`Tracker::step`] from the thread that calls it, whose priority they inherit);
+    /// 0: the processors available to the process ([`workers::available_threads`]). The
+    /// results do not depend on it.
+    pub threads: usize,
 }
 
 impl TrackerConfig {
@@ -272,6 +279,7 @@ impl TrackerConfig {
                 Mode::Ours => Some(EdgeContrast { reference_px: 75.0, noise_factor: 2.5 }),
             },
             seed: 1,
+            threads: 0,
         }
     }
 
@@ -281,6 +289,9 @@ impl TrackerConfig {
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         if self.particles == 0 || self.particles > 1_000_000 {
             return Err(ConfigError("particles (1..=1000000)"));
+        }
+        if self.threads > 1024 {
+            return Err(ConfigError("threads (0..=1024, 0: the machine's processors)"));
         }
         if self.width < 3 || self.height < 3 || self.width > 8192 || self.height > 8192 {
             return Err(ConfigError("width/height (3..=8192 pixels)"));
@@ -489,6 +500,9 @@ pub struct Tracker {
     proposals: Vec<Particle>,
     prop_costs: Vec<f64>,
     last_reseed_share: f64,
+    /// The particle loops' threads: [`Workers::serial`] until the first step starts them.
+    workers: Workers,
+    workers_started: bool,
 }
 
 impl Tracker {
@@ -520,6 +534,8 @@ impl Tracker {
             proposals: vec![p0; cfg.proposal.map_or(0, |p| p.count)],
             prop_costs: vec![f64::INFINITY; cfg.proposal.map_or(0, |p| p.count)],
             last_reseed_share: f64::NAN,
+            workers: Workers::serial(),
+            workers_started: false,
             cfg,
         })
     }
@@ -598,7 +614,7 @@ impl Tracker {
             _ => [0.0; JOINTS],
         };
         let jaw = self.cfg.jaw_init_rad;
-        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
+        self.workers.for_each_mut(&mut self.particles, |i, p| {
             let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
             p.joints = *centre;
             if i > 0 {
@@ -625,7 +641,7 @@ impl Tracker {
         let sig: [f64; JOINTS] = core::array::from_fn(|j| m.stationary_rad[j] * innov);
         let mean = self.offset_mean;
         let (jsig, cam) = (self.cfg.jaw_noise_rad, self.cfg.camera_noise);
-        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
+        self.workers.for_each_mut(&mut self.particles, |i, p| {
             let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
             for j in 0..JOINTS {
                 let b = p.joints[j] - prev[j];
@@ -662,7 +678,7 @@ impl Tracker {
         let seed = mix(mix(self.cfg.seed, self.frame), layer + 1);
         let sig = self.cfg.joint_noise_rad;
         let (jsig, cam) = (self.cfg.jaw_noise_rad, self.cfg.camera_noise);
-        self.particles.par_iter_mut().enumerate().for_each(|(i, p)| {
+        self.workers.for_each_mut(&mut self.particles, |i, p| {
             let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
             for j in 0..JOINTS {
                 p.joints[j] += increment[j] + scale * sig[j] * r.sample::<f64, _>(StandardNormal);
@@ -684,30 +700,27 @@ impl Tracker {
         let tau = self.cfg.tau_px;
         match self.cfg.mode {
             Mode::Ours => {
-                self.particles.par_iter().zip(self.costs.par_iter_mut()).zip(self.tips.par_iter_mut()).for_each(
-                    |((p, c), t)| {
-                        *c = measure::cost_ours(model, cams, fields, p, &oc);
-                        *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
-                    },
-                );
+                let particles = &self.particles;
+                self.workers.for_each_mut2(&mut self.costs, &mut self.tips, |i, c, t| {
+                    let p = &particles[i];
+                    *c = measure::cost_ours(model, cams, fields, p, &oc);
+                    *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
+                });
             }
             Mode::Paper => {
                 let (w, h) = (self.cfg.width, self.cfg.height);
-                self.particles
-                    .par_iter()
-                    .zip(self.costs.par_iter_mut())
-                    .zip(self.weights.par_iter_mut())
-                    .zip(self.tips.par_iter_mut())
-                    .for_each(|(((p, c), wt), t)| {
-                        VIRTUAL.with(|img| {
-                            let mut img = img.borrow_mut();
-                            img.resize(w * h, 0);
-                            let (pi, d) = measure::paper_score(model, cams, fields, p, tau, &mut img);
-                            *wt = pi;
-                            *c = d;
-                        });
-                        *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
+                let particles = &self.particles;
+                self.workers.for_each_mut3(&mut self.costs, &mut self.weights, &mut self.tips, |i, c, wt, t| {
+                    let p = &particles[i];
+                    VIRTUAL.with(|img| {
+                        let mut img = img.borrow_mut();
+                        img.resize(w * h, 0);
+                        let (pi, d) = measure::paper_score(model, cams, fields, p, tau, &mut img);
+                        *wt = pi;
+                        *c = d;
                     });
+                    *t = model.tip_in_base(&p.joints).map_or(Vector3::zeros(), |x| x.translation.vector);
+                });
             }
         }
     }
@@ -813,15 +826,20 @@ impl Tracker {
             return Err(StepError::Kinematics);
         }
         let cams = input.cameras;
+        if !self.workers_started {
+            // Start-up: the worker threads, from the stepping thread (they inherit its priority).
+            self.workers = Workers::new(self.cfg.threads);
+            self.workers_started = true;
+        }
         // Edges, once per frame.
         match self.cfg.mode {
             Mode::Ours => {
                 let (th, ec) = (self.cfg.edge_threshold, self.cfg.edge_contrast);
-                let [f0, f1] = &mut self.fields;
-                let (a, b) = rayon::join(
-                    || f0.compute_ours_adaptive(input.rgb[0], th, ec),
-                    || f1.compute_ours_adaptive(input.rgb[1], th, ec),
-                );
+                let mut done = [Ok(()), Ok(())];
+                self.workers.for_each_mut2(&mut self.fields, &mut done, |e, f, r| {
+                    *r = f.compute_ours_adaptive(input.rgb[e], th, ec);
+                });
+                let [a, b] = done;
                 a.and(b).map_err(|source| StepError::Image { eye: "left", source })?;
             }
             Mode::Paper => {
@@ -1064,7 +1082,7 @@ impl Tracker {
         let model = &self.model;
         let (fields, oc) = (&self.fields, self.cfg.ours);
         let n = self.proposals.len();
-        self.proposals.par_iter_mut().zip(self.prop_costs.par_iter_mut()).enumerate().for_each(|(i, (p, c))| {
+        self.workers.for_each_mut2(&mut self.proposals, &mut self.prop_costs, |i, p, c| {
             let mut r = ChaCha8Rng::seed_from_u64(mix(seed, i as u64));
             // Half about the detected distal end (when there is one), half about the reference.
             let centre = if i < n / 2 { distal.unwrap_or(0.0) } else { 0.0 };

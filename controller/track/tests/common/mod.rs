@@ -14,8 +14,13 @@ use hw_io::frame::{FrameMeta, ImageLayout, PixelFormat};
 mod support;
 pub use support::workspace_bin;
 
-/// A rendered run in `dir/run` (bus.log, frames/).
+/// A rendered run in `dir/run` (bus.log, frames/) at 5 frames per second.
 pub fn generate(dir: &Path) -> PathBuf {
+    generate_at(dir, 5)
+}
+
+/// As [`generate`], at `fps` frames per second (more frames of the same motion).
+pub fn generate_at(dir: &Path, fps: u32) -> PathBuf {
     let twin = dir.join("twin.toml");
     std::fs::write(&twin, "[scenario]\ncycles = 1\ninside_s = [5.0, 5.5]\noutside_s = [1.0, 1.2]\n").unwrap();
     let endo = dir.join("endoscope.toml");
@@ -28,7 +33,7 @@ pub fn generate(dir: &Path) -> PathBuf {
     .unwrap();
     let run = dir.join("run");
     let o = Command::new(workspace_bin("sim", "simrobot"))
-        .args(["generate", "--frames", "--fps", "5", "--seed", "2", "--out"])
+        .args(["generate", "--frames", "--fps", &fps.to_string(), "--seed", "2", "--out"])
         .arg(&run)
         .arg("--config")
         .arg(&twin)

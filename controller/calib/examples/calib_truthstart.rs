@@ -1,7 +1,10 @@
 //! Diagnostic: does our pipeline pick a wrong candidate because the truth's basin was never
 //! found, or because the likelihood prefers the wrong one? Solves each trial twice: as the
 //! product does, and with the true rotation as an extra start (`OursConfig::initial_quaternion`),
-//! printing both results' errors. Usage: `calib_truthstart <seed> <trial>... -- [mm|m] [sigma]`.
+//! printing both results' errors and how many observed shafts each puts behind the camera or
+//! off the instrument ([`shaft_explanation`]). Usage: `cargo run --release -p comanip-calib
+//! --example calib_truthstart -- <geometry seed> <mm|m> <sigma> <distorted 0|1> <trial>...`
+//! (trial `k` uses noise seed `1000 + k`, as the sweep).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, shaft_explanation, solve_ours_prepared};

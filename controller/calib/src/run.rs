@@ -4,7 +4,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use estimator::calib::ours::observation_residuals;
-use estimator::calib::ours::{OursConfig, OursError, solve_ours_prepared};
+use estimator::calib::ours::{
+    MAX_UNEXPLAINED_SHARE, OursConfig, OursError, SHAFT_MARGIN, explains_shafts, shaft_explanation, solve_ours_prepared,
+};
 use estimator::calib::paper::{PaperConfig, PaperError, solve_paper_prepared};
 use estimator::calib::prepare::{PrepareError, prepare};
 use estimator::calib::{PoseErrors, pose_errors};
@@ -284,6 +286,18 @@ pub fn calibrate(
             let r = solve_paper_prepared(set, &PaperConfig::default());
             let ms = started.elapsed().as_secs_f64() * 1e3;
             match r {
+                // comanip's check on the paper's answer (not part of the paper's method): a pose
+                // that puts the detected shafts where no instrument can be (a mirror, or a pose
+                // pushed far away) is a failure, not a result.
+                Ok(r) if !explains_shafts(set, &r.pose) => {
+                    let (behind, off) = shaft_explanation(set, &r.pose, SHAFT_MARGIN);
+                    let msg = format!(
+                        "paper pipeline: its pose puts {behind} of {} observed shafts behind the camera and {off} off the instrument's shaft (more than {:.0}%): a mirror or far solution (comanip's check of the result, not part of the paper's method)",
+                        set.obs.len(),
+                        MAX_UNEXPLAINED_SHARE * 100.0
+                    );
+                    fail("paper", "shafts_not_explained", msg, &mut summaries, ms);
+                }
                 Ok(r) => {
                     let stats = estimator::calib::ours::residual_stats(set, &r.pose);
                     results.push(convert::result_json("paper", &r.pose, &stats, None, ms));

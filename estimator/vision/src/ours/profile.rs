@@ -234,17 +234,9 @@ mod tests {
     use super::*;
     use estimator::calib::Intrinsics;
 
+    /// The detectors' test camera (640×480, mild barrel distortion).
     fn camera() -> Intrinsics {
-        Intrinsics {
-            fx: 400.0,
-            fy: 400.0,
-            cx: 319.5,
-            cy: 239.5,
-            skew: 0.0,
-            width: 640,
-            height: 480,
-            distortion: [-0.08, 0.01, 0.0, 0.0, 0.0],
-        }
+        crate::synth::endoscope_camera()
     }
 
     #[test]

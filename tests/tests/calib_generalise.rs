@@ -146,7 +146,8 @@ fn a_mirror_or_a_far_pose_does_not_explain_where_the_shafts_were_seen() {
     let set = prepare(&d.setup, &d.observations).unwrap();
     let n = set.obs.len();
     // The truth puts every noiseless shaft in front of the camera, on the instrument.
-    assert_eq!(shaft_explanation(&set, &d.truth, SHAFT_MARGIN), (0, 0));
+    let x = shaft_explanation(&set, &d.truth, SHAFT_MARGIN);
+    assert_eq!((x.behind, x.off_shaft, x.observations), (0, 0, n));
     assert!(explains_shafts(&set, &d.truth));
     // The mirror: 180° about the line of sight from the mean optical centre to robot 2's RCM,
     // the RCM kept in place. Its lines are the truth's lines; its shafts are behind the camera.
@@ -154,13 +155,15 @@ fn a_mirror_or_a_far_pose_does_not_explain_where_the_shafts_were_seen() {
     let rcm = d.truth.translation.vector;
     let flip = UnitQuaternion::from_axis_angle(&Unit::new_normalize(rcm - mean_c), std::f64::consts::PI);
     let mirror = Isometry3::from_parts(Translation3::from(rcm), flip * d.truth.rotation);
-    let (behind, off) = shaft_explanation(&set, &mirror, SHAFT_MARGIN);
+    let x = shaft_explanation(&set, &mirror, SHAFT_MARGIN);
+    let (behind, off) = (x.behind, x.off_shaft);
     assert!(behind + off > n / 2, "mirror: {behind} behind, {off} off of {n}");
     assert!(!explains_shafts(&set, &mirror));
     // The truth pushed 100× farther from the mean optical centre: every shaft in front, but
     // off the instrument (its image would be a hundred times shorter).
     let far = Isometry3::from_parts(Translation3::from(mean_c + (rcm - mean_c) * 100.0), d.truth.rotation);
-    let (behind, off) = shaft_explanation(&set, &far, SHAFT_MARGIN);
+    let x = shaft_explanation(&set, &far, SHAFT_MARGIN);
+    let (behind, off) = (x.behind, x.off_shaft);
     assert!(off > n / 2, "far: {behind} behind, {off} off of {n}");
     assert!(!explains_shafts(&set, &far));
 }

@@ -6,7 +6,7 @@
 //! <trials> [mm|m] [sigma]` (tuning geometries: seeds 9000..9019).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
-use estimator::calib::ours::{OursConfig, shaft_explanation, solve_ours_prepared};
+use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
 use estimator::calib::prepare::{PreparedSet, prepare};
 use estimator::calib::selection::{SelectionConfig, refine_selected};
 use nalgebra::{Isometry3, Matrix6, Vector6};
@@ -67,7 +67,8 @@ fn diag(set: &PreparedSet, cfg: &OursConfig, truth: &Isometry3<f64>, seed: u64, 
         guarded.guard_kept
     );
 }
-use sim::calib::{CalibProtocol, NoiseUnits, generate_calibration, random_geometry};
+use comanip_calib::generalise::protocol;
+use sim::calib::{NoiseUnits, generate_calibration, random_geometry};
 
 fn main() {
     let a: Vec<String> = std::env::args().collect();
@@ -84,15 +85,7 @@ fn main() {
         let seed = first + g;
         let draw = random_geometry(seed, g % 2 == 1).unwrap();
         for k in 0..trials {
-            let p = CalibProtocol {
-                geometry: draw.geometry,
-                n_e: 3,
-                n_t: 3,
-                sigma,
-                units,
-                pixel_sigma_px: 0.0,
-                seed: 1000 + k,
-            };
+            let p = protocol(&draw, units, sigma, 1000 + k);
             let d = generate_calibration(&p).unwrap();
             let set = prepare(&d.setup, &d.observations).unwrap();
             let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
@@ -113,8 +106,10 @@ fn main() {
                         (None, Some(e)) => format!("refused {e}"),
                         _ => "none".into(),
                     };
-                    let (b, o) = shaft_explanation(&set, &r.pose, 0.5);
-                    let (tb, to) = shaft_explanation(&set, &d.truth, 0.5);
+                    let x = shaft_explanation(&set, &r.pose, SHAFT_MARGIN);
+                    let (b, o) = (x.behind, x.off_shaft);
+                    let xt = shaft_explanation(&set, &d.truth, SHAFT_MARGIN);
+                    let (tb, to) = (xt.behind, xt.off_shaft);
                     format!(
                         "et {et:.4} mm er {er:.5} deg llr {:.2} kept {} scale {:.2} behind {b} off {o} truth {tb} {to} | {stage}",
                         r.log_likelihood_ratio, r.guard_kept, r.scale

@@ -7,9 +7,10 @@
 //! (trial `k` uses noise seed `1000 + k`, as the sweep).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
-use estimator::calib::ours::{OursConfig, shaft_explanation, solve_ours_prepared};
+use comanip_calib::generalise::protocol;
+use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
 use estimator::calib::prepare::prepare;
-use sim::calib::{CalibProtocol, NoiseUnits, generate_calibration, random_geometry};
+use sim::calib::{NoiseUnits, generate_calibration, random_geometry};
 
 fn main() {
     let a: Vec<String> = std::env::args().collect();
@@ -19,19 +20,11 @@ fn main() {
     let distort: bool = a[4] == "1";
     for k in a[5..].iter().map(|s| s.parse::<u64>().unwrap()) {
         let draw = random_geometry(seed, distort).unwrap();
-        let p = CalibProtocol {
-            geometry: draw.geometry,
-            n_e: 3,
-            n_t: 3,
-            sigma,
-            units,
-            pixel_sigma_px: 0.0,
-            seed: 1000 + k,
-        };
+        let p = protocol(&draw, units, sigma, 1000 + k);
         let d = generate_calibration(&p).unwrap();
         let set = prepare(&d.setup, &d.observations).unwrap();
         let q = d.truth.rotation.into_inner();
-        println!("{seed} {k} truth behind/off {:?} of {}", shaft_explanation(&set, &d.truth, 0.5), set.obs.len());
+        println!("{seed} {k} truth {:?}", shaft_explanation(&set, &d.truth, SHAFT_MARGIN));
         for (name, cfg) in [
             ("product", OursConfig { noise: d.noise, ..OursConfig::default() }),
             (
@@ -55,9 +48,9 @@ fn main() {
                     let er = (r.pose.rotation.inverse() * d.truth.rotation).angle().to_degrees();
                     let ea = (r.alternative.rotation.inverse() * d.truth.rotation).angle().to_degrees();
                     println!(
-                        "{seed} {k} {name:22} et {et:.2} er {er:.2} behind/off {:?} alt {:?} llr {:.1} alt er {ea:.1} kept {} scale {:.2} refused {:?}",
-                        shaft_explanation(&set, &r.pose, 0.5),
-                        shaft_explanation(&set, &r.alternative, 0.5),
+                        "{seed} {k} {name:22} et {et:.2} er {er:.2} {:?} alt {:?} llr {:.1} alt er {ea:.1} kept {} scale {:.2} refused {:?}",
+                        shaft_explanation(&set, &r.pose, SHAFT_MARGIN),
+                        shaft_explanation(&set, &r.alternative, SHAFT_MARGIN),
                         r.log_likelihood_ratio,
                         r.guard_kept,
                         r.scale,

@@ -124,7 +124,9 @@ fn median(v: &[f64]) -> f64 {
     if n % 2 == 1 { s[n / 2] } else { 0.5 * (s[n / 2 - 1] + s[n / 2]) }
 }
 
-fn protocol(g: &GeometryDraw, units: NoiseUnits, sigma: f64, seed: u64) -> CalibProtocol {
+/// The generalisation protocol's trial on geometry `g`: the 3⁴×3² grid, noise `sigma` in
+/// `units` per frame (Eq. 11), no pixel noise, noise seed `seed` (trial k: 1000 + k).
+pub fn protocol(g: &GeometryDraw, units: NoiseUnits, sigma: f64, seed: u64) -> CalibProtocol {
     CalibProtocol { geometry: g.geometry, n_e: 3, n_t: 3, sigma, units, pixel_sigma_px: 0.0, seed }
 }
 

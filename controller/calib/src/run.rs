@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use estimator::calib::ours::observation_residuals;
 use estimator::calib::ours::{
-    MAX_UNEXPLAINED_SHARE, OursConfig, OursError, SHAFT_MARGIN, explains_shafts, shaft_explanation, solve_ours_prepared,
+    MAX_UNEXPLAINED_SHARE, OursConfig, OursError, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared,
 };
 use estimator::calib::paper::{PaperConfig, PaperError, solve_paper_prepared};
 use estimator::calib::prepare::{PrepareError, prepare};
@@ -285,20 +285,25 @@ pub fn calibrate(
             let started = Instant::now();
             let r = solve_paper_prepared(set, &PaperConfig::default());
             let ms = started.elapsed().as_secs_f64() * 1e3;
+            let r = r.map(|r| {
+                let x = shaft_explanation(set, &r.pose, SHAFT_MARGIN);
+                (r, x)
+            });
             match r {
                 // comanip's check on the paper's answer (not part of the paper's method): a pose
                 // that puts the detected shafts where no instrument can be (a mirror, or a pose
                 // pushed far away) is a failure, not a result.
-                Ok(r) if !explains_shafts(set, &r.pose) => {
-                    let (behind, off) = shaft_explanation(set, &r.pose, SHAFT_MARGIN);
+                Ok((_, x)) if !x.explains() => {
                     let msg = format!(
-                        "paper pipeline: its pose puts {behind} of {} observed shafts behind the camera and {off} off the instrument's shaft (more than {:.0}%): a mirror or far solution (comanip's check of the result, not part of the paper's method)",
-                        set.obs.len(),
+                        "paper pipeline: its pose puts {} of {} observed shafts behind the camera and {} off the instrument's shaft (more than {:.0}%): a mirror or far solution (comanip's check of the result, not part of the paper's method)",
+                        x.behind,
+                        x.observations,
+                        x.off_shaft,
                         MAX_UNEXPLAINED_SHARE * 100.0
                     );
                     fail("paper", "shafts_not_explained", msg, &mut summaries, ms);
                 }
-                Ok(r) => {
+                Ok((r, _)) => {
                     let stats = estimator::calib::ours::residual_stats(set, &r.pose);
                     results.push(convert::result_json("paper", &r.pose, &stats, None, ms));
                     residuals.push(PipelineResiduals { name: "paper", residuals_px: per_observation(&r.pose) });

@@ -77,6 +77,18 @@ pub struct ConvergeResults {
 }
 
 impl ConvergeResults {
+    /// The results of `trials` run with tracker configuration `cfg` (its mode, particle count
+    /// and motion model recorded; frame rate 0: not a rate measurement).
+    pub fn of_trials(cfg: &TrackerConfig, trials: Vec<Trial>) -> Self {
+        Self {
+            mode: crate::run::mode_name(cfg.mode).into(),
+            particles: cfg.particles,
+            fps: 0.0,
+            motion: crate::run::motion_name(cfg).into(),
+            trials,
+        }
+    }
+
     /// The name plots and tables give these results: `paper`, `ours (offset)`, `ours
     /// (random walk)`, or the bare mode when the motion model was not recorded.
     pub fn label(&self) -> String {

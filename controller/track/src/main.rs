@@ -9,7 +9,7 @@ use comanip_track::config::TrackFile;
 use comanip_track::experiment::{self, ConvergeResults, RatePoint};
 use comanip_track::input::{Sequence, read_sequence};
 use comanip_track::robustness::{self, NoiseLevel, NoiseSweep, SceneRun};
-use comanip_track::run::{RunOptions, build_model, mode_name, motion_name, track, write_jsonl};
+use comanip_track::run::{RunOptions, build_model, mode_name, track, write_jsonl};
 use track::Mode;
 
 #[derive(Parser)]
@@ -585,13 +585,7 @@ fn run(cli: Cli) -> Result<(), String> {
             }
             b.finish_and_clear();
             let cfg = cfg0.ok_or("no run")?;
-            let res = ConvergeResults {
-                mode: mode_name(cfg.mode).into(),
-                particles: cfg.particles,
-                fps: 0.0,
-                motion: motion_name(&cfg).into(),
-                trials: all,
-            };
+            let res = ConvergeResults::of_trials(&cfg, all);
             let s = experiment::summarise(&res, 5);
             println!("{}", serde_json::to_string_pretty(&s).unwrap_or_default());
             std::fs::write(&out, serde_json::to_string(&res).unwrap_or_default())
@@ -685,13 +679,7 @@ fn run(cli: Cli) -> Result<(), String> {
                     all.extend(t);
                 }
                 let cfg = cfg0.ok_or("no run")?;
-                let res = ConvergeResults {
-                    mode: mode_name(cfg.mode).into(),
-                    particles: cfg.particles,
-                    fps: 0.0,
-                    motion: motion_name(&cfg).into(),
-                    trials: all,
-                };
+                let res = ConvergeResults::of_trials(&cfg, all);
                 let sm = experiment::summarise(&res, 5);
                 b.suspend(|| println!("sigma {sigma} mrad: {}", serde_json::to_string(&sm).unwrap_or_default()));
                 levels.push(NoiseLevel { sigma_mrad: sigma, results: res });

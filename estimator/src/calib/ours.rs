@@ -618,36 +618,51 @@ fn axis_seen_at(
     (lambda.is_finite() && s.is_finite()).then_some((lambda, s))
 }
 
-/// How pose `T_e_t` explains where the shaft was seen: `(behind, off_shaft)`, the observations
-/// whose two observed line points both meet the tool axis behind the camera, and those (in
-/// front) whose line points meet the axis outside the physical shaft, farther than `margin`
-/// times the insertion from the segment between the line's known point (robot 2's RCM) and
-/// the tip. The line model cannot tell a line's side of the camera, nor where along the line
-/// the shaft is; the images can.
-pub fn shaft_explanation(set: &PreparedSet, pose: &Isometry3<f64>, margin: f64) -> (usize, usize) {
+/// How a pose explains where the shafts were seen ([`shaft_explanation`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ShaftExplanation {
+    /// Observations whose two observed line points both meet the tool axis behind the camera.
+    pub behind: usize,
+    /// Observations (in front) whose line points meet the axis outside the physical shaft.
+    pub off_shaft: usize,
+    /// Observations.
+    pub observations: usize,
+}
+
+impl ShaftExplanation {
+    /// True when at most [`MAX_UNEXPLAINED_SHARE`] of the observations are unexplained.
+    pub fn explains(&self) -> bool {
+        ((self.behind + self.off_shaft) as f64) <= MAX_UNEXPLAINED_SHARE * self.observations as f64
+    }
+}
+
+/// How pose `T_e_t` explains where the shafts were seen: the observations whose two observed
+/// line points both meet the tool axis behind the camera, and those (in front) whose line
+/// points meet the axis outside the physical shaft, farther than `margin` insertions from the
+/// segment between the line's known point (robot 2's RCM) and the tip. The line model cannot
+/// tell a line's side of the camera, nor where along the line the shaft is; the images can.
+pub fn shaft_explanation(set: &PreparedSet, pose: &Isometry3<f64>, margin: f64) -> ShaftExplanation {
     let r = pose.rotation.to_rotation_matrix().into_inner();
     let t = pose.translation.vector;
-    let (mut behind, mut off) = (0, 0);
+    let (mut behind, mut off_shaft) = (0, 0);
     for o in &set.obs {
-        let seen: Vec<Option<(f64, f64)>> = o.px.iter().map(|u| axis_seen_at(set, o, &r, &t, u)).collect();
+        let seen = o.px.map(|u| axis_seen_at(set, o, &r, &t, &u));
         if seen.iter().all(|x| x.is_some_and(|(z, _)| z <= 0.0)) {
             behind += 1;
         } else {
             let len = o.insertion_m.abs().max(1e-9);
             if seen.iter().flatten().any(|(_, s)| *s < -margin * len || *s > (1.0 + margin) * len) {
-                off += 1;
+                off_shaft += 1;
             }
         }
     }
-    (behind, off)
+    ShaftExplanation { behind, off_shaft, observations: set.obs.len() }
 }
 
-/// True when pose `T_e_t` explains where the shafts were seen: at most
-/// [`MAX_UNEXPLAINED_SHARE`] of the observations unexplained ([`shaft_explanation`] with
-/// [`SHAFT_MARGIN`]).
+/// True when pose `T_e_t` explains where the shafts were seen ([`shaft_explanation`] with
+/// [`SHAFT_MARGIN`], [`ShaftExplanation::explains`]).
 pub fn explains_shafts(set: &PreparedSet, pose: &Isometry3<f64>) -> bool {
-    let (behind, off) = shaft_explanation(set, pose, SHAFT_MARGIN);
-    ((behind + off) as f64) <= MAX_UNEXPLAINED_SHARE * set.obs.len() as f64
+    shaft_explanation(set, pose, SHAFT_MARGIN).explains()
 }
 
 /// Pixel residual statistics of pose `T_e_t` over prepared observations (unweighted).
@@ -764,13 +779,20 @@ pub fn apply_selection_stage(
     cfg: &SelectionConfig,
     mut result: OursResult,
 ) -> OursResult {
-    match refine_selected(set, noise, &result.pose, &result.covariance, cfg) {
-        // The stage's pose must explain the shafts as the guarded fit does.
-        Ok(fit) if !explains_shafts(set, &fit.pose) => {
-            let (behind, off_shaft) = shaft_explanation(set, &fit.pose, SHAFT_MARGIN);
-            result.selection_refused =
-                Some(SelectionError::ShaftsNotExplained { behind, off_shaft, observations: set.obs.len() });
+    // The stage's pose must explain the shafts as the guarded fit does.
+    let fit = refine_selected(set, noise, &result.pose, &result.covariance, cfg).and_then(|fit| {
+        let x = shaft_explanation(set, &fit.pose, SHAFT_MARGIN);
+        if x.explains() {
+            Ok(fit)
+        } else {
+            Err(SelectionError::ShaftsNotExplained {
+                behind: x.behind,
+                off_shaft: x.off_shaft,
+                observations: x.observations,
+            })
         }
+    });
+    match fit {
         Ok(fit) => {
             result.covariance = fit.covariance;
             result.pose = fit.pose;
@@ -961,19 +983,26 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     // Only candidates that put the detected shafts where an instrument can be are
     // explanations of the data ([`explains_shafts`]); the others are left out of the choice
     // and of the ambiguity decision.
-    let explains: Vec<bool> =
-        candidates.iter().map(|x| finite(x) && explains_shafts(set, &pose_of(&x.r, &x.t))).collect();
+    // Once per distinct pose: a merged candidate shares its target's pose.
+    let mut explains: Vec<bool> = Vec::with_capacity(candidates.len());
+    for (i, x) in candidates.iter().enumerate() {
+        let e = match x.merged {
+            Some(j) if j < i => explains[j],
+            _ => finite(x) && explains_shafts(set, &pose_of(&x.r, &x.t)),
+        };
+        explains.push(e);
+    }
     let argmin = |c: &[f64], ok: &dyn Fn(usize) -> bool| {
         (0..c.len()).filter(|i| ok(*i) && c[*i].is_finite()).min_by(|a, b| c[*a].total_cmp(&c[*b]))
     };
     let Some(ib) = argmin(&costs, &|i| explains[i]) else {
         let i = argmin(&costs, &|_| true).ok_or(OursError::NoConvergence)?;
         let pose = pose_of(&candidates[i].r, &candidates[i].t);
-        let (behind, off_shaft) = shaft_explanation(set, &pose, SHAFT_MARGIN);
+        let x = shaft_explanation(set, &pose, SHAFT_MARGIN);
         return Err(OursError::ShaftsNotExplained {
-            behind,
-            off_shaft,
-            observations: set.obs.len(),
+            behind: x.behind,
+            off_shaft: x.off_shaft,
+            observations: x.observations,
             max_share: MAX_UNEXPLAINED_SHARE * 100.0,
             pose: Box::new(pose),
         });

@@ -11,17 +11,10 @@ use std::sync::atomic::Ordering;
 
 use common::*;
 use counting::{COUNT, ON};
-use track::{FrameInput, Mode, Particle, Tracker, TrackerConfig};
+use track::{Mode, Tracker, TrackerConfig};
 
 /// Frames after start-up whose allocations are counted.
 const COUNTED: usize = 30;
-
-/// The pose index of frame `n`: back and forth over `joints(0..=8)` (the instrument stays in
-/// view however many frames are counted).
-fn pose_of_frame(n: usize) -> usize {
-    let k = n % 16;
-    if k <= 8 { k } else { 16 - k }
-}
 
 #[test]
 fn the_counter_sees_allocations_and_steps_allocate_nothing() {
@@ -37,18 +30,8 @@ fn the_counter_sees_allocations_and_steps_allocate_nothing() {
     // More threads than this machine may have: the hand-over between them is what is counted.
     c.threads = 4;
     let mut t = Tracker::new(c, model.clone()).unwrap();
-    let images: Vec<[Vec<u8>; 2]> = (0..=8)
-        .map(|k| images(&model, &cams, &Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] }, k as u32))
-        .collect();
-    let frame = |n: usize| {
-        let f = &images[pose_of_frame(n)];
-        FrameInput {
-            encoder_rad: joints(pose_of_frame(n)),
-            cameras: cams,
-            rgb: [&f[0], &f[1]],
-            time_ns: Some(n as u64 * 100_000_000),
-        }
-    };
+    let images = pose_images(&model, &cams);
+    let frame = |n: usize| back_and_forth(&cams, &images, n);
     // Start-up: the first frames (the worker threads start at the first).
     for n in 0..3 {
         t.step(&frame(n)).unwrap();

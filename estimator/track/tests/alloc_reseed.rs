@@ -11,18 +11,12 @@ use std::sync::atomic::Ordering;
 
 use common::*;
 use counting::{COUNT, ON};
-use track::{FrameInput, Mode, Particle, Tracker, TrackerConfig};
+use track::{Mode, Tracker, TrackerConfig};
 
 /// Frames after start-up whose allocations are counted.
 const COUNTED: usize = 30;
 /// Start-up frames (not counted).
 const WARM: usize = 7;
-
-/// The pose index of frame `n`: back and forth over `joints(0..=8)`.
-fn pose_of_frame(n: usize) -> usize {
-    let k = n % 16;
-    if k <= 8 { k } else { 16 - k }
-}
 
 #[test]
 fn re_seeding_from_a_detected_axis_allocates_nothing() {
@@ -34,18 +28,8 @@ fn re_seeding_from_a_detected_axis_allocates_nothing() {
     // Tried at every frame (the trigger above any fit), accepted when it is better.
     c.proposal = Some(track::ProposalConfig { trigger_share: 1.0, ..track::ProposalConfig::default() });
     let mut t = Tracker::new(c, model.clone()).unwrap();
-    let images: Vec<[Vec<u8>; 2]> = (0..=8)
-        .map(|k| images(&model, &cams, &Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] }, k as u32))
-        .collect();
-    let frame = |n: usize| {
-        let f = &images[pose_of_frame(n)];
-        FrameInput {
-            encoder_rad: joints(pose_of_frame(n)),
-            cameras: cams,
-            rgb: [&f[0], &f[1]],
-            time_ns: Some(n as u64 * 100_000_000),
-        }
-    };
+    let images = pose_images(&model, &cams);
+    let frame = |n: usize| back_and_forth(&cams, &images, n);
     let axis = |k: usize| {
         let f = model.instrument_in_base(&joints(k)).unwrap();
         let (o, d) = (f.translation.vector, f.rotation * nalgebra::Vector3::z());

@@ -167,3 +167,29 @@ pub fn tip_error_mm(model: &ToolModel, q: &[f64; 6], truth: &[f64; 6]) -> f64 {
 pub fn point(model: &ToolModel, q: &[f64; 6]) -> Point3<f64> {
     Point3::from(model.tip_in_base(q).unwrap().translation.vector)
 }
+
+/// The pose index of frame `n`: back and forth over `joints(0..=8)` (the instrument stays in
+/// view however many frames are counted).
+pub fn pose_of_frame(n: usize) -> usize {
+    let k = n % 16;
+    if k <= 8 { k } else { 16 - k }
+}
+
+/// The rendered stereo pair of each pose `joints(0..=8)` (jaw 0.2 rad), in order.
+pub fn pose_images(model: &ToolModel, cams: &StereoCameras) -> Vec<[Vec<u8>; 2]> {
+    (0..=8)
+        .map(|k| images(model, cams, &Particle { joints: joints(k), jaw_rad: 0.2, camera_delta: [0.0; 6] }, k as u32))
+        .collect()
+}
+
+/// Frame `n` of the back-and-forth sequence over `pose_images` ([`pose_of_frame`]): the
+/// pose's encoders and pair, 100 ms apart.
+pub fn back_and_forth<'a>(cams: &StereoCameras, images: &'a [[Vec<u8>; 2]], n: usize) -> FrameInput<'a> {
+    let f = &images[pose_of_frame(n)];
+    FrameInput {
+        encoder_rad: joints(pose_of_frame(n)),
+        cameras: *cams,
+        rgb: [&f[0], &f[1]],
+        time_ns: Some(n as u64 * 100_000_000),
+    }
+}

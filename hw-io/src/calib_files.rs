@@ -834,6 +834,7 @@ mod tests {
                 min_visible_shaft_px: 40.0,
                 border_margin_px: 2.0,
                 require_tip_in_view: false,
+                ends_are_shaft_ends: true,
             }),
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],

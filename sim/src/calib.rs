@@ -120,7 +120,7 @@ impl Default for CalibGeometry {
             psm_yaw_rad: [-15.0 * deg, 15.0 * deg],
             psm_pitch_rad: [-15.0 * deg, 15.0 * deg],
             psm_insertion_m: 0.120,
-            selection: SelectionRule::tip_in_view(40.0),
+            selection: SelectionRule { ends_are_shaft_ends: true, ..SelectionRule::tip_in_view(40.0) },
         }
     }
 }
@@ -459,7 +459,12 @@ pub fn random_geometry(seed: u64, distortion: bool) -> Result<GeometryDraw, Rand
             psm_yaw_rad: [-psm_angle, psm_angle],
             psm_pitch_rad: [-psm_angle, psm_angle],
             psm_insertion_m: reach,
-            selection: SelectionRule { min_visible_shaft_px: 40.0, border_margin_px: 0.0, require_tip_in_view: false },
+            selection: SelectionRule {
+                min_visible_shaft_px: 40.0,
+                border_margin_px: 0.0,
+                require_tip_in_view: false,
+                ends_are_shaft_ends: true,
+            },
         };
         // The lens model must be invertible over the whole image (undistortion converges).
         let k = &geometry.intrinsics;

@@ -3,7 +3,10 @@
 //! solve time. For comparing builds (`diff` the outputs) and for looking at refusals.
 //!
 //! `cargo run --release -p comanip-calib --example calib_probe -- <first seed> <geometries>
-//! <trials> [mm|m] [sigma]` (tuning geometries: seeds 9000..9019).
+//! <trials> [mm|m] [sigma]` (tuning geometries: seeds 9000..9019). Environment:
+//! `NO_SHAFT_POSITION=1` runs the lines alone (`OursConfig::shaft_position` off, in the fit and
+//! the selection stage), `BORDER_GUARD=<sigmas>` sets the border guard (0: off), `DIAG=1`
+//! prints the guarded fit and the selection stage separately.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -88,7 +91,16 @@ fn main() {
             let p = protocol(&draw, units, sigma, 1000 + k);
             let d = generate_calibration(&p).unwrap();
             let set = prepare(&d.setup, &d.observations).unwrap();
-            let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
+            // NO_SHAFT_POSITION=1: the lines alone (the objective before the shaft-position term).
+            let shaft_position = std::env::var("NO_SHAFT_POSITION").is_err();
+            let mut cfg = OursConfig { noise: d.noise, shaft_position, ..OursConfig::default() };
+            if let Some(s) = cfg.selection.as_mut() {
+                s.shaft_position = shaft_position;
+            }
+            // BORDER_GUARD=<sigmas>: the border guard's threshold (0 disables it).
+            if let Ok(v) = std::env::var("BORDER_GUARD") {
+                cfg.border_guard_sigmas = v.parse().unwrap();
+            }
             let t0 = std::time::Instant::now();
             let r = solve_ours_prepared(&set, &cfg);
             let dt = t0.elapsed().as_secs_f64() * 1e3;

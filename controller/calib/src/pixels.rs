@@ -46,6 +46,9 @@ pub fn selection_rule() -> estimator::calib::SelectionRule {
         min_visible_shaft_px: MIN_SHAFT_PX,
         border_margin_px: 0.0,
         require_tip_in_view: false,
+        // The detector's centreline is not cut where the shaft ends (its ends come from the
+        // contours' extent): the points are only known to be on the shaft.
+        ends_are_shaft_ends: false,
     }
 }
 

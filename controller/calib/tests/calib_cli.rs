@@ -312,11 +312,11 @@ fn both_writes_each_result_or_failure_and_exits_non_zero_only_when_all_failed() 
 #[test]
 fn a_selection_stage_that_cannot_model_the_data_fails_loudly_unless_accepted() {
     let dir = tempfile::tempdir().unwrap();
-    // The metre reading at σ = 0.014 (14 mm per frame), seed 2: the guarded fit explains the
+    // The metre reading at σ = 0.03 (30 mm per frame), seed 2: the guarded fit explains the
     // shafts, the selection-aware stage's move from it is beyond their noise (Hausman test).
     run_ok(
         bin()
-            .args(["generate", "--sigma", "0.014", "--units", "m", "--seed", "2"])
+            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "2"])
             .arg("--dataset")
             .arg(dir.path().join("wild.json"))
             .arg("--truth")

@@ -45,6 +45,7 @@ pub mod prepare;
 pub mod rcm_arms;
 pub mod residual;
 pub mod selection;
+pub mod shaft_position;
 pub mod sigma_point;
 
 use nalgebra::{Isometry3, SMatrix, Vector3};
@@ -170,13 +171,29 @@ pub struct SelectionRule {
     /// True: a line is recorded only when the tool tip is in view (inside the margin).
     #[serde(default)]
     pub require_tip_in_view: bool,
+    /// True: the two line points are the ends of the visible shaft, so a point more than
+    /// [`SHAFT_END_BORDER_PX`] inside the margin-shrunk image is where the shaft itself ends
+    /// (the tool tip, or robot 2's RCM), as the simulation protocol records them; our pipeline
+    /// then asks the pose to put the shaft's end there ([`shaft_position`]). False (the
+    /// default, and older files): the points are only known to lie on the visible shaft.
+    #[serde(default)]
+    pub ends_are_shaft_ends: bool,
 }
+
+/// A line point within this distance (pixels) of the margin-shrunk image border is where the
+/// image cuts the shaft, not one of its ends ([`SelectionRule::ends_are_shaft_ends`]).
+pub const SHAFT_END_BORDER_PX: f64 = 2.0;
 
 impl SelectionRule {
     /// The rule of the original protocol and of version-1 datasets' `min_shaft_px`: the tip in
     /// the image and at least `min_shaft_px` of shaft visible from it.
     pub fn tip_in_view(min_shaft_px: f64) -> Self {
-        Self { min_visible_shaft_px: min_shaft_px, border_margin_px: 0.0, require_tip_in_view: true }
+        Self {
+            min_visible_shaft_px: min_shaft_px,
+            border_margin_px: 0.0,
+            require_tip_in_view: true,
+            ends_are_shaft_ends: false,
+        }
     }
 
     /// True when both lengths are finite and ≥ 0.

@@ -12,6 +12,13 @@
 //! estimator of the linearised model, whose covariance the Cramér-Rao bound ([`super::crb`])
 //! bounds.
 //!
+//! With a noise model, the objective also has the shaft-position likelihood
+//! ([`super::shaft_position`]: each observed line point on the physical shaft and in front of
+//! the camera, and the tip where a shaft end was seen), and each start's translation comes
+//! from the observed shaft ends when the dataset has them
+//! ([`super::shaft_position::translation_from_shaft_ends`]); [`OursConfig::shaft_position`]
+//! turns both off.
+//!
 //! Stages with a noise model: the robust fit from the linear starts and their mirrors; the
 //! border guard (refits on observations whose tip is predicted well inside the image); the
 //! selection-aware stage ([`super::selection`]: the likelihood of the kept lines, on all
@@ -34,6 +41,10 @@ use super::paper::{
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::residual::{damped_step, residual, residual_and_jacobian, residual_covariance};
 use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected, tip_well_inside};
+use super::shaft_position::{
+    ShaftModel, axis_seen_at, residuals_and_gradients_at, residuals_at, shaft_model, shaft_position_residuals,
+    translation_from_shaft_ends,
+};
 use super::{Observation, Setup};
 
 /// Two refined candidates whose rotations differ by more than this (radians, 10°) are
@@ -97,6 +108,12 @@ pub struct OursConfig {
     /// The selection-aware final stage ([`super::selection`]; with a noise model only);
     /// `None` stops after the border-guarded robust fit.
     pub selection: Option<SelectionConfig>,
+    /// With a noise model: add the shaft-position likelihood ([`super::shaft_position`]:
+    /// each observed line point on the physical shaft, between robot 2's RCM and the tool
+    /// tip, in front of the camera) to the objective. `false`: the lines alone (for
+    /// comparison; the pose can then put the shafts where no instrument is and be refused,
+    /// [`OursError::ShaftsNotExplained`]).
+    pub shaft_position: bool,
 }
 
 impl Default for OursConfig {
@@ -109,6 +126,7 @@ impl Default for OursConfig {
             border_guard_sigmas: 2.0,
             initial_quaternion: None,
             selection: Some(SelectionConfig::default()),
+            shaft_position: true,
         }
     }
 }
@@ -346,6 +364,9 @@ fn mirror_upper(h: &mut Matrix6<f64>) {
 ///
 /// `done`: converged candidates of the same objective (same `whiten`); when the refinement
 /// comes within [`MERGE_SIGMAS`] of one, it stops and returns that one's pose, `merged` set.
+/// With a noise model, the shaft-position terms ([`super::shaft_position`]) are added; their
+/// noise models are rebuilt at every iteration's pose (held within its line search):
+/// building them once per pass, as the whitening is, left more tuning trials unexplained.
 fn refine(
     set: &PreparedSet,
     cfg: &OursConfig,
@@ -355,6 +376,12 @@ fn refine(
     done: &[(Matrix3<f64>, Vector3<f64>)],
 ) -> Refined {
     let mut merged = None;
+    // The shaft-position models, rebuilt at each iteration's pose and held fixed within its
+    // line search (the tip's noise moves with the pose far more than the lines' does).
+    let shaft_noise = cfg.noise.as_ref().filter(|_| cfg.shaft_position);
+    let mut shaft_models: Vec<ShaftModel> = Vec::with_capacity(if shaft_noise.is_some() { set.obs.len() } else { 0 });
+    // Each observation's line weight (Huber) at the iteration's pose, for its shaft terms.
+    let mut line_weights: Vec<f64> = Vec::with_capacity(shaft_models.capacity());
     let mut r = r0;
     let mut t = t0;
     let mut iterations = 0;
@@ -387,6 +414,30 @@ fn refine(
                 cost += huber(*n, c);
             }
             mirror_upper(&mut h);
+            // The shaft-position terms (with a noise model): flat while every observed line
+            // point is on the physical shaft, in front of the camera.
+            if let Some(noise) = shaft_noise {
+                shaft_models.clear();
+                shaft_models.extend(set.obs.iter().map(|o| shaft_model(set, o, &r, &t, noise)));
+                line_weights.clear();
+                line_weights.extend(norms.iter().map(|n| if *n <= c { 1.0 } else { c / n }));
+                for ((o, m), lw) in set.obs.iter().zip(&shaft_models).zip(&line_weights) {
+                    let (es, gs) = residuals_and_gradients_at(set, o, &r, &t, m);
+                    for (e, j) in es.iter().zip(&gs) {
+                        if *e == 0.0 {
+                            continue;
+                        }
+                        // In the line residuals' units (robust scale), Huber-weighted alike,
+                        // and by its line's weight: a wrong line's end points say nothing.
+                        let (e, j) = (e * scale, j * scale);
+                        let n = e.abs();
+                        let wgt = lw * if n <= c { 1.0 } else { c / n };
+                        h += j * j.transpose() * wgt;
+                        g += j * e * wgt;
+                        cost += lw * huber(n, c);
+                    }
+                }
+            }
             let mut accepted = false;
             let mut small = false;
             while lambda < 1e10 {
@@ -401,7 +452,19 @@ fn refine(
                     .iter()
                     .zip(&whiten)
                     .map(|(o, w)| huber((w * residual(set, o, &r_new, &t_new)).norm(), c))
-                    .sum();
+                    .sum::<f64>()
+                    + set
+                        .obs
+                        .iter()
+                        .zip(&shaft_models)
+                        .zip(&line_weights)
+                        .map(|((o, m), lw)| {
+                            lw * residuals_at(set, o, &r_new, &t_new, m)
+                                .iter()
+                                .map(|e| huber((e * scale).abs(), c))
+                                .sum::<f64>()
+                        })
+                        .sum::<f64>();
                 if new_cost <= cost {
                     small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
                         || cost - new_cost <= 1e-14 * cost;
@@ -451,6 +514,11 @@ fn within(fit: &OursResult, pose: &Isometry3<f64>, sigmas: f64) -> bool {
 /// runner-up close enough to matter.
 const SECOND_PASS_MARGIN_NATS: f64 = 10.0 * DEFAULT_MIN_LOG_LIKELIHOOD_RATIO;
 
+/// Passes with the whitening refreshed at the candidate's current pose, after the first
+/// (chosen on the tuning geometries 9000-9019: one pass left 15 of 200 metre-reading trials at
+/// σ = 0.01 unexplained, three passes 6).
+const WHITENING_PASSES: usize = 3;
+
 /// At most this many other minima of Eq. 10 are refined as extra starts.
 const MAX_EXTRA_STARTS: usize = 3;
 
@@ -491,6 +559,9 @@ fn candidate_nll(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vect
 #[derive(Clone, Debug)]
 struct NllParts {
     norms: Vec<f64>,
+    /// The shaft-position residuals' magnitudes (non-zero ones only; standard deviations),
+    /// each with its observation's index (weighted by that observation's line weight).
+    shaft: Vec<(f64, usize)>,
     rest: f64,
 }
 
@@ -500,15 +571,40 @@ impl NllParts {
         let c = cfg.huber_k * s_ref;
         let cap = RESIDUAL_CAP_THRESHOLDS * c;
         let s2 = s_ref * s_ref;
-        let quad: f64 = self.norms.iter().map(|e| huber(if e.is_finite() { e.min(cap) } else { cap }, c) / s2).sum();
+        let capped = |e: &f64| huber(if e.is_finite() { e.min(cap) } else { cap }, c) / s2;
+        // A shaft-position residual is in standard deviations; at robust scale `s_ref` it
+        // weighs as a line residual of `e · s_ref` does.
+        let quad: f64 = self.norms.iter().map(capped).sum::<f64>()
+            + self
+                .shaft
+                .iter()
+                .map(|(e, i)| {
+                    let n = self.norms[*i];
+                    let lw = if n.is_finite() && n > c {
+                        c / n
+                    } else if n.is_finite() {
+                        1.0
+                    } else {
+                        0.0
+                    };
+                    lw * capped(&(e * s_ref))
+                })
+                .sum::<f64>();
         quad + self.rest
     }
 }
 
 fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> NllParts {
     let mut norms = Vec::with_capacity(set.obs.len());
+    let mut shaft = Vec::new();
     let mut rest = 0.0;
     for o in &set.obs {
+        if let Some(noise) = cfg.noise.as_ref().filter(|_| cfg.shaft_position) {
+            let i = norms.len();
+            shaft.extend(
+                shaft_position_residuals(set, o, r, t, noise).iter().filter(|e| **e != 0.0).map(|e| (e.abs(), i)),
+            );
+        }
         let res = residual(set, o, r, t);
         let (e, logdet) = match &cfg.noise {
             Some(noise) => {
@@ -528,7 +624,7 @@ fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<
             rest -= kept_given_line_ln(set, o, r, t, noise, &SelectionConfig::default());
         }
     }
-    NllParts { norms, rest }
+    NllParts { norms, shaft, rest }
 }
 
 /// The runner-up of the candidates (`costs` their [`candidate_nll`], `ib` the best): the most
@@ -587,35 +683,6 @@ pub fn observation_residuals(set: &PreparedSet, pose: &Isometry3<f64>) -> Vec<Ve
     let r = pose.rotation.to_rotation_matrix().into_inner();
     let t = pose.translation.vector;
     set.obs.iter().map(|o| residual(set, o, &r, &t)).collect()
-}
-
-/// Where the tool axis is seen at an observed line point: for the ray through ideal pixel `u`
-/// (camera frame, direction `K⁻¹ [u, 1]ᵀ`, unit depth) and the tool axis of pose `(R, t)`
-/// (`T_e_t`), their closest approach: `(depth, s)`, the ray's depth there (metres, camera
-/// frame; negative: behind the camera) and the axis point's position along the tool from the
-/// line's known point (metres, `s = 0` at robot 2's RCM or [`Prepared::p_t`], `s =`
-/// [`Prepared::insertion_m`] at the tip). `None` when the ray is parallel to the axis (within
-/// 1e-12, relative) or a value is not finite.
-fn axis_seen_at(
-    set: &PreparedSet,
-    o: &Prepared,
-    r: &Matrix3<f64>,
-    t: &Vector3<f64>,
-    u: &Vector2<f64>,
-) -> Option<(f64, f64)> {
-    let p = o.r_ec.tr_mul(&(r * o.p_t + t - o.o_ec));
-    let d = o.r_ec.tr_mul(&(r * o.m_t));
-    let v = set.k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0));
-    let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
-    let (vp, dp) = (v.dot(&p), d.dot(&p));
-    let denom = a * c - b * b;
-    if denom.is_nan() || denom.abs() <= 1e-12 * a * c {
-        return None;
-    }
-    // Closest approach of λ v and p + s d: λ = (c v·p − b d·p) / (ac − b²), s = (b v·p − a d·p) / (ac − b²).
-    let lambda = (c * vp - b * dp) / denom;
-    let s = (b * vp - a * dp) / denom / c.sqrt();
-    (lambda.is_finite() && s.is_finite()).then_some((lambda, s))
 }
 
 /// How a pose explains where the shafts were seen ([`shaft_explanation`]).
@@ -898,8 +965,16 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     // refreshed once at each candidate's solution for a second pass.
     // With tool lines through points away from `{t}`'s origin, each start's translation is
     // Eq. 5 given its rotation (with every point at the origin it is `t0` itself).
+    // With the shaft-position term, from the observed shaft ends when there are enough of
+    // them ([`translation_from_shaft_ends`]: a point fixes two directions, a line one).
+    let with_ends = cfg.noise.is_some() && cfg.shaft_position && from.is_none();
     let t_of = |r0: &Matrix3<f64>| {
-        if set.offset_points && from.is_none() { translation_given_rotation(set, r0).unwrap_or(t0) } else { t0 }
+        let ends = if with_ends { translation_from_shaft_ends(set, r0) } else { None };
+        match ends {
+            Some(t) => t,
+            None if set.offset_points && from.is_none() => translation_given_rotation(set, r0).unwrap_or(t0),
+            None => t0,
+        }
     };
     let r_w = *starts.last().unwrap_or(&Matrix3::identity());
     let w0 = whitening(set, cfg, &r_w, &t_of(&r_w));
@@ -908,10 +983,29 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     let mut firsts: Vec<Refined> = Vec::new();
     let mut done: Vec<(Matrix3<f64>, Vector3<f64>)> = Vec::new();
     let mut done_at: Vec<usize> = Vec::new();
-    for r0 in
-        starts.iter().flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) }).chain(extra.iter().copied())
-    {
-        let x = refine(set, cfg, w0.clone(), r0, t_of(&r0), &done);
+    // With the shaft-position terms, the lines' own solution is one more start (pose and
+    // translation as the lines put them): where the shaft terms are sharp (little kinematic
+    // noise) and the shaft-end starts are thrown off (wrong lines), the lines find the basin.
+    let lines_start: Option<(Matrix3<f64>, Vector3<f64>)> = if with_ends {
+        let lines_cfg = OursConfig { shaft_position: false, ..*cfg };
+        let pose = match solve_once(set, &lines_cfg, None) {
+            Ok(x) => Some(x.pose),
+            Err(OursError::ShaftsNotExplained { pose, .. }) => Some(*pose),
+            Err(OursError::Ambiguous { best, .. }) => Some(best.pose),
+            Err(_) => None,
+        };
+        pose.map(|p| (p.rotation.to_rotation_matrix().into_inner(), p.translation.vector))
+    } else {
+        None
+    };
+    let pairs = starts
+        .iter()
+        .flat_map(|r0| if from.is_some() { vec![*r0] } else { turns(r0) })
+        .chain(extra.iter().copied())
+        .map(|r0| (r0, t_of(&r0)))
+        .chain(lines_start);
+    for (r0, t0s) in pairs {
+        let x = refine(set, cfg, w0.clone(), r0, t0s, &done);
         match x.merged {
             Some(j) => firsts.push(Refined {
                 iterations: x.iterations,
@@ -962,9 +1056,20 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
                 parts.push(parts0[i].clone());
                 continue;
             }
-            let w1 = whitening(set, cfg, &first.r, &first.t);
-            let second = refine(set, cfg, w1, first.r, first.t, &[]);
-            let second = Refined { whiten: w0.clone(), iterations: first.iterations + second.iterations, ..second };
+            // Refreshed up to [`WHITENING_PASSES`] times: with metre-level noise the residual
+            // covariance moves with the pose, and one refresh leaves the fit where the
+            // first pass's weights put it. Stops when a pass no longer moves the pose.
+            let mut second = first.clone();
+            let mut its = first.iterations;
+            for _ in 0..WHITENING_PASSES {
+                let w1 = whitening(set, cfg, &second.r, &second.t);
+                second = refine(set, cfg, w1, second.r, second.t, &[]);
+                its += second.iterations;
+                if second.iterations <= 1 {
+                    break;
+                }
+            }
+            let second = Refined { whiten: w0.clone(), iterations: its, ..second };
             parts.push(parts_of(&second));
             seconds.push(second);
         }
@@ -1047,6 +1152,24 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         };
         h += j.transpose() * j * wgt;
         wsum += wgt * n * n;
+    }
+    // The shaft-position terms' information (in the line residuals' units, as in [`refine`]).
+    if let Some(noise) = cfg.noise.as_ref().filter(|_| cfg.shaft_position) {
+        for o in &set.obs {
+            let m = shaft_model(set, o, &best.r, &best.t, noise);
+            let (es, js) = residuals_and_gradients_at(set, o, &best.r, &best.t, &m);
+            let (res, w) =
+                (residual(set, o, &best.r, &best.t), whitener(&residual_covariance(set, o, &best.r, &best.t, noise)));
+            let ln = (w * res).norm();
+            let lw = if ln <= c { 1.0 } else { c / ln };
+            for (e, j) in es.iter().zip(&js) {
+                if *e != 0.0 {
+                    let n = (e * best.scale).abs();
+                    let wgt = lw * if n <= c { 1.0 } else { c / n };
+                    h += j * j.transpose() * (best.scale * best.scale * wgt);
+                }
+            }
+        }
     }
     let dof = (2 * set.obs.len()).saturating_sub(6).max(1) as f64;
     let sigma2 = wsum / dof;

@@ -48,6 +48,11 @@ pub struct Prepared {
     pub insertion_m: f64,
     /// The two line points as ideal (undistorted) pixels.
     pub px: [Vector2<f64>; 2],
+    /// Per line point: true when it is an end of the shaft (the tip or robot 2's RCM), i.e.
+    /// the dataset says its points are the visible shaft's ends
+    /// ([`super::SelectionRule::ends_are_shaft_ends`]) and this one is more than
+    /// [`super::SHAFT_END_BORDER_PX`] inside the margin-shrunk image.
+    pub shaft_end: [bool; 2],
     /// `Ad(T_f_eye⁻¹)` of the eye that saw this observation (6×6, `(ρ, φ)` order): maps a
     /// right perturbation of robot 1's end effector into that eye's frame.
     pub eye_inv_adjoint: Matrix6<f64>,
@@ -188,7 +193,17 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
         let cam = tip * hand_eye;
         let r_ec = cam.rotation.to_rotation_matrix().into_inner();
         let f2 = psm_frames(&o.psm_joints)[1];
+        let (w, h) = (setup.intrinsics.width as f64, setup.intrinsics.height as f64);
+        let inset = setup.selection.border_margin_px + super::SHAFT_END_BORDER_PX;
+        let shaft_end = o.line_px.map(|[x, y]| {
+            setup.selection.ends_are_shaft_ends
+                && x >= inset
+                && y >= inset
+                && x <= w - 1.0 - inset
+                && y <= h - 1.0 - inset
+        });
         obs.push(Prepared {
+            shaft_end,
             r_ec,
             o_ec: cam.translation.vector,
             ecm_tip: tip,

@@ -48,6 +48,7 @@ use super::hausman::{MoveTest, move_test};
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, damped_step, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
+use super::shaft_position::{ShaftModel, residuals_and_gradients_at, residuals_at, shaft_model};
 
 /// The predicted tool tip of an observation, seen by its camera.
 #[derive(Clone, Copy, Debug)]
@@ -154,6 +155,116 @@ pub fn tip_well_inside(
     let (lo, hi) = kept_box(set, &Vector2::zeros(), &tp.pixel.px);
     let (su, sv) = (cov[(0, 0)].sqrt() * k, cov[(1, 1)].sqrt() * k);
     u - su >= lo.x && v - sv >= lo.y && u + su <= hi.x && v + sv <= hi.y
+}
+
+/// The tool tip at an observed shaft end ([`Prepared::shaft_end`]): where the pose and the
+/// line residuals put the tip along the observed line (the tip given the line,
+/// [`tip_given_line`]: its conditional mean and standard deviation, pixels) against the
+/// observed end point on the tip's side.
+#[derive(Clone, Copy, Debug)]
+pub struct TipAtEnd {
+    /// `(observed − predicted) / sd`, dimensionless.
+    pub z: f64,
+    /// The conditional standard deviation along the line, pixels.
+    pub sd_px: f64,
+    /// `∂z/∂(t, δφ)` at fixed `sd_px` and gain (per metre / radian).
+    pub dz: Vector6<f64>,
+    /// Which line point is the tip's end (0 or 1).
+    pub point: usize,
+}
+
+/// The noise model of an observation's tip at a shaft end, built at one pose and held fixed
+/// while a refinement moves (as the line residuals' whitening is): which line point is the
+/// tip's end, the observed line's direction, the tip's conditional gain on the line residuals
+/// and its conditional standard deviation along the line ([`tip_given_line`]).
+#[derive(Clone, Copy, Debug)]
+pub struct TipEndModel {
+    /// Which line point is the tip's end (0 or 1).
+    pub point: usize,
+    /// The observed line's unit direction (ideal pixels), from the tip toward robot 2's RCM.
+    pub u: Vector2<f64>,
+    /// The observed end point along `u` from the first line point, pixels.
+    pub s_obs: f64,
+    /// `Σ_er Σ_r⁻¹`: the tip's conditional mean per unit line residual.
+    pub gain: Matrix2<f64>,
+    /// The tip's conditional standard deviation along `u`, pixels.
+    pub sd_px: f64,
+}
+
+/// [`TipEndModel`] of observation `o` at pose `(R, t)` (`T_e_t`) under `noise`; `None` when the
+/// line point on the tip's side (the pose's shaft direction) is not a shaft end, the tip is
+/// behind the camera, its projection is too far from linear (relative depth standard deviation
+/// above `depth_ratio`, [`SelectionConfig::depth_ratio`]), or the line's noise is singular.
+pub fn tip_end_model(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    depth_ratio: f64,
+) -> Option<TipEndModel> {
+    if !(o.shaft_end[0] || o.shaft_end[1]) {
+        return None;
+    }
+    let tp = tip_projection(set, o, r, t)?;
+    if relative_depth_sd(&tp, noise) > depth_ratio {
+        return None;
+    }
+    let mut u = (o.px[1] - o.px[0]).try_normalize(1e-12)?;
+    if u.dot(&tp.dir_px) < 0.0 {
+        u = -u;
+    }
+    // Along `u` (tip toward the RCM) from the first point: the tip's end is the smaller.
+    let s1 = (o.px[1] - o.px[0]).dot(&u);
+    let (point, s_obs) = if s1 < 0.0 { (1, s1) } else { (0, 0.0) };
+    if !o.shaft_end[point] {
+        return None;
+    }
+    let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
+    let tg = tip_given_line(&s4)?;
+    let sd_px = u.dot(&(tg.cond * u)).max(1e-12).sqrt();
+    sd_px.is_finite().then_some(TipEndModel { point, u, s_obs, gain: tg.gain, sd_px })
+}
+
+impl TipEndModel {
+    /// The tip's offset at pose `(R, t)`, in `sd_px`: `(observed − predicted) / sd`; with the
+    /// gradient w.r.t. `(t, δφ)` when `grad`. `None` when the tip is behind the camera.
+    pub fn z(
+        &self,
+        set: &PreparedSet,
+        o: &Prepared,
+        r: &Matrix3<f64>,
+        t: &Vector3<f64>,
+        grad: bool,
+    ) -> Option<(f64, Vector6<f64>)> {
+        let tp = tip_pixel(set, o, r, t)?;
+        let (res, dz) = if grad {
+            let (res, jr) = residual_and_jacobian(set, o, r, t);
+            let dpx: SMatrix<f64, 2, 6> = tp.proj * tp.dp_pose;
+            let ds: nalgebra::RowVector6<f64> = self.u.transpose() * (dpx + self.gain * jr);
+            (res, -ds.transpose() / self.sd_px)
+        } else {
+            (residual(set, o, r, t), Vector6::zeros())
+        };
+        let s_mean = (tp.px + self.gain * res - o.px[0]).dot(&self.u);
+        let z = (self.s_obs - s_mean) / self.sd_px;
+        z.is_finite().then_some((z, dz))
+    }
+}
+
+/// [`TipAtEnd`] of observation `o` at pose `(R, t)`: [`tip_end_model`] built there and
+/// evaluated there.
+pub fn tip_at_end(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    depth_ratio: f64,
+) -> Option<TipAtEnd> {
+    let m = tip_end_model(set, o, r, t, noise, depth_ratio)?;
+    let (z, dz) = m.z(set, o, r, t, true)?;
+    Some(TipAtEnd { z, sd_px: m.sd_px, dz, point: m.point })
 }
 
 /// Standard deviation of the tip's depth under `noise` over its depth (dimensionless): how
@@ -613,7 +724,14 @@ pub struct SelectionConfig {
     /// 0 disables the refusal (the test is still reported, at
     /// [`DEFAULT_FALSE_REFUSAL_PROBABILITY`]).
     pub false_refusal_probability: f64,
+    /// Add the shaft-position likelihood ([`super::shaft_position`]) of every observation not
+    /// screened out, as our pipeline's robust fit does ([`super::ours::OursConfig::shaft_position`]).
+    pub shaft_position: bool,
 }
+
+/// Huber threshold (standard deviations) of the stage's shaft-position terms, as the robust
+/// fit's default ([`super::ours::OursConfig::huber_k`]).
+const SHAFT_HUBER_K: f64 = 3.0;
 
 /// The default of [`SelectionConfig::false_refusal_probability`]: 1e-3 (a stage consistent
 /// with the guarded fit is refused once in a thousand datasets; the limit is the χ²₆ quantile
@@ -629,6 +747,7 @@ impl Default for SelectionConfig {
             outlier_threshold: 9.2,
             max_iterations: 50,
             false_refusal_probability: DEFAULT_FALSE_REFUSAL_PROBABILITY,
+            shaft_position: true,
         }
     }
 }
@@ -846,6 +965,38 @@ fn term(
     Some((f, g, h))
 }
 
+/// One observation's shaft-position terms ([`super::shaft_position`] with `model`), Huber at [`SHAFT_HUBER_K`]: negative log-likelihood and, when `want_grad`, gradient and
+/// Gauss-Newton matrix w.r.t. `(t, δφ)`.
+fn shaft_term(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    model: &ShaftModel,
+    want_grad: bool,
+) -> (f64, Vector6<f64>, Matrix6<f64>) {
+    let (mut f, mut g, mut h) = (0.0, Vector6::zeros(), Matrix6::zeros());
+    let huber = |e: f64| if e <= SHAFT_HUBER_K { 0.5 * e * e } else { SHAFT_HUBER_K * (e - 0.5 * SHAFT_HUBER_K) };
+    if !want_grad {
+        for e in residuals_at(set, o, r, t, model) {
+            f += huber(e.abs());
+        }
+        return (f, g, h);
+    }
+    let (es, js) = residuals_and_gradients_at(set, o, r, t, model);
+    for (e, j) in es.iter().zip(&js) {
+        if *e == 0.0 {
+            continue;
+        }
+        let n = e.abs();
+        let wgt = if n <= SHAFT_HUBER_K { 1.0 } else { SHAFT_HUBER_K / n };
+        f += huber(n);
+        g += j * (e * wgt);
+        h += j * j.transpose() * wgt;
+    }
+    (f, g, h)
+}
+
 /// The stage's negative log-likelihood and its analytic gradient w.r.t. `(t m, δφ rad)` at
 /// `pose`, with every observation's model built at `model_pose` (both `T_e_t`); no outlier
 /// screening. For checking the gradient and for plots of the likelihood.
@@ -962,6 +1113,7 @@ pub fn refine_selected(
     let mut start_metric: Option<Matrix6<f64>> = None;
     for _pass in 0..2 {
         let mut models: Vec<Model> = set.obs.iter().map(|o| model_at(set, o, &r, &t, noise, cfg)).collect();
+
         // Gross outliers of the first-order model.
         let d2: Vec<f64> = set
             .obs
@@ -1000,6 +1152,13 @@ pub fn refine_selected(
                 acc.0 += f;
                 acc.1 += g;
                 acc.2 += h;
+                // The shaft-position terms with their model built at the evaluated pose.
+                if cfg.shaft_position && !matches!(m, Model::Out) {
+                    let (f, g, h) = shaft_term(set, o, r, t, &shaft_model(set, o, r, t, noise), grad);
+                    acc.0 += f;
+                    acc.1 += g;
+                    acc.2 += h;
+                }
             }
             acc.0.is_finite().then_some(acc)
         };

@@ -1,0 +1,344 @@
+//! Where along the tool the shaft was seen: the information a line model throws away.
+//!
+//! An observed line's two end points are where the detector saw the shaft: between the tool
+//! tip and robot 2's RCM (the trocar; the endoscope is inside the body and sees no shaft
+//! beyond it), in front of the camera. The line model ([`super::residual`]) only asks that the
+//! points lie on the projected axis; a pose that puts them on the axis's extension, hundreds
+//! of millimetres beyond the tip, or on its part behind the camera, fits the lines as well.
+//! With metre-level kinematic noise that is where the line model's optimum goes (the noise
+//! swamps the lines' parallax), so the lines alone cannot calibrate.
+//!
+//! Per observation, [`shaft_position_residuals`] gives [`TERMS`] residuals (standard
+//! deviations; half their square is the negative log-likelihood to first order):
+//! - each line point's position along the tool ([`axis_seen_at`], standard deviation
+//!   [`position_sd_m`]): zero while on the physical shaft, the excess beyond it; for a point
+//!   that is an end of the shaft ([`Prepared::shaft_end`]: the dataset says its points are the
+//!   visible shaft's ends and this one is not on the image border) the distance from the nearer
+//!   end, unless the tip model below places it;
+//! - each line point's depth where it meets the axis: zero in front of the camera;
+//! - the tip at a shaft end ([`super::selection::tip_at_end`]): where the pose and the line
+//!   residuals put the tip along the observed line (its conditional distribution given the
+//!   line, from the joint first-order noise of line and tip) against the observed end point,
+//!   in pixels. This is the term that places the tool: it accounts for the correlation of the
+//!   tip with the line residuals, which the metric terms above do not.
+//!
+//! Our pipeline adds them to its objective ([`super::ours`]) and so does its selection-aware
+//! stage ([`super::selection`]); [`translation_from_shaft_ends`] gives the refinement's
+//! translation start. Layer: beside [`super::residual`] and [`super::selection`] (whose tip
+//! model it uses), below [`super::ours`].
+
+use nalgebra::{Matrix3, SMatrix, Vector2, Vector3, Vector6};
+
+use super::KinematicNoise;
+use super::prepare::{Prepared, PreparedSet};
+use super::rcm_arms::skew;
+use super::selection::{TipEndModel, tip_end_model};
+
+/// Where the tool axis is seen at an observed line point: for the ray through ideal pixel `u`
+/// (camera frame, direction `K⁻¹ [u, 1]ᵀ`, unit depth) and the tool axis of pose `(R, t)`
+/// (`T_e_t`), their closest approach: `(depth, s)`, the ray's depth there (metres, camera
+/// frame; negative: behind the camera) and the axis point's position along the tool from the
+/// line's known point (metres, `s = 0` at robot 2's RCM or [`Prepared::p_t`], `s =`
+/// [`Prepared::insertion_m`] at the tip). `None` when the ray is parallel to the axis (within
+/// 1e-12, relative) or a value is not finite.
+pub fn axis_seen_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    u: &Vector2<f64>,
+) -> Option<(f64, f64)> {
+    let (v, p, d) = ray_and_axis(set, o, r, t, u);
+    closest_approach(&v, &p, &d)
+}
+
+/// The ray direction `v` (camera frame, unit depth) through ideal pixel `u`, and the tool
+/// axis's point `p` (metres) and direction `d` (unit) in the camera frame at pose `(R, t)`.
+fn ray_and_axis(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    u: &Vector2<f64>,
+) -> (Vector3<f64>, Vector3<f64>, Vector3<f64>) {
+    let p = o.r_ec.tr_mul(&(r * o.p_t + t - o.o_ec));
+    let d = o.r_ec.tr_mul(&(r * o.m_t));
+    let v = set.k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0));
+    (v, p, d)
+}
+
+fn closest_approach(v: &Vector3<f64>, p: &Vector3<f64>, d: &Vector3<f64>) -> Option<(f64, f64)> {
+    let (a, b, c) = (v.dot(v), v.dot(d), d.dot(d));
+    let (vp, dp) = (v.dot(p), d.dot(p));
+    let denom = a * c - b * b;
+    if denom.is_nan() || denom.abs() <= 1e-12 * a * c {
+        return None;
+    }
+    // Closest approach of λ v and p + s d: λ = (c v·p − b d·p) / (ac − b²), s = (b v·p − a d·p) / (ac − b²).
+    let lambda = (c * vp - b * dp) / denom;
+    let s = (b * vp - a * dp) / denom / c.sqrt();
+    (lambda.is_finite() && s.is_finite()).then_some((lambda, s))
+}
+
+/// First-order standard deviation (metres) of where along the tool the axis is seen at a line
+/// point, under `noise`: the point's along-axis noise (the three frames' translations), plus
+/// its noise across the axis (translations; the tool's tilt about the RCM and about the tip,
+/// `s` and `L − s` from them; the camera's rotation and the pixel noise at depth `depth`)
+/// divided by `sin θ`, `θ` the angle between the line of sight and the axis (a grazing view
+/// cannot place a point along the axis). `s` is clamped to the shaft, `depth` to ≥ 1 mm.
+pub fn position_sd_m(
+    noise: &KinematicNoise,
+    focal_px: f64,
+    insertion_m: f64,
+    s: f64,
+    depth: f64,
+    sin_theta: f64,
+) -> f64 {
+    let l = insertion_m.abs();
+    let s = s.clamp(0.0, l);
+    let z = depth.max(1e-3);
+    let st2 = noise.trans_m * noise.trans_m;
+    let sr2 = noise.rot_rad * noise.rot_rad;
+    let px = z * noise.pixel_px / focal_px.max(1e-9);
+    let across2 = 3.0 * st2 + sr2 * (s * s + (l - s) * (l - s) + z * z) + px * px;
+    let sin2 = (sin_theta * sin_theta).max(1e-6);
+    // Floor: a micrometre (a noise model with no translation noise and an exact view).
+    (3.0 * st2 + across2 / sin2).sqrt().max(1e-6)
+}
+
+/// Residuals per observation ([`shaft_position_residuals`]): the two line points' positions
+/// along the tool, their depths, and the tip at a shaft end.
+pub const TERMS: usize = 5;
+
+/// The first-order tip model is used up to this relative depth standard deviation (the
+/// selection stage's default, [`super::selection::SelectionConfig::default`]).
+const TIP_DEPTH_RATIO: f64 = 0.3;
+
+/// An observation's shaft-position noise model at one pose, held fixed while a refinement
+/// moves (as the line residuals' whitening is): each line point's [`position_sd_m`] (`None`:
+/// its ray is parallel to the axis) and the tip's model at a shaft end
+/// ([`TipEndModel`]).
+#[derive(Clone, Copy, Debug)]
+pub struct ShaftModel {
+    sds: [Option<f64>; 2],
+    tip: Option<TipEndModel>,
+}
+
+/// [`ShaftModel`] of observation `o` at pose `(R, t)` under `noise`.
+pub fn shaft_model(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+) -> ShaftModel {
+    ShaftModel { sds: sds_at(set, o, r, t, noise), tip: tip_end_model(set, o, r, t, noise, TIP_DEPTH_RATIO) }
+}
+
+/// The shaft-position residuals of observation `o` at pose `(R, t)` under `noise` (its
+/// [`ShaftModel`] built there): for each of its two line points, how far (in its
+/// [`position_sd_m`]) the axis point seen there lies off the physical shaft (`s < 0` beyond the
+/// RCM or `s > L` beyond the tip; for a point that is an end of the shaft,
+/// [`Prepared::shaft_end`], how far from the nearer end, signed), then how far behind the
+/// camera it lies (`depth < 0`), then the tip at a shaft end ([`TipEndModel::z`], which
+/// replaces the first kind for its point); each 0 when within or not applicable.
+/// Dimensionless, signed.
+pub fn shaft_position_residuals(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+) -> [f64; TERMS] {
+    residuals_at(set, o, r, t, &shaft_model(set, o, r, t, noise))
+}
+
+/// [`shaft_position_residuals`] at pose `(R, t)` with a model built elsewhere.
+pub fn residuals_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    m: &ShaftModel,
+) -> [f64; TERMS] {
+    let mut e = residuals_with(set, o, r, t, &m.sds, m.tip.map(|x| x.point));
+    if let Some(z) = m.tip.and_then(|x| x.z(set, o, r, t, false)) {
+        e[4] = z.0;
+    }
+    e
+}
+
+/// Each line point's [`position_sd_m`] at pose `(R, t)` (`None`: ray parallel to the axis).
+fn sds_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+) -> [Option<f64>; 2] {
+    let focal = 1.0 / set.k_inv_t[(0, 0)].abs().max(1e-300);
+    o.px.map(|u| {
+        let (v, p, d) = ray_and_axis(set, o, r, t, &u);
+        let (depth, s) = closest_approach(&v, &p, &d)?;
+        let sin_theta = v.normalize().cross(&d.normalize()).norm();
+        let sd = position_sd_m(noise, focal, o.insertion_m, s, depth, sin_theta);
+        sd.is_finite().then_some(sd)
+    })
+}
+
+/// The metric residuals (the first four of [`shaft_position_residuals`]) with each line
+/// point's standard deviation given; `tip_point`: the point the tip model places (no position
+/// term there).
+fn residuals_with(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    sds: &[Option<f64>; 2],
+    tip_point: Option<usize>,
+) -> [f64; TERMS] {
+    let l = o.insertion_m.abs();
+    let mut e = [0.0; TERMS];
+    for (j, u) in o.px.iter().enumerate() {
+        let Some(sd) = sds[j] else { continue };
+        let Some((depth, s)) = axis_seen_at(set, o, r, t, u) else { continue };
+        let excess = if tip_point == Some(j) {
+            0.0
+        } else if o.shaft_end[j] {
+            // An end of the shaft: the nearer of the RCM (`s = 0`) and the tip (`s = L`).
+            if s < 0.5 * l { s } else { s - l }
+        } else if s < 0.0 {
+            s
+        } else if s > l {
+            s - l
+        } else {
+            0.0
+        };
+        e[j] = excess / sd;
+        e[2 + j] = depth.min(0.0) / sd;
+    }
+    e
+}
+
+/// [`residuals_at`] and, for the non-zero residuals, their analytic gradients w.r.t. the pose
+/// `(t m, δφ rad)` (`R ← exp(δφ^) R`), the model (standard deviations, tip model) held
+/// fixed. Zero residuals have a zero gradient (the metric penalties are flat inside the
+/// shaft, with a continuous derivative).
+pub fn residuals_and_gradients_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    m: &ShaftModel,
+) -> ([f64; TERMS], [Vector6<f64>; TERMS]) {
+    let tip_point = m.tip.map(|x| x.point);
+    let mut e = residuals_with(set, o, r, t, &m.sds, tip_point);
+    let mut g = [Vector6::zeros(); TERMS];
+    if let Some((z, dz)) = m.tip.and_then(|x| x.z(set, o, r, t, true)) {
+        e[4] = z;
+        g[4] = dz;
+    }
+    for (j, u) in o.px.iter().enumerate() {
+        let (ei, ed) = (e[j] != 0.0, e[2 + j] != 0.0);
+        if !(ei || ed) {
+            continue;
+        }
+        let Some(sd) = m.sds[j] else { continue };
+        let Some((dl, ds)) = closest_approach_gradient(set, o, r, t, u) else { continue };
+        if ei {
+            g[j] = ds / sd;
+        }
+        if ed {
+            g[2 + j] = dl / sd;
+        }
+    }
+    (e, g)
+}
+
+/// Gradients w.r.t. the pose `(t, δφ)` (`R ← exp(δφ^) R`) of [`axis_seen_at`]'s depth and
+/// position along the tool (metres per metre / radian), by differentiating the closest
+/// approach's closed form; `None` where [`axis_seen_at`] is.
+fn closest_approach_gradient(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    u: &Vector2<f64>,
+) -> Option<(Vector6<f64>, Vector6<f64>)> {
+    let (v, p, d) = ray_and_axis(set, o, r, t, u);
+    let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
+    let (vp, dpr) = (v.dot(&p), d.dot(&p));
+    let den = a * c - b * b;
+    if den.is_nan() || den.abs() <= 1e-12 * a * c {
+        return None;
+    }
+    // ∂p/∂t = R_ecᵀ, ∂p/∂δφ = −R_ecᵀ [R p_t]×; ∂d/∂t = 0, ∂d/∂δφ = −R_ecᵀ [R m_t]×.
+    let rt = o.r_ec.transpose();
+    let mut jp = SMatrix::<f64, 3, 6>::zeros();
+    jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&rt);
+    jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.p_t))));
+    let mut jd = SMatrix::<f64, 3, 6>::zeros();
+    jd.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.m_t))));
+    let db = (v.transpose() * jd).transpose();
+    let dc = (d.transpose() * jd).transpose() * 2.0;
+    let dvp = (v.transpose() * jp).transpose();
+    let ddp = (p.transpose() * jd + d.transpose() * jp).transpose();
+    let dden = dc * a - db * (2.0 * b);
+    let lambda = (c * vp - b * dpr) / den;
+    let dl = ((dc * vp + dvp * c - db * dpr - ddp * b) - dden * lambda) / den;
+    let s0 = (b * vp - a * dpr) / den;
+    let ds0 = ((db * vp + dvp * b - ddp * a) - dden * s0) / den;
+    let sc = c.sqrt();
+    let ds = ds0 / sc - dc * (0.5 * s0 / (c * sc));
+    (dl.iter().chain(ds.iter()).all(|x| x.is_finite())).then_some((dl, ds))
+}
+
+/// Passes of [`translation_from_shaft_ends`]'s reweighting.
+pub const ENDS_PASSES: usize = 6;
+
+/// The translation `t` (metres, `{e}`) that puts the tool's shaft ends on the rays through the
+/// observed shaft-end points ([`Prepared::shaft_end`]) for a given rotation `R` (`T_e_t`):
+/// each end point `R (p + m s) + t` (`s` the tip's `L`, or 0 for robot 2's RCM) on its ray from
+/// the optical centre, least absolute distances to the rays (iteratively reweighted least
+/// squares, [`ENDS_PASSES`] passes: robust to wrong lines). Each point is first taken as the
+/// tip, then re-assigned to the nearer end at each pass's solution. A start
+/// for the refinement far better conditioned than Eq. 5 when the kinematic noise is large: a
+/// point fixes two directions where a line fixes one. `None` with fewer than three shaft-end
+/// points or a singular system.
+pub fn translation_from_shaft_ends(set: &PreparedSet, r: &Matrix3<f64>) -> Option<Vector3<f64>> {
+    let ends: usize = set.obs.iter().map(|o| o.shaft_end.iter().filter(|e| **e).count()).sum();
+    if ends < 3 {
+        return None;
+    }
+    let mut t: Option<Vector3<f64>> = None;
+    for _ in 0..ENDS_PASSES {
+        let mut a = Matrix3::zeros();
+        let mut b = Vector3::zeros();
+        for o in &set.obs {
+            for (j, u) in o.px.iter().enumerate() {
+                if !o.shaft_end[j] {
+                    continue;
+                }
+                let w = (o.r_ec * set.k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0))).normalize();
+                let proj = Matrix3::identity() - w * w.transpose();
+                let tip = r * (o.p_t + o.m_t * o.insertion_m);
+                let rcm = r * o.p_t;
+                // The nearer end at the current solution (the tip before there is one), and
+                // a weight 1 / distance to the ray (least absolute distances, robust to wrong
+                // lines), at least a millimetre.
+                let (q, w) = match &t {
+                    Some(t) => {
+                        let (dr, dt) = ((proj * (rcm + t - o.o_ec)).norm(), (proj * (tip + t - o.o_ec)).norm());
+                        if dr < dt { (rcm, 1.0 / dr.max(1e-3)) } else { (tip, 1.0 / dt.max(1e-3)) }
+                    }
+                    None => (tip, 1.0),
+                };
+                a += proj * w;
+                b += proj * (o.o_ec - q) * w;
+            }
+        }
+        let next = a.try_inverse().map(|inv| inv * b).filter(|v| v.iter().all(|x| x.is_finite()))?;
+        t = Some(next);
+    }
+    t
+}

@@ -93,8 +93,12 @@
 //! So a second instrument is a second valid pair, and a pair sharing a Hough line,
 //! a contour or the axis with a better one, or nearly parallel to it (within 10°) and lying
 //! in its strip, or continuing it past an end of its span nearly in line (within 30°, from
-//! within half a width of that end: its wrist and jaws), is dropped (two shafts do not lie
-//! over each other in the image, and a crossing one does not start where another ends).
+//! within half a width of that end: its wrist and jaws), or starting within a width of the
+//! distal end of its span (an end inside the image) at any angle while narrower
+//! (`jaw_width_ratio`) and no longer than the instrument's end beyond the shaft
+//! (`tip_length_diameters` of its widths: the jaws behind an articulated wrist), is dropped
+//! (two shafts do not lie over each other in the image, and a crossing one does not start
+//! where another ends).
 //!
 //! [`OursDetector::detect_traced`] records what each stage did ([`OursTrace`]: edgels, line
 //! hypotheses, every candidate pair with the test that turned it down), for diagnostics.
@@ -206,6 +210,16 @@ pub struct OursConfig {
     /// at most a few widths long; a shaft cut short by a crossing instrument, or whose
     /// contours fade before the border, keeps a slender straight part.
     pub slender_span_widths: f64,
+    /// Length of the instrument's articulated end beyond the shaft (wrist and jaws), in shaft
+    /// diameters (default 3.5: a 10 mm wrist and 18 mm jaws on an 8 mm shaft). A narrower
+    /// detection starting at the distal end of a shaft's span and no longer than this many of
+    /// that shaft's widths is taken for its jaws and dropped, at any angle (an articulated
+    /// wrist). 0: off.
+    pub tip_length_diameters: f64,
+    /// The jaws' largest width as a fraction of the shaft's diameter (default 0.75: jaws 0.8
+    /// of a 7.5 mm wrist on an 8 mm shaft). Only a detection at most this fraction of the
+    /// shaft's width can be its jaws (a shaft crossing behind is narrower only by its depth).
+    pub jaw_width_ratio: f64,
 }
 
 impl Default for OursConfig {
@@ -230,6 +244,8 @@ impl Default for OursConfig {
             clear_chroma: 60.0,
             min_contrast_scale: 0.4,
             slender_span_widths: 4.0,
+            tip_length_diameters: 3.5,
+            jaw_width_ratio: 0.75,
         }
     }
 }
@@ -308,6 +324,12 @@ impl OursConfig {
             "slender_span_widths",
             "> 0 (infinite: off)",
         )?;
+        check(
+            self.tip_length_diameters.is_finite() && self.tip_length_diameters >= 0.0,
+            "tip_length_diameters",
+            "finite and ≥ 0",
+        )?;
+        check((0.0..=1.0).contains(&self.jaw_width_ratio), "jaw_width_ratio", "in [0, 1]")?;
         check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
@@ -499,6 +521,16 @@ impl OursDetector {
     /// The settings.
     pub fn config(&self) -> &OursConfig {
         &self.cfg
+    }
+
+    /// The final selection's jaws rule from the settings.
+    fn jaws_rule(&self) -> JawsRule {
+        JawsRule {
+            tip_diameters: self.cfg.tip_length_diameters,
+            width_ratio: self.cfg.jaw_width_ratio,
+            size: [f64::from(self.k.width) - 1.0, f64::from(self.k.height) - 1.0],
+            margin: if self.cfg.border_margin_px.is_finite() { self.cfg.border_margin_px } else { 24.0 },
+        }
     }
 
     /// Distance from the optical centre to the axis of the cylinder (radius from the
@@ -1101,7 +1133,8 @@ impl OursDetector {
         }
         self.pair_buf = pairs;
         self.clashes.clear();
-        select(&mut self.cands, &mut self.found, cfg.max_detections, &mut self.clashes);
+        let jaws = self.jaws_rule();
+        select(&mut self.cands, &mut self.found, cfg.max_detections, &jaws, &mut self.clashes);
         if !self.tracing {
             self.clashes.clear();
         }
@@ -1114,6 +1147,7 @@ impl OursDetector {
     /// Fills `self.trace` from the frame's stages (`outcomes`: per verified rank, the
     /// centreline or the reason).
     fn record_trace(&mut self, outcomes: &[(usize, Result<(), PairReject>)]) {
+        let jaws = self.jaws_rule();
         let tr = &mut self.trace;
         tr.edgels.clear();
         tr.edgels.extend(self.edges.edgels.iter().map(|e| TraceEdgel { p: e.p, n: e.n }));
@@ -1123,7 +1157,7 @@ impl OursDetector {
         tr.clashes.clear();
         for g in &self.cands {
             for f in &self.cands {
-                if let (true, Some(r)) = (g.rank != f.rank, clash(g, f)) {
+                if let (true, Some(r)) = (g.rank != f.rank, clash(g, f, &jaws)) {
                     tr.clashes.push((g.rank, f.rank, r));
                 }
             }
@@ -1388,14 +1422,20 @@ fn next_in_rank(
 /// clashes with one kept before it ([`clash`]); the ones dropped are recorded in `clashes`
 /// (their rank, the rank of the detection kept and the rule; `usize::MAX` with
 /// [`ClashRule::Full`]). `cands` is left sorted, `found` by merit.
-fn select(cands: &mut [Found], found: &mut Vec<Found>, max: usize, clashes: &mut Vec<(usize, (usize, ClashRule))>) {
+fn select(
+    cands: &mut [Found],
+    found: &mut Vec<Found>,
+    max: usize,
+    jaws: &JawsRule,
+    clashes: &mut Vec<(usize, (usize, ClashRule))>,
+) {
     cands.sort_by(|a, b| b.merit().total_cmp(&a.merit()).then(a.rank.cmp(&b.rank)));
     found.clear();
     for f in cands.iter() {
         let c = if found.len() >= max {
             Some((usize::MAX, ClashRule::Full))
         } else {
-            found.iter().find_map(|g| clash(g, f).map(|r| (g.rank, r)))
+            found.iter().find_map(|g| clash(g, f, jaws).map(|r| (g.rank, r)))
         };
         match c {
             None => found.push(*f),
@@ -1406,7 +1446,7 @@ fn select(cands: &mut [Found], found: &mut Vec<Found>, max: usize, clashes: &mut
 
 /// The rule by which detection `f` clashes with the better one `g` (they cannot both be
 /// shafts), `None` when they are compatible.
-fn clash(g: &Found, f: &Found) -> Option<ClashRule> {
+fn clash(g: &Found, f: &Found, jaws: &JawsRule) -> Option<ClashRule> {
     if g.lines.iter().any(|l| f.lines.contains(l)) {
         Some(ClashRule::SharedLine)
     } else if same_axis(g, f) {
@@ -1417,8 +1457,58 @@ fn clash(g: &Found, f: &Found) -> Option<ClashRule> {
         Some(ClashRule::Overlap)
     } else if continues(g, f) {
         Some(ClashRule::Continues)
+    } else if jaws.applies(g, f) {
+        Some(ClashRule::Jaws)
     } else {
         None
+    }
+}
+
+/// The jaws rule of the final selection ([`JawsRule::applies`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct JawsRule {
+    /// [`OursConfig::tip_length_diameters`].
+    tip_diameters: f64,
+    /// [`OursConfig::jaw_width_ratio`].
+    width_ratio: f64,
+    /// The image's last column and row, measured pixels.
+    size: [f64; 2],
+    /// [`OursConfig::border_margin_px`] (finite), measured pixels.
+    margin: f64,
+}
+
+impl JawsRule {
+    /// True when detection `f` is the wrist and jaws of the better one `g`, at any angle (an
+    /// articulated wrist): `f` is narrower than `g` by `width_ratio` (jaws are narrower than
+    /// the shaft; a shaft crossing behind is narrower only by its depth), no longer than
+    /// `tip_diameters` of `g`'s widths (the instrument's end beyond the shaft, at the shaft's
+    /// depth; foreshortening only shortens it), its nearer end within one of `g`'s widths of
+    /// an end of `g`'s span that lies inside the image (the shaft's distal end: an end at the
+    /// border is where the view stops), and it runs away from that end (not back along `g`).
+    fn applies(&self, g: &Found, f: &Found) -> bool {
+        if !(self.tip_diameters > 0.0 && f.width <= self.width_ratio * g.width && f.len <= self.tip_diameters * g.width)
+        {
+            return false;
+        }
+        let [a, b] = g.ends;
+        let len = (b[0] - a[0]).hypot(b[1] - a[1]);
+        if len <= 0.0 {
+            return false;
+        }
+        let w = g.width.max(20.0);
+        let inside = |p: [f64; 2]| p[0].min(p[1]).min(self.size[0] - p[0]).min(self.size[1] - p[1]) > self.margin;
+        [(1, 0), (0, 1)].iter().any(|&(e, o)| {
+            let (end, other) = (g.ends[e], g.ends[o]);
+            if !inside(g.det.ends_px[e]) {
+                return false;
+            }
+            let t = [(end[0] - other[0]) / len, (end[1] - other[1]) / len];
+            let d = f.ends.map(|p| (p[0] - end[0]).hypot(p[1] - end[1]));
+            let (near, far) = if d[0] <= d[1] { (0, 1) } else { (1, 0) };
+            let p = f.ends[far];
+            let s_far = (p[0] - end[0]) * t[0] + (p[1] - end[1]) * t[1];
+            d[near] <= w && s_far >= -0.5 * g.width
+        })
     }
 }
 
@@ -1536,6 +1626,35 @@ mod tests {
         }
     }
 
+    /// The jaws rule with the default settings on a 640×480 image.
+    const RULE: JawsRule = JawsRule { tip_diameters: 3.5, width_ratio: 0.75, size: [639.0, 479.0], margin: 24.0 };
+
+    #[test]
+    fn a_narrow_short_detection_at_a_shafts_distal_end_is_its_jaws_at_any_angle() {
+        // A shaft 60 px wide from the left border to u = 350 (its distal end inside the image).
+        let shaft = found(-10.0, 350.0, 228.0, 30.0, 0.0);
+        // Jaws 30 px wide, 124 px long, from the end at 40° and 70° (an articulated wrist).
+        let jaws = |angle: f64| found(355.0, 479.0, 233.0, 15.0, angle);
+        assert!(RULE.applies(&shaft, &jaws(40.0)));
+        assert!(RULE.applies(&shaft, &jaws(-70.0)));
+        assert_eq!(clash(&shaft, &Found { lines: [2, 3], ..jaws(40.0) }, &RULE), Some(ClashRule::Jaws));
+        // A shaft crossing behind, 0.9 of the width (farther only by a few millimetres),
+        // whose span starts at the end: not jaws.
+        assert!(!RULE.applies(&shaft, &found(355.0, 479.0, 233.0, 27.0, 40.0)));
+        // Longer than 3.5 of the shaft's widths (210 px): not.
+        assert!(!RULE.applies(&shaft, &found(355.0, 600.0, 233.0, 15.0, 40.0)));
+        // Starting more than a width from the end: not.
+        assert!(!RULE.applies(&shaft, &found(430.0, 530.0, 233.0, 15.0, 40.0)));
+        // Running back along the shaft: not (that is the overlap rule's).
+        assert!(!RULE.applies(&shaft, &found(355.0, 470.0, 240.0, 15.0, 175.0)));
+        // The shaft's span ending at the image border is not its distal end: a narrower
+        // shaft there is another instrument.
+        let at_border = found(300.0, 630.0, 228.0, 30.0, 0.0);
+        assert!(!RULE.applies(&at_border, &found(633.0, 660.0, 233.0, 15.0, 60.0)));
+        // Off: a zero tip length.
+        assert!(!JawsRule { tip_diameters: 0.0, ..RULE }.applies(&shaft, &jaws(40.0)));
+    }
+
     #[test]
     fn a_detection_continuing_past_a_shafts_end_is_its_jaws() {
         let shaft = found(100.0, 300.0, 200.0, 15.0, 0.0);
@@ -1561,24 +1680,24 @@ mod tests {
         let right = Found { score: 3.34, rank_score: 17681.0, rank: 0, ..found(100.0, 500.0, 200.0, 45.0, 0.0) };
         let wrong =
             Found { score: 3.46, rank_score: 2893.0, rank: 13, lines: [2, 3], ..found(200.0, 500.0, 202.0, 58.0, 0.5) };
-        assert_eq!(clash(&wrong, &right), Some(ClashRule::SameAxis));
+        assert_eq!(clash(&wrong, &right, &RULE), Some(ClashRule::SameAxis));
         let (mut found_v, mut clashes) = (Vec::new(), Vec::new());
-        select(&mut [wrong, right], &mut found_v, 2, &mut clashes);
+        select(&mut [wrong, right], &mut found_v, 2, &RULE, &mut clashes);
         assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![0]);
         assert_eq!(clashes, vec![(13, (0, ClashRule::SameAxis))]);
         // A later pair that is much better in the verification still wins (a right pair
         // ranked below a wrong one: verification is not a formality).
         let better = Found { score: 3.46 * 10.0, ..wrong };
-        select(&mut [right, better], &mut found_v, 2, &mut clashes);
+        select(&mut [right, better], &mut found_v, 2, &RULE, &mut clashes);
         assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![13]);
         // Two compatible shafts (crossing at 40°) are both kept, the better merit first, up
         // to the most detections asked for.
         let crossing =
             Found { score: 1.0, rank_score: 100.0, rank: 5, lines: [6, 7], ..found(150.0, 450.0, 100.0, 20.0, 40.0) };
         clashes.clear();
-        select(&mut [crossing, right, wrong], &mut found_v, 2, &mut clashes);
+        select(&mut [crossing, right, wrong], &mut found_v, 2, &RULE, &mut clashes);
         assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![0, 5]);
-        select(&mut [crossing, right], &mut found_v, 1, &mut clashes);
+        select(&mut [crossing, right], &mut found_v, 1, &RULE, &mut clashes);
         assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![0]);
     }
 

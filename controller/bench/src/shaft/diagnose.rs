@@ -167,6 +167,9 @@ fn print_verified(frame: &RenderedFrame, level: ClutterLevel, fam: &str, trace: 
         "in_view": frame.inst1_in_view, "pairs": pairs, "clashes": trace.clashes,
     });
     eprintln!("VER {v}");
+    if pairs.iter().any(|p| p["m"] == 0 && p["outcome"].get("returned").is_some()) {
+        write_diag_png(frame, level, fam, trace);
+    }
 }
 
 /// With `SHAFT_DIAG_PNG=DIR` in the environment (and `SHAFT_DIAG_FRAMES`), writes the frame

@@ -147,6 +147,9 @@ pub enum ClashRule {
     Overlap,
     /// It continues the better one past an end of its span (its wrist and jaws).
     Continues,
+    /// A narrower, short detection starting at the better one's distal end at any angle: its
+    /// jaws behind an articulated wrist.
+    Jaws,
     /// `max_detections` were already taken.
     Full,
 }

@@ -92,13 +92,13 @@
 //! a little higher on its span than the right pair, while its weaker line has far fewer votes.
 //! So a second instrument is a second valid pair, and a pair sharing a Hough line,
 //! a contour or the axis with a better one, or nearly parallel to it (within 10°) and lying
-//! in its strip, or continuing it past an end of its span nearly in line (within 30°, from
-//! within half a width of that end: its wrist and jaws), or starting within a width of the
-//! distal end of its span (an end inside the image) at any angle while narrower
-//! (`jaw_width_ratio`) and no longer than the instrument's end beyond the shaft
-//! (`tip_length_diameters` of its widths: the jaws behind an articulated wrist), is dropped
-//! (two shafts do not lie over each other in the image, and a crossing one does not start
-//! where another ends).
+//! in its strip, or of the size of its wrist and jaws (narrower, `jaw_width_ratio`, and no
+//! longer than the instrument's end beyond the shaft, `tip_length_diameters` of its widths)
+//! and either continuing it past an end of its span nearly in line (within 30°, from within
+//! half a width of that end) or starting within a width of the distal end of its span (an end
+//! inside the image) at any angle (an articulated wrist), is dropped (two shafts do not lie
+//! over each other in the image; a crossing one does not start where another ends, and is
+//! not narrower by more than its depth makes it).
 //!
 //! [`OursDetector::detect_traced`] records what each stage did ([`OursTrace`]: edgels, line
 //! hypotheses, every candidate pair with the test that turned it down), for diagnostics.
@@ -212,13 +212,17 @@ pub struct OursConfig {
     pub slender_span_widths: f64,
     /// Length of the instrument's articulated end beyond the shaft (wrist and jaws), in shaft
     /// diameters (default 3.5: a 10 mm wrist and 18 mm jaws on an 8 mm shaft). A narrower
-    /// detection starting at the distal end of a shaft's span and no longer than this many of
-    /// that shaft's widths is taken for its jaws and dropped, at any angle (an articulated
-    /// wrist). 0: off.
+    /// detection (`jaw_width_ratio`) starting at the distal end of a shaft's span and no longer
+    /// than this many of that shaft's widths is taken for its wrist and jaws and dropped in
+    /// the final selection: at any angle (an articulated wrist), or nearly in line with it. 0:
+    /// both rules off.
     pub tip_length_diameters: f64,
-    /// The jaws' largest width as a fraction of the shaft's diameter (default 0.75: jaws 0.8
-    /// of a 7.5 mm wrist on an 8 mm shaft). Only a detection at most this fraction of the
-    /// shaft's width can be its jaws (a shaft crossing behind is narrower only by its depth).
+    /// The width of a detection on an instrument's wrist and jaws as a fraction of its shaft's
+    /// width, at most (default 0.85: the wrist is 0.94 of the 8 mm shaft, the jaws at most
+    /// 0.75; a pair over both measures up to about 0.8 at its middle). Only a detection at most
+    /// this fraction of a shaft's width can be its jaws; a shaft crossing behind is narrower
+    /// only by its depth (0.7-0.95 for a few millimetres farther at 50-150 mm), so a crossing
+    /// shaft under this ratio starting where another's span ends is still taken for jaws.
     pub jaw_width_ratio: f64,
 }
 
@@ -245,7 +249,7 @@ impl Default for OursConfig {
             min_contrast_scale: 0.4,
             slender_span_widths: 4.0,
             tip_length_diameters: 3.5,
-            jaw_width_ratio: 0.75,
+            jaw_width_ratio: 0.85,
         }
     }
 }
@@ -1455,7 +1459,7 @@ fn clash(g: &Found, f: &Found, jaws: &JawsRule) -> Option<ClashRule> {
         Some(ClashRule::SharedContour)
     } else if overlap(g, f) {
         Some(ClashRule::Overlap)
-    } else if continues(g, f) {
+    } else if continues(g, f) && jaws.jaw_like(g, f) {
         Some(ClashRule::Continues)
     } else if jaws.applies(g, f) {
         Some(ClashRule::Jaws)
@@ -1478,6 +1482,12 @@ struct JawsRule {
 }
 
 impl JawsRule {
+    /// True when detection `f` could be the wrist and jaws of the shaft `g` by its size:
+    /// narrower than `g` by `width_ratio`, and no longer than `tip_diameters` of `g`'s widths.
+    fn jaw_like(&self, g: &Found, f: &Found) -> bool {
+        f.width <= self.width_ratio * g.width && f.len <= self.tip_diameters * g.width
+    }
+
     /// True when detection `f` is the wrist and jaws of the better one `g`, at any angle (an
     /// articulated wrist): `f` is narrower than `g` by `width_ratio` (jaws are narrower than
     /// the shaft; a shaft crossing behind is narrower only by its depth), no longer than
@@ -1486,8 +1496,7 @@ impl JawsRule {
     /// an end of `g`'s span that lies inside the image (the shaft's distal end: an end at the
     /// border is where the view stops), and it runs away from that end (not back along `g`).
     fn applies(&self, g: &Found, f: &Found) -> bool {
-        if !(self.tip_diameters > 0.0 && f.width <= self.width_ratio * g.width && f.len <= self.tip_diameters * g.width)
-        {
+        if !self.jaw_like(g, f) {
             return false;
         }
         let [a, b] = g.ends;
@@ -1627,7 +1636,7 @@ mod tests {
     }
 
     /// The jaws rule with the default settings on a 640×480 image.
-    const RULE: JawsRule = JawsRule { tip_diameters: 3.5, width_ratio: 0.75, size: [639.0, 479.0], margin: 24.0 };
+    const RULE: JawsRule = JawsRule { tip_diameters: 3.5, width_ratio: 0.85, size: [639.0, 479.0], margin: 24.0 };
 
     #[test]
     fn a_narrow_short_detection_at_a_shafts_distal_end_is_its_jaws_at_any_angle() {
@@ -1665,6 +1674,16 @@ mod tests {
         assert!(continues(&shaft, &found(20.0, 95.0, 200.0, 8.0, 0.0)));
         // A second shaft crossing this one at 25°, its span through the middle: not jaws.
         assert!(!continues(&shaft, &found(150.0, 350.0, 180.0, 15.0, 25.0)));
+        // The final selection's rule also wants the jaws' size: narrower, and short.
+        let right_size = Found { lines: [2, 3], ..found(302.0, 380.0, 203.0, 8.0, 20.0) };
+        assert_eq!(clash(&shaft, &right_size, &RULE), Some(ClashRule::Continues));
+        // A shaft crossing behind (0.9 of the width) whose span starts at the end, 24° off: kept.
+        let crossing = Found { lines: [2, 3], ..found(302.0, 380.0, 203.0, 13.5, 24.0) };
+        assert!(continues(&shaft, &crossing));
+        assert_eq!(clash(&shaft, &crossing, &RULE), None);
+        // Narrow but longer than the wrist and jaws (3.5 widths, 105 px): kept.
+        let long = Found { lines: [2, 3], ..found(302.0, 420.0, 203.0, 8.0, 20.0) };
+        assert_eq!(clash(&shaft, &long, &RULE), None);
         // Starting past the end but far off the axis (another instrument beside it): not.
         assert!(!continues(&shaft, &found(305.0, 380.0, 240.0, 8.0, 0.0)));
         // Perpendicular at the end: not.

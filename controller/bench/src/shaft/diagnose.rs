@@ -373,14 +373,27 @@ pub fn run(
                     }
                 }
                 write_diag_png(frame, level, fam, &trace);
+                let on_lines: Vec<String> = on
+                    .iter()
+                    .flatten()
+                    .flatten()
+                    .map(|&l| {
+                        let h = &trace.lines[l];
+                        format!(
+                            "{l}:[{:.0},{:.0}]-[{:.0},{:.0}]v{}",
+                            h.ends[0][0], h.ends[0][1], h.ends[1][0], h.ends[1][1], h.votes
+                        )
+                    })
+                    .collect();
                 eprintln!(
-                    "MISS {} {} {} class={} lines={} on={:?} vis={:.0} pairs=[{}]",
+                    "MISS {} {} {} class={} lines={} on={:?} {} vis={:.0} pairs=[{}]",
                     level.key(),
                     fam,
                     frame.spec.seed,
                     class,
                     trace.lines.len(),
                     on,
+                    on_lines.join(" "),
                     i1.visible_px,
                     pairs.join(" ")
                 );

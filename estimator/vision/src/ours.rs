@@ -1481,7 +1481,9 @@ struct JawsRule {
     width_ratio: f64,
     /// The image's last column and row, measured pixels.
     size: [f64; 2],
-    /// [`OursConfig::border_margin_px`] (finite), measured pixels.
+    /// How far inside the image an end of a span must lie to be the shaft's distal end,
+    /// measured pixels: [`OursConfig::border_margin_px`], or its default 24 when the border
+    /// test is off (infinite).
     margin: f64,
 }
 

@@ -129,7 +129,7 @@ pub struct TraceVerified {
     /// The span's ends on the axis, undistorted pixels.
     pub ends: [[f64; 2]; 2],
     /// For a pair dropped in the final selection: the rank of the returned detection it
-    /// clashed with and the rule (`None`: not dropped by a clash).
+    /// clashed with and the rule (`usize::MAX` with [`ClashRule::Full`]; `None`: returned).
     pub clash: Option<(usize, ClashRule)>,
 }
 

@@ -84,12 +84,21 @@
 //! whose two lines both lie in the strip of a shaft already verified and nearly parallel to
 //! it (its duplicates: a near second instrument has several lines per contour, rim and
 //! highlights, whose pairs would otherwise fill the budget before the first instrument's
-//! pair is reached); the best-scoring consistent set is returned (score: confidence ×
-//! √length), so a second instrument is a second valid pair, and a pair sharing a Hough line,
+//! pair is reached); the best consistent set is returned, by **merit**: the product of the
+//! pair's ranking score (the whole lines' evidence) and its verification score (confidence ×
+//! √length of the verified span). The verification score alone is not comparable between a
+//! pair verified first and one reached far down the ranking past many duplicates: under haze a
+//! wrong pairing on the same shaft (a contour with a shadow's or a highlight's edge) can score
+//! a little higher on its span than the right pair, while its weaker line has far fewer votes.
+//! So a second instrument is a second valid pair, and a pair sharing a Hough line,
 //! a contour or the axis with a better one, or nearly parallel to it (within 10°) and lying
-//! in its strip, or continuing it past an end of its span nearly in line (within 30°, from
-//! within half a width of that end: its wrist and jaws), is dropped (two shafts do not lie
-//! over each other in the image, and a crossing one does not start where another ends).
+//! in its strip, or of the size of its wrist and jaws (narrower, `jaw_width_ratio`, and no
+//! longer than the instrument's end beyond the shaft, `tip_length_diameters` of its widths)
+//! and either continuing it past an end of its span nearly in line (within 30°, from within
+//! half a width of that end) or starting within a width of the distal end of its span (an end
+//! inside the image) at any angle (an articulated wrist), is dropped (two shafts do not lie
+//! over each other in the image; a crossing one does not start where another ends, and is
+//! not narrower by more than its depth makes it).
 //!
 //! [`OursDetector::detect_traced`] records what each stage did ([`OursTrace`]: edgels, line
 //! hypotheses, every candidate pair with the test that turned it down), for diagnostics.
@@ -117,7 +126,7 @@ mod lens;
 mod profile;
 mod trace;
 
-pub use trace::{OursTrace, PairOutcome, PairReject, TraceEdgel, TraceLine, TracePair};
+pub use trace::{ClashRule, OursTrace, PairOutcome, PairReject, TraceEdgel, TraceLine, TracePair, TraceVerified};
 
 use estimator::calib::Intrinsics;
 use estimator::calib::camera::IntrinsicsError;
@@ -193,7 +202,11 @@ pub struct OursConfig {
     /// under smoke). Below it the colour tests' contrast thresholds scale down in proportion
     /// (haze: the contrast normalisation of the module docs). 0 switches it off.
     pub clear_chroma: f64,
-    /// The least scale of the contrast thresholds under haze (default 0.4).
+    /// The least scale of the contrast thresholds under haze (default 0.25: the thickest haze
+    /// of the range `clear_chroma` is set for, a median chroma of 15 against 60, so that the
+    /// normalisation follows the haze over all of that range; with 0.4 the thresholds stopped
+    /// following it at a median of 24, and thick smoke with a crossing instrument lost the
+    /// shafts whose interior was only 2-4 chroma units greyer than the tissue).
     pub min_contrast_scale: f64,
     /// A visible span at least this many shaft widths long (the width between the contours
     /// at the span's middle, undistorted pixels) is waived from the border test, as a span
@@ -201,6 +214,20 @@ pub struct OursConfig {
     /// at most a few widths long; a shaft cut short by a crossing instrument, or whose
     /// contours fade before the border, keeps a slender straight part.
     pub slender_span_widths: f64,
+    /// Length of the instrument's articulated end beyond the shaft (wrist and jaws), in shaft
+    /// diameters (default 3.5: a 10 mm wrist and 18 mm jaws on an 8 mm shaft). A narrower
+    /// detection (`jaw_width_ratio`) starting at the distal end of a shaft's span and no longer
+    /// than this many of that shaft's widths is taken for its wrist and jaws and dropped in
+    /// the final selection: at any angle (an articulated wrist), or nearly in line with it. 0:
+    /// both rules off.
+    pub tip_length_diameters: f64,
+    /// The width of a detection on an instrument's wrist and jaws as a fraction of its shaft's
+    /// width, at most (default 0.85: the wrist is 0.94 of the 8 mm shaft, the jaws at most
+    /// 0.75; a pair over both measures up to about 0.8 at its middle). Only a detection at most
+    /// this fraction of a shaft's width can be its jaws; a shaft crossing behind is narrower
+    /// only by its depth (0.7-0.95 for a few millimetres farther at 50-150 mm), so a crossing
+    /// shaft under this ratio starting where another's span ends is still taken for jaws.
+    pub jaw_width_ratio: f64,
 }
 
 impl Default for OursConfig {
@@ -223,8 +250,10 @@ impl Default for OursConfig {
             border_margin_px: 24.0,
             long_span_px: 200.0,
             clear_chroma: 60.0,
-            min_contrast_scale: 0.4,
+            min_contrast_scale: 0.25,
             slender_span_widths: 4.0,
+            tip_length_diameters: 3.5,
+            jaw_width_ratio: 0.85,
         }
     }
 }
@@ -303,6 +332,12 @@ impl OursConfig {
             "slender_span_widths",
             "> 0 (infinite: off)",
         )?;
+        check(
+            self.tip_length_diameters.is_finite() && self.tip_length_diameters >= 0.0,
+            "tip_length_diameters",
+            "finite and ≥ 0",
+        )?;
+        check((0.0..=1.0).contains(&self.jaw_width_ratio), "jaw_width_ratio", "in [0, 1]")?;
         check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
@@ -357,6 +392,26 @@ struct Found {
     width: f64,
     lines: [usize; 2],
     score: f64,
+    /// The fraction of good stations in the span, the larger contour residual scale (pixels),
+    /// the interior's contrast (fraction of three thresholds, unclamped), the span's length
+    /// (undistorted pixels).
+    support: f64,
+    sigma: f64,
+    contrast: f64,
+    len: f64,
+    /// The pair's rank in the verification order.
+    rank: usize,
+    /// The pair's ranking score before verification ([`OursDetector::pair_score`]).
+    rank_score: f64,
+}
+
+impl Found {
+    /// The final selection's merit: the product of the two stages' scores, the ranking's
+    /// (the whole lines' evidence: overlap × the weaker line's votes × the interior's
+    /// greyness) and the verification's (confidence × √length of the verified span).
+    fn merit(&self) -> f64 {
+        self.score * self.rank_score
+    }
 }
 
 /// Our shaft detector (see the module docs). Keeps its working buffers between frames.
@@ -401,6 +456,9 @@ pub struct OursDetector {
     haze: Haze,
     /// The ranks of the pairs skipped as duplicates of a verified shaft (traced frames only).
     redundant: Vec<usize>,
+    /// The verified pairs dropped in the final selection (traced frames only): their rank,
+    /// the rank of the detection they clashed with and the rule.
+    clashes: Vec<(usize, (usize, ClashRule))>,
 }
 
 /// A contour refined in the full-resolution image.
@@ -464,12 +522,23 @@ impl OursDetector {
             trace: OursTrace::default(),
             haze: Haze::CLEAR,
             redundant: Vec::new(),
+            clashes: Vec::new(),
         })
     }
 
     /// The settings.
     pub fn config(&self) -> &OursConfig {
         &self.cfg
+    }
+
+    /// The final selection's jaws rule from the settings.
+    fn jaws_rule(&self) -> JawsRule {
+        JawsRule {
+            tip_diameters: self.cfg.tip_length_diameters,
+            width_ratio: self.cfg.jaw_width_ratio,
+            size: [f64::from(self.k.width) - 1.0, f64::from(self.k.height) - 1.0],
+            margin: if self.cfg.border_margin_px.is_finite() { self.cfg.border_margin_px } else { 24.0 },
+        }
     }
 
     /// Distance from the optical centre to the axis of the cylinder (radius from the
@@ -959,6 +1028,12 @@ impl OursDetector {
             width: (la - lb).abs(),
             lines: [ia, ib],
             score: confidence * len.sqrt(),
+            support,
+            sigma,
+            contrast,
+            len,
+            rank: 0,
+            rank_score: 0.0,
         })
     }
 
@@ -1027,13 +1102,14 @@ impl OursDetector {
         // sharing a line, a contour or the axis with a better one is dropped).
         self.cands.clear();
         let budget = 3 * cfg.max_detections + 2;
-        let mut outcomes: Vec<(usize, Result<[f64; 3], PairReject>)> = Vec::new();
+        let mut outcomes: Vec<(usize, Result<(), PairReject>)> = Vec::new();
         let mut verified = 0usize;
         self.redundant.clear();
         let mut lazy = LazyRanking::new(self, image);
         let mut rank = 0usize;
         while verified < budget {
-            let Some((i, j)) = (if self.tracing { pairs.get(rank).map(|p| (p.1, p.2)) } else { lazy.next(self) })
+            let Some((i, j, rank_score)) =
+                (if self.tracing { pairs.get(rank).map(|p| (p.1, p.2, p.0)) } else { lazy.next(self) })
             else {
                 break;
             };
@@ -1051,9 +1127,9 @@ impl OursDetector {
             match self.verify(image, i, j) {
                 Ok(f) => {
                     if self.tracing {
-                        outcomes.push((rank, Ok(f.det.centreline.abc)));
+                        outcomes.push((rank, Ok(())));
                     }
-                    self.cands.push(f);
+                    self.cands.push(Found { rank, rank_score, ..f });
                 }
                 Err(r) => {
                     if self.tracing {
@@ -1064,24 +1140,12 @@ impl OursDetector {
             rank += 1;
         }
         self.pair_buf = pairs;
-        self.cands.sort_by(|a, b| b.score.total_cmp(&a.score));
-        self.found.clear();
-        for f in &self.cands {
-            if self.found.len() >= cfg.max_detections {
-                break;
-            }
-            let clash = self.found.iter().any(|g| {
-                g.lines.iter().any(|l| f.lines.contains(l))
-                    || same_axis(g, f)
-                    || shares_contour(g, f)
-                    || overlap(g, f)
-                    || continues(g, f)
-            });
-            if !clash {
-                self.found.push(*f);
-            }
+        self.clashes.clear();
+        let jaws = self.jaws_rule();
+        select(&mut self.cands, &mut self.found, cfg.max_detections, &jaws, &mut self.clashes);
+        if !self.tracing {
+            self.clashes.clear();
         }
-        self.found.sort_by(|a, b| b.score.total_cmp(&a.score));
         if self.tracing {
             self.record_trace(&outcomes);
         }
@@ -1090,28 +1154,60 @@ impl OursDetector {
 
     /// Fills `self.trace` from the frame's stages (`outcomes`: per verified rank, the
     /// centreline or the reason).
-    fn record_trace(&mut self, outcomes: &[(usize, Result<[f64; 3], PairReject>)]) {
+    fn record_trace(&mut self, outcomes: &[(usize, Result<(), PairReject>)]) {
+        let jaws = self.jaws_rule();
         let tr = &mut self.trace;
         tr.edgels.clear();
         tr.edgels.extend(self.edges.edgels.iter().map(|e| TraceEdgel { p: e.p, n: e.n }));
         tr.lines.clear();
         tr.lines.extend(self.hough.lines.iter().map(|l| TraceLine { abc: l.line.abc(), ends: l.ends, votes: l.count }));
         tr.pairs.clear();
+        tr.clashes.clear();
+        for g in &self.cands {
+            for f in &self.cands {
+                if let (true, Some(r)) = (g.rank != f.rank, clash(g, f, &jaws)) {
+                    tr.clashes.push((g.rank, f.rank, r));
+                }
+            }
+        }
         for &(i, j, r) in &self.trace_rejects {
-            tr.pairs.push(TracePair { lines: [i, j], rank: None, outcome: PairOutcome::Rejected(r), centreline: None });
+            tr.pairs.push(TracePair {
+                lines: [i, j],
+                rank: None,
+                outcome: PairOutcome::Rejected(r),
+                centreline: None,
+                verified: None,
+            });
         }
         for (rank, &(_, i, j)) in self.pair_buf.iter().enumerate() {
             let verified = outcomes.iter().find(|o| o.0 == rank).map(|o| o.1);
-            let (outcome, centreline) = match verified {
+            let (outcome, found) = match verified {
                 None if self.redundant.contains(&rank) => (PairOutcome::Redundant, None),
                 None => (PairOutcome::NotVerified, None),
                 Some(Err(r)) => (PairOutcome::Rejected(r), None),
-                Some(Ok(abc)) => {
-                    let pos = self.found.iter().position(|f| f.lines == [i, j]);
-                    (pos.map_or(PairOutcome::Dropped, PairOutcome::Returned), Some(abc))
+                Some(Ok(())) => {
+                    let pos = self.found.iter().position(|f| f.rank == rank);
+                    (
+                        pos.map_or(PairOutcome::Dropped, PairOutcome::Returned),
+                        self.cands.iter().find(|f| f.rank == rank),
+                    )
                 }
             };
-            tr.pairs.push(TracePair { lines: [i, j], rank: Some(rank), outcome, centreline });
+            let rank_score = found.map_or(self.pair_buf[rank].0, |f| f.rank_score);
+            let verified = found.map(|f| TraceVerified {
+                score: f.score,
+                rank_score,
+                confidence: f.det.confidence,
+                support: f.support,
+                sigma_px: f.sigma,
+                contrast: f.contrast,
+                length_px: f.len,
+                width_px: f.width,
+                ends: f.ends,
+                clash: self.clashes.iter().find(|c| c.0 == rank).map(|c| c.1),
+            });
+            let centreline = found.map(|f| f.det.centreline.abc);
+            tr.pairs.push(TracePair { lines: [i, j], rank: Some(rank), outcome, centreline, verified });
         }
     }
 
@@ -1265,8 +1361,8 @@ impl<'a> LazyRanking<'a> {
         Self { image: *image, next: 0 }
     }
 
-    /// The next pair `(i, j)` in ranking order, `None` when none is left.
-    fn next(&mut self, det: &mut OursDetector) -> Option<(usize, usize)> {
+    /// The next pair `(i, j, ranking score)` in ranking order, `None` when none is left.
+    fn next(&mut self, det: &mut OursDetector) -> Option<(usize, usize, f64)> {
         let lens = det.lens;
         let sampler = Sampler { image: &self.image, lens: &lens, luma_weight: det.cfg.profile_luma_weight };
         let order = std::mem::take(&mut det.geo_order);
@@ -1286,11 +1382,11 @@ impl<'a> LazyRanking<'a> {
         det.geo_buf = geo;
         det.geo_order = order;
         det.scored = scored;
-        g.map(|g| (det.geo_buf[g].1, det.geo_buf[g].2))
+        g.map(|(g, score)| (det.geo_buf[g].1, det.geo_buf[g].2, score))
     }
 }
 
-/// The next item in ranking order (score descending, index ascending on ties) of the items
+/// The next item in ranking order (score descending, index ascending on ties), with its score, of the items
 /// `order` (sorted by `bound` descending, index ascending on ties; `bound(g) ≥ score(g)`),
 /// scoring them lazily: from `order[*next]` on, each is scored (`None`: not ranked) only while
 /// it could rank before the best one scored so far; `scored` holds the scored ones waiting.
@@ -1300,7 +1396,7 @@ fn next_in_rank(
     scored: &mut Vec<(f64, usize)>,
     bound: impl Fn(usize) -> f64,
     mut score: impl FnMut(usize) -> Option<f64>,
-) -> Option<usize> {
+) -> Option<(usize, f64)> {
     // The best scored item: highest score, lowest index on ties.
     fn best(scored: &[(f64, usize)]) -> Option<(usize, (f64, usize))> {
         scored.iter().copied().enumerate().reduce(|b, c| match c.1.0.total_cmp(&b.1.0) {
@@ -1324,9 +1420,111 @@ fn next_in_rank(
             scored.push((sc, g));
         }
     }
-    let (k, (_, g)) = best(scored)?;
+    let (k, (sc, g)) = best(scored)?;
     scored.swap_remove(k);
-    Some(g)
+    Some((g, sc))
+}
+
+/// The final selection: the verified shafts `cands` by merit ([`Found::merit`], the earlier
+/// verified first on ties), each kept in `found` (cleared first; at most `max`) unless it
+/// clashes with one kept before it ([`clash`]); the ones dropped are recorded in `clashes`
+/// (their rank, the rank of the detection kept and the rule; `usize::MAX` with
+/// [`ClashRule::Full`]). `cands` is left sorted, `found` by merit.
+fn select(
+    cands: &mut [Found],
+    found: &mut Vec<Found>,
+    max: usize,
+    jaws: &JawsRule,
+    clashes: &mut Vec<(usize, (usize, ClashRule))>,
+) {
+    cands.sort_by(|a, b| b.merit().total_cmp(&a.merit()).then(a.rank.cmp(&b.rank)));
+    found.clear();
+    for f in cands.iter() {
+        let c = if found.len() >= max {
+            Some((usize::MAX, ClashRule::Full))
+        } else {
+            found.iter().find_map(|g| clash(g, f, jaws).map(|r| (g.rank, r)))
+        };
+        match c {
+            None => found.push(*f),
+            Some(c) => clashes.push((f.rank, c)),
+        }
+    }
+}
+
+/// The rule by which detection `f` clashes with the better one `g` (they cannot both be
+/// shafts), `None` when they are compatible.
+fn clash(g: &Found, f: &Found, jaws: &JawsRule) -> Option<ClashRule> {
+    if g.lines.iter().any(|l| f.lines.contains(l)) {
+        Some(ClashRule::SharedLine)
+    } else if same_axis(g, f) {
+        Some(ClashRule::SameAxis)
+    } else if shares_contour(g, f) {
+        Some(ClashRule::SharedContour)
+    } else if overlap(g, f) {
+        Some(ClashRule::Overlap)
+    } else if continues(g, f) && jaws.jaw_like(g, f) {
+        Some(ClashRule::Continues)
+    } else if jaws.applies(g, f) {
+        Some(ClashRule::Jaws)
+    } else {
+        None
+    }
+}
+
+/// The jaws rule of the final selection ([`JawsRule::applies`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct JawsRule {
+    /// [`OursConfig::tip_length_diameters`].
+    tip_diameters: f64,
+    /// [`OursConfig::jaw_width_ratio`].
+    width_ratio: f64,
+    /// The image's last column and row, measured pixels.
+    size: [f64; 2],
+    /// How far inside the image an end of a span must lie to be the shaft's distal end,
+    /// measured pixels: [`OursConfig::border_margin_px`], or its default 24 when the border
+    /// test is off (infinite).
+    margin: f64,
+}
+
+impl JawsRule {
+    /// True when detection `f` could be the wrist and jaws of the shaft `g` by its size:
+    /// narrower than `g` by `width_ratio`, and no longer than `tip_diameters` of `g`'s widths.
+    fn jaw_like(&self, g: &Found, f: &Found) -> bool {
+        f.width <= self.width_ratio * g.width && f.len <= self.tip_diameters * g.width
+    }
+
+    /// True when detection `f` is the wrist and jaws of the better one `g`, at any angle (an
+    /// articulated wrist): `f` is narrower than `g` by `width_ratio` (jaws are narrower than
+    /// the shaft; a shaft crossing behind is narrower only by its depth), no longer than
+    /// `tip_diameters` of `g`'s widths (the instrument's end beyond the shaft, at the shaft's
+    /// depth; foreshortening only shortens it), its nearer end within one of `g`'s widths of
+    /// an end of `g`'s span that lies inside the image (the shaft's distal end: an end at the
+    /// border is where the view stops), and it runs away from that end (not back along `g`).
+    fn applies(&self, g: &Found, f: &Found) -> bool {
+        if !self.jaw_like(g, f) {
+            return false;
+        }
+        let [a, b] = g.ends;
+        let len = (b[0] - a[0]).hypot(b[1] - a[1]);
+        if len <= 0.0 {
+            return false;
+        }
+        let w = g.width.max(20.0);
+        let inside = |p: [f64; 2]| p[0].min(p[1]).min(self.size[0] - p[0]).min(self.size[1] - p[1]) > self.margin;
+        [(1, 0), (0, 1)].iter().any(|&(e, o)| {
+            let (end, other) = (g.ends[e], g.ends[o]);
+            if !inside(g.det.ends_px[e]) {
+                return false;
+            }
+            let t = [(end[0] - other[0]) / len, (end[1] - other[1]) / len];
+            let d = f.ends.map(|p| (p[0] - end[0]).hypot(p[1] - end[1]));
+            let (near, far) = if d[0] <= d[1] { (0, 1) } else { (1, 0) };
+            let p = f.ends[far];
+            let s_far = (p[0] - end[0]) * t[0] + (p[1] - end[1]) * t[1];
+            d[near] <= w && s_far >= -0.5 * g.width
+        })
+    }
 }
 
 /// True when two detections have nearly the same axis (within 3°, and each one's span middle
@@ -1434,7 +1632,42 @@ mod tests {
             width: 2.0 * half,
             lines: [0, 1],
             score: 1.0,
+            support: 1.0,
+            sigma: 0.1,
+            contrast: 1.0,
+            len: u1 - u0,
+            rank: 0,
+            rank_score: 1.0,
         }
+    }
+
+    /// The jaws rule with the default settings on a 640×480 image.
+    const RULE: JawsRule = JawsRule { tip_diameters: 3.5, width_ratio: 0.85, size: [639.0, 479.0], margin: 24.0 };
+
+    #[test]
+    fn a_narrow_short_detection_at_a_shafts_distal_end_is_its_jaws_at_any_angle() {
+        // A shaft 60 px wide from the left border to u = 350 (its distal end inside the image).
+        let shaft = found(-10.0, 350.0, 228.0, 30.0, 0.0);
+        // Jaws 30 px wide, 124 px long, from the end at 40° and 70° (an articulated wrist).
+        let jaws = |angle: f64| found(355.0, 479.0, 233.0, 15.0, angle);
+        assert!(RULE.applies(&shaft, &jaws(40.0)));
+        assert!(RULE.applies(&shaft, &jaws(-70.0)));
+        assert_eq!(clash(&shaft, &Found { lines: [2, 3], ..jaws(40.0) }, &RULE), Some(ClashRule::Jaws));
+        // A shaft crossing behind, 0.9 of the width (farther only by a few millimetres),
+        // whose span starts at the end: not jaws.
+        assert!(!RULE.applies(&shaft, &found(355.0, 479.0, 233.0, 27.0, 40.0)));
+        // Longer than 3.5 of the shaft's widths (210 px): not.
+        assert!(!RULE.applies(&shaft, &found(355.0, 600.0, 233.0, 15.0, 40.0)));
+        // Starting more than a width from the end: not.
+        assert!(!RULE.applies(&shaft, &found(430.0, 530.0, 233.0, 15.0, 40.0)));
+        // Running back along the shaft: not (that is the overlap rule's).
+        assert!(!RULE.applies(&shaft, &found(355.0, 470.0, 240.0, 15.0, 175.0)));
+        // The shaft's span ending at the image border is not its distal end: a narrower
+        // shaft there is another instrument.
+        let at_border = found(300.0, 630.0, 228.0, 30.0, 0.0);
+        assert!(!RULE.applies(&at_border, &found(633.0, 660.0, 233.0, 15.0, 60.0)));
+        // Off: a zero tip length.
+        assert!(!JawsRule { tip_diameters: 0.0, ..RULE }.applies(&shaft, &jaws(40.0)));
     }
 
     #[test]
@@ -1447,10 +1680,50 @@ mod tests {
         assert!(continues(&shaft, &found(20.0, 95.0, 200.0, 8.0, 0.0)));
         // A second shaft crossing this one at 25°, its span through the middle: not jaws.
         assert!(!continues(&shaft, &found(150.0, 350.0, 180.0, 15.0, 25.0)));
+        // The final selection's rule also wants the jaws' size: narrower, and short.
+        let right_size = Found { lines: [2, 3], ..found(302.0, 380.0, 203.0, 8.0, 20.0) };
+        assert_eq!(clash(&shaft, &right_size, &RULE), Some(ClashRule::Continues));
+        // A shaft crossing behind (0.9 of the width) whose span starts at the end, 24° off: kept.
+        let crossing = Found { lines: [2, 3], ..found(302.0, 380.0, 203.0, 13.5, 24.0) };
+        assert!(continues(&shaft, &crossing));
+        assert_eq!(clash(&shaft, &crossing, &RULE), None);
+        // Narrow but longer than the wrist and jaws (3.5 widths, 105 px): kept.
+        let long = Found { lines: [2, 3], ..found(302.0, 420.0, 203.0, 8.0, 20.0) };
+        assert_eq!(clash(&shaft, &long, &RULE), None);
         // Starting past the end but far off the axis (another instrument beside it): not.
         assert!(!continues(&shaft, &found(305.0, 380.0, 240.0, 8.0, 0.0)));
         // Perpendicular at the end: not.
         assert!(!continues(&shaft, &found(300.0, 380.0, 200.0, 8.0, 90.0)));
+    }
+
+    #[test]
+    fn a_wrong_pair_verified_late_does_not_displace_the_right_one_by_a_slightly_higher_score() {
+        // The right pair, first in the ranking (long lines, many votes), and a wrong pairing
+        // on nearly the same axis verified far down the ranking (reached past the duplicates
+        // of a verified shaft) with a slightly higher verification score under haze: the
+        // figures of a hazy frame of the tuning set.
+        let right = Found { score: 3.34, rank_score: 17681.0, rank: 0, ..found(100.0, 500.0, 200.0, 45.0, 0.0) };
+        let wrong =
+            Found { score: 3.46, rank_score: 2893.0, rank: 13, lines: [2, 3], ..found(200.0, 500.0, 202.0, 58.0, 0.5) };
+        assert_eq!(clash(&wrong, &right, &RULE), Some(ClashRule::SameAxis));
+        let (mut found_v, mut clashes) = (Vec::new(), Vec::new());
+        select(&mut [wrong, right], &mut found_v, 2, &RULE, &mut clashes);
+        assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![0]);
+        assert_eq!(clashes, vec![(13, (0, ClashRule::SameAxis))]);
+        // A later pair that is much better in the verification still wins (a right pair
+        // ranked below a wrong one: verification is not a formality).
+        let better = Found { score: 3.46 * 10.0, ..wrong };
+        select(&mut [right, better], &mut found_v, 2, &RULE, &mut clashes);
+        assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![13]);
+        // Two compatible shafts (crossing at 40°) are both kept, the better merit first, up
+        // to the most detections asked for.
+        let crossing =
+            Found { score: 1.0, rank_score: 100.0, rank: 5, lines: [6, 7], ..found(150.0, 450.0, 100.0, 20.0, 40.0) };
+        clashes.clear();
+        select(&mut [crossing, right, wrong], &mut found_v, 2, &RULE, &mut clashes);
+        assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![0, 5]);
+        select(&mut [crossing, right], &mut found_v, 1, &RULE, &mut clashes);
+        assert_eq!(found_v.iter().map(|f| f.rank).collect::<Vec<_>>(), vec![0]);
     }
 
     #[test]
@@ -1492,7 +1765,7 @@ mod tests {
         while let Some(p) = lazy.next(&mut det) {
             order.push(p);
         }
-        let want: Vec<(usize, usize)> = full.iter().map(|p| (p.1, p.2)).collect();
+        let want: Vec<(usize, usize, f64)> = full.iter().map(|p| (p.1, p.2, p.0)).collect();
         assert_eq!(order, want);
     }
 
@@ -1529,12 +1802,13 @@ mod tests {
                         scores[g]
                     },
                 );
-                got.push(g.unwrap());
+                got.push(g.unwrap().0);
             }
             assert_eq!(got, full[..got.len()], "trial {trial}");
             assert!(calls <= n);
             // Then the rest.
-            while let Some(g) = next_in_rank(&order, &mut next, &mut scored, |g| bounds[g], |g| scores[g]) {
+            while let Some((g, sc)) = next_in_rank(&order, &mut next, &mut scored, |g| bounds[g], |g| scores[g]) {
+                assert_eq!(Some(sc), scores[g]);
                 got.push(g);
             }
             assert_eq!(got, full, "trial {trial}");

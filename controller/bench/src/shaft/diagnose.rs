@@ -119,6 +119,100 @@ fn progress(o: &TracePairOutcome) -> u32 {
     }
 }
 
+/// A verified pair's figures for the per-frame lines of `SHAFT_DIAG_FRAMES` (empty when not
+/// verified).
+fn verified_detail(p: &vision::ours::TracePair) -> String {
+    p.verified.map_or_else(String::new, |v| {
+        format!(
+            "{{s={:.2} c={:.2} sup={:.2} sig={:.2} con={:.2} len={:.0} w={:.1} ends=[{:.0},{:.0}]-[{:.0},{:.0}]{}}}",
+            v.score,
+            v.confidence,
+            v.support,
+            v.sigma_px,
+            v.contrast,
+            v.length_px,
+            v.width_px,
+            v.ends[0][0],
+            v.ends[0][1],
+            v.ends[1][0],
+            v.ends[1][1],
+            v.clash.map_or_else(String::new, |(r, rule)| format!(" by {r}:{rule:?}"))
+        )
+    })
+}
+
+/// With `SHAFT_DIAG_ALL` in the environment: one line per frame on stderr, `VER` and a JSON
+/// object with every verified pair (its figures, and which instrument it matches: 1, 2 or
+/// 0). A debugging aid for the final selection.
+fn print_verified(frame: &RenderedFrame, level: ClutterLevel, fam: &str, trace: &OursTrace) {
+    let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
+    let i1 = frame.inst1.as_ref();
+    let pairs: Vec<serde_json::Value> = trace
+        .pairs
+        .iter()
+        .filter_map(|p| {
+            let v = p.verified?;
+            let abc = p.centreline?;
+            let m1 = i1.and_then(|t| super::metrics::line_errors(&abc, t)).is_some_and(|e| e.matches());
+            let m2 = inst2.and_then(|t| super::metrics::line_errors(&abc, t)).is_some_and(|e| e.matches());
+            Some(serde_json::json!({
+                "rank": p.rank, "outcome": p.outcome, "lines": p.lines, "m": if m1 { 1 } else if m2 { 2 } else { 0 },
+                "v": v,
+            }))
+        })
+        .collect();
+    let eligible = i1.is_some_and(|t| t.eligible());
+    let v = serde_json::json!({
+        "level": level.key(), "fam": fam, "seed": frame.spec.seed, "eligible": eligible,
+        "in_view": frame.inst1_in_view, "pairs": pairs, "clashes": trace.clashes,
+    });
+    eprintln!("VER {v}");
+    if pairs.iter().any(|p| p["m"] == 0 && p["outcome"].get("returned").is_some()) {
+        write_diag_png(frame, level, fam, trace);
+    }
+}
+
+/// With `SHAFT_DIAG_PNG=DIR` in the environment (and `SHAFT_DIAG_FRAMES`), writes the frame
+/// printed as `DIR/{level}_{family}_{seed}.png`: the true axes green, the returned
+/// detections red, the verified pairs dropped in the final selection yellow. A debugging aid.
+fn write_diag_png(frame: &RenderedFrame, level: ClutterLevel, fam: &str, trace: &OursTrace) {
+    let Some(dir) = std::env::var_os("SHAFT_DIAG_PNG") else { return };
+    let dir = std::path::PathBuf::from(dir);
+    let k = super::intrinsics();
+    let mut img = frame.image.clone();
+    for inst in &frame.truth.instruments {
+        if let Some(a) = &inst.axis {
+            super::figures::draw_polyline(&mut img, &a.polyline_px, 1, super::figures::TRUTH_RGB);
+        }
+    }
+    for p in &trace.pairs {
+        let (Some(abc), true) = (p.centreline, p.rank.is_some()) else { continue };
+        let c = match p.outcome {
+            PairOutcome::Returned(_) => super::figures::DETECTOR_RGB[0],
+            _ => super::figures::DETECTOR_RGB[1],
+        };
+        super::figures::draw_ideal_line(&mut img, &k, &abc, 0, c, 0, 1);
+        if let PairOutcome::Returned(_) = p.outcome {
+            for &l in &p.lines {
+                super::figures::draw_ideal_line(
+                    &mut img,
+                    &k,
+                    &trace.lines[l].abc,
+                    0,
+                    super::figures::DETECTOR_RGB[3],
+                    0,
+                    2,
+                );
+            }
+        }
+    }
+    let _ = std::fs::create_dir_all(&dir);
+    let path = dir.join(format!("{}_{}_{}.png", level.key(), fam, frame.spec.seed));
+    if let Err(e) = sim::endoscope::output::write_png(&path, &img) {
+        eprintln!("{}: {e}", path.display());
+    }
+}
+
 /// A pair's outcome and its rank.
 type TracePairOutcome = (PairOutcome, Option<usize>);
 
@@ -206,6 +300,9 @@ pub fn run(
                 .map_err(|source| ShaftBenchError::Detect { detector: det.name().to_owned(), source })?;
             progress();
             let fam = FAMILIES[frame.spec.family].key;
+            if std::env::var_os("SHAFT_DIAG_ALL").is_some() {
+                print_verified(frame, level, fam, &trace);
+            }
             if !frame.inst1_in_view {
                 let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
                 let s = score_frame(&dets, None, inst2);
@@ -217,8 +314,19 @@ pub fn run(
                         .pairs
                         .iter()
                         .filter(|p| p.rank.is_some())
-                        .map(|p| format!("{:?}:{:?}", p.rank, p.outcome))
+                        .map(|p| {
+                            let e2 =
+                                p.centreline.and_then(|abc| inst2.and_then(|t| super::metrics::line_errors(&abc, t)));
+                            format!(
+                                "{:?}:{:?}{}{}",
+                                p.rank,
+                                p.outcome,
+                                if e2.is_some_and(|e| e.matches()) { "=2" } else { "" },
+                                verified_detail(p)
+                            )
+                        })
                         .collect();
+                    write_diag_png(frame, level, fam, &trace);
                     eprintln!(
                         "FALSE {} {} {} dets={:?} pairs=[{}]",
                         level.key(),
@@ -254,23 +362,38 @@ pub fn run(
                     let e1 = p.centreline.and_then(|abc| super::metrics::line_errors(&abc, i1));
                     if p.rank.is_some() || mark {
                         pairs.push(format!(
-                            "{}{:?}:{:?}{}{}",
+                            "{}{:?}:{:?}{}{}{}",
                             if mark { "*" } else { "" },
                             p.rank,
                             p.outcome,
                             if e1.is_some_and(|e| e.matches()) { "=1" } else { "" },
-                            if e2.is_some_and(|e| e.matches()) { "=2" } else { "" }
+                            if e2.is_some_and(|e| e.matches()) { "=2" } else { "" },
+                            verified_detail(p)
                         ));
                     }
                 }
+                write_diag_png(frame, level, fam, &trace);
+                let on_lines: Vec<String> = on
+                    .iter()
+                    .flatten()
+                    .flatten()
+                    .map(|&l| {
+                        let h = &trace.lines[l];
+                        format!(
+                            "{l}:[{:.0},{:.0}]-[{:.0},{:.0}]v{}",
+                            h.ends[0][0], h.ends[0][1], h.ends[1][0], h.ends[1][1], h.votes
+                        )
+                    })
+                    .collect();
                 eprintln!(
-                    "MISS {} {} {} class={} lines={} on={:?} vis={:.0} pairs=[{}]",
+                    "MISS {} {} {} class={} lines={} on={:?} {} vis={:.0} pairs=[{}]",
                     level.key(),
                     fam,
                     frame.spec.seed,
                     class,
                     trace.lines.len(),
                     on,
+                    on_lines.join(" "),
                     i1.visible_px,
                     pairs.join(" ")
                 );
@@ -369,7 +492,7 @@ mod tests {
     }
 
     fn pair(outcome: PairOutcome, rank: Option<usize>) -> TracePair {
-        TracePair { lines: [1, 0], rank, outcome, centreline: None }
+        TracePair { lines: [1, 0], rank, outcome, centreline: None, verified: None }
     }
 
     #[test]
@@ -407,7 +530,13 @@ mod tests {
         let mut t = trace_with_lines();
         t.lines.push(t.lines[0]);
         t.lines[2].abc[2] -= 40.0;
-        t.pairs.push(TracePair { lines: [0, 2], rank: Some(0), outcome: PairOutcome::Returned(0), centreline: None });
+        t.pairs.push(TracePair {
+            lines: [0, 2],
+            rank: Some(0),
+            outcome: PairOutcome::Returned(0),
+            centreline: None,
+            verified: None,
+        });
         assert_eq!(classify(&t, &c, 1.0), "pair: not parallel");
     }
 }

@@ -101,6 +101,57 @@ pub struct TracePair {
     pub outcome: PairOutcome,
     /// The verified detection's centreline `[a, b, c]` (undistorted pixels), when verified.
     pub centreline: Option<[f64; 3]>,
+    /// The verified detection's figures, when verified.
+    pub verified: Option<TraceVerified>,
+}
+
+/// What the verification measured on a pair it accepted.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct TraceVerified {
+    /// The final selection's score (confidence × √length).
+    pub score: f64,
+    /// The pair's ranking score before verification (overlap length × the lines' least
+    /// vote count × the interior's greyness).
+    pub rank_score: f64,
+    /// The detection's confidence, in `[0, 1]`.
+    pub confidence: f64,
+    /// The fraction of good stations in the visible span.
+    pub support: f64,
+    /// The larger robust residual scale of the two contours' fits, pixels.
+    pub sigma_px: f64,
+    /// The interior's contrast against the outsides, as a fraction of three times the
+    /// threshold (chroma or luma), before clamping.
+    pub contrast: f64,
+    /// The visible span's length, undistorted pixels.
+    pub length_px: f64,
+    /// The width between the contours at the span's middle, undistorted pixels.
+    pub width_px: f64,
+    /// The span's ends on the axis, undistorted pixels.
+    pub ends: [[f64; 2]; 2],
+    /// For a pair dropped in the final selection: the rank of the returned detection it
+    /// clashed with and the rule (`usize::MAX` with [`ClashRule::Full`]; `None`: returned).
+    pub clash: Option<(usize, ClashRule)>,
+}
+
+/// Why the final selection dropped a verified pair for a better one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClashRule {
+    /// It shares a line hypothesis with the better one.
+    SharedLine,
+    /// Nearly the same axis.
+    SameAxis,
+    /// It shares a contour.
+    SharedContour,
+    /// Nearly parallel, one lying in the other's strip.
+    Overlap,
+    /// It continues the better one past an end of its span (its wrist and jaws).
+    Continues,
+    /// A narrower, short detection starting at the better one's distal end at any angle: its
+    /// jaws behind an articulated wrist.
+    Jaws,
+    /// `max_detections` were already taken.
+    Full,
 }
 
 /// Everything [`super::OursDetector::detect_traced`] records about one frame.
@@ -112,4 +163,7 @@ pub struct OursTrace {
     pub lines: Vec<TraceLine>,
     /// Every pair of lines within 25° of parallel.
     pub pairs: Vec<TracePair>,
+    /// Every clash between two verified pairs, by rank: `(g, f, rule)`, `f` would be dropped
+    /// for `g` were `g` the better one.
+    pub clashes: Vec<(usize, usize, ClashRule)>,
 }

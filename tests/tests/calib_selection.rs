@@ -241,7 +241,7 @@ fn the_selection_aware_stage_removes_most_of_the_bias_the_guard_leaves() {
     let lines = |d: &sim::calib::CalibDataset, selection: Option<SelectionConfig>| OursConfig {
         noise: d.noise,
         shaft_position: false,
-        selection: selection.map(|s| SelectionConfig { shaft_position: false, ..s }),
+        selection,
         ..OursConfig::default()
     };
     for seed in 200..208 {
@@ -268,8 +268,7 @@ fn a_stage_that_runs_away_is_refused_and_the_guarded_fit_kept() {
     let lines = OursConfig { noise: d.noise, shaft_position: false, ..OursConfig::default() };
     let guarded = solve_ours_prepared(&set, &OursConfig { selection: None, ..lines }).unwrap();
     // A false-refusal probability so close to 1 that the limit is ~0: no real move passes.
-    let strict =
-        SelectionConfig { false_refusal_probability: 1.0 - 1e-12, shaft_position: false, ..SelectionConfig::default() };
+    let strict = SelectionConfig { false_refusal_probability: 1.0 - 1e-12, ..SelectionConfig::default() };
     let o = solve_ours_prepared(&set, &OursConfig { selection: Some(strict), ..lines }).unwrap();
     assert!(o.selection.is_none());
     assert!(
@@ -279,7 +278,6 @@ fn a_stage_that_runs_away_is_refused_and_the_guarded_fit_kept() {
     );
     assert_eq!(o.pose, guarded.pose);
     // With the default limit the same data are fitted with their selection.
-    let sel = SelectionConfig { shaft_position: false, ..SelectionConfig::default() };
-    let o = solve_ours_prepared(&set, &OursConfig { selection: Some(sel), ..lines }).unwrap();
+    let o = solve_ours_prepared(&set, &lines).unwrap();
     assert!(o.selection_refused.is_none() && o.selection.is_some());
 }

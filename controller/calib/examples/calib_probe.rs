@@ -94,9 +94,6 @@ fn main() {
             // NO_SHAFT_POSITION=1: the lines alone (the objective before the shaft-position term).
             let shaft_position = std::env::var("NO_SHAFT_POSITION").is_err();
             let mut cfg = OursConfig { noise: d.noise, shaft_position, ..OursConfig::default() };
-            if let Some(s) = cfg.selection.as_mut() {
-                s.shaft_position = shaft_position;
-            }
             // BORDER_GUARD=<sigmas>: the border guard's threshold (0 disables it).
             if let Ok(v) = std::env::var("BORDER_GUARD") {
                 cfg.border_guard_sigmas = v.parse().unwrap();

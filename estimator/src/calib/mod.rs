@@ -27,14 +27,18 @@
 //! - [`selection`]: the detector's acceptance rule ([`SelectionRule`]: visible shaft length,
 //!   border margin, tip in view or not) as a likelihood, and our pipeline's final,
 //!   selection-aware stage.
-//! - [`ours`]: joint robust refinement on the image distance in pixels, covariance, candidates
-//!   compared by their likelihood with a typed refusal when the runner-up cannot be ruled out;
-//!   ends with the selection stage.
+//! - [`shaft_position`]: where along the tool the shaft was seen (each line point on the
+//!   physical shaft, in front of the camera, the tip at an observed shaft end, with the
+//!   selection's tip model) as likelihood terms, and the translation from the shaft ends.
+//! - [`ours`]: joint robust refinement on the image distance in pixels and the shaft
+//!   positions, covariance, candidates compared by their likelihood with a typed refusal when
+//!   the runner-up cannot be ruled out; ends with the selection stage (given the
+//!   shaft-position terms as extra terms, so the stage does not import them).
 //! - [`crb`]: the Cramér-Rao bounds for a geometry and a kinematic noise model, without and
 //!   with the selection.
 //!
-//! The order is the import order: prepare → residual → paper / selection → ours, with crb on
-//! residual and selection; no module imports one listed after it.
+//! The order is the import order: prepare → residual → paper / selection → shaft_position →
+//! ours, with crb on residual and selection; no module imports one listed after it.
 
 pub mod camera;
 pub mod crb;

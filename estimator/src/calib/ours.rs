@@ -40,10 +40,10 @@ use super::paper::{
 };
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::residual::{damped_step, residual, residual_and_jacobian, residual_covariance};
-use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected, tip_well_inside};
+use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected_with, tip_well_inside};
 use super::shaft_position::{
     ShaftModel, axis_seen_at, residuals_and_gradients_at, residuals_at, shaft_model, shaft_position_residuals,
-    translation_from_shaft_ends,
+    stage_terms, translation_from_shaft_ends,
 };
 use super::{Observation, Setup};
 
@@ -831,7 +831,7 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
     }
     // The selection-aware stage, from the guarded fit, on all observations.
     Ok(match &cfg.selection {
-        Some(sel) => apply_selection_stage(set, &noise, sel, result),
+        Some(sel) => apply_selection_stage(set, &noise, sel, cfg.shaft_position, result),
         None => result,
     })
 }
@@ -839,15 +839,19 @@ pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursRe
 /// The selection-aware stage ([`super::selection`]) from a guarded fit of
 /// [`solve_ours_prepared`] (run with `selection: None`): the stage's pose, covariance and
 /// bookkeeping, or the guarded fit with the reason when the stage is refused. For comparing
-/// both without solving twice.
+/// both without solving twice. `shaft_position`: add the shaft-position terms to the stage
+/// ([`OursConfig::shaft_position`]).
 pub fn apply_selection_stage(
     set: &PreparedSet,
     noise: &KinematicNoise,
     cfg: &SelectionConfig,
+    shaft_position: bool,
     mut result: OursResult,
 ) -> OursResult {
+    let terms = |o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>, grad: bool| stage_terms(set, o, r, t, noise, grad);
+    let extra: Option<super::selection::ExtraTerms<'_>> = if shaft_position { Some(&terms) } else { None };
     // The stage's pose must explain the shafts as the guarded fit does.
-    let fit = refine_selected(set, noise, &result.pose, &result.covariance, cfg).and_then(|fit| {
+    let fit = refine_selected_with(set, noise, &result.pose, &result.covariance, cfg, extra).and_then(|fit| {
         let x = shaft_explanation(set, &fit.pose, SHAFT_MARGIN);
         if x.explains() {
             Ok(fit)

@@ -48,7 +48,6 @@ use super::hausman::{MoveTest, move_test};
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, damped_step, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
-use super::shaft_position::{ShaftModel, residuals_and_gradients_at, residuals_at, shaft_model};
 
 /// The predicted tool tip of an observation, seen by its camera.
 #[derive(Clone, Copy, Debug)]
@@ -724,14 +723,14 @@ pub struct SelectionConfig {
     /// 0 disables the refusal (the test is still reported, at
     /// [`DEFAULT_FALSE_REFUSAL_PROBABILITY`]).
     pub false_refusal_probability: f64,
-    /// Add the shaft-position likelihood ([`super::shaft_position`]) of every observation not
-    /// screened out, as our pipeline's robust fit does ([`super::ours::OursConfig::shaft_position`]).
-    pub shaft_position: bool,
 }
 
-/// Huber threshold (standard deviations) of the stage's shaft-position terms, as the robust
-/// fit's default ([`super::ours::OursConfig::huber_k`]).
-const SHAFT_HUBER_K: f64 = 3.0;
+/// More terms of the stage's negative log-likelihood, per observation not screened out: a
+/// function of the observation and the pose `(R, t)` returning its value and, when asked, its
+/// gradient w.r.t. `(t m, δφ rad)` and Gauss-Newton matrix (our pipeline's shaft-position
+/// terms, [`super::ours`]; this module does not know them).
+pub type ExtraTerms<'a> =
+    &'a dyn Fn(&Prepared, &Matrix3<f64>, &Vector3<f64>, bool) -> (f64, Vector6<f64>, Matrix6<f64>);
 
 /// The default of [`SelectionConfig::false_refusal_probability`]: 1e-3 (a stage consistent
 /// with the guarded fit is refused once in a thousand datasets; the limit is the χ²₆ quantile
@@ -747,7 +746,6 @@ impl Default for SelectionConfig {
             outlier_threshold: 9.2,
             max_iterations: 50,
             false_refusal_probability: DEFAULT_FALSE_REFUSAL_PROBABILITY,
-            shaft_position: true,
         }
     }
 }
@@ -965,38 +963,6 @@ fn term(
     Some((f, g, h))
 }
 
-/// One observation's shaft-position terms ([`super::shaft_position`] with `model`), Huber at [`SHAFT_HUBER_K`]: negative log-likelihood and, when `want_grad`, gradient and
-/// Gauss-Newton matrix w.r.t. `(t, δφ)`.
-fn shaft_term(
-    set: &PreparedSet,
-    o: &Prepared,
-    r: &Matrix3<f64>,
-    t: &Vector3<f64>,
-    model: &ShaftModel,
-    want_grad: bool,
-) -> (f64, Vector6<f64>, Matrix6<f64>) {
-    let (mut f, mut g, mut h) = (0.0, Vector6::zeros(), Matrix6::zeros());
-    let huber = |e: f64| if e <= SHAFT_HUBER_K { 0.5 * e * e } else { SHAFT_HUBER_K * (e - 0.5 * SHAFT_HUBER_K) };
-    if !want_grad {
-        for e in residuals_at(set, o, r, t, model) {
-            f += huber(e.abs());
-        }
-        return (f, g, h);
-    }
-    let (es, js) = residuals_and_gradients_at(set, o, r, t, model);
-    for (e, j) in es.iter().zip(&js) {
-        if *e == 0.0 {
-            continue;
-        }
-        let n = e.abs();
-        let wgt = if n <= SHAFT_HUBER_K { 1.0 } else { SHAFT_HUBER_K / n };
-        f += huber(n);
-        g += j * (e * wgt);
-        h += j * j.transpose() * wgt;
-    }
-    (f, g, h)
-}
-
 /// The stage's negative log-likelihood and its analytic gradient w.r.t. `(t m, δφ rad)` at
 /// `pose`, with every observation's model built at `model_pose` (both `T_e_t`); no outlier
 /// screening. For checking the gradient and for plots of the likelihood.
@@ -1101,6 +1067,19 @@ pub fn refine_selected(
     start_covariance: &Matrix6<f64>,
     cfg: &SelectionConfig,
 ) -> Result<SelectionFit, SelectionError> {
+    refine_selected_with(set, noise, start, start_covariance, cfg, None)
+}
+
+/// [`refine_selected`] with `extra` terms added to the likelihood of every observation not
+/// screened out.
+pub fn refine_selected_with(
+    set: &PreparedSet,
+    noise: &KinematicNoise,
+    start: &Isometry3<f64>,
+    start_covariance: &Matrix6<f64>,
+    cfg: &SelectionConfig,
+    extra: Option<ExtraTerms<'_>>,
+) -> Result<SelectionFit, SelectionError> {
     let mut r = start.rotation.to_rotation_matrix().into_inner();
     let mut t = start.translation.vector;
     let apply = |r: &Matrix3<f64>, t: &Vector3<f64>, d: &Vector6<f64>| {
@@ -1152,9 +1131,8 @@ pub fn refine_selected(
                 acc.0 += f;
                 acc.1 += g;
                 acc.2 += h;
-                // The shaft-position terms with their model built at the evaluated pose.
-                if cfg.shaft_position && !matches!(m, Model::Out) {
-                    let (f, g, h) = shaft_term(set, o, r, t, &shaft_model(set, o, r, t, noise), grad);
+                if let (Some(extra), false) = (extra, matches!(m, Model::Out)) {
+                    let (f, g, h) = extra(o, r, t, grad);
                     acc.0 += f;
                     acc.1 += g;
                     acc.2 += h;

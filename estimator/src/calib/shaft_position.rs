@@ -22,12 +22,12 @@
 //!   in pixels. This is the term that places the tool: it accounts for the correlation of the
 //!   tip with the line residuals, which the metric terms above do not.
 //!
-//! Our pipeline adds them to its objective ([`super::ours`]) and so does its selection-aware
-//! stage ([`super::selection`]); [`translation_from_shaft_ends`] gives the refinement's
-//! translation start. Layer: beside [`super::residual`] and [`super::selection`] (whose tip
-//! model it uses), below [`super::ours`].
+//! Our pipeline adds them to its objective ([`super::ours`]) and to its selection-aware stage
+//! ([`stage_terms`], passed to [`super::selection::refine_selected_with`]);
+//! [`translation_from_shaft_ends`] gives the refinement's translation start. Layer: above
+//! [`super::selection`] (whose tip model it uses), below [`super::ours`].
 
-use nalgebra::{Matrix3, SMatrix, Vector2, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
 use super::KinematicNoise;
 use super::prepare::{Prepared, PreparedSet};
@@ -341,4 +341,43 @@ pub fn translation_from_shaft_ends(set: &PreparedSet, r: &Matrix3<f64>) -> Optio
         t = Some(next);
     }
     t
+}
+
+/// Huber threshold (standard deviations) of [`stage_terms`], as the robust fit's default
+/// ([`super::ours::OursConfig::huber_k`]).
+const STAGE_HUBER_K: f64 = 3.0;
+
+/// Observation `o`'s shaft-position terms as negative log-likelihood (Huber at 3 standard
+/// deviations, the model built at `(R, t)`) and, when `grad`, their gradient w.r.t.
+/// `(t m, δφ rad)` and Gauss-Newton matrix: the selection-aware stage's extra terms
+/// ([`super::selection::refine_selected_with`]).
+pub fn stage_terms(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    grad: bool,
+) -> (f64, Vector6<f64>, Matrix6<f64>) {
+    let model = shaft_model(set, o, r, t, noise);
+    let (mut f, mut g, mut h) = (0.0, Vector6::zeros(), Matrix6::zeros());
+    let huber = |e: f64| if e <= STAGE_HUBER_K { 0.5 * e * e } else { STAGE_HUBER_K * (e - 0.5 * STAGE_HUBER_K) };
+    if !grad {
+        for e in residuals_at(set, o, r, t, &model) {
+            f += huber(e.abs());
+        }
+        return (f, g, h);
+    }
+    let (es, js) = residuals_and_gradients_at(set, o, r, t, &model);
+    for (e, j) in es.iter().zip(&js) {
+        if *e == 0.0 {
+            continue;
+        }
+        let n = e.abs();
+        let wgt = if n <= STAGE_HUBER_K { 1.0 } else { STAGE_HUBER_K / n };
+        f += huber(n);
+        g += j * (e * wgt);
+        h += j * j.transpose() * wgt;
+    }
+    (f, g, h)
 }

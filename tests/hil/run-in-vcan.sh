@@ -226,6 +226,30 @@ uml_fail() {
     exit "$HARNESS_FAIL"
 }
 
+# UML cannot run on this host: Debian's UML 6.1 kernel fails to set the guest's floating-point
+# registers through ptrace when the host's FPU state is larger than it handles (AVX-512 hosts,
+# e.g. AMD Zen 4): its init dies before the command ("ptrace set fp regs failed, errno = 14").
+# Run the command in the qemu guest instead (run-in-qemu.sh: Debian's own kernel, which has vcan),
+# with the same interfaces, timeout and --rw dirs; HIL_MODE=qemu. Slower (software emulation), so
+# measure timing on the host as always; the behaviour and counts are the same.
+run_qemu_fallback() {
+    log "UML cannot run on this host (ptrace set fp regs failed: an FPU state it does not handle, e.g. AVX-512): falling back to the qemu guest (run-in-qemu.sh)"
+    local -a args=(--modprobe can_raw --modprobe vcan --timeout "$timeout_s")
+    local d
+    for d in "${rw_dirs[@]}"; do args+=(--rw "$d"); done
+    rm -rf -- "$R"
+    export HIL_FALLBACK_IFACES=$ifaces_csv
+    # shellcheck disable=SC2016 # expanded in the guest
+    exec "$HERE/run-in-qemu.sh" "${args[@]}" -- bash -c '
+        set -e
+        IFS=, read -r -a ifs <<< "$HIL_FALLBACK_IFACES"
+        ip link set dev lo up
+        for i in "${ifs[@]}"; do ip link add dev "$i" type vcan; ip link set dev "$i" up; done
+        export HIL_IFACES=$HIL_FALLBACK_IFACES
+        unset HIL_FALLBACK_IFACES
+        exec "$@"' hil-vcan "$@"
+}
+
 run_uml() {
     local kernel=${HIL_UML_KERNEL:-/usr/bin/linux.uml}
     local mem=${HIL_UML_MEM:-1024M}
@@ -410,6 +434,9 @@ run_uml() {
     if [[ ! -e $R/rc ]]; then
         if [[ -e $R/t_cmd_start ]]; then
             uml_fail "the command started but no exit code came back (UML exited with $uml_rc)"
+        fi
+        if grep -q 'ptrace set fp regs failed' "$R/boot.log" 2> /dev/null; then
+            run_qemu_fallback "$@"
         fi
         uml_fail "the VM did not start the command (UML exited with $uml_rc)"
     fi

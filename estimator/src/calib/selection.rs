@@ -202,6 +202,19 @@ pub fn tip_end_model(
     noise: &KinematicNoise,
     depth_ratio: f64,
 ) -> Option<TipEndModel> {
+    tip_end_model_and_pixel(set, o, r, t, noise, depth_ratio).map(|(m, _)| m)
+}
+
+/// [`tip_end_model`] and the tip's [`TipPixel`] at the same pose (computed once: the model
+/// needs it, and [`TipEndModel::z_with`] evaluates the model there with it).
+pub(crate) fn tip_end_model_and_pixel(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    depth_ratio: f64,
+) -> Option<(TipEndModel, TipPixel)> {
     if !(o.shaft_end[0] || o.shaft_end[1]) {
         return None;
     }
@@ -222,7 +235,7 @@ pub fn tip_end_model(
     let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
     let tg = tip_given_line(&s4)?;
     let sd_px = u.dot(&(tg.cond * u)).max(1e-12).sqrt();
-    sd_px.is_finite().then_some(TipEndModel { point, u, s_obs, gain: tg.gain, sd_px })
+    sd_px.is_finite().then_some((TipEndModel { point, u, s_obs, gain: tg.gain, sd_px }, tp.pixel))
 }
 
 impl TipEndModel {
@@ -237,13 +250,30 @@ impl TipEndModel {
         grad: bool,
     ) -> Option<(f64, Vector6<f64>)> {
         let tp = tip_pixel(set, o, r, t)?;
-        let (res, dz) = if grad {
+        if grad {
             let (res, jr) = residual_and_jacobian(set, o, r, t);
-            let dpx: SMatrix<f64, 2, 6> = tp.proj * tp.dp_pose;
-            let ds: nalgebra::RowVector6<f64> = self.u.transpose() * (dpx + self.gain * jr);
-            (res, -ds.transpose() / self.sd_px)
+            self.z_with(o, &tp, &res, Some(&jr))
         } else {
-            (residual(set, o, r, t), Vector6::zeros())
+            self.z_with(o, &tp, &residual(set, o, r, t), None)
+        }
+    }
+
+    /// [`Self::z`] from the tip's pixel `tp` and the line residuals `res` (with their pose
+    /// Jacobian `jr` for the gradient; zero gradient without) at the evaluated pose.
+    pub fn z_with(
+        &self,
+        o: &Prepared,
+        tp: &TipPixel,
+        res: &Vector2<f64>,
+        jr: Option<&Jac6>,
+    ) -> Option<(f64, Vector6<f64>)> {
+        let dz = match jr {
+            Some(jr) => {
+                let dpx: SMatrix<f64, 2, 6> = tp.proj * tp.dp_pose;
+                let ds: nalgebra::RowVector6<f64> = self.u.transpose() * (dpx + self.gain * jr);
+                -ds.transpose() / self.sd_px
+            }
+            None => Vector6::zeros(),
         };
         let s_mean = (tp.px + self.gain * res - o.px[0]).dot(&self.u);
         let z = (self.s_obs - s_mean) / self.sd_px;

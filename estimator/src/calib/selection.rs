@@ -106,7 +106,18 @@ pub fn tip_pixel(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<
 /// derivatives and the shaft's image direction; `None` when it is less than 1 mm in front of
 /// the optical centre.
 pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipProjection> {
-    let pixel = tip_pixel(set, o, r, t)?;
+    Some(tip_projection_from(o, r, tip_pixel(set, o, r, t)?))
+}
+
+/// Unit image direction of the shaft of `o` at rotation `R` from its tip toward robot 2's
+/// RCM, at the tip's projection derivative `proj` ([`TipProjection::dir_px`]).
+fn shaft_dir_px(o: &Prepared, r: &Matrix3<f64>, proj: &SMatrix<f64, 2, 3>) -> Vector2<f64> {
+    let back = -(o.r_ec.transpose() * (r * o.m_t));
+    (proj * back).try_normalize(1e-12).unwrap_or_else(Vector2::zeros)
+}
+
+/// [`tip_projection`] from the tip's [`TipPixel`] at pose `(R, ·)`.
+fn tip_projection_from(o: &Prepared, r: &Matrix3<f64>, pixel: TipPixel) -> TipProjection {
     let (p, proj) = (pixel.p_c, pixel.proj);
     let rt = o.r_ec.transpose();
     // Camera: right perturbation δc = Ad(X⁻¹) δe moves the point by p' = p + [p]× φc − ρc;
@@ -120,9 +131,8 @@ pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
     dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
     dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);
-    let back = -(rt * (r * o.m_t));
-    let dir_px = (proj * back).try_normalize(1e-12).unwrap_or_else(Vector2::zeros);
-    Some(TipProjection { pixel, dp_noise: dp, dir_px })
+    let dir_px = shaft_dir_px(o, r, &proj);
+    TipProjection { pixel, dp_noise: dp, dir_px }
 }
 
 /// The 2×2 covariance (pixels²) of the tip's pixel under `noise`.
@@ -218,18 +228,20 @@ pub(crate) fn tip_end_model_and_pixel(
     if !(o.shaft_end[0] || o.shaft_end[1]) {
         return None;
     }
-    let tp = tip_projection(set, o, r, t)?;
-    if relative_depth_sd(&tp, noise) > depth_ratio {
-        return None;
-    }
+    // Which end is the tip's first (cheap: no noise derivatives), then the depth check.
+    let pixel = tip_pixel(set, o, r, t)?;
     let mut u = (o.px[1] - o.px[0]).try_normalize(1e-12)?;
-    if u.dot(&tp.dir_px) < 0.0 {
+    if u.dot(&shaft_dir_px(o, r, &pixel.proj)) < 0.0 {
         u = -u;
     }
     // Along `u` (tip toward the RCM) from the first point: the tip's end is the smaller.
     let s1 = (o.px[1] - o.px[0]).dot(&u);
     let (point, s_obs) = if s1 < 0.0 { (1, s1) } else { (0, 0.0) };
     if !o.shaft_end[point] {
+        return None;
+    }
+    let tp = tip_projection_from(o, r, pixel);
+    if relative_depth_sd(&tp, noise) > depth_ratio {
         return None;
     }
     let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);

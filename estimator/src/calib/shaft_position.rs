@@ -249,12 +249,8 @@ pub fn residuals_at_with(
     res: &Vector2<f64>,
 ) -> [f64; TERMS] {
     let mut e = residuals_with(set, o, r, t, &m.sds, m.tip.map(|x| x.point));
-    if let Some(tm) = &m.tip {
-        if let Some(tp) = tip_pixel(set, o, r, t) {
-            if let Some(z) = tm.z_with(o, &tp, res, None) {
-                e[4] = z.0;
-            }
-        }
+    if let Some(z) = m.tip.and_then(|tm| tip_pixel(set, o, r, t).and_then(|tp| tm.z_with(o, &tp, res, None))) {
+        e[4] = z.0;
     }
     e
 }

@@ -42,8 +42,8 @@ use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, 
 use super::residual::{damped_step, residual, residual_and_jacobian, residual_covariance};
 use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected_with, tip_well_inside};
 use super::shaft_position::{
-    ShaftModel, axis_seen_at, residuals_and_gradients_at, residuals_at, shaft_model, shaft_position_residuals,
-    stage_terms, translation_from_shaft_ends,
+    ShaftModel, axis_seen_at, model_and_residuals_at, residuals_at_with, shaft_position_residuals, stage_terms,
+    translation_from_shaft_ends,
 };
 use super::{Observation, Setup};
 
@@ -392,17 +392,25 @@ fn refine(
         let mut norms = Vec::with_capacity(set.obs.len());
         let mut evals = Vec::with_capacity(set.obs.len());
         let mut scratch = Vec::with_capacity(set.obs.len());
+        // The unwhitened line residuals and Jacobians, for the shaft-position terms.
+        let mut raws = Vec::with_capacity(shaft_models.capacity());
+        // The line residuals at a trial pose.
+        let mut trial = Vec::with_capacity(set.obs.len());
         for _ in 0..cfg.max_iterations {
             iterations += 1;
             let mut h = Matrix6::zeros();
             let mut g = Vector6::zeros();
             norms.clear();
             evals.clear();
+            raws.clear();
             for (o, w) in set.obs.iter().zip(&whiten) {
                 let (res, jac) = residual_and_jacobian(set, o, &r, &t);
                 let (e, j) = (w * res, w * jac);
                 norms.push(e.norm());
                 evals.push((e, j));
+                if shaft_noise.is_some() {
+                    raws.push((res, jac));
+                }
             }
             scale = robust_scale_with(&norms, &mut scratch);
             let c = cfg.huber_k * scale;
@@ -418,11 +426,11 @@ fn refine(
             // point is on the physical shaft, in front of the camera.
             if let Some(noise) = shaft_noise {
                 shaft_models.clear();
-                shaft_models.extend(set.obs.iter().map(|o| shaft_model(set, o, &r, &t, noise)));
                 line_weights.clear();
                 line_weights.extend(norms.iter().map(|n| if *n <= c { 1.0 } else { c / n }));
-                for ((o, m), lw) in set.obs.iter().zip(&shaft_models).zip(&line_weights) {
-                    let (es, gs) = residuals_and_gradients_at(set, o, &r, &t, m);
+                for ((o, (res, jac)), lw) in set.obs.iter().zip(&raws).zip(&line_weights) {
+                    let (m, es, gs) = model_and_residuals_at(set, o, &r, &t, noise, true, Some((res, jac)));
+                    shaft_models.push(m);
                     for (e, j) in es.iter().zip(&gs) {
                         if *e == 0.0 {
                             continue;
@@ -447,19 +455,17 @@ fn refine(
                 };
                 let t_new = t + step.fixed_rows::<3>(0);
                 let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
-                let new_cost: f64 = set
-                    .obs
-                    .iter()
-                    .zip(&whiten)
-                    .map(|(o, w)| huber((w * residual(set, o, &r_new, &t_new)).norm(), c))
-                    .sum::<f64>()
+                trial.clear();
+                trial.extend(set.obs.iter().map(|o| residual(set, o, &r_new, &t_new)));
+                let new_cost: f64 = trial.iter().zip(&whiten).map(|(res, w)| huber((w * res).norm(), c)).sum::<f64>()
                     + set
                         .obs
                         .iter()
+                        .zip(&trial)
                         .zip(&shaft_models)
                         .zip(&line_weights)
-                        .map(|((o, m), lw)| {
-                            lw * residuals_at(set, o, &r_new, &t_new, m)
+                        .map(|(((o, res), m), lw)| {
+                            lw * residuals_at_with(set, o, &r_new, &t_new, m, res)
                                 .iter()
                                 .map(|e| huber((e * scale).abs(), c))
                                 .sum::<f64>()
@@ -886,6 +892,21 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     if cfg.noise.is_some_and(|n| !n.is_valid()) {
         return Err(OursError::NoiseModel);
     }
+    let starts = start_rotations(set, cfg, from)?;
+    solve_from(set, cfg, from, &starts)
+}
+
+/// [`solve_once`]'s starts (they do not depend on [`OursConfig::shaft_position`]): the
+/// translation `t0` (Eq. 5, or `from`'s), the starting rotations (`from`'s, or the configured
+/// one and the linear start) and the other minima of Eq. 10.
+struct Starts {
+    t0: Vector3<f64>,
+    starts: Vec<Matrix3<f64>>,
+    extra: Vec<Matrix3<f64>>,
+}
+
+/// [`Starts`] of [`solve_once`].
+fn start_rotations(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>) -> Result<Starts, OursError> {
     let t0 = match from {
         Some(p) => p.translation.vector,
         None => linear_translation(set).map_err(|e| match e {
@@ -946,6 +967,18 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         }
         None => {}
     }
+    Ok(Starts { t0, starts, extra })
+}
+
+/// [`solve_once`] from its [`Starts`].
+fn solve_from(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    from: Option<&Isometry3<f64>>,
+    st: &Starts,
+) -> Result<OursResult, OursError> {
+    let Starts { t0, starts, extra } = st;
+    let t0 = *t0;
     // Each start and its 180° turns about the line of sight to robot 2's RCM and about the
     // three axes of the mean tool direction's frame (the tool axis, its component across the
     // line of sight, their normal): a line cannot tell the tool's direction from its opposite,
@@ -992,7 +1025,8 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     // noise) and the shaft-end starts are thrown off (wrong lines), the lines find the basin.
     let lines_start: Option<(Matrix3<f64>, Vector3<f64>)> = if with_ends {
         let lines_cfg = OursConfig { shaft_position: false, ..*cfg };
-        let pose = match solve_once(set, &lines_cfg, None) {
+        // The same starts (they do not depend on the shaft-position terms).
+        let pose = match solve_from(set, &lines_cfg, None, st) {
             Ok(x) => Some(x.pose),
             Err(OursError::ShaftsNotExplained { pose, .. }) => Some(*pose),
             Err(OursError::Ambiguous { best, .. }) => Some(best.pose),
@@ -1160,8 +1194,7 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
     // The shaft-position terms' information (in the line residuals' units, as in [`refine`]).
     if let Some(noise) = cfg.noise.as_ref().filter(|_| cfg.shaft_position) {
         for o in &set.obs {
-            let m = shaft_model(set, o, &best.r, &best.t, noise);
-            let (es, js) = residuals_and_gradients_at(set, o, &best.r, &best.t, &m);
+            let (_, es, js) = model_and_residuals_at(set, o, &best.r, &best.t, noise, true, None);
             let (res, w) =
                 (residual(set, o, &best.r, &best.t), whitener(&residual_covariance(set, o, &best.r, &best.t, noise)));
             let ln = (w * res).norm();

@@ -106,7 +106,18 @@ pub fn tip_pixel(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<
 /// derivatives and the shaft's image direction; `None` when it is less than 1 mm in front of
 /// the optical centre.
 pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipProjection> {
-    let pixel = tip_pixel(set, o, r, t)?;
+    Some(tip_projection_from(o, r, tip_pixel(set, o, r, t)?))
+}
+
+/// Unit image direction of the shaft of `o` at rotation `R` from its tip toward robot 2's
+/// RCM, at the tip's projection derivative `proj` ([`TipProjection::dir_px`]).
+fn shaft_dir_px(o: &Prepared, r: &Matrix3<f64>, proj: &SMatrix<f64, 2, 3>) -> Vector2<f64> {
+    let back = -(o.r_ec.transpose() * (r * o.m_t));
+    (proj * back).try_normalize(1e-12).unwrap_or_else(Vector2::zeros)
+}
+
+/// [`tip_projection`] from the tip's [`TipPixel`] at pose `(R, ·)`.
+fn tip_projection_from(o: &Prepared, r: &Matrix3<f64>, pixel: TipPixel) -> TipProjection {
     let (p, proj) = (pixel.p_c, pixel.proj);
     let rt = o.r_ec.transpose();
     // Camera: right perturbation δc = Ad(X⁻¹) δe moves the point by p' = p + [p]× φc − ρc;
@@ -120,9 +131,8 @@ pub fn tip_projection(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
     dp.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-a * skew(&Vector3::z()) * o.insertion_m));
     dp.fixed_view_mut::<3, 3>(0, 12).copy_from(&a);
-    let back = -(rt * (r * o.m_t));
-    let dir_px = (proj * back).try_normalize(1e-12).unwrap_or_else(Vector2::zeros);
-    Some(TipProjection { pixel, dp_noise: dp, dir_px })
+    let dir_px = shaft_dir_px(o, r, &proj);
+    TipProjection { pixel, dp_noise: dp, dir_px }
 }
 
 /// The 2×2 covariance (pixels²) of the tip's pixel under `noise`.
@@ -202,15 +212,26 @@ pub fn tip_end_model(
     noise: &KinematicNoise,
     depth_ratio: f64,
 ) -> Option<TipEndModel> {
+    tip_end_model_and_pixel(set, o, r, t, noise, depth_ratio).map(|(m, _)| m)
+}
+
+/// [`tip_end_model`] and the tip's [`TipPixel`] at the same pose (computed once: the model
+/// needs it, and [`TipEndModel::z_with`] evaluates the model there with it).
+pub(crate) fn tip_end_model_and_pixel(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    depth_ratio: f64,
+) -> Option<(TipEndModel, TipPixel)> {
     if !(o.shaft_end[0] || o.shaft_end[1]) {
         return None;
     }
-    let tp = tip_projection(set, o, r, t)?;
-    if relative_depth_sd(&tp, noise) > depth_ratio {
-        return None;
-    }
+    // Which end is the tip's first (cheap: no noise derivatives), then the depth check.
+    let pixel = tip_pixel(set, o, r, t)?;
     let mut u = (o.px[1] - o.px[0]).try_normalize(1e-12)?;
-    if u.dot(&tp.dir_px) < 0.0 {
+    if u.dot(&shaft_dir_px(o, r, &pixel.proj)) < 0.0 {
         u = -u;
     }
     // Along `u` (tip toward the RCM) from the first point: the tip's end is the smaller.
@@ -219,10 +240,14 @@ pub fn tip_end_model(
     if !o.shaft_end[point] {
         return None;
     }
+    let tp = tip_projection_from(o, r, pixel);
+    if relative_depth_sd(&tp, noise) > depth_ratio {
+        return None;
+    }
     let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
     let tg = tip_given_line(&s4)?;
     let sd_px = u.dot(&(tg.cond * u)).max(1e-12).sqrt();
-    sd_px.is_finite().then_some(TipEndModel { point, u, s_obs, gain: tg.gain, sd_px })
+    sd_px.is_finite().then_some((TipEndModel { point, u, s_obs, gain: tg.gain, sd_px }, tp.pixel))
 }
 
 impl TipEndModel {
@@ -237,13 +262,30 @@ impl TipEndModel {
         grad: bool,
     ) -> Option<(f64, Vector6<f64>)> {
         let tp = tip_pixel(set, o, r, t)?;
-        let (res, dz) = if grad {
+        if grad {
             let (res, jr) = residual_and_jacobian(set, o, r, t);
-            let dpx: SMatrix<f64, 2, 6> = tp.proj * tp.dp_pose;
-            let ds: nalgebra::RowVector6<f64> = self.u.transpose() * (dpx + self.gain * jr);
-            (res, -ds.transpose() / self.sd_px)
+            self.z_with(o, &tp, &res, Some(&jr))
         } else {
-            (residual(set, o, r, t), Vector6::zeros())
+            self.z_with(o, &tp, &residual(set, o, r, t), None)
+        }
+    }
+
+    /// [`Self::z`] from the tip's pixel `tp` and the line residuals `res` (with their pose
+    /// Jacobian `jr` for the gradient; zero gradient without) at the evaluated pose.
+    pub fn z_with(
+        &self,
+        o: &Prepared,
+        tp: &TipPixel,
+        res: &Vector2<f64>,
+        jr: Option<&Jac6>,
+    ) -> Option<(f64, Vector6<f64>)> {
+        let dz = match jr {
+            Some(jr) => {
+                let dpx: SMatrix<f64, 2, 6> = tp.proj * tp.dp_pose;
+                let ds: nalgebra::RowVector6<f64> = self.u.transpose() * (dpx + self.gain * jr);
+                -ds.transpose() / self.sd_px
+            }
+            None => Vector6::zeros(),
         };
         let s_mean = (tp.px + self.gain * res - o.px[0]).dot(&self.u);
         let z = (self.s_obs - s_mean) / self.sd_px;

@@ -32,7 +32,8 @@ use nalgebra::{Matrix3, Matrix6, SMatrix, Vector2, Vector3, Vector6};
 use super::KinematicNoise;
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
-use super::selection::{TipEndModel, tip_end_model};
+use super::residual::{Jac6, residual, residual_and_jacobian};
+use super::selection::{TipEndModel, tip_end_model, tip_end_model_and_pixel, tip_pixel};
 
 /// Where the tool axis is seen at an observed line point: for the ray through ideal pixel `u`
 /// (camera frame, direction `K⁻¹ [u, 1]ᵀ`, unit depth) and the tool axis of pose `(R, t)`
@@ -150,7 +151,76 @@ pub fn shaft_position_residuals(
     t: &Vector3<f64>,
     noise: &KinematicNoise,
 ) -> [f64; TERMS] {
-    residuals_at(set, o, r, t, &shaft_model(set, o, r, t, noise))
+    model_and_residuals_at(set, o, r, t, noise, false, None).1
+}
+
+/// [`shaft_model`] built at pose `(R, t)` and evaluated there: the model, the residuals
+/// ([`residuals_at`]) and, with `grad`, their gradients ([`residuals_and_gradients_at`];
+/// zeros without), bit for bit as those functions give them, computing each line point's
+/// closest approach and the tip's projection once. `line`: observation `o`'s line residual
+/// pair and its pose Jacobian at `(R, t)` ([`super::residual::residual_and_jacobian`]) when
+/// the caller has them.
+pub fn model_and_residuals_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    grad: bool,
+    line: Option<(&Vector2<f64>, &Jac6)>,
+) -> (ShaftModel, [f64; TERMS], [Vector6<f64>; TERMS]) {
+    let focal = focal_px(set);
+    let mut seen = [None; 2];
+    let mut sds = [None; 2];
+    for (j, u) in o.px.iter().enumerate() {
+        let (v, p, d) = ray_and_axis(set, o, r, t, u);
+        seen[j] = closest_approach(&v, &p, &d);
+        sds[j] = seen[j].and_then(|(depth, s)| sd_of(noise, focal, o.insertion_m, &v, &d, depth, s));
+    }
+    let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
+    let m = ShaftModel { sds, tip: tip.map(|x| x.0) };
+    let mut e = metric_residuals(o, &seen, &sds, m.tip.map(|x| x.point));
+    let mut g = [Vector6::zeros(); TERMS];
+    if let Some((tm, tp)) = &tip {
+        let z = match (grad, line) {
+            (true, Some((res, jr))) => tm.z_with(o, tp, res, Some(jr)),
+            (true, None) => {
+                let (res, jr) = residual_and_jacobian(set, o, r, t);
+                tm.z_with(o, tp, &res, Some(&jr))
+            }
+            (false, Some((res, _))) => tm.z_with(o, tp, res, None),
+            (false, None) => tm.z_with(o, tp, &residual(set, o, r, t), None),
+        };
+        if let Some((z, dz)) = z {
+            e[4] = z;
+            g[4] = dz;
+        }
+    }
+    if grad {
+        metric_gradients(set, o, r, t, &sds, &e, &mut g);
+    }
+    (m, e, g)
+}
+
+/// The focal length (pixels) of the set's camera, from `K⁻¹`.
+fn focal_px(set: &PreparedSet) -> f64 {
+    1.0 / set.k_inv_t[(0, 0)].abs().max(1e-300)
+}
+
+/// A line point's [`position_sd_m`] from its ray `v`, the axis direction `d` and their
+/// closest approach `(depth, s)`; `None` when not finite.
+fn sd_of(
+    noise: &KinematicNoise,
+    focal: f64,
+    insertion_m: f64,
+    v: &Vector3<f64>,
+    d: &Vector3<f64>,
+    depth: f64,
+    s: f64,
+) -> Option<f64> {
+    let sin_theta = v.normalize().cross(&d.normalize()).norm();
+    let sd = position_sd_m(noise, focal, insertion_m, s, depth, sin_theta);
+    sd.is_finite().then_some(sd)
 }
 
 /// [`shaft_position_residuals`] at pose `(R, t)` with a model built elsewhere.
@@ -168,6 +238,23 @@ pub fn residuals_at(
     e
 }
 
+/// [`residuals_at`] with observation `o`'s line residual pair at `(R, t)` given (`res`,
+/// [`super::residual::residual`]; the same values).
+pub fn residuals_at_with(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    m: &ShaftModel,
+    res: &Vector2<f64>,
+) -> [f64; TERMS] {
+    let mut e = residuals_with(set, o, r, t, &m.sds, m.tip.map(|x| x.point));
+    if let Some(z) = m.tip.and_then(|tm| tip_pixel(set, o, r, t).and_then(|tp| tm.z_with(o, &tp, res, None))) {
+        e[4] = z.0;
+    }
+    e
+}
+
 /// Each line point's [`position_sd_m`] at pose `(R, t)` (`None`: ray parallel to the axis).
 fn sds_at(
     set: &PreparedSet,
@@ -176,13 +263,11 @@ fn sds_at(
     t: &Vector3<f64>,
     noise: &KinematicNoise,
 ) -> [Option<f64>; 2] {
-    let focal = 1.0 / set.k_inv_t[(0, 0)].abs().max(1e-300);
+    let focal = focal_px(set);
     o.px.map(|u| {
         let (v, p, d) = ray_and_axis(set, o, r, t, &u);
         let (depth, s) = closest_approach(&v, &p, &d)?;
-        let sin_theta = v.normalize().cross(&d.normalize()).norm();
-        let sd = position_sd_m(noise, focal, o.insertion_m, s, depth, sin_theta);
-        sd.is_finite().then_some(sd)
+        sd_of(noise, focal, o.insertion_m, &v, &d, depth, s)
     })
 }
 
@@ -197,11 +282,22 @@ fn residuals_with(
     sds: &[Option<f64>; 2],
     tip_point: Option<usize>,
 ) -> [f64; TERMS] {
+    let seen = [0, 1].map(|j| sds[j].and_then(|_| axis_seen_at(set, o, r, t, &o.px[j])));
+    metric_residuals(o, &seen, sds, tip_point)
+}
+
+/// [`residuals_with`] from each line point's closest approach `seen` ([`axis_seen_at`]).
+fn metric_residuals(
+    o: &Prepared,
+    seen: &[Option<(f64, f64)>; 2],
+    sds: &[Option<f64>; 2],
+    tip_point: Option<usize>,
+) -> [f64; TERMS] {
     let l = o.insertion_m.abs();
     let mut e = [0.0; TERMS];
-    for (j, u) in o.px.iter().enumerate() {
+    for j in 0..2 {
         let Some(sd) = sds[j] else { continue };
-        let Some((depth, s)) = axis_seen_at(set, o, r, t, u) else { continue };
+        let Some((depth, s)) = seen[j] else { continue };
         let excess = if tip_point == Some(j) {
             0.0
         } else if o.shaft_end[j] {
@@ -238,12 +334,26 @@ pub fn residuals_and_gradients_at(
         e[4] = z;
         g[4] = dz;
     }
+    metric_gradients(set, o, r, t, &m.sds, &e, &mut g);
+    (e, g)
+}
+
+/// The gradients of the non-zero metric residuals `e` (the first four) into `g`.
+fn metric_gradients(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    sds: &[Option<f64>; 2],
+    e: &[f64; TERMS],
+    g: &mut [Vector6<f64>; TERMS],
+) {
     for (j, u) in o.px.iter().enumerate() {
         let (ei, ed) = (e[j] != 0.0, e[2 + j] != 0.0);
         if !(ei || ed) {
             continue;
         }
-        let Some(sd) = m.sds[j] else { continue };
+        let Some(sd) = sds[j] else { continue };
         let Some((dl, ds)) = closest_approach_gradient(set, o, r, t, u) else { continue };
         if ei {
             g[j] = ds / sd;
@@ -252,7 +362,6 @@ pub fn residuals_and_gradients_at(
             g[2 + j] = dl / sd;
         }
     }
-    (e, g)
 }
 
 /// Gradients w.r.t. the pose `(t, δφ)` (`R ← exp(δφ^) R`) of [`axis_seen_at`]'s depth and
@@ -359,16 +468,16 @@ pub fn stage_terms(
     noise: &KinematicNoise,
     grad: bool,
 ) -> (f64, Vector6<f64>, Matrix6<f64>) {
-    let model = shaft_model(set, o, r, t, noise);
     let (mut f, mut g, mut h) = (0.0, Vector6::zeros(), Matrix6::zeros());
     let huber = |e: f64| if e <= STAGE_HUBER_K { 0.5 * e * e } else { STAGE_HUBER_K * (e - 0.5 * STAGE_HUBER_K) };
+    // The model built and evaluated at `(R, t)` in one pass.
+    let (_, es, js) = model_and_residuals_at(set, o, r, t, noise, grad, None);
     if !grad {
-        for e in residuals_at(set, o, r, t, &model) {
+        for e in es {
             f += huber(e.abs());
         }
         return (f, g, h);
     }
-    let (es, js) = residuals_and_gradients_at(set, o, r, t, &model);
     for (e, j) in es.iter().zip(&js) {
         if *e == 0.0 {
             continue;

@@ -3,10 +3,11 @@
 //! solve time. For comparing builds (`diff` the outputs) and for looking at refusals.
 //!
 //! `cargo run --release -p comanip-calib --example calib_probe -- <first seed> <geometries>
-//! <trials> [mm|m] [sigma]` (tuning geometries: seeds 9000..9019). Environment:
+//! <trials> [mm|m] [sigma] [first trial]` (tuning geometries: seeds 9000..9019). Environment:
 //! `NO_SHAFT_POSITION=1` runs the lines alone (`OursConfig::shaft_position` off, in the fit and
 //! the selection stage), `BORDER_GUARD=<sigmas>` sets the border guard (0: off), `DIAG=1`
-//! prints the guarded fit and the selection stage separately.
+//! prints the guarded fit and the selection stage separately, `AXIS=1` the axis of the
+//! rotation error against the line of sight and the tool (which 180° turn a mirror is).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -83,11 +84,13 @@ fn main() {
         _ => NoiseUnits::Millimetre,
     };
     let sigma: f64 = a.get(5).map_or(0.01, |s| s.parse().unwrap());
+    let first_trial: u64 = a.get(6).map_or(0, |s| s.parse().unwrap());
     let mut total = 0.0;
     for g in 0..n {
         let seed = first + g;
-        let draw = random_geometry(seed, g % 2 == 1).unwrap();
-        for k in 0..trials {
+        // Distortion on odd seeds, as `sweep` draws them (its sets start at even seeds).
+        let draw = random_geometry(seed, seed % 2 == 1).unwrap();
+        for k in first_trial..first_trial + trials {
             let p = protocol(&draw, units, sigma, 1000 + k);
             let d = generate_calibration(&p).unwrap();
             let set = prepare(&d.setup, &d.observations).unwrap();
@@ -115,6 +118,25 @@ fn main() {
                         (None, Some(e)) => format!("refused {e}"),
                         _ => "none".into(),
                     };
+                    if std::env::var("AXIS").is_ok() {
+                        let n = set.obs.len() as f64;
+                        let mc = set.obs.iter().map(|o| o.o_ec).sum::<nalgebra::Vector3<f64>>() / n;
+                        let mp = set.obs.iter().map(|o| o.p_t).sum::<nalgebra::Vector3<f64>>() / n;
+                        let sight = (r.pose * nalgebra::Point3::from(mp)).coords - mc;
+                        let mm = set.obs.iter().map(|o| o.m_t).sum::<nalgebra::Vector3<f64>>() / n;
+                        let tool = r.pose.rotation * mm;
+                        let d_t = d.truth.translation.vector;
+                        let d = d.truth.rotation * r.pose.rotation.inverse();
+                        let ax = d.axis().map_or(nalgebra::Vector3::z(), |a| a.into_inner());
+                        println!(
+                            "AXIS angle {:.1} axis·sight {:.3} axis·tool {:.3} |sight| {:.3} truth t {:?}",
+                            d.angle().to_degrees(),
+                            ax.dot(&sight.normalize()),
+                            ax.dot(&tool.normalize()),
+                            sight.norm(),
+                            d_t.as_slice()
+                        );
+                    }
                     let x = shaft_explanation(&set, &r.pose, SHAFT_MARGIN);
                     let (b, o) = (x.behind, x.off_shaft);
                     let xt = shaft_explanation(&set, &d.truth, SHAFT_MARGIN);

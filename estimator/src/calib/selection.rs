@@ -927,8 +927,8 @@ const P_FLOOR: f64 = 1e-13;
 /// `ln P(kept | r)` of observation `o` at pose `(R, t)` (`T_e_t`) under `noise` and the rule:
 /// the probability that the tip, on the observed line where the pose and the line residuals
 /// put it, lies where the detector records the line. 0 (no information) for a plain line
-/// (first-order model not trusted, [`SelectionConfig::depth_ratio`]) and `ln 1e-13` for a tip
-/// behind the camera. Used to compare candidate solutions (a mirror puts the tips elsewhere).
+/// or a line left out (first-order model not trusted, [`SelectionConfig::depth_ratio`]) and
+/// `ln 1e-13` for a tip behind the camera. Used to compare candidate solutions (a mirror puts the tips elsewhere).
 pub fn kept_given_line_ln(
     set: &PreparedSet,
     o: &Prepared,
@@ -938,8 +938,10 @@ pub fn kept_given_line_ln(
     cfg: &SelectionConfig,
 ) -> f64 {
     match model_at(set, o, r, t, noise, cfg) {
-        Model::Out => P_FLOOR.ln(),
-        Model::Plain(_) => 0.0,
+        // Behind the camera: the floor. Otherwise the first-order model is not trusted there
+        // (tip too close to the camera near the border, or a singular noise): no information.
+        Model::Out if tip_pixel(set, o, r, t).is_none() => P_FLOOR.ln(),
+        Model::Out | Model::Plain(_) => 0.0,
         Model::Selected { gain, cond, segment: (u, s_lo, s_hi), .. } => {
             let Some(tp) = tip_pixel(set, o, r, t) else { return P_FLOOR.ln() };
             let res = residual(set, o, r, t);

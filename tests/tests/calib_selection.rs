@@ -268,7 +268,12 @@ fn a_stage_that_runs_away_is_refused_and_the_guarded_fit_kept() {
     let lines = OursConfig { noise: d.noise, shaft_position: false, ..OursConfig::default() };
     let guarded = solve_ours_prepared(&set, &OursConfig { selection: None, ..lines }).unwrap();
     // A false-refusal probability so close to 1 that the limit is ~0: no real move passes.
-    let strict = SelectionConfig { false_refusal_probability: 1.0 - 1e-12, ..SelectionConfig::default() };
+    // The test alone decides (not the likelihood: the stage is far more likely here).
+    let strict = SelectionConfig {
+        false_refusal_probability: 1.0 - 1e-12,
+        more_likely_overrides_test: false,
+        ..SelectionConfig::default()
+    };
     let o = solve_ours_prepared(&set, &OursConfig { selection: Some(strict), ..lines }).unwrap();
     assert!(o.selection.is_none());
     assert!(
@@ -280,4 +285,28 @@ fn a_stage_that_runs_away_is_refused_and_the_guarded_fit_kept() {
     // With the default limit the same data are fitted with their selection.
     let o = solve_ours_prepared(&set, &lines).unwrap();
     assert!(o.selection_refused.is_none() && o.selection.is_some());
+    // The strict limit, the likelihood deciding: the stage's pose is far more likely, taken.
+    let strict = SelectionConfig { more_likely_overrides_test: true, ..strict };
+    let o = solve_ours_prepared(&set, &OursConfig { selection: Some(strict), ..lines }).unwrap();
+    assert!(o.selection.is_some_and(|s| s.accepted_on_likelihood), "{:?}", o.selection_refused);
+}
+
+#[test]
+fn a_refused_move_to_a_far_more_likely_pose_is_taken() {
+    use sim::calib::random_geometry;
+    // Tuning geometry 9000, metre reading, σ = 0.01, trial seed 1001: the guarded fit is 8.5°
+    // off (47 of its standard deviations from the truth); the stage moves 27 deviations, to
+    // 0.8°, and fails the Hausman test. The likelihood says which of the two is wrong.
+    let g = random_geometry(9000, false).unwrap();
+    let d = generate_calibration(&protocol(g.geometry, 0.01, 1001)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    let test_alone = SelectionConfig { more_likely_overrides_test: false, ..SelectionConfig::default() };
+    let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
+    let refused = solve_ours_prepared(&set, &OursConfig { selection: Some(test_alone), ..cfg }).unwrap();
+    assert!(matches!(refused.selection_refused, Some(SelectionError::RanAway { .. })), "{:?}", refused.selection);
+    assert!(pose_errors(&refused.pose, &d.truth).rotation_rad.to_degrees() > 3.0);
+    let o = solve_ours_prepared(&set, &cfg).unwrap();
+    assert!(o.selection.is_some_and(|s| s.accepted_on_likelihood), "{:?}", o.selection_refused);
+    let e = pose_errors(&o.pose, &d.truth);
+    assert!(e.rotation_rad.to_degrees() < 1.5 && e.translation_m < 0.015, "{e:?}");
 }

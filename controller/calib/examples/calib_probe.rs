@@ -114,7 +114,11 @@ fn main() {
                     let et = (r.pose.translation.vector - d.truth.translation.vector).norm() * 1e3;
                     let er = (r.pose.rotation.inverse() * d.truth.rotation).angle().to_degrees();
                     let stage = match (&r.selection, &r.selection_refused) {
-                        (Some(s), _) => format!("applied shift {:.2}", s.shift_sigmas),
+                        (Some(s), _) => format!(
+                            "applied shift {:.2}{}",
+                            s.shift_sigmas,
+                            if s.accepted_on_likelihood { " on likelihood" } else { "" }
+                        ),
                         (None, Some(e)) => format!("refused {e}"),
                         _ => "none".into(),
                     };

@@ -765,6 +765,11 @@ pub struct SelectionConfig {
     /// 0 disables the refusal (the test is still reported, at
     /// [`DEFAULT_FALSE_REFUSAL_PROBABILITY`]).
     pub false_refusal_probability: f64,
+    /// Our pipeline ([`super::ours::apply_selection_stage`]): a stage whose move fails the
+    /// test is still taken when its pose is more than 1000 times more likely than the guarded
+    /// fit's on all observations (the likelihood the candidates are compared by). `false`: the
+    /// test alone decides.
+    pub more_likely_overrides_test: bool,
 }
 
 /// More terms of the stage's negative log-likelihood, per observation not screened out: a
@@ -788,6 +793,7 @@ impl Default for SelectionConfig {
             outlier_threshold: 9.2,
             max_iterations: 50,
             false_refusal_probability: DEFAULT_FALSE_REFUSAL_PROBABILITY,
+            more_likely_overrides_test: true,
         }
     }
 }

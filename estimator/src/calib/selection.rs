@@ -917,7 +917,7 @@ fn selected_model(
     noise: &KinematicNoise,
     tp: &TipProjection,
 ) -> Model {
-    let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
+    let (_, s4) = line_tip_noise(set, o, r, t, tp, noise);
     let Some(TipGivenLine { srr_inv, stt, gain, cond }) = tip_given_line(&s4) else { return Model::Out };
     let (lo, hi) = kept_box(set, &tp.dir_px, &tp.pixel.px);
     let Some(mut u) = (o.px[1] - o.px[0]).try_normalize(1e-12) else { return Model::Plain(srr_inv) };

@@ -42,8 +42,7 @@ use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, 
 use super::residual::{damped_step, residual, residual_and_jacobian, residual_covariance};
 use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected_with, tip_well_inside};
 use super::shaft_position::{
-    ShaftModel, axis_seen_at, model_and_residuals_at, residuals_at_with, shaft_position_residuals, stage_terms,
-    translation_from_shaft_ends,
+    ShaftModel, axis_seen_at, model_and_residuals_at, residuals_at_with, stage_terms, translation_from_shaft_ends,
 };
 use super::{Observation, Setup};
 
@@ -609,14 +608,16 @@ fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<
     let mut norms = Vec::with_capacity(set.obs.len());
     let mut shaft = Vec::new();
     let mut rest = 0.0;
+    // Unused by the shaft terms without their gradients ([`model_and_residuals_at`]).
+    let no_jacobian = super::residual::Jac6::zeros();
     for o in &set.obs {
+        let res = residual(set, o, r, t);
         if let Some(noise) = cfg.noise.as_ref().filter(|_| cfg.shaft_position) {
             let i = norms.len();
-            shaft.extend(
-                shaft_position_residuals(set, o, r, t, noise).iter().filter(|e| **e != 0.0).map(|e| (e.abs(), i)),
-            );
+            // [`super::shaft_position::shaft_position_residuals`] with the line residuals shared.
+            let (_, es, _) = model_and_residuals_at(set, o, r, t, noise, false, Some((&res, &no_jacobian)));
+            shaft.extend(es.iter().filter(|e| **e != 0.0).map(|e| (e.abs(), i)));
         }
-        let res = residual(set, o, r, t);
         let (e, logdet) = match &cfg.noise {
             Some(noise) => {
                 let cov = residual_covariance(set, o, r, t, noise);
@@ -1280,10 +1281,17 @@ fn solve_from(
     let mut h = Matrix6::zeros();
     let mut wsum = 0.0;
     let mut inliers = 0;
+    let shaft_noise = cfg.noise.as_ref().filter(|_| cfg.shaft_position);
+    // Each observation's line residuals, Jacobian and whitened norm, for the shaft terms below
+    // (`best.whiten` is the whitening at the winner's pose).
+    let mut lines = Vec::with_capacity(if shaft_noise.is_some() { set.obs.len() } else { 0 });
     for (o, w) in set.obs.iter().zip(&best.whiten) {
         let (res, jac) = residual_and_jacobian(set, o, &best.r, &best.t);
         let (e, j) = (w * res, w * jac);
         let n = e.norm();
+        if shaft_noise.is_some() {
+            lines.push((res, jac, n));
+        }
         let wgt = if n <= c {
             inliers += 1;
             1.0
@@ -1294,12 +1302,10 @@ fn solve_from(
         wsum += wgt * n * n;
     }
     // The shaft-position terms' information (in the line residuals' units, as in [`refine`]).
-    if let Some(noise) = cfg.noise.as_ref().filter(|_| cfg.shaft_position) {
-        for o in &set.obs {
-            let (_, es, js) = model_and_residuals_at(set, o, &best.r, &best.t, noise, true, None);
-            let (res, w) =
-                (residual(set, o, &best.r, &best.t), whitener(&residual_covariance(set, o, &best.r, &best.t, noise)));
-            let ln = (w * res).norm();
+    if let Some(noise) = shaft_noise {
+        for (o, (res, jac, ln)) in set.obs.iter().zip(&lines) {
+            let (_, es, js) = model_and_residuals_at(set, o, &best.r, &best.t, noise, true, Some((res, jac)));
+            let ln = *ln;
             let lw = if ln <= c { 1.0 } else { c / ln };
             for (e, j) in es.iter().zip(&js) {
                 if *e != 0.0 {

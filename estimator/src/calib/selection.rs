@@ -909,7 +909,21 @@ fn model_at(
             _ => Model::Out,
         };
     }
-    let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
+    selected_model(set, o, r, t, noise, &tp)
+}
+
+/// [`model_at`] once the tip is in front of the camera (`tp`, its projection at `(R, t)`) and
+/// its first-order model trusted: the selected line, or a plain line or none when the tip
+/// cannot be conditioned on the line or the line misses its box.
+fn selected_model(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    tp: &TipProjection,
+) -> Model {
+    let (_, s4) = line_tip_noise(set, o, r, t, tp, noise);
     let Some(TipGivenLine { srr_inv, stt, gain, cond }) = tip_given_line(&s4) else { return Model::Out };
     let (lo, hi) = kept_box(set, &tp.dir_px, &tp.pixel.px);
     let Some(mut u) = (o.px[1] - o.px[0]).try_normalize(1e-12) else { return Model::Plain(srr_inv) };
@@ -943,13 +957,18 @@ pub fn kept_given_line_ln(
     noise: &KinematicNoise,
     cfg: &SelectionConfig,
 ) -> f64 {
-    match model_at(set, o, r, t, noise, cfg) {
-        // Behind the camera: the floor. Otherwise the first-order model is not trusted there
-        // (tip too close to the camera near the border, or a singular noise): no information.
-        Model::Out if tip_pixel(set, o, r, t).is_none() => P_FLOOR.ln(),
+    // [`model_at`], without what does not change the value: behind the camera, the floor;
+    // where the first-order model is not trusted (tip too close to the camera, a plain line
+    // or one left out, or a singular noise), no information.
+    let Some(tp) = tip_projection(set, o, r, t) else { return P_FLOOR.ln() };
+    if relative_depth_sd(&tp, noise) > cfg.depth_ratio {
+        return 0.0;
+    }
+    match selected_model(set, o, r, t, noise, &tp) {
         Model::Out | Model::Plain(_) => 0.0,
         Model::Selected { gain, cond, segment: (u, s_lo, s_hi), .. } => {
-            let Some(tp) = tip_pixel(set, o, r, t) else { return P_FLOOR.ln() };
+            // The tip's pixel at `(R, t)`, as [`tip_pixel`] gives it.
+            let tp = tp.pixel;
             let res = residual(set, o, r, t);
             let s_mean = (tp.px + gain * res - o.px[0]).dot(&u);
             let s_sd = u.dot(&(cond * u)).max(1e-12).sqrt();
@@ -1203,7 +1222,14 @@ pub fn refine_selected_with(
                     continue;
                 };
                 let (rn, tn) = apply(&r, &t, &step);
-                match eval(&rn, &tn, true) {
+                // The value first; the gradient and Gauss-Newton matrix (same value, the
+                // selection terms' numeric gradients the bulk of the cost) only for an
+                // accepted step.
+                let accept = match eval(&rn, &tn, false) {
+                    Some((fnew, _, _)) if fnew <= f => eval(&rn, &tn, true),
+                    _ => None,
+                };
+                match accept {
                     Some((fnew, gnew, hnew)) if fnew <= f => {
                         // Converged when the step is below a hundredth of a standard deviation.
                         small = step.dot(&(h * step)) < 1e-4;

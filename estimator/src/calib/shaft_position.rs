@@ -62,10 +62,20 @@ fn ray_and_axis(
     t: &Vector3<f64>,
     u: &Vector2<f64>,
 ) -> (Vector3<f64>, Vector3<f64>, Vector3<f64>) {
-    let p = o.r_ec.tr_mul(&(r * o.p_t + t - o.o_ec));
-    let d = o.r_ec.tr_mul(&(r * o.m_t));
-    let v = set.k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0));
-    (v, p, d)
+    let (p, d) = axis_in_camera(o, r, t);
+    (ray(set, u), p, d)
+}
+
+/// The tool axis's point `p` (metres) and direction `d` (unit) in the camera frame at pose
+/// `(R, t)`: [`ray_and_axis`]'s, which do not depend on the line point (computed once per
+/// observation).
+fn axis_in_camera(o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    (o.r_ec.tr_mul(&(r * o.p_t + t - o.o_ec)), o.r_ec.tr_mul(&(r * o.m_t)))
+}
+
+/// The ray direction (camera frame, unit depth) through ideal pixel `u`: [`ray_and_axis`]'s.
+fn ray(set: &PreparedSet, u: &Vector2<f64>) -> Vector3<f64> {
+    set.k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0))
 }
 
 fn closest_approach(v: &Vector3<f64>, p: &Vector3<f64>, d: &Vector3<f64>) -> Option<(f64, f64)> {
@@ -172,10 +182,13 @@ pub fn model_and_residuals_at(
     let focal = focal_px(set);
     let mut seen = [None; 2];
     let mut sds = [None; 2];
+    // The axis (and its unit direction) once for both line points.
+    let (p, d) = axis_in_camera(o, r, t);
+    let d_unit = d.normalize();
     for (j, u) in o.px.iter().enumerate() {
-        let (v, p, d) = ray_and_axis(set, o, r, t, u);
+        let v = ray(set, u);
         seen[j] = closest_approach(&v, &p, &d);
-        sds[j] = seen[j].and_then(|(depth, s)| sd_of(noise, focal, o.insertion_m, &v, &d, depth, s));
+        sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(noise, focal, o.insertion_m, &v, &d_unit, depth, s));
     }
     let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
     let m = ShaftModel { sds, tip: tip.map(|x| x.0) };
@@ -218,7 +231,20 @@ fn sd_of(
     depth: f64,
     s: f64,
 ) -> Option<f64> {
-    let sin_theta = v.normalize().cross(&d.normalize()).norm();
+    sd_of_unit(noise, focal, insertion_m, v, &d.normalize(), depth, s)
+}
+
+/// [`sd_of`] with the axis direction already normalised (`d_unit = d.normalize()`).
+fn sd_of_unit(
+    noise: &KinematicNoise,
+    focal: f64,
+    insertion_m: f64,
+    v: &Vector3<f64>,
+    d_unit: &Vector3<f64>,
+    depth: f64,
+    s: f64,
+) -> Option<f64> {
+    let sin_theta = v.normalize().cross(d_unit).norm();
     let sd = position_sd_m(noise, focal, insertion_m, s, depth, sin_theta);
     sd.is_finite().then_some(sd)
 }
@@ -282,7 +308,9 @@ fn residuals_with(
     sds: &[Option<f64>; 2],
     tip_point: Option<usize>,
 ) -> [f64; TERMS] {
-    let seen = [0, 1].map(|j| sds[j].and_then(|_| axis_seen_at(set, o, r, t, &o.px[j])));
+    // [`axis_seen_at`] of each line point, the axis computed once.
+    let (p, d) = axis_in_camera(o, r, t);
+    let seen = [0, 1].map(|j| sds[j].and_then(|_| closest_approach(&ray(set, &o.px[j]), &p, &d)));
     metric_residuals(o, &seen, sds, tip_point)
 }
 
@@ -348,13 +376,16 @@ fn metric_gradients(
     e: &[f64; TERMS],
     g: &mut [Vector6<f64>; TERMS],
 ) {
+    // The axis and its pose Jacobians, built at most once for both line points.
+    let mut axis: Option<AxisJacobians> = None;
     for (j, u) in o.px.iter().enumerate() {
         let (ei, ed) = (e[j] != 0.0, e[2 + j] != 0.0);
         if !(ei || ed) {
             continue;
         }
         let Some(sd) = sds[j] else { continue };
-        let Some((dl, ds)) = closest_approach_gradient(set, o, r, t, u) else { continue };
+        let ax = axis.get_or_insert_with(|| axis_jacobians(o, r, t));
+        let Some((dl, ds)) = closest_approach_gradient_with(&ray(set, u), ax) else { continue };
         if ei {
             g[j] = ds / sd;
         }
@@ -364,23 +395,19 @@ fn metric_gradients(
     }
 }
 
-/// Gradients w.r.t. the pose `(t, δφ)` (`R ← exp(δφ^) R`) of [`axis_seen_at`]'s depth and
-/// position along the tool (metres per metre / radian), by differentiating the closest
-/// approach's closed form; `None` where [`axis_seen_at`] is.
-fn closest_approach_gradient(
-    set: &PreparedSet,
-    o: &Prepared,
-    r: &Matrix3<f64>,
-    t: &Vector3<f64>,
-    u: &Vector2<f64>,
-) -> Option<(Vector6<f64>, Vector6<f64>)> {
-    let (v, p, d) = ray_and_axis(set, o, r, t, u);
-    let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
-    let (vp, dpr) = (v.dot(&p), d.dot(&p));
-    let den = a * c - b * b;
-    if den.is_nan() || den.abs() <= 1e-12 * a * c {
-        return None;
-    }
+/// The tool axis in the camera frame at a pose ([`axis_in_camera`]: point `p`, direction `d`)
+/// and their Jacobians w.r.t. the pose `(t, δφ)`: what [`closest_approach_gradient_with`]
+/// needs besides the ray, the same for both line points of an observation.
+struct AxisJacobians {
+    p: Vector3<f64>,
+    d: Vector3<f64>,
+    jp: SMatrix<f64, 3, 6>,
+    jd: SMatrix<f64, 3, 6>,
+}
+
+/// [`AxisJacobians`] of observation `o` at pose `(R, t)`.
+fn axis_jacobians(o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> AxisJacobians {
+    let (p, d) = axis_in_camera(o, r, t);
     // ∂p/∂t = R_ecᵀ, ∂p/∂δφ = −R_ecᵀ [R p_t]×; ∂d/∂t = 0, ∂d/∂δφ = −R_ecᵀ [R m_t]×.
     let rt = o.r_ec.transpose();
     let mut jp = SMatrix::<f64, 3, 6>::zeros();
@@ -388,6 +415,23 @@ fn closest_approach_gradient(
     jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.p_t))));
     let mut jd = SMatrix::<f64, 3, 6>::zeros();
     jd.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.m_t))));
+    AxisJacobians { p, d, jp, jd }
+}
+
+/// Gradients w.r.t. the pose `(t, δφ)` (`R ← exp(δφ^) R`) of [`axis_seen_at`]'s depth and
+/// position along the tool (metres per metre / radian) for the ray `v` ([`ray`]) and the axis
+/// `ax`, by differentiating the closest approach's closed form; `None` where [`axis_seen_at`]
+/// is.
+fn closest_approach_gradient_with(v: &Vector3<f64>, ax: &AxisJacobians) -> Option<(Vector6<f64>, Vector6<f64>)> {
+    let AxisJacobians { p, d, jp, jd } = ax;
+    let (p, d, jp, jd) = (*p, *d, *jp, *jd);
+    let v = *v;
+    let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
+    let (vp, dpr) = (v.dot(&p), d.dot(&p));
+    let den = a * c - b * b;
+    if den.is_nan() || den.abs() <= 1e-12 * a * c {
+        return None;
+    }
     let db = (v.transpose() * jd).transpose();
     let dc = (d.transpose() * jd).transpose() * 2.0;
     let dvp = (v.transpose() * jp).transpose();

@@ -660,7 +660,7 @@ fn runner_up(
         return (pose_of(&candidates[i].r, &candidates[i].t), costs[i]);
     }
     // Every start went to the best: its mirror, refined.
-    let (r_m, t_m) = mirrored(set, &best.r, &best.t);
+    let [(r_m, t_m), ..] = flips(set, &best.r, &best.t);
     let refined = refine(set, cfg, whitening(set, cfg, &r_m, &t_m), r_m, t_m, &[]);
     let ok = refined.t.iter().chain(refined.r.iter()).all(|v| v.is_finite()) && distinct(&refined.r);
     if ok {
@@ -668,18 +668,6 @@ fn runner_up(
         return (pose_of(&refined.r, &refined.t), c);
     }
     (pose_of(&r_m, &t_m), nll_of(&r_m, &t_m))
-}
-
-/// The mirror of pose `(r, t)`: turned 180° about the mean line of sight to the mean line
-/// point (robot 2's RCM, or the mean fulcrum), which stays in place.
-fn mirrored(set: &PreparedSet, r: &Matrix3<f64>, t: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>) {
-    let mean_c = set.obs.iter().map(|o| o.o_ec).sum::<Vector3<f64>>() / set.obs.len().max(1) as f64;
-    let mean_p = set.obs.iter().map(|o| o.p_t).sum::<Vector3<f64>>() / set.obs.len().max(1) as f64;
-    let point_e = r * mean_p + t;
-    let sight = (point_e - mean_c).try_normalize(1e-12).unwrap_or_else(Vector3::z);
-    let flip = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(sight), core::f64::consts::PI).into_inner();
-    let r_m = flip * r;
-    (r_m, point_e - r_m * mean_p)
 }
 
 /// Pose `(r, t)` turned 180° about the mean line of sight to the mean line point (robot 2's

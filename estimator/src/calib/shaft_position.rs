@@ -220,21 +220,8 @@ fn focal_px(set: &PreparedSet) -> f64 {
     1.0 / set.k_inv_t[(0, 0)].abs().max(1e-300)
 }
 
-/// A line point's [`position_sd_m`] from its ray `v`, the axis direction `d` and their
-/// closest approach `(depth, s)`; `None` when not finite.
-fn sd_of(
-    noise: &KinematicNoise,
-    focal: f64,
-    insertion_m: f64,
-    v: &Vector3<f64>,
-    d: &Vector3<f64>,
-    depth: f64,
-    s: f64,
-) -> Option<f64> {
-    sd_of_unit(noise, focal, insertion_m, v, &d.normalize(), depth, s)
-}
-
-/// [`sd_of`] with the axis direction already normalised (`d_unit = d.normalize()`).
+/// A line point's [`position_sd_m`] from its ray `v`, the unit axis direction `d_unit` and
+/// their closest approach `(depth, s)`; `None` when not finite.
 fn sd_of_unit(
     noise: &KinematicNoise,
     focal: f64,
@@ -293,7 +280,7 @@ fn sds_at(
     o.px.map(|u| {
         let (v, p, d) = ray_and_axis(set, o, r, t, &u);
         let (depth, s) = closest_approach(&v, &p, &d)?;
-        sd_of(noise, focal, o.insertion_m, &v, &d, depth, s)
+        sd_of_unit(noise, focal, o.insertion_m, &v, &d.normalize(), depth, s)
     })
 }
 

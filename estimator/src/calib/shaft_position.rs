@@ -33,7 +33,7 @@ use super::KinematicNoise;
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, residual, residual_and_jacobian};
-use super::selection::{TipEndModel, tip_end_model, tip_end_model_and_pixel, tip_pixel};
+use super::selection::{TipEndModel, tip_end_model, tip_end_model_and_pixel, tip_px};
 
 /// Where the tool axis is seen at an observed line point: for the ray through ideal pixel `u`
 /// (camera frame, direction `K⁻¹ [u, 1]ᵀ`, unit depth) and the tool axis of pose `(R, t)`
@@ -262,8 +262,8 @@ pub fn residuals_at_with(
     res: &Vector2<f64>,
 ) -> [f64; TERMS] {
     let mut e = residuals_with(set, o, r, t, &m.sds, m.tip.map(|x| x.point));
-    if let Some(z) = m.tip.and_then(|tm| tip_pixel(set, o, r, t).and_then(|tp| tm.z_with(o, &tp, res, None))) {
-        e[4] = z.0;
+    if let Some(z) = m.tip.and_then(|tm| tip_px(set, o, r, t).and_then(|px| tm.z_at(o, &px, res))) {
+        e[4] = z;
     }
     e
 }

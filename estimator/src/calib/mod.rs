@@ -256,9 +256,20 @@ impl KinematicNoise {
     /// `g diag(σ²) gᵀ + σ_px² I`.
     pub fn propagate<const R: usize>(&self, g: &SMatrix<f64, R, 18>) -> SMatrix<f64, R, R> {
         let mut cov = SMatrix::<f64, R, R>::identity() * (self.pixel_px * self.pixel_px);
+        // The upper triangle, then mirrored: each element the same sum of
+        // `g[(a, c)] g[(b, c)] σ_c²` over `c`, in the same order, as the full outer products'.
         for (c, v) in self.perturbation_variances().iter().enumerate() {
-            let col = g.column(c);
-            cov += col * col.transpose() * *v;
+            for b in 0..R {
+                let gb = g[(b, c)];
+                for a in 0..=b {
+                    cov[(a, b)] += g[(a, c)] * gb * *v;
+                }
+            }
+        }
+        for b in 0..R {
+            for a in 0..b {
+                cov[(b, a)] = cov[(a, b)];
+            }
         }
         cov
     }

@@ -355,6 +355,16 @@ fn add_weighted_gram(h: &mut Matrix6<f64>, j: &super::residual::Jac6, wgt: f64) 
     }
 }
 
+/// `h += j jᵀ · wgt` on the upper triangle only (the same arithmetic per element as the full
+/// outer product; [`mirror_upper`] afterwards).
+fn add_weighted_outer(h: &mut Matrix6<f64>, j: &Vector6<f64>, wgt: f64) {
+    for b in 0..6 {
+        for a in 0..=b {
+            h[(a, b)] += j[a] * j[b] * wgt;
+        }
+    }
+}
+
 /// Copies the upper triangle of `h` onto its lower triangle.
 fn mirror_upper(h: &mut Matrix6<f64>) {
     for b in 0..6 {
@@ -425,7 +435,6 @@ fn refine(
                 g += j.transpose() * e * wgt;
                 cost += huber(*n, c);
             }
-            mirror_upper(&mut h);
             // The shaft-position terms (with a noise model): flat while every observed line
             // point is on the physical shaft, in front of the camera.
             if let Some(noise) = shaft_noise {
@@ -444,12 +453,14 @@ fn refine(
                         let (e, j) = (e * scale, j * scale);
                         let n = e.abs();
                         let wgt = lw * if n <= c { 1.0 } else { c / n };
-                        h += j * j.transpose() * wgt;
+                        add_weighted_outer(&mut h, &j, wgt);
                         g += j * e * wgt;
                         cost += lw * huber(n, c);
                     }
                 }
             }
+            // The lower triangle, once (each element the same sum as the full products').
+            mirror_upper(&mut h);
             let mut accepted = false;
             let mut small = false;
             while lambda < 1e10 {
@@ -461,20 +472,24 @@ fn refine(
                 let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
                 trial.clear();
                 trial.extend(set.obs.iter().map(|o| residual(set, o, &r_new, &t_new)));
-                let new_cost: f64 = trial.iter().zip(&whiten).map(|(res, w)| huber((w * res).norm(), c)).sum::<f64>()
-                    + set
-                        .obs
-                        .iter()
-                        .zip(&trial)
-                        .zip(&shaft_models)
-                        .zip(&line_weights)
-                        .map(|(((o, res), m), lw)| {
-                            lw * residuals_at_with(set, o, &r_new, &t_new, m, res)
+                // The lines' cost, then the shaft terms' sum in the same order as a `sum` (from
+                // −0), stopped once it exceeds `cost`: every term is ≥ 0, so a partial sum
+                // above `cost` rejects the step as the whole sum would.
+                let lines: f64 = trial.iter().zip(&whiten).map(|(res, w)| huber((w * res).norm(), c)).sum::<f64>();
+                let mut shaft = -0.0;
+                if lines <= cost {
+                    for (((o, res), m), lw) in set.obs.iter().zip(&trial).zip(&shaft_models).zip(&line_weights) {
+                        shaft += lw
+                            * residuals_at_with(set, o, &r_new, &t_new, m, res)
                                 .iter()
                                 .map(|e| huber((e * scale).abs(), c))
-                                .sum::<f64>()
-                        })
-                        .sum::<f64>();
+                                .sum::<f64>();
+                        if lines + shaft > cost {
+                            break;
+                        }
+                    }
+                }
+                let new_cost = lines + shaft;
                 if new_cost <= cost {
                     small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
                         || cost - new_cost <= 1e-14 * cost;

@@ -56,6 +56,10 @@ pub struct Prepared {
     /// `Ad(T_f_eye⁻¹)` of the eye that saw this observation (6×6, `(ρ, φ)` order): maps a
     /// right perturbation of robot 1's end effector into that eye's frame.
     pub eye_inv_adjoint: Matrix6<f64>,
+    /// Each line point's ray direction in the camera frame (unit depth, `K⁻¹ [u, 1]ᵀ`) and
+    /// that direction normalised: fixed by [`Prepared::px`] (computed once here for the
+    /// shaft-position terms, [`super::shaft_position`]).
+    pub(crate) rays: [(Vector3<f64>, Vector3<f64>); 2],
 }
 
 /// All observations, prepared, with the camera model.
@@ -175,6 +179,7 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
         return Err(PrepareError::Selection(setup.selection));
     }
     let k_inv = setup.intrinsics.k_inv();
+    let k_inv_t = k_inv.transpose();
     let mut obs = Vec::with_capacity(observations.len());
     for (index, o) in observations.iter().enumerate() {
         if !o.ecm_joints.iter().chain(o.psm_joints.iter()).chain(o.tool_point_m.iter()).all(|v| v.is_finite()) {
@@ -215,6 +220,10 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
             insertion_m: o.psm_joints[2],
             px,
             eye_inv_adjoint,
+            rays: px.map(|u| {
+                let v = k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0));
+                (v, v.normalize())
+            }),
         });
     }
     let views = count_distinct(obs.iter().map(|p| p.o_ec), 2, |a, b| (a - b).norm() > SAME_VIEW_M);
@@ -227,7 +236,7 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
     Ok(PreparedSet {
         pencil_ratio,
         obs,
-        k_inv_t: k_inv.transpose(),
+        k_inv_t,
         hand_eye: setup.hand_eye,
         intrinsics: setup.intrinsics,
         selection: setup.selection,

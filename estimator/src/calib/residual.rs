@@ -99,9 +99,12 @@ pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
     let z = skew(&Vector3::z());
     let d = o.insertion_m;
-    let dn_rho = -sd * a;
-    let dn_phi_a = sd * a * z * d - sp * a * z;
-    let dn_phi_b = -sp * a * z;
+    // `(−x) y = −(x y)` exactly (rounding is symmetric): the shared products once.
+    let sd_a = sd * a;
+    let sp_a_z = sp * a * z;
+    let dn_rho = -sd_a;
+    let dn_phi_a = sd_a * z * d - sp_a_z;
+    let dn_phi_b = -sp_a_z;
     dn.fixed_view_mut::<3, 3>(0, 6).copy_from(&dn_rho);
     dn.fixed_view_mut::<3, 3>(0, 9).copy_from(&dn_phi_a);
     dn.fixed_view_mut::<3, 3>(0, 12).copy_from(&dn_rho);

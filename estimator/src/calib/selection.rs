@@ -79,14 +79,12 @@ pub struct TipPixel {
 /// Projects observation `o`'s tool tip at pose `(R, t)` (`T_e_t`) with its pose derivatives;
 /// `None` when it is less than 1 mm in front of the optical centre.
 pub fn tip_pixel(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<TipPixel> {
-    let rt = o.r_ec.transpose();
-    let tip_t = r * (o.p_t + o.m_t * o.insertion_m);
-    let p = rt * (tip_t + t - o.o_ec);
+    let (rt, tip_t, p) = tip_in_camera(o, r, t);
     if p.z <= 1e-3 {
         return None;
     }
     let cam = &set.intrinsics;
-    let px = Vector2::new(cam.fx * p.x / p.z + cam.skew * p.y / p.z + cam.cx, cam.fy * p.y / p.z + cam.cy);
+    let px = ideal_pixel(cam, &p);
     let proj = SMatrix::<f64, 2, 3>::new(
         cam.fx / p.z,
         cam.skew / p.z,
@@ -100,6 +98,27 @@ pub fn tip_pixel(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<
     dp_pose.fixed_view_mut::<3, 3>(0, 0).copy_from(&rt);
     dp_pose.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&tip_t)));
     Some(TipPixel { p_c: p, px, proj, dp_pose })
+}
+
+/// [`TipPixel::px`] alone (the same arithmetic): observation `o`'s tool tip at pose `(R, t)`
+/// in ideal pixels; `None` when it is less than 1 mm in front of the optical centre.
+pub fn tip_px(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<Vector2<f64>> {
+    let (_, _, p) = tip_in_camera(o, r, t);
+    (p.z > 1e-3).then(|| ideal_pixel(&set.intrinsics, &p))
+}
+
+/// `R_ecᵀ`, the tip in `{e}` relative to `t` (`R (p + m L)`, metres) and the tip in the camera
+/// frame (metres) of observation `o` at pose `(R, t)`.
+fn tip_in_camera(o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> (Matrix3<f64>, Vector3<f64>, Vector3<f64>) {
+    let rt = o.r_ec.transpose();
+    let tip_t = r * (o.p_t + o.m_t * o.insertion_m);
+    let p = rt * (tip_t + t - o.o_ec);
+    (rt, tip_t, p)
+}
+
+/// The ideal pixel of camera-frame point `p` (metres, `p.z > 0`).
+fn ideal_pixel(cam: &super::Intrinsics, p: &Vector3<f64>) -> Vector2<f64> {
+    Vector2::new(cam.fx * p.x / p.z + cam.skew * p.y / p.z + cam.cx, cam.fy * p.y / p.z + cam.cy)
 }
 
 /// Projects observation `o`'s tool tip at pose `(R, t)` (`T_e_t`) with its pose and noise
@@ -287,9 +306,14 @@ impl TipEndModel {
             }
             None => Vector6::zeros(),
         };
-        let s_mean = (tp.px + self.gain * res - o.px[0]).dot(&self.u);
+        self.z_at(o, &tp.px, res).map(|z| (z, dz))
+    }
+
+    /// [`Self::z_with`]'s value alone from the tip's ideal pixel `px` ([`tip_px`]).
+    pub fn z_at(&self, o: &Prepared, px: &Vector2<f64>, res: &Vector2<f64>) -> Option<f64> {
+        let s_mean = (px + self.gain * res - o.px[0]).dot(&self.u);
         let z = (self.s_obs - s_mean) / self.sd_px;
-        z.is_finite().then_some((z, dz))
+        z.is_finite().then_some(z)
     }
 }
 

@@ -33,7 +33,7 @@ use super::KinematicNoise;
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, residual, residual_and_jacobian};
-use super::selection::{TipEndModel, tip_end_model, tip_end_model_and_pixel, tip_pixel};
+use super::selection::{TipEndModel, tip_end_model, tip_end_model_and_pixel, tip_px};
 
 /// Where the tool axis is seen at an observed line point: for the ray through ideal pixel `u`
 /// (camera frame, direction `K⁻¹ [u, 1]ᵀ`, unit depth) and the tool axis of pose `(R, t)`
@@ -185,10 +185,9 @@ pub fn model_and_residuals_at(
     // The axis (and its unit direction) once for both line points.
     let (p, d) = axis_in_camera(o, r, t);
     let d_unit = d.normalize();
-    for (j, u) in o.px.iter().enumerate() {
-        let v = ray(set, u);
-        seen[j] = closest_approach(&v, &p, &d);
-        sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(noise, focal, o.insertion_m, &v, &d_unit, depth, s));
+    for (j, (v, v_unit)) in o.rays.iter().enumerate() {
+        seen[j] = closest_approach(v, &p, &d);
+        sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(noise, focal, o.insertion_m, v_unit, &d_unit, depth, s));
     }
     let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
     let m = ShaftModel { sds, tip: tip.map(|x| x.0) };
@@ -210,7 +209,7 @@ pub fn model_and_residuals_at(
         }
     }
     if grad {
-        metric_gradients(set, o, r, t, &sds, &e, &mut g);
+        metric_gradients(o, r, t, &sds, &e, &mut g);
     }
     (m, e, g)
 }
@@ -220,18 +219,18 @@ fn focal_px(set: &PreparedSet) -> f64 {
     1.0 / set.k_inv_t[(0, 0)].abs().max(1e-300)
 }
 
-/// A line point's [`position_sd_m`] from its ray `v`, the unit axis direction `d_unit` and
-/// their closest approach `(depth, s)`; `None` when not finite.
+/// A line point's [`position_sd_m`] from its unit ray direction `v_unit`, the unit axis
+/// direction `d_unit` and their closest approach `(depth, s)`; `None` when not finite.
 fn sd_of_unit(
     noise: &KinematicNoise,
     focal: f64,
     insertion_m: f64,
-    v: &Vector3<f64>,
+    v_unit: &Vector3<f64>,
     d_unit: &Vector3<f64>,
     depth: f64,
     s: f64,
 ) -> Option<f64> {
-    let sin_theta = v.normalize().cross(d_unit).norm();
+    let sin_theta = v_unit.cross(d_unit).norm();
     let sd = position_sd_m(noise, focal, insertion_m, s, depth, sin_theta);
     sd.is_finite().then_some(sd)
 }
@@ -244,7 +243,7 @@ pub fn residuals_at(
     t: &Vector3<f64>,
     m: &ShaftModel,
 ) -> [f64; TERMS] {
-    let mut e = residuals_with(set, o, r, t, &m.sds, m.tip.map(|x| x.point));
+    let mut e = residuals_with(o, r, t, &m.sds, m.tip.map(|x| x.point));
     if let Some(z) = m.tip.and_then(|x| x.z(set, o, r, t, false)) {
         e[4] = z.0;
     }
@@ -261,9 +260,9 @@ pub fn residuals_at_with(
     m: &ShaftModel,
     res: &Vector2<f64>,
 ) -> [f64; TERMS] {
-    let mut e = residuals_with(set, o, r, t, &m.sds, m.tip.map(|x| x.point));
-    if let Some(z) = m.tip.and_then(|tm| tip_pixel(set, o, r, t).and_then(|tp| tm.z_with(o, &tp, res, None))) {
-        e[4] = z.0;
+    let mut e = residuals_with(o, r, t, &m.sds, m.tip.map(|x| x.point));
+    if let Some(z) = m.tip.and_then(|tm| tip_px(set, o, r, t).and_then(|px| tm.z_at(o, &px, res))) {
+        e[4] = z;
     }
     e
 }
@@ -280,7 +279,7 @@ fn sds_at(
     o.px.map(|u| {
         let (v, p, d) = ray_and_axis(set, o, r, t, &u);
         let (depth, s) = closest_approach(&v, &p, &d)?;
-        sd_of_unit(noise, focal, o.insertion_m, &v, &d.normalize(), depth, s)
+        sd_of_unit(noise, focal, o.insertion_m, &v.normalize(), &d.normalize(), depth, s)
     })
 }
 
@@ -288,7 +287,6 @@ fn sds_at(
 /// point's standard deviation given; `tip_point`: the point the tip model places (no position
 /// term there).
 fn residuals_with(
-    set: &PreparedSet,
     o: &Prepared,
     r: &Matrix3<f64>,
     t: &Vector3<f64>,
@@ -297,7 +295,7 @@ fn residuals_with(
 ) -> [f64; TERMS] {
     // [`axis_seen_at`] of each line point, the axis computed once.
     let (p, d) = axis_in_camera(o, r, t);
-    let seen = [0, 1].map(|j| sds[j].and_then(|_| closest_approach(&ray(set, &o.px[j]), &p, &d)));
+    let seen = [0, 1].map(|j| sds[j].and_then(|_| closest_approach(&o.rays[j].0, &p, &d)));
     metric_residuals(o, &seen, sds, tip_point)
 }
 
@@ -343,19 +341,18 @@ pub fn residuals_and_gradients_at(
     m: &ShaftModel,
 ) -> ([f64; TERMS], [Vector6<f64>; TERMS]) {
     let tip_point = m.tip.map(|x| x.point);
-    let mut e = residuals_with(set, o, r, t, &m.sds, tip_point);
+    let mut e = residuals_with(o, r, t, &m.sds, tip_point);
     let mut g = [Vector6::zeros(); TERMS];
     if let Some((z, dz)) = m.tip.and_then(|x| x.z(set, o, r, t, true)) {
         e[4] = z;
         g[4] = dz;
     }
-    metric_gradients(set, o, r, t, &m.sds, &e, &mut g);
+    metric_gradients(o, r, t, &m.sds, &e, &mut g);
     (e, g)
 }
 
 /// The gradients of the non-zero metric residuals `e` (the first four) into `g`.
 fn metric_gradients(
-    set: &PreparedSet,
     o: &Prepared,
     r: &Matrix3<f64>,
     t: &Vector3<f64>,
@@ -365,14 +362,14 @@ fn metric_gradients(
 ) {
     // The axis and its pose Jacobians, built at most once for both line points.
     let mut axis: Option<AxisJacobians> = None;
-    for (j, u) in o.px.iter().enumerate() {
+    for (j, (v, _)) in o.rays.iter().enumerate() {
         let (ei, ed) = (e[j] != 0.0, e[2 + j] != 0.0);
         if !(ei || ed) {
             continue;
         }
         let Some(sd) = sds[j] else { continue };
         let ax = axis.get_or_insert_with(|| axis_jacobians(o, r, t));
-        let Some((dl, ds)) = closest_approach_gradient_with(&ray(set, u), ax) else { continue };
+        let Some((dl, ds)) = closest_approach_gradient_with(v, ax) else { continue };
         if ei {
             g[j] = ds / sd;
         }

@@ -400,12 +400,18 @@ pub fn calibrate_all(run: &PixelRun) -> Vec<CalibRow> {
                 })
                 .map_err(|e| e.to_string());
             let cfg = OursConfig { noise: run.noise, ..OursConfig::default() };
-            let ours = solve_ours(&run.setup, &obs, &cfg)
-                .map(|r| {
-                    let e = pose_errors(&r.pose, &run.truth);
-                    (e.translation_m * 1e3, e.rotation_rad.to_degrees())
-                })
-                .map_err(|e| e.to_string());
+            // As `calibrate` judges it: a refused selection-aware stage is a failure (the
+            // unrefined estimate is only handed out when the user accepts it).
+            let ours = solve_ours(&run.setup, &obs, &cfg).map_err(|e| e.to_string()).and_then(|r| {
+                let e = pose_errors(&r.pose, &run.truth);
+                let (t, a) = (e.translation_m * 1e3, e.rotation_rad.to_degrees());
+                match &r.selection_refused {
+                    None => Ok((t, a)),
+                    Some(why) => Err(format!(
+                        "refused: the selection-aware stage was not applied ({why}); the unrefined estimate is {t:.3} mm / {a:.4}° off"
+                    )),
+                }
+            });
             rows.push(CalibRow { source: name.clone(), eyes, observations: obs.len(), paper, ours });
         }
     }

@@ -31,6 +31,7 @@ use std::collections::BTreeMap;
 use estimator::calib::ours::{OursConfig, OursError, solve_ours};
 use estimator::calib::prepare::prepare_unchecked;
 use estimator::calib::residual::{residual_and_jacobian, residual_covariance};
+use estimator::calib::selection::SelectionError;
 use estimator::calib::{Eye, KinematicNoise, Observation, Setup};
 use nalgebra::{Isometry3, Matrix6, Vector3};
 
@@ -234,6 +235,18 @@ pub struct Precision {
     pub rotation_rad: f64,
     /// The covariance `F⁻¹`, order `(tx, ty, tz m, φx, φy, φz rad)`.
     pub covariance: Matrix6<f64>,
+}
+
+/// Why a solve produced no calibration.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    /// Our pipeline failed (degenerate, ambiguous, unexplained shafts...).
+    #[error(transparent)]
+    Ours(#[from] OursError),
+    /// The selection-aware stage was refused: the pose would be the unrefined (border-guarded)
+    /// fit, which `calibrate` only hands out when the user accepts it; never published live.
+    #[error("the selection-aware stage was refused ({0}); the unrefined estimate is not a calibration")]
+    SelectionRefused(SelectionError),
 }
 
 /// A calibration the collector produced.
@@ -560,17 +573,22 @@ impl Collector {
 
     /// Solves now, whatever the precision (the "on request" path); `None` when the data do
     /// not allow a solve yet.
-    pub fn solve_now(&mut self, t_ns: u64) -> Option<Result<Calibration, OursError>> {
+    pub fn solve_now(&mut self, t_ns: u64) -> Option<Result<Calibration, SolveError>> {
         if self.kept.len() < self.cfg.min_observations {
             return None;
         }
         Some(self.solve(t_ns))
     }
 
-    fn solve(&mut self, t_ns: u64) -> Result<Calibration, OursError> {
+    fn solve(&mut self, t_ns: u64) -> Result<Calibration, SolveError> {
         let cfg = OursConfig { noise: Some(self.cfg.noise), ..OursConfig::default() };
         let r = solve_ours(&self.cfg.setup, &self.kept, &cfg)?;
         self.progress.solves += 1;
+        // A refused stage leaves a fit the data contradict (on the HIL bench once the mirror,
+        // 161° off): neither published nor kept as the estimate the information accumulates at.
+        if let Some(e) = r.selection_refused {
+            return Err(SolveError::SelectionRefused(e));
+        }
         self.estimate = Some(r.pose);
         self.since_solve = 0;
         // The information of every kept observation at the new estimate.
@@ -584,7 +602,7 @@ impl Collector {
                 }
             }
         }
-        let precision = self.precision_at(&r.pose).ok_or(OursError::Singular)?;
+        let precision = self.precision_at(&r.pose).ok_or(SolveError::Ours(OursError::Singular))?;
         self.progress.precision = Some(precision);
         Ok(Calibration { pose: r.pose, precision, ours: r, observations: self.kept.len(), t_ns })
     }
@@ -658,15 +676,18 @@ mod tests {
     /// The paper's protocol (millimetre reading) as samples of an arm without a mechanical
     /// RCM whose fulcrum is the origin of `{t}`; the wrist 5 cm behind it on the axis.
     fn samples(seed: u64, n_t: usize) -> (Vec<Sample>, CollectorConfig, Isometry3<f64>) {
-        let p = CalibProtocol {
-            geometry: CalibGeometry::default(),
-            n_e: 3,
-            n_t,
-            sigma: 0.01,
-            units: NoiseUnits::Millimetre,
-            pixel_sigma_px: 0.0,
-            seed,
-        };
+        samples_with(seed, n_t, NoiseUnits::Millimetre, 0.01)
+    }
+
+    /// The protocol's grid on the default geometry as samples, reading `units` at `sigma`.
+    fn samples_with(
+        seed: u64,
+        n_t: usize,
+        units: NoiseUnits,
+        sigma: f64,
+    ) -> (Vec<Sample>, CollectorConfig, Isometry3<f64>) {
+        let p =
+            CalibProtocol { geometry: CalibGeometry::default(), n_e: 3, n_t, sigma, units, pixel_sigma_px: 0.0, seed };
         let d = generate_calibration(&p).unwrap();
         let out = d
             .observations
@@ -794,6 +815,23 @@ mod tests {
         let mut c = Collector::new(cfg);
         assert!(s.iter().all(|x| !matches!(c.push(x), Event::Solved(_))));
         assert!(c.result().is_none() && c.progress().precision.is_some() && c.progress().solves >= 1);
+    }
+
+    #[test]
+    fn a_refused_selection_stage_is_no_calibration() {
+        // The metre reading at σ = 0.03 (30 mm per frame): the selection-aware stage runs away
+        // from the guarded fit and is refused (as `calibrate`'s selection-refused case).
+        let (s, mut cfg, _) = samples_with(2, 3, NoiseUnits::Metre, 0.03);
+        cfg.target_translation_m = 1e-7;
+        let mut c = Collector::new(cfg);
+        for x in &s {
+            assert!(!matches!(c.push(x), Event::Solved(_)));
+        }
+        match c.solve_now(0) {
+            Some(Err(SolveError::SelectionRefused(_))) => {}
+            other => panic!("expected the refused stage: {:?}", other.map(|r| r.map(|c| c.ours.selection))),
+        }
+        assert!(c.result().is_none());
     }
 
     #[test]

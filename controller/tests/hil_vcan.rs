@@ -598,7 +598,7 @@ fn wait_for_line(file: &Path, needle: &str, limit: Duration) {
 }
 
 fn daemon_cmd(dir: &Path, service: &str, tag: &str, cycles: Option<u64>) -> Command {
-    let mut c = Command::new(FULCRUMD);
+    let mut c = Command::new(guest_fulcrumd());
     c.args(["--iface", "vcan0", "--service", service])
         .arg("--config")
         .arg(dir.join("fulcrumd.toml"))
@@ -686,12 +686,33 @@ fn send_burst(frame: &CanFrame, n: u64) -> (u64, u64) {
 fn drive(scenario: Scenario, out: &Path) {
     let work = std::env::temp_dir().join(format!("hil-work-{}", std::process::id()));
     std::fs::create_dir_all(&work).expect("work dir");
+    // fulcrumd from the guest's own tmpfs, as the robot PC runs it from its local disk
+    // ([`guest_fulcrumd`]); not in the work dir, whose files become the artifacts.
+    let bin = std::env::temp_dir().join(format!("hil-bin-{}", std::process::id()));
+    std::fs::create_dir_all(&bin).expect("bin dir");
+    let local = bin.join("fulcrumd");
+    std::fs::copy(FULCRUMD, &local).unwrap_or_else(|e| panic!("copy {FULCRUMD} to {}: {e}", local.display()));
+    GUEST_FULCRUMD.set(local).expect("one scenario per guest run");
     let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| drive_in(scenario, &work)));
     copy_dir(&work, out);
     let _ = std::fs::remove_dir_all(&work);
+    let _ = std::fs::remove_dir_all(&bin);
     if let Err(panic) = result {
         std::panic::resume_unwind(panic);
     }
+}
+
+/// The copy of `fulcrumd` the scenario driver runs (set by [`drive`]).
+static GUEST_FULCRUMD: OnceLock<PathBuf> = OnceLock::new();
+
+/// `fulcrumd` as the guest runs it: a copy on the guest's tmpfs. Started from the host's root,
+/// which the qemu guest reads over 9p, the 27 MB binary took longer to start, and on a loaded
+/// host the restarted daemon of `hil_daemon_sigkill_and_restart` took 1224 ms from its spawn to
+/// its first SYNC (the bound is 1 s from the spawn to the subscriber's first sample; 351-405 ms
+/// on a less loaded host). `fulcrumd --version` in the qemu guest, three runs each: 963, 622 and
+/// 332 ms from the 9p root, 243, 133 and 131 ms from tmpfs (session 18, host load 8-9).
+fn guest_fulcrumd() -> &'static Path {
+    GUEST_FULCRUMD.get().map_or(Path::new(FULCRUMD), PathBuf::as_path)
 }
 
 fn copy_dir(from: &Path, to: &Path) {
@@ -780,7 +801,7 @@ fn drive_in(scenario: Scenario, dir: &Path) {
     let mut monitor = spawn(
         Command::new("chrt")
             .args(["-f", "70"])
-            .arg(FULCRUMD)
+            .arg(guest_fulcrumd())
             .args(["monitor", "--service", &service, "--buffer", &HIL_SUBSCRIBER_BUFFER.to_string()])
             .arg("--summary-json")
             .arg(dir.join("monitor.json"))

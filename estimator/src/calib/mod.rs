@@ -234,6 +234,12 @@ pub struct KinematicNoise {
 }
 
 impl KinematicNoise {
+    /// True when the arms' frames have noise (`rot_rad` or `trans_m` positive): the model says
+    /// where the arms may put the tool, not only how the lines are measured.
+    pub fn has_kinematic_terms(&self) -> bool {
+        self.rot_rad > 0.0 || self.trans_m > 0.0
+    }
+
     /// True when every standard deviation is finite and non-negative and at least one is
     /// positive (a usable noise model).
     pub fn is_valid(&self) -> bool {

@@ -111,7 +111,9 @@ pub struct OursConfig {
     /// each observed line point on the physical shaft, between robot 2's RCM and the tool
     /// tip, in front of the camera) to the objective. `false`: the lines alone (for
     /// comparison; the pose can then put the shafts where no instrument is and be refused,
-    /// [`OursError::ShaftsNotExplained`]).
+    /// [`OursError::ShaftsNotExplained`]). Off whatever this says when the noise model has no
+    /// kinematic terms ([`KinematicNoise::has_kinematic_terms`]): without the arms' noise the
+    /// terms would pin the tips where the arm models say.
     pub shaft_position: bool,
 }
 
@@ -850,6 +852,14 @@ pub fn solve_ours(setup: &Setup, observations: &[Observation], config: &OursConf
 
 /// Our pipeline on prepared observations.
 pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
+    // The shaft-position likelihood says where the arms put the tool. A noise model without
+    // the arms' noise (pixels only) claims pixel precision for a tip at the end of two
+    // kinematic chains, and any arm-model error then bends the fit to meet it (on a recorded
+    // run of the twin, ~1 mm of model error: 10-81° off). The lines alone then.
+    let cfg = &OursConfig {
+        shaft_position: cfg.shaft_position && cfg.noise.is_some_and(|n| n.has_kinematic_terms()),
+        ..*cfg
+    };
     let mut result = solve_once(set, cfg, None)?;
     let Some(noise) = cfg.noise else {
         return Ok(result);

@@ -18,7 +18,8 @@
 //! and those with a false detection (matching no instrument).
 //!
 //! With `SHAFT_DIAG_FRAMES` set in the environment, each missed frame (`MISS level family
-//! seed class ...`, with every ranked pair's outcome, `*` on the pairs of the true contours,
+//! seed class cov=[c0, c1] ...`, `c0`, `c1` the edgel coverage of the two true contours in %
+//! as `few edgels` counts it, with every ranked pair's outcome, `*` on the pairs of the true contours,
 //! `=1`/`=2` on those matching an instrument) and each frame without instrument 1 that has a
 //! false detection (`FALSE ...`) is printed to stderr: a debugging aid, not part of the tables.
 //!
@@ -269,6 +270,12 @@ pub struct DiagCell {
     pub free_frames: usize,
     /// False detections on those.
     pub false_on_free: usize,
+    /// Frames (all of them).
+    pub frames: usize,
+    /// False detections over all frames (matching no instrument in the frame).
+    pub false_all: usize,
+    /// Angle errors of the matched eligible frames, degrees.
+    pub angles_deg: Vec<f64>,
 }
 
 /// The true contours of instrument 1 with a visible segment.
@@ -300,6 +307,13 @@ pub fn run(
                 .map_err(|source| ShaftBenchError::Detect { detector: det.name().to_owned(), source })?;
             progress();
             let fam = FAMILIES[frame.spec.family].key;
+            {
+                let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
+                let s = score_frame(&dets, frame.inst1.as_ref(), inst2);
+                let cell = d.cells.entry((level.key().to_owned(), fam.to_owned())).or_default();
+                cell.frames += 1;
+                cell.false_all += s.false_detections;
+            }
             if std::env::var_os("SHAFT_DIAG_ALL").is_some() {
                 print_verified(frame, level, fam, &trace);
             }
@@ -342,8 +356,9 @@ pub fn run(
             let s = score_frame(&dets, Some(i1), inst2);
             let cell = d.cells.entry((level.key().to_owned(), fam.to_owned())).or_default();
             cell.eligible += 1;
-            if s.matched.is_some() {
+            if let Some(e) = s.matched {
                 cell.detected += 1;
+                cell.angles_deg.push(e.angle_deg);
                 continue;
             }
             let class = match true_contours(frame) {
@@ -386,11 +401,17 @@ pub fn run(
                     })
                     .collect();
                 eprintln!(
-                    "MISS {} {} {} class={} lines={} on={:?} {} vis={:.0} pairs=[{}]",
+                    "MISS {} {} {} class={} cov={:?} lines={} on={:?} {} vis={:.0} pairs=[{}]",
                     level.key(),
                     fam,
                     frame.spec.seed,
                     class,
+                    true_contours(frame).map(|c| c.map(|c| (edgel_coverage(
+                        &trace,
+                        &c,
+                        i1.visible_px / i1.segment_px().max(1e-9)
+                    ) * 100.0)
+                        .round() as i32)),
                     trace.lines.len(),
                     on,
                     on_lines.join(" "),
@@ -428,16 +449,19 @@ impl Diagnosis {
                 g.with_false += c.with_false;
                 g.free_frames += c.free_frames;
                 g.false_on_free += c.false_on_free;
+                g.frames += c.frames;
+                g.false_all += c.false_all;
+                g.angles_deg.extend_from_slice(&c.angles_deg);
                 for (k, v) in &c.classes {
                     *g.classes.entry(k.clone()).or_default() += v;
                 }
             }
             let _ = writeln!(
                 m,
-                "\n| {title} | eligible | detected | missed | {} | second on top | with a false one | false on instrument-free frames (n) |",
+                "\n| {title} | eligible | detected | missed | {} | second on top | with a false one | false on instrument-free frames (n) | false over all frames (n) | angle ° median |",
                 classes.join(" | ")
             );
-            let _ = writeln!(m, "|---|---|---|---|{}---|---|---|", "---|".repeat(classes.len()));
+            let _ = writeln!(m, "|---|---|---|---|{}---|---|---|---|---|", "---|".repeat(classes.len()));
             let order: Vec<String> = if by_level {
                 ClutterLevel::ALL.iter().map(|l| l.key().to_owned()).filter(|k| groups.contains_key(k)).collect()
             } else {
@@ -447,7 +471,7 @@ impl Diagnosis {
                 let g = &groups[&key];
                 let _ = writeln!(
                     m,
-                    "| {key} | {} | {} | {} | {} | {} | {} | {} ({}) |",
+                    "| {key} | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) | {} |",
                     g.eligible,
                     g.detected,
                     g.eligible - g.detected,
@@ -459,7 +483,10 @@ impl Diagnosis {
                     g.second_on_top,
                     g.with_false,
                     g.false_on_free,
-                    g.free_frames
+                    g.free_frames,
+                    g.false_all,
+                    g.frames,
+                    super::metrics::quantile(&g.angles_deg, 0.5).map_or_else(|| "–".to_owned(), |q| format!("{q:.3}"))
                 );
             }
         }

@@ -6,6 +6,15 @@
 //! (Sobel on each), so an edge seen in either channel counts, whatever its polarity in each.
 //! Non-maximum suppression along the gradient, a threshold, then each edgel's position and
 //! normal direction are mapped to undistorted pixels through the precomputed table.
+//!
+//! On a hazy frame (median chroma under `clear_chroma`) the normal is the eigenvector of the
+//! tensor summed over the 3×3 neighbourhood (the structure tensor's integration scale, as in
+//! Förstner's operator), not the pixel's own: haze scales the contrasts by its transmittance
+//! and leaves the sensor noise, so a faint contour's single-pixel gradient directions scatter
+//! by several degrees, and the orientation-guided Hough transform votes at each edgel's own
+//! normal, its distance from the reference point wrong by `s · δθ` (hundreds of pixels along
+//! the line times the angle error): the votes of a straight, well covered contour spread over
+//! tens of distance bins and make no peak.
 
 use super::lens::HalfResTable;
 use crate::detect::RgbView;
@@ -28,7 +37,7 @@ pub(crate) struct EdgeBuffers {
     dir: Vec<u8>,
     eig: Vec<[f32; 2]>,
     hist: Vec<u32>,
-    /// One row of the structure tensor `(gx², gy², gx·gy)` summed over both channels.
+    /// The structure tensor `(gx², gy², gx·gy)` summed over both channels, per pixel.
     tensor: [Vec<f32>; 3],
     pub(crate) edgels: Vec<Edgel>,
     /// The frame's median half-resolution chroma `2R − G − B` (8-bit units): the haze
@@ -56,8 +65,18 @@ impl EdgeBuffers {
 
     /// Fills `self.edgels`. `image` has the table's camera size (checked by the caller);
     /// `threshold` is on the gradient magnitude (channel units per half-resolution pixel);
-    /// `luma_weight` scales the luma channel against the chroma channel.
-    pub(crate) fn run(&mut self, image: &RgbView<'_>, table: &HalfResTable, threshold: f32, luma_weight: f32) {
+    /// `luma_weight` scales the luma channel against the chroma channel. On a hazy frame, its
+    /// median chroma under `clear_chroma` (`2R − G − B`, 8-bit; 0: never), each edgel's
+    /// normal is the structure tensor's summed over its 3×3 neighbourhood (its position and
+    /// magnitude stay the pixel's own).
+    pub(crate) fn run(
+        &mut self,
+        image: &RgbView<'_>,
+        table: &HalfResTable,
+        threshold: f32,
+        luma_weight: f32,
+        clear_chroma: f32,
+    ) {
         self.edgels.clear();
         let (w2, h2) = (table.w2, table.h2);
         if w2 < 3 || h2 < 3 {
@@ -100,52 +119,74 @@ impl EdgeBuffers {
             }
         }
         self.chroma_median();
-        // Di Zenzo gradient (Sobel / 8 on both channels), quantised direction for the NMS.
-        let t2 = threshold * threshold;
-        let tan22 = 0.414_213_56_f32;
+        // Under haze (the frame's median chroma under `clear_chroma`) the contrasts are scaled
+        // down and the noise is not: a weak edge's single-pixel orientation scatters by degrees.
+        let integrate = self.chroma_median < clear_chroma;
+        // The structure tensor `(gx², gy², gx·gy)` summed over both channels, per pixel
+        // (Sobel / 8 on both channels; zero on the border).
         for t in &mut self.tensor {
             t.clear();
-            t.resize(w2 - 2, 0.0);
+            t.resize(n, 0.0);
         }
         for i in 1..h2 - 1 {
             fn rows(ch: &[f32], i: usize, w2: usize) -> (&[f32], &[f32], &[f32]) {
                 (&ch[(i - 1) * w2..i * w2], &ch[i * w2..(i + 1) * w2], &ch[(i + 1) * w2..(i + 2) * w2])
             }
-            // The structure tensor of the row, branch-free (vectorised): Sobel / 8 on both
-            // channels, `(gx², gy², gx·gy)` summed.
-            {
-                let n = w2 - 2;
-                let (c0, c1, c2) = rows(&self.chroma, i, w2);
-                let (l0, l1, l2) = rows(&self.luma, i, w2);
-                let [ta, tc, tb] = &mut self.tensor;
-                let (ta, tc, tb) = (&mut ta[..n], &mut tc[..n], &mut tb[..n]);
-                let sobel = |u: &[f32], m: &[f32], d: &[f32], k: usize| {
-                    let (u, m, d) = (&u[k..k + 3], &m[k..k + 3], &d[k..k + 3]);
-                    let gx = (u[2] + 2.0 * m[2] + d[2]) - (u[0] + 2.0 * m[0] + d[0]);
-                    let gy = (d[0] + 2.0 * d[1] + d[2]) - (u[0] + 2.0 * u[1] + u[2]);
-                    (gx * 0.125, gy * 0.125)
-                };
-                for k in 0..n {
-                    let (gxc, gyc) = sobel(c0, c1, c2, k);
-                    let (gxl, gyl) = sobel(l0, l1, l2, k);
-                    ta[k] = (0.0 + gxc * gxc) + gxl * gxl;
-                    tc[k] = (0.0 + gyc * gyc) + gyl * gyl;
-                    tb[k] = (0.0 + gxc * gyc) + gxl * gyl;
-                }
+            // Branch-free (vectorised).
+            let m = w2 - 2;
+            let (c0, c1, c2) = rows(&self.chroma, i, w2);
+            let (l0, l1, l2) = rows(&self.luma, i, w2);
+            let [ta, tc, tb] = &mut self.tensor;
+            let at = i * w2 + 1;
+            let (ta, tc, tb) = (&mut ta[at..at + m], &mut tc[at..at + m], &mut tb[at..at + m]);
+            let sobel = |u: &[f32], m: &[f32], d: &[f32], k: usize| {
+                let (u, m, d) = (&u[k..k + 3], &m[k..k + 3], &d[k..k + 3]);
+                let gx = (u[2] + 2.0 * m[2] + d[2]) - (u[0] + 2.0 * m[0] + d[0]);
+                let gy = (d[0] + 2.0 * d[1] + d[2]) - (u[0] + 2.0 * u[1] + u[2]);
+                (gx * 0.125, gy * 0.125)
+            };
+            for k in 0..m {
+                let (gxc, gyc) = sobel(c0, c1, c2, k);
+                let (gxl, gyl) = sobel(l0, l1, l2, k);
+                ta[k] = (0.0 + gxc * gxc) + gxl * gxl;
+                tc[k] = (0.0 + gyc * gyc) + gyl * gyl;
+                tb[k] = (0.0 + gxc * gyc) + gxl * gyl;
             }
+        }
+        // Di Zenzo magnitude per pixel; the direction from the tensor integrated over the 3×3
+        // neighbourhood (a weak edge's single-pixel orientation scatters by degrees under
+        // noise, and the Hough votes at it); quantised direction for the NMS.
+        let t2 = threshold * threshold;
+        let tan22 = 0.414_213_56_f32;
+        for i in 1..h2 - 1 {
             for j in 1..w2 - 1 {
-                let (a, c, b) = (self.tensor[0][j - 1], self.tensor[1][j - 1], self.tensor[2][j - 1]);
+                let idx = i * w2 + j;
+                let (a, c, b) = (self.tensor[0][idx], self.tensor[1][idx], self.tensor[2][idx]);
                 let tr = a + c;
                 if tr < t2 {
                     continue;
                 }
                 let disc = ((a - c) * (a - c) + 4.0 * b * b).sqrt();
                 let lam = 0.5 * (tr + disc);
-                let idx = i * w2 + j;
                 self.mag2[idx] = lam;
                 if lam < t2 {
                     continue;
                 }
+                let (a, c, b) = if integrate {
+                    let mut s = [0.0f32; 3];
+                    for r in [idx - w2, idx, idx + w2] {
+                        for q in r - 1..=r + 1 {
+                            s[0] += self.tensor[0][q];
+                            s[1] += self.tensor[1][q];
+                            s[2] += self.tensor[2][q];
+                        }
+                    }
+                    (s[0], s[1], s[2])
+                } else {
+                    (a, c, b)
+                };
+                let disc = ((a - c) * (a - c) + 4.0 * b * b).sqrt();
+                let lam = 0.5 * (a + c + disc);
                 // Eigenvector of the largest eigenvalue.
                 let (ex, ey) = if a >= c { (lam - c, b) } else { (b, lam - a) };
                 let norm = (ex * ex + ey * ey).sqrt();
@@ -212,6 +253,55 @@ impl EdgeBuffers {
 mod tests {
     use super::*;
 
+    /// A hazy frame (chroma about 20): a faint straight colour step of 14 chroma units over
+    /// 3 px with uniform noise of ±3 on red (±6 in chroma), its normal at 20° from the x axis.
+    /// The edgels on it have their normals within 5° RMS with the 3×3 integration (4.2°
+    /// measured), and scattered by at least 1.5 times that without it (`clear_chroma` 0: 8.8°).
+    #[test]
+    fn a_faint_edges_normals_are_integrated_under_haze() {
+        let k = crate::synth::endoscope_camera();
+        let table = HalfResTable::new(&k);
+        let (w, h) = (k.width as usize, k.height as usize);
+        // The edge: undistorted points with n·(u − p0) = 0, n at 20° from the x axis.
+        let a = 20f64.to_radians();
+        let n = [a.cos(), a.sin()];
+        let p0 = [320.0, 240.0];
+        let mut data = vec![0u8; w * h * 3];
+        let mut state = 12345u64;
+        for y in 0..h {
+            for x in 0..w {
+                let u = k.undistort_px(&nalgebra::Vector2::new(x as f64, y as f64));
+                let d = (u.x - p0[0]) * n[0] + (u.y - p0[1]) * n[1];
+                let s = (d / 3.0 + 0.5).clamp(0.0, 1.0);
+                state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+                let noise = ((state >> 33) % 7) as f64 - 3.0;
+                let r = 160.0 - 7.0 * s + noise;
+                let px = &mut data[3 * (y * w + x)..3 * (y * w + x) + 3];
+                px.copy_from_slice(&[r.round() as u8, 150, 150]);
+            }
+        }
+        let image = RgbView::new(w, h, &data).unwrap();
+        let rms = |clear_chroma: f32| {
+            let mut e = EdgeBuffers::default();
+            e.run(&image, &table, 5.0, 1.0, clear_chroma);
+            let errs: Vec<f64> = e
+                .edgels
+                .iter()
+                .filter(|g| {
+                    let d = (f64::from(g.p[0]) - p0[0]) * n[0] + (f64::from(g.p[1]) - p0[1]) * n[1];
+                    d.abs() < 2.0
+                })
+                .map(|g| (f64::from(g.n[0]) * n[0] + f64::from(g.n[1]) * n[1]).abs().min(1.0).acos().to_degrees())
+                .collect();
+            assert!(errs.len() > 100, "{} edgels on the edge", errs.len());
+            (errs.iter().map(|e| e * e).sum::<f64>() / errs.len() as f64).sqrt()
+        };
+        let (with, without) = (rms(60.0), rms(0.0));
+        println!("normal RMS error: {with:.2}° integrated, {without:.2}° per pixel");
+        assert!(with < 5.0, "{with}°");
+        assert!(without > 1.5 * with, "{without}° against {with}°");
+    }
+
     #[test]
     fn the_chroma_median_is_the_median_bin_of_the_half_resolution_chroma() {
         let k = crate::synth::endoscope_camera();
@@ -235,7 +325,7 @@ mod tests {
         }
         let image = RgbView::new(w, h, &data).unwrap();
         let mut e = EdgeBuffers::default();
-        e.run(&image, &table, 6.0, 1.0);
+        e.run(&image, &table, 6.0, 1.0, 60.0);
         // The median bin of ⌊chroma + 256⌋ (chroma of each 2×2 block's mean), by sorting.
         let mut bins: Vec<i64> = e.chroma.iter().map(|c| ((c + 256.0).floor() as i64).clamp(0, 767)).collect();
         bins.sort_unstable();

@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 pub use estimator::calib::Eye;
 pub use estimator::calib::Intrinsics as CameraIntrinsics;
 /// The line detector's acceptance rule in a dataset: the estimator's own type.
-pub use estimator::calib::SelectionRule;
+pub use estimator::calib::{SelectionRule, ShaftExtent};
 
 /// Why an intrinsics YAML file was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -251,6 +251,10 @@ pub struct DatasetFile {
     /// default rule (visible shaft only, tip not required).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub selection: Option<SelectionRule>,
+    /// Where along the instrument the camera can see it (`estimator::calib::ShaftExtent`,
+    /// metres); absent: the default (from robot 2's RCM to the tool tip, as inside a patient).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shaft_extent: Option<ShaftExtent>,
     /// The observations.
     pub observations: Vec<ObservationJson>,
 }
@@ -491,6 +495,15 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
         });
     }
     d.selection_rule()?;
+    if let Some(e) = d.shaft_extent.filter(|e| !e.is_valid()) {
+        return Err(CalibFileError::Field {
+            field: "shaft_extent".into(),
+            problem: format!(
+                "beyond_tip_m and before_point_m must be finite and ≥ 0 metres (got {}, {})",
+                e.beyond_tip_m, e.before_point_m
+            ),
+        });
+    }
     if let Some(n) = &d.noise_model {
         let v = [n.rot_rad, n.trans_m, n.pixel_px];
         if !v.iter().all(|x| x.is_finite() && *x >= 0.0) || v.iter().all(|x| *x == 0.0) {
@@ -836,6 +849,7 @@ mod tests {
                 require_tip_in_view: false,
                 ends_are_shaft_ends: true,
             }),
+            shaft_extent: Some(ShaftExtent { beyond_tip_m: 0.018, before_point_m: 0.0 }),
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],
                 psm_joints: [0.0, 0.1, 0.1],
@@ -945,6 +959,30 @@ mod tests {
         assert!(
             matches!(parse_dataset(&unknown), Err(CalibFileError::Json { message, .. }) if message.contains("tip_colour"))
         );
+    }
+
+    #[test]
+    fn the_shaft_extent_round_trips_is_optional_and_is_checked() {
+        let d = dataset();
+        let text = to_json(&d);
+        assert!(text.contains("\"beyond_tip_m\": 0.018"), "{text}");
+        assert_eq!(parse_dataset(&text).unwrap().shaft_extent, d.shaft_extent);
+        // Older files: absent, the default (RCM to tip).
+        let mut old = d.clone();
+        old.shaft_extent = None;
+        let old_text = to_json(&old);
+        assert!(!old_text.contains("shaft_extent"));
+        assert_eq!(parse_dataset(&old_text).unwrap().shaft_extent, None);
+        for bad in [-0.001, f64::NAN] {
+            let mut neg = d.clone();
+            neg.shaft_extent = Some(ShaftExtent { beyond_tip_m: 0.0, before_point_m: bad });
+            // NaN is written as null, which JSON refuses as a number; a negative length is named.
+            match parse_dataset(&to_json(&neg)) {
+                Err(CalibFileError::Field { field, .. }) => assert_eq!(field, "shaft_extent"),
+                Err(CalibFileError::Json { .. }) => assert!(bad.is_nan()),
+                other => panic!("{bad}: {other:?}"),
+            }
+        }
     }
 
     #[test]

@@ -22,7 +22,7 @@
 //! Deterministic: the same protocol and seed give the same dataset (ChaCha8).
 
 use estimator::calib::rcm_arms::{ecm_frames, psm_frames, se3_exp};
-use estimator::calib::{Eye, Intrinsics, KinematicNoise, Observation, SelectionRule, Setup};
+use estimator::calib::{Eye, Intrinsics, KinematicNoise, Observation, SelectionRule, Setup, ShaftExtent};
 use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -339,7 +339,13 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
     }
     let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: p.pixel_sigma_px };
     Ok(CalibDataset {
-        setup: Setup { intrinsics: g.intrinsics, hand_eye: g.hand_eye, right_eye: None, selection: g.selection },
+        setup: Setup {
+            intrinsics: g.intrinsics,
+            hand_eye: g.hand_eye,
+            right_eye: None,
+            selection: g.selection,
+            shaft_extent: ShaftExtent::default(),
+        },
         truth: g.truth,
         observations,
         generated,

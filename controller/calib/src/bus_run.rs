@@ -72,6 +72,9 @@ struct CameraHeader {
 #[derive(Deserialize)]
 struct ConfigHeader {
     camera: CameraHeader,
+    /// The rendered instrument (absent in older runs: the renderer's default).
+    #[serde(default)]
+    instrument: sim::endoscope::InstrumentGeometry,
 }
 
 #[derive(Deserialize)]
@@ -170,6 +173,10 @@ pub struct BusRunData {
     /// Distance from the wrist centre to the tool tip along the instrument, metres (the
     /// scenario's instrument length, from the run's `truth.jsonl` header).
     pub tip_m: f64,
+    /// What of the rendered instrument a detector can report (the renderer's jaws beyond the
+    /// tip, the shaft outside the trocar: the twin has no abdominal wall), from the frames'
+    /// header.
+    pub shaft_extent: estimator::calib::ShaftExtent,
     /// The scenario's true trocars, metres, `{b}` (the run's ground truth; for the report).
     pub trocars_b: Vec<Vector3<f64>>,
     /// Truth lines per frame index and eye (measured-pixel segment), from the renderer.
@@ -288,6 +295,7 @@ pub fn read_run(dir: &Path, cfg: &Config) -> Result<BusRunData, BusRunError> {
         baseline_m: header.config.camera.baseline_m,
         ecm_in_tool_base: iso(&header.rcm_in_tool_base),
         tip_m: run_header.scenario.instrument_length_m,
+        shaft_extent: crate::pixels::rendered_shaft_extent(&header.config.instrument),
         trocars_b: run_header.trocars_base_m.iter().map(|t| Vector3::from(*t)).collect(),
         truth_lines,
     })
@@ -360,6 +368,7 @@ pub fn to_pixel_run(
             hand_eye: data.hand_eye,
             right_eye: Some(right),
             selection: crate::pixels::selection_rule(),
+            shaft_extent: data.shaft_extent,
         },
         truth,
         noise: noise.is_valid().then_some(noise),

@@ -35,6 +35,7 @@ pub fn dataset(d: &DatasetFile) -> (Setup, Vec<Observation>, Option<KinematicNoi
         hand_eye: isometry(&d.hand_eye),
         right_eye: d.right_eye.as_ref().map(isometry),
         selection,
+        shaft_extent: d.shaft_extent.unwrap_or_default(),
     };
     let obs = d
         .observations
@@ -62,6 +63,7 @@ pub fn dataset_json(setup: &Setup, obs: &[Observation], noise: Option<KinematicN
         noise_model: noise.map(|n| NoiseJson { rot_rad: n.rot_rad, trans_m: n.trans_m, pixel_px: n.pixel_px }),
         min_shaft_px: None,
         selection: Some(setup.selection),
+        shaft_extent: (setup.shaft_extent != estimator::calib::ShaftExtent::default()).then_some(setup.shaft_extent),
         observations: obs
             .iter()
             .map(|o| ObservationJson {

@@ -14,7 +14,7 @@ use std::hash::{Hash, Hasher};
 use std::path::Path;
 
 use controller::config::Config;
-use estimator::calib::{KinematicNoise, Setup};
+use estimator::calib::{KinematicNoise, Observation, Setup};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
 use crate::bus_run::{BusRunError, read_run};
@@ -84,6 +84,11 @@ pub struct ReplayReport {
     pub truth: Isometry3<f64>,
     /// Mean distance of the kept fulcrums to the nearest true trocar, metres.
     pub fulcrum_to_trocar_m: f64,
+    /// Camera, hand-eye, right eye and selection rule the collector used.
+    pub setup: Setup,
+    /// The observations kept at the end (what the final solve used), in the calibration's
+    /// dataset form (joints in radians and metres, lines in measured pixels).
+    pub kept: Vec<Observation>,
 }
 
 /// One stereo frame as a source delivers it, with both arms' data at its exposure mid time.
@@ -219,6 +224,7 @@ pub fn replay(
             UnitQuaternion::identity(),
         )),
         selection: crate::pixels::selection_rule(),
+        shaft_extent: data.shaft_extent,
     };
     let mut ccfg = CollectorConfig::new(setup, opts.noise);
     ccfg.target_translation_m = opts.target_translation_m;
@@ -296,7 +302,35 @@ pub fn replay(
         drifts,
         truth,
         fulcrum_to_trocar_m,
+        setup,
+        kept: kept.to_vec(),
     })
+}
+
+/// Writes the observations kept at the end of a replay as a calibration dataset
+/// (`dir/dataset.json`, with the replay's noise model) and the run's truth (`dir/truth.json`;
+/// the protocol fields say what they can of a recorded run: `units` is `"run"`, `generated`
+/// the frames seen).
+pub fn write_dataset(r: &ReplayReport, opts: &ReplayOptions, dir: &Path) -> Result<(), std::io::Error> {
+    use hw_io::calib_files::{CALIB_FILE_VERSION, TRUTH_FORMAT, TruthFile, to_json};
+    std::fs::create_dir_all(dir)?;
+    let file = crate::convert::dataset_json(&r.setup, &r.kept, Some(opts.noise));
+    std::fs::write(dir.join("dataset.json"), to_json(&file))?;
+    let t = TruthFile {
+        format: TRUTH_FORMAT.into(),
+        version: CALIB_FILE_VERSION,
+        truth: crate::convert::transform_json(&r.truth),
+        n_e: 0,
+        n_t: 0,
+        sigma: 0.0,
+        units: "run".into(),
+        pixel_sigma_px: 0.0,
+        seed: 0,
+        generated: r.progress.frames,
+        dropped: r.progress.frames.saturating_sub(r.kept.len()),
+        wrong_lines: vec![],
+    };
+    std::fs::write(dir.join("truth.json"), to_json(&t))
 }
 
 /// The report as Markdown (the command line that produced it first).

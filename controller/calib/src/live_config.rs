@@ -97,11 +97,21 @@ impl Default for CameraSection {
 pub struct ToolSection {
     /// Wrist centre `P` to the instrument's tip along its axis, metres.
     pub wrist_to_tip_m: f64,
+    /// How far past the tip (along the axis) the shaft detector may report the instrument:
+    /// the jaws beyond a tip point at their pivot, metres (`estimator::calib::ShaftExtent`).
+    /// Default: simrobot's instrument, 18 mm jaws.
+    pub beyond_tip_m: f64,
+    /// How far back from the fulcrum (out of the patient) the endoscope can see the shaft,
+    /// metres: 0 inside a patient (the abdominal wall hides it; the most information); up to
+    /// the wrist for a bench or a phantom with no wall. Default: simrobot's twin, which has no
+    /// wall (0.3 m, the whole instrument). Too small a value makes the calibration refuse good
+    /// data; too large only gives up some information.
+    pub before_fulcrum_m: f64,
 }
 
 impl Default for ToolSection {
     fn default() -> Self {
-        Self { wrist_to_tip_m: 0.3 }
+        Self { wrist_to_tip_m: 0.3, beyond_tip_m: 0.018, before_fulcrum_m: 0.3 }
     }
 }
 
@@ -334,6 +344,13 @@ impl LiveConfig {
             return Err(bad("tool.wrist_to_tip_m", format!("{tip}: must be in (0, 2) metres")));
         }
         for (key, v) in
+            [("tool.beyond_tip_m", self.tool.beyond_tip_m), ("tool.before_fulcrum_m", self.tool.before_fulcrum_m)]
+        {
+            if !(v.is_finite() && (0.0..2.0).contains(&v)) {
+                return Err(bad(key, format!("{v}: must be in [0, 2) metres")));
+            }
+        }
+        for (key, v) in
             [("target.translation_mm", self.target.translation_mm), ("target.rotation_deg", self.target.rotation_deg)]
         {
             if !(v.is_finite() && v > 0.0) {
@@ -373,6 +390,10 @@ impl LiveConfig {
             hand_eye,
             right_eye: Some(Isometry3::from_parts(Translation3::new(b, 0.0, 0.0), UnitQuaternion::identity())),
             selection: crate::pixels::selection_rule(),
+            shaft_extent: estimator::calib::ShaftExtent {
+                beyond_tip_m: self.tool.beyond_tip_m,
+                before_point_m: self.tool.before_fulcrum_m,
+            },
         };
         let fulcrum_service = self.services.fulcrum.clone().unwrap_or_else(|| fulcrumd.output.service.clone());
         Ok(Resolved { file: self.clone(), fulcrumd, setup, noise, fulcrum_service })
@@ -429,6 +450,8 @@ mod tests {
                 "camera.hand_eye",
             ),
             ("[tool]\nwrist_to_tip_m = nan\n", "tool.wrist_to_tip_m"),
+            ("[tool]\nbeyond_tip_m = -0.001\n", "tool.beyond_tip_m"),
+            ("[tool]\nbefore_fulcrum_m = inf\n", "tool.before_fulcrum_m"),
             ("[target]\ntranslation_mm = 0.0\n", "target.translation_mm"),
             ("[noise]\npixel_px = 0.0\nrotation_mrad = 0.0\ntranslation_mm = 0.0\n", "noise"),
             ("[output]\nrepublish_s = 0.0\n", "output.republish_s"),

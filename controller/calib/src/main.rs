@@ -207,6 +207,11 @@ enum Command {
         /// The replay's report (Markdown).
         #[arg(long)]
         report: Option<PathBuf>,
+        /// With --replay: write the observations kept at the end as a calibration dataset
+        /// (`DIR/dataset.json`, with the noise model) and the run's truth (`DIR/truth.json`),
+        /// to re-solve them with `calibrate`.
+        #[arg(long)]
+        save_dataset: Option<PathBuf>,
     },
     /// Subscribe to the calibration service and write every message as a JSON line (a
     /// tracker's view of `live`; used by the HIL test). Stops at SIGINT/SIGTERM.
@@ -522,6 +527,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             noise_mm,
             out,
             report,
+            save_dataset,
             ..
         } => {
             use comanip_calib::live::{ReplayOptions, progress_line, replay as run_replay, report_markdown};
@@ -558,6 +564,10 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 std::fs::write(path, &md).map_err(|e| format!("{}: {e}", path.display()))?;
             }
             hw_io::outln!("{md}")?;
+            if let Some(dir) = &save_dataset {
+                comanip_calib::live::write_dataset(&r, &opts, dir)?;
+                hw_io::outln!("wrote {}", dir.join("dataset.json").display())?;
+            }
             let chosen = r.published.as_ref().or(r.at_end.as_ref());
             let Some((cal, _)) = chosen else {
                 return Err("no calibration: too little data (see the report)".into());

@@ -52,6 +52,14 @@ pub fn selection_rule() -> estimator::calib::SelectionRule {
     }
 }
 
+/// The part of the rendered instrument a detector can report as shaft
+/// (`estimator::calib::ShaftExtent`): the renderer draws the jaws beyond the tip point (the jaw
+/// pivot) and the whole shaft behind it, with no abdominal wall to hide the part outside the
+/// trocar.
+pub fn rendered_shaft_extent(g: &sim::endoscope::InstrumentGeometry) -> estimator::calib::ShaftExtent {
+    estimator::calib::ShaftExtent { beyond_tip_m: g.jaw_length_m, before_point_m: g.shaft_length_m + g.wrist_length_m }
+}
+
 /// The run's parameters.
 #[derive(Clone, Debug)]
 pub struct PixelProtocol {
@@ -297,7 +305,13 @@ pub fn render_and_detect(
     let detect_ms = times.iter_mut().map(|t| median(t)).collect();
     let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: 0.0 };
     Ok(PixelRun {
-        setup: Setup { intrinsics: k, hand_eye, right_eye: Some(right), selection: selection_rule() },
+        setup: Setup {
+            intrinsics: k,
+            hand_eye,
+            right_eye: Some(right),
+            selection: selection_rule(),
+            shaft_extent: rendered_shaft_extent(&p.endoscope.instrument),
+        },
         truth,
         noise: noise.is_valid().then_some(noise),
         detectors: detectors.iter().map(|d| d.name()).collect(),

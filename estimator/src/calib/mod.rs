@@ -152,6 +152,44 @@ pub struct Setup {
     /// How the line detector selected the observations (its acceptance rule); our pipeline's
     /// selection-aware stage models exactly this rule ([`selection`]).
     pub selection: SelectionRule,
+    /// Where along the instrument the camera can see it ([`ShaftExtent`]; the default: from
+    /// robot 2's RCM to the tool tip, as inside a patient).
+    pub shaft_extent: ShaftExtent,
+}
+
+/// Where along the instrument a detected line may lie: the part of the tool line the camera
+/// can see and a detector can report as shaft, relative to the line's known point (robot 2's
+/// RCM or the fulcrum, `s = 0`) and the tool tip (`s = L`, the insertion). Our pipeline's
+/// shaft-position terms ([`shaft_position`]) ask each observed line point to lie in
+/// `[−before_point_m, L + beyond_tip_m]`.
+///
+/// Inside a patient the abdominal wall hides the shaft beyond the trocar (`before_point_m =
+/// 0`) and the tip is the end of what a detector reports (`beyond_tip_m = 0`): the default.
+/// A bench or a simulator without a wall lets the camera see the shaft outside the trocar,
+/// and an instrument whose tip point is the jaws' pivot has jaws beyond it that a detector
+/// may take for shaft. Too small a value makes the pipeline refuse or bias good data (a line
+/// point where the model says no shaft can be); too large only gives up some information.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShaftExtent {
+    /// How far past the tool tip, along the tool axis, the detector may report the instrument
+    /// (jaws, a tool head), metres (≥ 0).
+    #[serde(default)]
+    pub beyond_tip_m: f64,
+    /// How far back from the line's known point (robot 2's RCM, the fulcrum: away from the
+    /// tip) the camera can see the shaft, metres (≥ 0; 0 when a wall hides it).
+    #[serde(default)]
+    pub before_point_m: f64,
+}
+
+impl ShaftExtent {
+    /// True when both lengths are finite and ≥ 0.
+    pub fn is_valid(&self) -> bool {
+        self.beyond_tip_m.is_finite()
+            && self.beyond_tip_m >= 0.0
+            && self.before_point_m.is_finite()
+            && self.before_point_m >= 0.0
+    }
 }
 
 /// The line detector's acceptance rule: which shaft images become observations. Stated in
@@ -238,6 +276,12 @@ impl KinematicNoise {
     /// where the arms may put the tool, not only how the lines are measured.
     pub fn has_kinematic_terms(&self) -> bool {
         self.rot_rad > 0.0 || self.trans_m > 0.0
+    }
+
+    /// Every standard deviation multiplied by `k` (dimensionless, > 0): the same model at
+    /// another noise level.
+    pub fn scaled(&self, k: f64) -> Self {
+        Self { rot_rad: self.rot_rad * k, trans_m: self.trans_m * k, pixel_px: self.pixel_px * k }
     }
 
     /// True when every standard deviation is finite and non-negative and at least one is

@@ -115,7 +115,22 @@ pub struct OursConfig {
     /// kinematic terms ([`KinematicNoise::has_kinematic_terms`]): without the arms' noise the
     /// terms would pin the tips where the arm models say.
     pub shaft_position: bool,
+    /// With a noise model: take it as known up to a common scale, estimated from the data. The
+    /// pipeline solves once, then again with every standard deviation multiplied by the first
+    /// fit's robust scale ([`OursResult::scale`], bounded to
+    /// [`NOISE_SCALE_BOUNDS`]), and returns the second fit
+    /// ([`OursResult::noise_scale`]). The line fit does not depend on the scale, but the
+    /// shaft-position terms and the selection-aware stage do: a noise model 20× too large
+    /// makes the stage correct a selection bias 20× larger than the data have (a live session
+    /// of the twin: the stage ran away and was refused at every solve). `false` (the default):
+    /// the noise model is taken as stated.
+    pub estimate_noise_scale: bool,
 }
+
+/// The bounds of the noise scale [`OursConfig::estimate_noise_scale`] applies
+/// (dimensionless): a robust scale outside them says the noise model is not a scale away
+/// from the data's, and the pipeline goes no further than them.
+pub const NOISE_SCALE_BOUNDS: [f64; 2] = [0.01, 100.0];
 
 impl Default for OursConfig {
     fn default() -> Self {
@@ -128,6 +143,7 @@ impl Default for OursConfig {
             initial_quaternion: None,
             selection: Some(SelectionConfig::default()),
             shaft_position: true,
+            estimate_noise_scale: false,
         }
     }
 }
@@ -259,6 +275,9 @@ pub struct OursResult {
     pub selection: Option<SelectionSummary>,
     /// Why the selection-aware stage was not applied (the pose is then the guarded fit).
     pub selection_refused: Option<SelectionError>,
+    /// The factor the noise model's standard deviations were multiplied by
+    /// ([`OursConfig::estimate_noise_scale`]; 1 when the model was taken as stated).
+    pub noise_scale: f64,
 }
 
 /// One candidate solution and its negative log-likelihood.
@@ -766,8 +785,9 @@ impl ShaftExplanation {
 
 /// How pose `T_e_t` explains where the shafts were seen: the observations whose two observed
 /// line points both meet the tool axis behind the camera, and those (in front) whose line
-/// points meet the axis outside the physical shaft, farther than `margin` insertions from the
-/// segment between the line's known point (robot 2's RCM) and the tip. The line model cannot
+/// points meet the axis outside the visible instrument, farther than `margin` insertions from
+/// the segment [`Prepared::visible_m`] (by default between the line's known point, robot 2's
+/// RCM, and the tip). The line model cannot
 /// tell a line's side of the camera, nor where along the line the shaft is; the images can.
 pub fn shaft_explanation(set: &PreparedSet, pose: &Isometry3<f64>, margin: f64) -> ShaftExplanation {
     let r = pose.rotation.to_rotation_matrix().into_inner();
@@ -779,7 +799,8 @@ pub fn shaft_explanation(set: &PreparedSet, pose: &Isometry3<f64>, margin: f64) 
             behind += 1;
         } else {
             let len = o.insertion_m.abs().max(1e-9);
-            if seen.iter().flatten().any(|(_, s)| *s < -margin * len || *s > (1.0 + margin) * len) {
+            let [lo, hi] = o.visible_m;
+            if seen.iter().flatten().any(|(_, s)| *s < lo - margin * len || *s > hi + margin * len) {
                 off_shaft += 1;
             }
         }
@@ -852,6 +873,23 @@ pub fn solve_ours(setup: &Setup, observations: &[Observation], config: &OursConf
 
 /// Our pipeline on prepared observations.
 pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
+    let first = solve_as_stated(set, cfg)?;
+    let Some(noise) = cfg.noise.filter(|_| cfg.estimate_noise_scale) else {
+        return Ok(first);
+    };
+    let k = first.scale;
+    if !(k.is_finite() && k > 0.0) {
+        return Ok(first);
+    }
+    let k = k.clamp(NOISE_SCALE_BOUNDS[0], NOISE_SCALE_BOUNDS[1]);
+    let scaled = OursConfig { noise: Some(noise.scaled(k)), estimate_noise_scale: false, ..*cfg };
+    let mut second = solve_as_stated(set, &scaled)?;
+    second.noise_scale = k;
+    Ok(second)
+}
+
+/// [`solve_ours_prepared`] with the noise model as stated.
+fn solve_as_stated(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
     // The shaft-position likelihood says where the arms put the tool. A noise model without
     // the arms' noise (pixels only) claims pixel precision for a tip at the end of two
     // kinematic chains, and any arm-model error then bends the fit to meet it (on a recorded
@@ -1349,6 +1387,7 @@ fn solve_from(
         guard_kept: set.obs.len(),
         selection: None,
         selection_refused: None,
+        noise_scale: 1.0,
     })
 }
 

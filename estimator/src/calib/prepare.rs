@@ -46,6 +46,10 @@ pub struct Prepared {
     /// Distance from the line's point to the tool tip along `m_t`, metres (robot 2's
     /// insertion for an RCM arm).
     pub insertion_m: f64,
+    /// Where along the tool the camera can see the instrument, `[from, to]` metres from
+    /// [`Prepared::p_t`] toward the tip ([`super::ShaftExtent`]: `[−before_point_m, |L| +
+    /// beyond_tip_m]`).
+    pub visible_m: [f64; 2],
     /// The two line points as ideal (undistorted) pixels.
     pub px: [Vector2<f64>; 2],
     /// Per line point: true when it is an end of the shaft (the tip or robot 2's RCM), i.e.
@@ -121,6 +125,9 @@ pub enum PrepareError {
         /// What is wrong with the line.
         source: LineError,
     },
+    /// The shaft extent's lengths are negative or not finite.
+    #[error("shaft extent: beyond_tip_m and before_point_m must be finite and ≥ 0 (got {0:?})")]
+    ShaftExtent(super::ShaftExtent),
     /// The selection rule's lengths are negative or not finite.
     #[error("selection rule: min_visible_shaft_px and border_margin_px must be finite and ≥ 0 (got {0:?})")]
     Selection(super::SelectionRule),
@@ -178,6 +185,9 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
     if !setup.selection.is_valid() {
         return Err(PrepareError::Selection(setup.selection));
     }
+    if !setup.shaft_extent.is_valid() {
+        return Err(PrepareError::ShaftExtent(setup.shaft_extent));
+    }
     let k_inv = setup.intrinsics.k_inv();
     let k_inv_t = k_inv.transpose();
     let mut obs = Vec::with_capacity(observations.len());
@@ -218,6 +228,7 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
             psm_f2: f2,
             p_t: Vector3::from(o.tool_point_m),
             insertion_m: o.psm_joints[2],
+            visible_m: [-setup.shaft_extent.before_point_m, o.psm_joints[2].abs() + setup.shaft_extent.beyond_tip_m],
             px,
             eye_inv_adjoint,
             rays: px.map(|u| {

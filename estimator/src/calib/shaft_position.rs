@@ -11,7 +11,9 @@
 //! Per observation, [`shaft_position_residuals`] gives [`TERMS`] residuals (standard
 //! deviations; half their square is the negative log-likelihood to first order):
 //! - each line point's position along the tool ([`axis_seen_at`], standard deviation
-//!   [`position_sd_m`]): zero while on the physical shaft, the excess beyond it; for a point
+//!   [`position_sd_m`]): zero while on the part of the instrument the camera can see
+//!   ([`Prepared::visible_m`], from the setup's [`super::ShaftExtent`]: by default the
+//!   physical shaft from the RCM to the tip), the excess beyond it; for a point
 //!   that is an end of the shaft ([`Prepared::shaft_end`]: the dataset says its points are the
 //!   visible shaft's ends and this one is not on the image border) the distance from the nearer
 //!   end, unless the tip model below places it;
@@ -148,8 +150,8 @@ pub fn shaft_model(
 
 /// The shaft-position residuals of observation `o` at pose `(R, t)` under `noise` (its
 /// [`ShaftModel`] built there): for each of its two line points, how far (in its
-/// [`position_sd_m`]) the axis point seen there lies off the physical shaft (`s < 0` beyond the
-/// RCM or `s > L` beyond the tip; for a point that is an end of the shaft,
+/// [`position_sd_m`]) the axis point seen there lies off the visible instrument
+/// ([`Prepared::visible_m`]: by default `s < 0` beyond the RCM or `s > L` beyond the tip); for a point that is an end of the shaft,
 /// [`Prepared::shaft_end`], how far from the nearer end, signed), then how far behind the
 /// camera it lies (`depth < 0`), then the tip at a shaft end ([`TipEndModel::z`], which
 /// replaces the first kind for its point); each 0 when within or not applicable.
@@ -316,10 +318,10 @@ fn metric_residuals(
         } else if o.shaft_end[j] {
             // An end of the shaft: the nearer of the RCM (`s = 0`) and the tip (`s = L`).
             if s < 0.5 * l { s } else { s - l }
-        } else if s < 0.0 {
-            s
-        } else if s > l {
-            s - l
+        } else if s < o.visible_m[0] {
+            s - o.visible_m[0]
+        } else if s > o.visible_m[1] {
+            s - o.visible_m[1]
         } else {
             0.0
         };

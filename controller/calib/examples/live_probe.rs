@@ -1,0 +1,116 @@
+//! Diagnostic: a saved live dataset (`live --replay ... --save-dataset DIR`) solved under
+//! variants of the noise model and the pipeline's stages, errors against the run's truth;
+//! first, where the line points lie along the tool at the truth (`s / L`, and the points off
+//! `[0, L]`) and the shaft-position residuals there (`LIVE_PROBE_S=1`: every observation).
+//! Usage: `cargo run --release -p comanip-calib --example live_probe -- DIR [px mrad mm]...`
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
+
+use estimator::calib::KinematicNoise;
+use estimator::calib::ours::{OursConfig, solve_ours_prepared};
+use estimator::calib::prepare::prepare;
+use estimator::calib::selection::SelectionConfig;
+
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    let dir = std::path::PathBuf::from(&a[1]);
+    let ds: hw_io::calib_files::DatasetFile =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("dataset.json")).unwrap()).unwrap();
+    let tf: hw_io::calib_files::TruthFile =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap()).unwrap();
+    let truth = comanip_calib::convert::isometry(&tf.truth);
+    let (setup, obs, noise) = comanip_calib::convert::dataset(&ds);
+    let mut noises = vec![noise.unwrap()];
+    for c in a[2..].chunks(3) {
+        let v: Vec<f64> = c.iter().map(|s| s.parse().unwrap()).collect();
+        noises.push(KinematicNoise { pixel_px: v[0], rot_rad: v[1] * 1e-3, trans_m: v[2] * 1e-3 });
+    }
+    let set = prepare(&setup, &obs).unwrap();
+    println!("{} observations", obs.len());
+    {
+        use estimator::calib::shaft_position::{axis_seen_at, shaft_position_residuals};
+        let (r, t) = (truth.rotation.to_rotation_matrix().into_inner(), truth.translation.vector);
+        let mut fr = Vec::new();
+        let mut worst = Vec::new();
+        for (i, o) in set.obs.iter().enumerate() {
+            for (k, u) in o.px.iter().enumerate() {
+                if let Some((depth, s)) = axis_seen_at(&set, o, &r, &t, u) {
+                    fr.push(s / o.insertion_m);
+                    if s > o.insertion_m || s < 0.0 || depth < 0.0 {
+                        worst.push((i, k, s * 1e3, o.insertion_m * 1e3, depth * 1e3));
+                    }
+                }
+            }
+            if std::env::var("LIVE_PROBE_S").is_ok() {
+                let v: Vec<_> =
+                    o.px.iter()
+                        .filter_map(|u| axis_seen_at(&set, o, &r, &t, u))
+                        .map(|(d, s)| (s * 1e3, d * 1e3))
+                        .collect();
+                let tip = estimator::calib::selection::tip_px(&set, o, &r, &t);
+                let d: Vec<f64> = o.px.iter().map(|u| tip.map_or(f64::NAN, |tp| (u - tp).norm())).collect();
+                println!("T {i} tip px {:?} dist to ends px {:?}", tip.map(|v| (v.x.round(), v.y.round())), d);
+                println!(
+                    "S {i} eye {:?} L {:.1} px {:?} (s mm, depth mm) {:?}",
+                    obs[i].eye,
+                    o.insertion_m * 1e3,
+                    obs[i].line_px,
+                    v
+                );
+            }
+            let res = shaft_position_residuals(&set, o, &r, &t, &noise.unwrap());
+            if i < 8 || res.iter().any(|v| v.abs() > 3.0) {
+                println!(
+                    "obs {i} end {:?} ins {:.1} mm shaft residuals at truth {:?}",
+                    o.shaft_end,
+                    o.insertion_m * 1e3,
+                    res.map(|v| (v * 100.0).round() / 100.0)
+                );
+            }
+        }
+        fr.sort_by(f64::total_cmp);
+        let q = |p: f64| fr[((fr.len() - 1) as f64 * p) as usize];
+        println!(
+            "s/insertion at truth: min {:.3} p5 {:.3} median {:.3} p95 {:.3} max {:.3}",
+            q(0.0),
+            q(0.05),
+            q(0.5),
+            q(0.95),
+            q(1.0)
+        );
+        println!("outside [0, tip] or behind: {} e.g. {:?}", worst.len(), &worst[..worst.len().min(10)]);
+    }
+    for n in noises {
+        let forced = SelectionConfig { false_refusal_probability: 0.0, ..SelectionConfig::default() };
+        for (name, cfg) in [
+            ("product", OursConfig { noise: Some(n), ..OursConfig::default() }),
+            ("stage forced", OursConfig { noise: Some(n), selection: Some(forced), ..OursConfig::default() }),
+            ("no stage", OursConfig { noise: Some(n), selection: None, ..OursConfig::default() }),
+            ("no shaft", OursConfig { noise: Some(n), shaft_position: false, ..OursConfig::default() }),
+            (
+                "no shaft forced",
+                OursConfig { noise: Some(n), shaft_position: false, selection: Some(forced), ..OursConfig::default() },
+            ),
+        ] {
+            let t0 = std::time::Instant::now();
+            match solve_ours_prepared(&set, &cfg) {
+                Ok(r) => {
+                    let et = (r.pose.translation.vector - truth.translation.vector).norm() * 1e3;
+                    let er = (r.pose.rotation.inverse() * truth.rotation).angle().to_degrees();
+                    println!(
+                        "{:.2}px {:.1}mrad {:.2}mm {name:16} et {et:7.2} mm er {er:6.3} deg scale {:.2} llr {:.1} kept {} sel {:?} refused {:?} {:.0} ms",
+                        n.pixel_px,
+                        n.rot_rad * 1e3,
+                        n.trans_m * 1e3,
+                        r.scale,
+                        r.log_likelihood_ratio,
+                        r.guard_kept,
+                        r.selection.map(|s| (s.selected, s.plain, s.left_out, (s.shift_sigmas * 10.0).round() / 10.0)),
+                        r.selection_refused.map(|e| e.to_string()),
+                        t0.elapsed().as_secs_f64() * 1e3
+                    );
+                }
+                Err(e) => println!("{:.2}px {name:16} error {e}", n.pixel_px),
+            }
+        }
+    }
+}

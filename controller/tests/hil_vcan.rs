@@ -1919,20 +1919,11 @@ fn hil_live_calibration_published_within_its_predicted_3_sigma() {
     let lines = std::fs::read_to_string(a.dir.join("calibration.jsonl")).expect("calibration.jsonl");
     let msgs: Vec<Value> = lines.lines().map(|l| serde_json::from_str(l).expect("a JSON line")).collect();
     assert!(msgs.iter().any(|m| m["state"] == "collecting"), "collecting states republished");
+    // (Session 18 let the qemu guest report no publication as not measured, when every live
+    // solve's selection stage was refused; session 19 found why: the twin has no abdominal
+    // wall, jaws past the tip point and a noise model 20× its own (docs/calibration.md, "Why
+    // the stage ran away on the twin"). A missing publication fails everywhere again.)
     let Some(valid) = msgs.iter().find(|m| m["state"] == "valid") else {
-        // Since session 18 a solve whose selection-aware stage is refused publishes nothing
-        // (docs/calibration.md, "A refused stage is no calibration"; before, the unrefined fit
-        // was published, once the mirror 161° off). In the qemu guest at 4 ms the ~100 views
-        // of the run gave 3 solves and no publication (2026-11-27): that is reported as not
-        // measured, never passed silently; elsewhere it fails.
-        let solved_nothing = summary["solves"].as_u64().is_some_and(|n| n > 0) && summary["published"] == 0;
-        if a.driver["hil_mode"] == "qemu" && solved_nothing {
-            eprintln!(
-                "[hil] MISSING (qemu guest): no calibration published after {} solves; the assertions on a published calibration are not measured here",
-                summary["solves"]
-            );
-            return;
-        }
         panic!("a valid calibration received: {summary}");
     };
     eprintln!("first valid calibration: {valid}");

@@ -499,8 +499,8 @@ pub fn parse_dataset(text: &str) -> Result<DatasetFile, CalibFileError> {
         return Err(CalibFileError::Field {
             field: "shaft_extent".into(),
             problem: format!(
-                "beyond_tip_m and before_point_m must be finite and ≥ 0 metres (got {}, {})",
-                e.beyond_tip_m, e.before_point_m
+                "beyond_tip_m, before_point_m (metres) and end_sd_px (pixels) must be finite and ≥ 0 (got {}, {}, {})",
+                e.beyond_tip_m, e.before_point_m, e.end_sd_px
             ),
         });
     }
@@ -849,7 +849,7 @@ mod tests {
                 require_tip_in_view: false,
                 ends_are_shaft_ends: true,
             }),
-            shaft_extent: Some(ShaftExtent { beyond_tip_m: 0.018, before_point_m: 0.0 }),
+            shaft_extent: Some(ShaftExtent { beyond_tip_m: 0.018, before_point_m: 0.0, end_sd_px: 8.0 }),
             observations: vec![ObservationJson {
                 ecm_joints: [0.1, 0.0, 0.05, 0.0],
                 psm_joints: [0.0, 0.1, 0.1],
@@ -975,7 +975,7 @@ mod tests {
         assert_eq!(parse_dataset(&old_text).unwrap().shaft_extent, None);
         for bad in [-0.001, f64::NAN] {
             let mut neg = d.clone();
-            neg.shaft_extent = Some(ShaftExtent { beyond_tip_m: 0.0, before_point_m: bad });
+            neg.shaft_extent = Some(ShaftExtent { beyond_tip_m: 0.0, before_point_m: bad, end_sd_px: 0.0 });
             // NaN is written as null, which JSON refuses as a number; a negative length is named.
             match parse_dataset(&to_json(&neg)) {
                 Err(CalibFileError::Field { field, .. }) => assert_eq!(field, "shaft_extent"),

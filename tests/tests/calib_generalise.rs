@@ -433,11 +433,21 @@ fn the_shaft_extent_says_where_a_line_may_lie_along_the_tool() {
     };
     let tight = off(ShaftExtent::default());
     assert!(tight[0] > 10 && tight[1] > 10, "{tight:?}");
-    assert_eq!(off(ShaftExtent { beyond_tip_m: 0.0105, before_point_m: 0.0 })[1], 0);
-    assert_eq!(off(ShaftExtent { beyond_tip_m: 0.0105, before_point_m: 0.1505 }), [0, 0]);
-    assert_eq!(off(ShaftExtent { beyond_tip_m: 0.0, before_point_m: 0.1505 }), [0, tight[1]]);
+    assert_eq!(off(ShaftExtent { beyond_tip_m: 0.0105, before_point_m: 0.0, end_sd_px: 0.0 })[1], 0);
+    assert_eq!(off(ShaftExtent { beyond_tip_m: 0.0105, before_point_m: 0.1505, end_sd_px: 0.0 }), [0, 0]);
+    assert_eq!(off(ShaftExtent { beyond_tip_m: 0.0, before_point_m: 0.1505, end_sd_px: 0.0 }), [0, tight[1]]);
+    // The detector's end precision widens where a point may lie: the same excesses, fewer
+    // deviations.
+    let largest = |end_sd_px: f64| {
+        let extent = ShaftExtent { end_sd_px, ..ShaftExtent::default() };
+        let set = prepare(&estimator::calib::Setup { shaft_extent: extent, ..d.setup }, &shifted).unwrap();
+        set.obs.iter().map(|o| shaft_position_residuals(&set, o, &r, &t, &noise)[1].abs()).fold(0.0, f64::max)
+    };
+    assert!(largest(8.0) < 0.6 * largest(0.0), "{} {}", largest(8.0), largest(0.0));
     // A negative or non-finite extent is refused.
-    let bad =
-        estimator::calib::Setup { shaft_extent: ShaftExtent { beyond_tip_m: -0.1, before_point_m: 0.0 }, ..d.setup };
+    let bad = estimator::calib::Setup {
+        shaft_extent: ShaftExtent { beyond_tip_m: -0.1, before_point_m: 0.0, end_sd_px: 0.0 },
+        ..d.setup
+    };
     assert!(matches!(prepare(&bad, &shifted), Err(estimator::calib::prepare::PrepareError::ShaftExtent(_))));
 }

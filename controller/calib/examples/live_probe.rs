@@ -18,7 +18,28 @@ fn main() {
     let tf: hw_io::calib_files::TruthFile =
         serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap()).unwrap();
     let truth = comanip_calib::convert::isometry(&tf.truth);
-    let (setup, obs, noise) = comanip_calib::convert::dataset(&ds);
+    let (mut setup, mut obs, noise) = comanip_calib::convert::dataset(&ds);
+    // LIVE_PROBE_JAWTIP=1: the tip taken at the end of the visible instrument (the jaws'
+    // tips) for every model, the extent past it 0.
+    if std::env::var("LIVE_PROBE_JAWTIP").is_ok() {
+        let b = setup.shaft_extent.beyond_tip_m;
+        for o in &mut obs {
+            let m = estimator::calib::rcm_arms::psm_axis(&o.psm_joints);
+            *o = estimator::calib::Observation::from_tool_line(
+                o.ecm_joints,
+                o.tool_point_m,
+                m.into(),
+                o.psm_joints[2] + b,
+                o.line_px,
+                o.eye,
+            )
+            .unwrap();
+        }
+        setup.shaft_extent.beyond_tip_m = 0.0;
+    }
+    if let Some(v) = std::env::var("LIVE_PROBE_END_PX").ok().and_then(|v| v.parse::<f64>().ok()) {
+        setup.shaft_extent.end_sd_px = v;
+    }
     let mut noises = vec![noise.unwrap()];
     for c in a[2..].chunks(3) {
         let v: Vec<f64> = c.iter().map(|s| s.parse().unwrap()).collect();
@@ -66,6 +87,68 @@ fn main() {
                     res.map(|v| (v * 100.0).round() / 100.0)
                 );
             }
+        }
+        // Residuals beyond the visible extent at the truth, in their standard deviations.
+        let mut ex: Vec<(f64, usize)> = set
+            .obs
+            .iter()
+            .enumerate()
+            .map(|(i, o)| {
+                let e = shaft_position_residuals(&set, o, &r, &t, &noise.unwrap());
+                (e.iter().fold(0.0f64, |m, v| m.max(v.abs())), i)
+            })
+            .collect();
+        ex.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let n3 = ex.iter().filter(|v| v.0 > 3.0).count();
+        println!("shaft residuals at truth beyond 3 sd: {n3} of {}; largest {:?}", ex.len(), &ex[..ex.len().min(8)]);
+        // Pixel distance from each line end lying past the visible instrument to the image of
+        // the visible instrument's end.
+        let mut past_px: Vec<f64> = Vec::new();
+        for (i, o) in set.obs.iter().enumerate() {
+            let m = estimator::calib::rcm_arms::psm_axis(&obs[i].psm_joints);
+            let Some(jt) = estimator::calib::Observation::from_tool_line(
+                obs[i].ecm_joints,
+                obs[i].tool_point_m,
+                m.into(),
+                o.visible_m[1],
+                obs[i].line_px,
+                obs[i].eye,
+            ) else {
+                continue;
+            };
+            let Ok(one) = estimator::calib::prepare::prepare_unchecked(&setup, &[jt]) else { continue };
+            let Some(end_px) = estimator::calib::selection::tip_px(&one, &one.obs[0], &r, &t) else { continue };
+            for u in &o.px {
+                if let Some((_, s)) = axis_seen_at(&set, o, &r, &t, u) {
+                    if s > o.visible_m[1] {
+                        past_px.push((u - end_px).norm());
+                    }
+                }
+            }
+        }
+        past_px.sort_by(f64::total_cmp);
+        if !past_px.is_empty() {
+            let q = |p: f64| past_px[((past_px.len() - 1) as f64 * p) as usize];
+            println!(
+                "line ends past the visible instrument: {} points, image distance px median {:.1} p90 {:.1} max {:.1}",
+                past_px.len(),
+                q(0.5),
+                q(0.9),
+                q(1.0)
+            );
+        }
+        for &(_, i) in ex.iter().take(4) {
+            let o = &set.obs[i];
+            let v: Vec<_> =
+                o.px.iter().filter_map(|u| axis_seen_at(&set, o, &r, &t, u)).map(|(d, s)| (s * 1e3, d * 1e3)).collect();
+            println!(
+                "  obs {i} eye {:?} L {:.1} mm visible {:?} px {:?} (s mm, depth mm) {:?}",
+                obs[i].eye,
+                o.insertion_m * 1e3,
+                o.visible_m,
+                obs[i].line_px,
+                v
+            );
         }
         fr.sort_by(f64::total_cmp);
         let q = |p: f64| fr[((fr.len() - 1) as f64 * p) as usize];

@@ -107,11 +107,20 @@ pub struct ToolSection {
     /// wall (0.3 m, the whole instrument). Too small a value makes the calibration refuse good
     /// data; too large only gives up some information.
     pub before_fulcrum_m: f64,
+    /// The shaft detector's precision of a line's end along the line, pixels (standard
+    /// deviation): how far past the instrument's image a detected end may lie. Default: our
+    /// detector on simrobot's frames (`comanip_calib::pixels::DETECTOR_END_SD_PX`).
+    pub line_end_sd_px: f64,
 }
 
 impl Default for ToolSection {
     fn default() -> Self {
-        Self { wrist_to_tip_m: 0.3, beyond_tip_m: 0.018, before_fulcrum_m: 0.3 }
+        Self {
+            wrist_to_tip_m: 0.3,
+            beyond_tip_m: 0.018,
+            before_fulcrum_m: 0.3,
+            line_end_sd_px: crate::pixels::DETECTOR_END_SD_PX,
+        }
     }
 }
 
@@ -350,6 +359,10 @@ impl LiveConfig {
                 return Err(bad(key, format!("{v}: must be in [0, 2) metres")));
             }
         }
+        let e = self.tool.line_end_sd_px;
+        if !(e.is_finite() && (0.0..1000.0).contains(&e)) {
+            return Err(bad("tool.line_end_sd_px", format!("{e}: must be in [0, 1000) pixels")));
+        }
         for (key, v) in
             [("target.translation_mm", self.target.translation_mm), ("target.rotation_deg", self.target.rotation_deg)]
         {
@@ -393,6 +406,7 @@ impl LiveConfig {
             shaft_extent: estimator::calib::ShaftExtent {
                 beyond_tip_m: self.tool.beyond_tip_m,
                 before_point_m: self.tool.before_fulcrum_m,
+                end_sd_px: self.tool.line_end_sd_px,
             },
         };
         let fulcrum_service = self.services.fulcrum.clone().unwrap_or_else(|| fulcrumd.output.service.clone());
@@ -452,6 +466,7 @@ mod tests {
             ("[tool]\nwrist_to_tip_m = nan\n", "tool.wrist_to_tip_m"),
             ("[tool]\nbeyond_tip_m = -0.001\n", "tool.beyond_tip_m"),
             ("[tool]\nbefore_fulcrum_m = inf\n", "tool.before_fulcrum_m"),
+            ("[tool]\nline_end_sd_px = -1.0\n", "tool.line_end_sd_px"),
             ("[target]\ntranslation_mm = 0.0\n", "target.translation_mm"),
             ("[noise]\npixel_px = 0.0\nrotation_mrad = 0.0\ntranslation_mm = 0.0\n", "noise"),
             ("[output]\nrepublish_s = 0.0\n", "output.republish_s"),

@@ -180,15 +180,18 @@ pub struct ShaftExtent {
     /// tip) the camera can see the shaft, metres (≥ 0; 0 when a wall hides it).
     #[serde(default)]
     pub before_point_m: f64,
+    /// The detector's precision of a line's end along the line, pixels (standard deviation,
+    /// ≥ 0): how far past the instrument's image a detected end may lie (blur, shadow, the
+    /// contours' extent). Added to the pixel noise where the shaft-position terms place a line
+    /// point along the tool; 0: the ends are as precise as the lines.
+    #[serde(default)]
+    pub end_sd_px: f64,
 }
 
 impl ShaftExtent {
-    /// True when both lengths are finite and ≥ 0.
+    /// True when every value is finite and ≥ 0.
     pub fn is_valid(&self) -> bool {
-        self.beyond_tip_m.is_finite()
-            && self.beyond_tip_m >= 0.0
-            && self.before_point_m.is_finite()
-            && self.before_point_m >= 0.0
+        [self.beyond_tip_m, self.before_point_m, self.end_sd_px].iter().all(|v| v.is_finite() && *v >= 0.0)
     }
 }
 

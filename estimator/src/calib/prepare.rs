@@ -79,6 +79,9 @@ pub struct PreparedSet {
     pub intrinsics: super::Intrinsics,
     /// [`Setup::selection`](super::Setup::selection): the detector's acceptance rule.
     pub selection: super::SelectionRule,
+    /// The detector's precision of a line's end along the line, pixels
+    /// ([`super::ShaftExtent::end_sd_px`]).
+    pub end_sd_px: f64,
     /// Smallest over largest eigenvalue of `Σ n_c n_cᵀ` (Eq. 1's unit normals in the camera
     /// frame): below [`PENCIL_TOLERANCE`] the lines form one pencil (checked by Eq. 5's step,
     /// [`super::paper::linear_translation`]).
@@ -126,7 +129,7 @@ pub enum PrepareError {
         source: LineError,
     },
     /// The shaft extent's lengths are negative or not finite.
-    #[error("shaft extent: beyond_tip_m and before_point_m must be finite and ≥ 0 (got {0:?})")]
+    #[error("shaft extent: beyond_tip_m, before_point_m and end_sd_px must be finite and ≥ 0 (got {0:?})")]
     ShaftExtent(super::ShaftExtent),
     /// The selection rule's lengths are negative or not finite.
     #[error("selection rule: min_visible_shaft_px and border_margin_px must be finite and ≥ 0 (got {0:?})")]
@@ -251,6 +254,7 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
         hand_eye: setup.hand_eye,
         intrinsics: setup.intrinsics,
         selection: setup.selection,
+        end_sd_px: setup.shaft_extent.end_sd_px,
         views,
         orientations,
         offset_points: observations.iter().any(|o| o.tool_point_m != [0.0; 3]),

@@ -182,6 +182,7 @@ pub fn model_and_residuals_at(
     line: Option<(&Vector2<f64>, &Jac6)>,
 ) -> (ShaftModel, [f64; TERMS], [Vector6<f64>; TERMS]) {
     let focal = focal_px(set);
+    let ends = with_end_precision(set, noise);
     let mut seen = [None; 2];
     let mut sds = [None; 2];
     // The axis (and its unit direction) once for both line points.
@@ -189,7 +190,7 @@ pub fn model_and_residuals_at(
     let d_unit = d.normalize();
     for (j, (v, v_unit)) in o.rays.iter().enumerate() {
         seen[j] = closest_approach(v, &p, &d);
-        sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(noise, focal, o.insertion_m, v_unit, &d_unit, depth, s));
+        sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(&ends, focal, o.insertion_m, v_unit, &d_unit, depth, s));
     }
     let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
     let m = ShaftModel { sds, tip: tip.map(|x| x.0) };
@@ -278,11 +279,18 @@ fn sds_at(
     noise: &KinematicNoise,
 ) -> [Option<f64>; 2] {
     let focal = focal_px(set);
+    let ends = with_end_precision(set, noise);
     o.px.map(|u| {
         let (v, p, d) = ray_and_axis(set, o, r, t, &u);
         let (depth, s) = closest_approach(&v, &p, &d)?;
-        sd_of_unit(noise, focal, o.insertion_m, &v.normalize(), &d.normalize(), depth, s)
+        sd_of_unit(&ends, focal, o.insertion_m, &v.normalize(), &d.normalize(), depth, s)
     })
+}
+
+/// `noise` with the detector's end precision ([`PreparedSet::end_sd_px`]) added to its pixel
+/// term: the noise of a line point's position along the tool.
+fn with_end_precision(set: &PreparedSet, noise: &KinematicNoise) -> KinematicNoise {
+    KinematicNoise { pixel_px: noise.pixel_px.hypot(set.end_sd_px), ..*noise }
 }
 
 /// The metric residuals (the first four of [`shaft_position_residuals`]) with each line

@@ -285,7 +285,7 @@ fn true_contours(frame: &RenderedFrame) -> Option<[TrueContour; 2]> {
     Some([(c0.line_ideal, c0.segment_ideal_px?), (c1.line_ideal, c1.segment_ideal_px?)])
 }
 
-/// Runs ours (default settings) traced on the frames of `set` at `levels` and classifies the
+/// Runs ours (default settings, or `SHAFT_DIAG_OURS`'s) traced on the frames of `set` at `levels` and classifies the
 /// misses. `progress` is called once per frame rendered and once per frame diagnosed.
 pub fn run(
     k: &Intrinsics,
@@ -295,8 +295,15 @@ pub fn run(
     progress: &(dyn Fn() + Sync),
 ) -> Result<Diagnosis, ShaftBenchError> {
     let specs = frame_specs(set, frames_per_family, &endoscope_config(set, ClutterLevel::Clean))?;
-    let mut det = OursDetector::new(*k, OursConfig::default())
-        .map_err(|e| ShaftBenchError::Io { path: "ours".into(), message: e.to_string() })?;
+    // `SHAFT_DIAG_OURS`: settings of ours as JSON (the fields to change; the others keep
+    // their defaults), to measure a setting against the default on the same frames.
+    let cfg = match std::env::var("SHAFT_DIAG_OURS") {
+        Ok(json) => serde_json::from_str::<OursConfig>(&json)
+            .map_err(|e| ShaftBenchError::Io { path: "SHAFT_DIAG_OURS".into(), message: e.to_string() })?,
+        Err(_) => OursConfig::default(),
+    };
+    let mut det =
+        OursDetector::new(*k, cfg).map_err(|e| ShaftBenchError::Io { path: "ours".into(), message: e.to_string() })?;
     let mut d = Diagnosis::default();
     for &level in levels {
         let frames = render_frames(set, level, &specs, progress)?;

@@ -337,6 +337,10 @@ pub struct PipelineResultJson {
     /// Ours with a noise model: what its selection-aware stage did (absent otherwise).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub selection_stage: Option<SelectionStageJson>,
+    /// Ours when asked to estimate the noise model's scale: the factor its standard
+    /// deviations were multiplied by (dimensionless; absent when taken as stated).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_scale: Option<f64>,
 }
 
 /// Our pipeline's selection-aware stage in a result file (`docs/calibration.md`).

@@ -105,6 +105,13 @@ enum Command {
         /// stage cannot model the data (otherwise that is a failure of our pipeline).
         #[arg(long)]
         accept_unrefined: bool,
+        /// Take the dataset's noise model as known up to a common scale: our pipeline solves,
+        /// then solves again with every standard deviation multiplied by the fit's robust scale
+        /// (written as `noise_scale`). For a noise model that is a guess (a live session's);
+        /// the line fit does not depend on the scale, the shaft-position terms and the
+        /// selection-aware stage do.
+        #[arg(long)]
+        estimate_noise_scale: bool,
     },
     /// Detect the instrument shaft's lines in a directory of images; write them as JSON.
     Detect {
@@ -345,7 +352,16 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 truth.display()
             )?;
         }
-        Command::Calibrate { dataset, intrinsics, truth, out, plot, pipeline, accept_unrefined } => {
+        Command::Calibrate {
+            dataset,
+            intrinsics,
+            truth,
+            out,
+            plot,
+            pipeline,
+            accept_unrefined,
+            estimate_noise_scale,
+        } => {
             let s = calibrate(
                 &dataset,
                 intrinsics.as_deref(),
@@ -353,7 +369,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 &out,
                 plot.as_deref(),
                 pipeline,
-                accept_unrefined,
+                comanip_calib::run::OursOptions { accept_unrefined, estimate_noise_scale },
             )?;
             for r in &s {
                 match r.errors {

@@ -213,12 +213,23 @@ fn read(path: &Path) -> Result<String, CalibrateError> {
     std::fs::read_to_string(path).map_err(|source| CalibrateError::Read { path: path.to_owned(), source })
 }
 
+/// How `calibrate` runs our pipeline.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct OursOptions {
+    /// Accept the unrefined (border-guarded) estimate when the selection-aware stage cannot
+    /// model the data (otherwise a failure of our pipeline).
+    pub accept_unrefined: bool,
+    /// Take the dataset's noise model as known up to a scale, estimated from the data
+    /// (`estimator::calib::ours::OursConfig::estimate_noise_scale`).
+    pub estimate_noise_scale: bool,
+}
+
 /// Reads a dataset (optionally overriding its intrinsics from a YAML file), runs the
 /// requested pipeline(s), writes the result file (each pipeline's result or its failure; and
 /// the residual figure to `plot`, SVG, when given), and compares with a truth file if given.
 ///
 /// A pipeline fails when it returns an error (degenerate data, ambiguity, ...) and, for ours,
-/// when its selection-aware stage cannot model the data unless `accept_unrefined` (the
+/// when its selection-aware stage cannot model the data unless `ours.accept_unrefined` (the
 /// unrefined estimate is then written, with the refusal in its `selection_stage`). `Err` only
 /// for unreadable or malformed inputs and unwritable outputs; the caller decides the exit code
 /// from the summaries ([`all_failed`]).
@@ -229,8 +240,9 @@ pub fn calibrate(
     out: &Path,
     plot: Option<&Path>,
     pipeline: Pipeline,
-    accept_unrefined: bool,
+    ours: OursOptions,
 ) -> Result<Vec<CalibrateSummary>, CalibrateError> {
+    let OursOptions { accept_unrefined, estimate_noise_scale } = ours;
     let text = read(dataset)?;
     let file = parse_dataset(&text).map_err(|source| CalibrateError::File { path: dataset.to_owned(), source })?;
     let (mut setup, obs, noise) = convert::dataset(&file);
@@ -320,7 +332,7 @@ pub fn calibrate(
         }
         if wanted.contains(&"ours") {
             let started = Instant::now();
-            let r = solve_ours_prepared(set, &OursConfig { noise, ..OursConfig::default() });
+            let r = solve_ours_prepared(set, &OursConfig { noise, estimate_noise_scale, ..OursConfig::default() });
             let ms = started.elapsed().as_secs_f64() * 1e3;
             match r {
                 Ok(r) => {

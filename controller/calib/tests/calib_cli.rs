@@ -377,3 +377,23 @@ fn a_paper_pose_that_puts_the_shafts_where_no_instrument_is_is_a_failure() {
     assert_eq!(r.results.iter().map(|p| p.pipeline.as_str()).collect::<Vec<_>>(), ["ours"]);
     assert_eq!(r.failures[0].kind, "shafts_not_explained");
 }
+
+#[test]
+fn estimate_noise_scale_finds_a_noise_model_stated_too_large() {
+    // A dataset whose noise model is 20× the noise it was generated with: with
+    // --estimate-noise-scale our pipeline's result records the factor it found (≈ 1/20);
+    // without, none.
+    let dir = tempfile::tempdir().unwrap();
+    generate(dir.path(), "0.01");
+    let mut d = parse_dataset(&std::fs::read_to_string(dir.path().join("d.json")).unwrap()).unwrap();
+    let n = d.noise_model.as_mut().unwrap();
+    (n.rot_rad, n.trans_m, n.pixel_px) = (n.rot_rad * 20.0, n.trans_m * 20.0, n.pixel_px * 20.0);
+    std::fs::write(dir.path().join("big.json"), to_json(&d)).unwrap();
+    let (out, r) = calibrate(dir.path(), "big.json", "ours", &["--estimate-noise-scale", "--accept-unrefined"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let k = r.results[0].noise_scale.expect("the factor is recorded");
+    assert!((k * 20.0 - 1.0).abs() < 0.3, "{k}");
+    let (out, r) = calibrate(dir.path(), "big.json", "ours", &["--accept-unrefined"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(r.results[0].noise_scale, None);
+}

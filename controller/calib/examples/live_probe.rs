@@ -119,10 +119,10 @@ fn main() {
             let Ok(one) = estimator::calib::prepare::prepare_unchecked(&setup, &[jt]) else { continue };
             let Some(end_px) = estimator::calib::selection::tip_px(&one, &one.obs[0], &r, &t) else { continue };
             for u in &o.px {
-                if let Some((_, s)) = axis_seen_at(&set, o, &r, &t, u) {
-                    if s > o.visible_m[1] {
-                        past_px.push((u - end_px).norm());
-                    }
+                if let Some((_, s)) = axis_seen_at(&set, o, &r, &t, u)
+                    && s > o.visible_m[1]
+                {
+                    past_px.push((u - end_px).norm());
                 }
             }
         }

@@ -1,6 +1,8 @@
 //! # comanip estimator: the product's own mathematics
 //!
-//! Pure, deterministic maths with no I/O, no threads and no clocks. Everything here is
+//! Pure, deterministic maths with no I/O, no threads and no clocks (one exception, opt-in: the
+//! feature `parallel` runs an offline calibration's independent work on rayon's pool, results
+//! bit for bit the serial build's; off by default). Everything here is
 //! `no_std`-capable (disable the default `std` feature) and allocation-free after
 //! construction: windows are fixed-capacity [`heapless`] buffers and every matrix is a
 //! fixed-size [`nalgebra`] type.

@@ -45,6 +45,7 @@ pub mod crb;
 pub mod hausman;
 pub mod ours;
 pub mod paper;
+mod par;
 pub mod prepare;
 pub mod rcm_arms;
 pub mod residual;

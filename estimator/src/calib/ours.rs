@@ -44,7 +44,7 @@ use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refi
 use super::shaft_position::{
     ShaftModel, axis_seen_at, model_and_residuals_at, residuals_at_with, stage_terms, translation_from_shaft_ends,
 };
-use super::{Observation, Setup};
+use super::{Observation, Setup, par};
 
 /// Two refined candidates whose rotations differ by more than this (radians, 10°) are
 /// different solutions for the ambiguity check.
@@ -414,9 +414,8 @@ fn refine(
     // The shaft-position models, rebuilt at each iteration's pose and held fixed within its
     // line search (the tip's noise moves with the pose far more than the lines' does).
     let shaft_noise = cfg.noise.as_ref().filter(|_| cfg.shaft_position);
-    let mut shaft_models: Vec<ShaftModel> = Vec::with_capacity(if shaft_noise.is_some() { set.obs.len() } else { 0 });
     // Each observation's line weight (Huber) at the iteration's pose, for its shaft terms.
-    let mut line_weights: Vec<f64> = Vec::with_capacity(shaft_models.capacity());
+    let mut line_weights: Vec<f64> = Vec::with_capacity(if shaft_noise.is_some() { set.obs.len() } else { 0 });
     let mut r = r0;
     let mut t = t0;
     let mut iterations = 0;
@@ -425,47 +424,47 @@ fn refine(
         let mut lambda = 1e-4;
         // Buffers reused by every iteration.
         let mut norms = Vec::with_capacity(set.obs.len());
-        let mut evals = Vec::with_capacity(set.obs.len());
         let mut scratch = Vec::with_capacity(set.obs.len());
-        // The unwhitened line residuals and Jacobians, for the shaft-position terms.
-        let mut raws = Vec::with_capacity(shaft_models.capacity());
-        // The line residuals at a trial pose.
+        // Each observation's whitened line residuals and Jacobian and, with the shaft terms,
+        // its shaft model, residuals and gradients at the iteration's pose (computed per
+        // observation, [`par`], and summed in order below).
+        let mut at_pose: Vec<ObsTerms> = (0..set.obs.len()).map(|_| ObsTerms::default()).collect();
+        // The line residuals at a trial pose, and each observation's shaft terms' cost there.
         let mut trial = Vec::with_capacity(set.obs.len());
+        let mut trial_shaft: Vec<f64> = Vec::with_capacity(line_weights.capacity());
+        let idx: Vec<usize> = (0..set.obs.len()).collect();
         for _ in 0..cfg.max_iterations {
             iterations += 1;
             let mut h = Matrix6::zeros();
             let mut g = Vector6::zeros();
-            norms.clear();
-            evals.clear();
-            raws.clear();
-            for (o, w) in set.obs.iter().zip(&whiten) {
+            par::for_each_mut(&mut at_pose, |i, x| {
+                let (o, w) = (&set.obs[i], &whiten[i]);
                 let (res, jac) = residual_and_jacobian(set, o, &r, &t);
-                let (e, j) = (w * res, w * jac);
-                norms.push(e.norm());
-                evals.push((e, j));
-                if shaft_noise.is_some() {
-                    raws.push((res, jac));
+                (x.e, x.j) = (w * res, w * jac);
+                x.norm = x.e.norm();
+                if let Some(noise) = shaft_noise {
+                    (x.model, x.es, x.gs) = model_and_residuals_at(set, o, &r, &t, noise, true, Some((&res, &jac)));
                 }
-            }
+            });
+            norms.clear();
+            norms.extend(at_pose.iter().map(|x| x.norm));
             scale = robust_scale_with(&norms, &mut scratch);
             let c = cfg.huber_k * scale;
             let mut cost = 0.0;
-            for ((e, j), n) in evals.iter().zip(&norms) {
+            for x in &at_pose {
+                let n = &x.norm;
                 let wgt = if *n <= c { 1.0 } else { c / n };
-                add_weighted_gram(&mut h, j, wgt);
-                g += j.transpose() * e * wgt;
+                add_weighted_gram(&mut h, &x.j, wgt);
+                g += x.j.transpose() * x.e * wgt;
                 cost += huber(*n, c);
             }
             // The shaft-position terms (with a noise model): flat while every observed line
             // point is on the physical shaft, in front of the camera.
-            if let Some(noise) = shaft_noise {
-                shaft_models.clear();
+            if shaft_noise.is_some() {
                 line_weights.clear();
                 line_weights.extend(norms.iter().map(|n| if *n <= c { 1.0 } else { c / n }));
-                for ((o, (res, jac)), lw) in set.obs.iter().zip(&raws).zip(&line_weights) {
-                    let (m, es, gs) = model_and_residuals_at(set, o, &r, &t, noise, true, Some((res, jac)));
-                    shaft_models.push(m);
-                    for (e, j) in es.iter().zip(&gs) {
+                for (x, lw) in at_pose.iter().zip(&line_weights) {
+                    for (e, j) in x.es.iter().zip(&x.gs) {
                         if *e == 0.0 {
                             continue;
                         }
@@ -491,20 +490,22 @@ fn refine(
                 };
                 let t_new = t + step.fixed_rows::<3>(0);
                 let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
-                trial.clear();
-                trial.extend(set.obs.iter().map(|o| residual(set, o, &r_new, &t_new)));
+                par::map_into(&set.obs, &mut trial, |o| residual(set, o, &r_new, &t_new));
                 // The lines' cost, then the shaft terms' sum in the same order as a `sum` (from
                 // −0), stopped once it exceeds `cost`: every term is ≥ 0, so a partial sum
                 // above `cost` rejects the step as the whole sum would.
                 let lines: f64 = trial.iter().zip(&whiten).map(|(res, w)| huber((w * res).norm(), c)).sum::<f64>();
                 let mut shaft = -0.0;
-                if lines <= cost {
-                    for (((o, res), m), lw) in set.obs.iter().zip(&trial).zip(&shaft_models).zip(&line_weights) {
-                        shaft += lw
-                            * residuals_at_with(set, o, &r_new, &t_new, m, res)
+                if lines <= cost && shaft_noise.is_some() {
+                    par::map_into(&idx, &mut trial_shaft, |&i| {
+                        line_weights[i]
+                            * residuals_at_with(set, &set.obs[i], &r_new, &t_new, &at_pose[i].model, &trial[i])
                                 .iter()
                                 .map(|e| huber((e * scale).abs(), c))
-                                .sum::<f64>();
+                                .sum::<f64>()
+                    });
+                    for v in &trial_shaft {
+                        shaft += v;
                         if lines + shaft > cost {
                             break;
                         }
@@ -540,6 +541,19 @@ fn refine(
         }
     }
     Refined { r, t, whiten, scale, iterations, merged }
+}
+
+/// One observation's terms at a [`refine`] iteration's pose: its whitened line residuals `e`,
+/// their Jacobian `j` and norm, and with the shaft-position terms its shaft model, residuals
+/// and gradients ([`model_and_residuals_at`]).
+#[derive(Default)]
+struct ObsTerms {
+    e: Vector2<f64>,
+    j: super::residual::Jac6,
+    norm: f64,
+    model: ShaftModel,
+    es: [f64; super::shaft_position::TERMS],
+    gs: [Vector6<f64>; super::shaft_position::TERMS],
 }
 
 /// True when `pose` is within `sigmas` standard deviations (Mahalanobis, `fit`'s covariance)
@@ -641,19 +655,16 @@ impl NllParts {
 }
 
 fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> NllParts {
-    let mut norms = Vec::with_capacity(set.obs.len());
-    let mut shaft = Vec::new();
-    let mut rest = 0.0;
     // Unused by the shaft terms without their gradients ([`model_and_residuals_at`]).
     let no_jacobian = super::residual::Jac6::zeros();
-    for o in &set.obs {
+    // Per observation ([`par`]): its whitened norm, its shaft-position residuals, its
+    // log-determinant and its detector's-rule term; summed in order below.
+    let per_obs = par::map(&set.obs, |o| {
         let res = residual(set, o, r, t);
-        if let Some(noise) = cfg.noise.as_ref().filter(|_| cfg.shaft_position) {
-            let i = norms.len();
+        let shaft = cfg.noise.as_ref().filter(|_| cfg.shaft_position).map(|noise| {
             // [`super::shaft_position::shaft_position_residuals`] with the line residuals shared.
-            let (_, es, _) = model_and_residuals_at(set, o, r, t, noise, false, Some((&res, &no_jacobian)));
-            shaft.extend(es.iter().filter(|e| **e != 0.0).map(|e| (e.abs(), i)));
-        }
+            model_and_residuals_at(set, o, r, t, noise, false, Some((&res, &no_jacobian))).1
+        });
         let (e, logdet) = match &cfg.noise {
             Some(noise) => {
                 let cov = residual_covariance(set, o, r, t, noise);
@@ -663,13 +674,23 @@ fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<
             }
             None => (res.norm(), 0.0),
         };
-        norms.push(e);
-        rest += 0.5 * logdet;
         // With a noise model: that this line was recorded at all, given where this pose puts
         // the tool (the detector's rule; −ln P(kept | line), 0 where the first-order model
         // does not apply, a bounded penalty for a tip behind the camera).
-        if let Some(noise) = &cfg.noise {
-            rest -= kept_given_line_ln(set, o, r, t, noise, &SelectionConfig::default());
+        let kept = cfg.noise.as_ref().map(|noise| kept_given_line_ln(set, o, r, t, noise, &SelectionConfig::default()));
+        (e, shaft, logdet, kept)
+    });
+    let mut norms = Vec::with_capacity(set.obs.len());
+    let mut shaft = Vec::new();
+    let mut rest = 0.0;
+    for (i, (e, es, logdet, kept)) in per_obs.into_iter().enumerate() {
+        if let Some(es) = es {
+            shaft.extend(es.iter().filter(|e| **e != 0.0).map(|e| (e.abs(), i)));
+        }
+        norms.push(e);
+        rest += 0.5 * logdet;
+        if let Some(kept) = kept {
+            rest -= kept;
         }
     }
     NllParts { norms, shaft, rest }
@@ -748,7 +769,7 @@ fn polish(set: &PreparedSet, cfg: &OursConfig, first: Refined) -> Refined {
 /// Whitening matrices `Σ_i^{-1/2}` at `(r, t)` (identity without a noise model).
 fn whitening(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> Vec<Matrix2<f64>> {
     match &cfg.noise {
-        Some(noise) => set.obs.iter().map(|o| whitener(&residual_covariance(set, o, r, t, noise))).collect(),
+        Some(noise) => par::map(&set.obs, |o| whitener(&residual_covariance(set, o, r, t, noise))),
         None => vec![Matrix2::identity(); set.obs.len()],
     }
 }
@@ -873,6 +894,13 @@ pub fn solve_ours(setup: &Setup, observations: &[Observation], config: &OursConf
 
 /// Our pipeline on prepared observations.
 pub fn solve_ours_prepared(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
+    // With the `parallel` feature: on rayon's pool ([`par::in_pool`]).
+    par::in_pool(|| solve_with_scale(set, cfg))
+}
+
+/// [`solve_ours_prepared`]'s body: as stated, then, when asked, again with the noise model's
+/// scale estimated ([`OursConfig::estimate_noise_scale`]).
+fn solve_with_scale(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, OursError> {
     let first = solve_as_stated(set, cfg)?;
     let Some(noise) = cfg.noise.filter(|_| cfg.estimate_noise_scale) else {
         return Ok(first);
@@ -1248,11 +1276,15 @@ fn solve_from(
         });
         if let Some(ib0) = explaining.min_by(order).or_else(|| finite_costs.min_by(order)) {
             let (rb, tb) = (candidates[ib0].r, candidates[ib0].t);
-            for (r_m, t_m) in flips(set, &rb, &tb) {
+            // Independent of each other: refined concurrently ([`par`]), kept in turn order.
+            let turned = par::map_each(&flips(set, &rb, &tb), |&(r_m, t_m)| {
                 let t_m = translation_from_shaft_ends(set, &r_m).unwrap_or(t_m);
                 let first = refine(set, cfg, w0.clone(), r_m, t_m, &[]);
                 let m = Refined { whiten: w0.clone(), ..polish(set, cfg, first) };
-                parts.push(parts_of(&m));
+                (parts_of(&m), m)
+            });
+            for (p, m) in turned {
+                parts.push(p);
                 candidates.push(m);
             }
         }

@@ -131,7 +131,7 @@ const TIP_DEPTH_RATIO: f64 = 0.3;
 /// moves (as the line residuals' whitening is): each line point's [`position_sd_m`] (`None`:
 /// its ray is parallel to the axis) and the tip's model at a shaft end
 /// ([`TipEndModel`]).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct ShaftModel {
     sds: [Option<f64>; 2],
     tip: Option<TipEndModel>,

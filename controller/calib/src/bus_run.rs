@@ -311,7 +311,8 @@ pub fn to_pixel_run(
     data: &BusRunData,
     frames_dir: &Path,
     detectors: &mut [Box<dyn vision::ShaftDetector + Send>],
-    sigma_px: f64,
+    noise: KinematicNoise,
+    estimate_noise_scale: bool,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<(PixelRun, usize, Vector3<f64>), BusRunError> {
     // The most observed trocar.
@@ -361,7 +362,6 @@ pub fn to_pixel_run(
         progress(n + 1, frames.len());
     }
     let right = Isometry3::from_parts(Translation3::new(data.baseline_m, 0.0, 0.0), UnitQuaternion::identity());
-    let noise = KinematicNoise { rot_rad: 0.0, trans_m: 0.0, pixel_px: sigma_px };
     let run = PixelRun {
         setup: Setup {
             intrinsics: data.intrinsics,
@@ -372,6 +372,7 @@ pub fn to_pixel_run(
         },
         truth,
         noise: noise.is_valid().then_some(noise),
+        estimate_noise_scale,
         detectors: detectors.iter().map(|d| d.name()).collect(),
         poses,
         detect_ms: times.iter_mut().map(|t| crate::pixels::median(t)).collect(),

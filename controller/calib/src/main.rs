@@ -164,9 +164,20 @@ enum Command {
         /// Use every K-th usable frame (K ≥ 1).
         #[arg(long, default_value_t = 1)]
         every: usize,
-        /// Pixel noise σ of the lines for our pipeline's weights, pixels.
-        #[arg(long, default_value_t = 0.5)]
+        /// Noise model: pixel σ of the lines, pixels (default: `live`'s).
+        #[arg(long, default_value_t = 1.2)]
         sigma_px: f64,
+        /// Noise model: rotation σ per axis of the camera and tool-line frames, milliradians
+        /// (0 with --noise-mm 0: no arms' noise, and our pipeline uses the lines alone).
+        #[arg(long, default_value_t = 4.0)]
+        noise_mrad: f64,
+        /// Noise model: translation σ per axis of the camera and tool-line frames, millimetres.
+        #[arg(long, default_value_t = 1.2)]
+        noise_mm: f64,
+        /// Take the noise model as stated; by default it is known up to a scale our pipeline
+        /// estimates (as `live` does: the model is a guess for a recorded run).
+        #[arg(long)]
+        noise_as_stated: bool,
         /// Output directory (from-run.md and the datasets).
         #[arg(long, default_value = "docs/calibration/from-run")]
         out_dir: PathBuf,
@@ -450,7 +461,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             hw_io::outln!("{md}")?;
             hw_io::outln!("wrote {}", path.display())?;
         }
-        Command::FromRun { run, config, every, sigma_px, out_dir } => {
+        Command::FromRun { run, config, every, sigma_px, noise_mrad, noise_mm, noise_as_stated, out_dir } => {
             use comanip_calib::bus_run::{read_run, to_pixel_run};
             use comanip_calib::detect::make_detector;
             use comanip_calib::pixels::calibrate_all;
@@ -470,8 +481,16 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             let k = data.intrinsics;
             let mut detectors = vec![make_detector(DetectorChoice::Paper, k)?, make_detector(DetectorChoice::Ours, k)?];
             let bar = comanip_calib::sweep::progress_bar(0, "frames");
+            let noise = estimator::calib::KinematicNoise {
+                rot_rad: noise_mrad * 1e-3,
+                trans_m: noise_mm * 1e-3,
+                pixel_px: sigma_px,
+            };
+            if !noise.is_valid() {
+                return Err("noise σ must be finite and ≥ 0 (not all 0)".into());
+            }
             let (pr, trocar, f_ref) =
-                to_pixel_run(&data, &run.join("frames"), &mut detectors, sigma_px, |n, total| {
+                to_pixel_run(&data, &run.join("frames"), &mut detectors, noise, !noise_as_stated, |n, total| {
                     bar.set_length(total as u64);
                     bar.set_position(n as u64);
                 })?;

@@ -174,6 +174,9 @@ pub struct PixelRun {
     pub truth: Isometry3<f64>,
     /// The kinematic noise model (for our pipeline), `None` when noiseless.
     pub noise: Option<KinematicNoise>,
+    /// Our pipeline takes the noise model as known up to a scale it estimates
+    /// (`OursConfig::estimate_noise_scale`).
+    pub estimate_noise_scale: bool,
     /// The detectors' names, in [`PoseLines::detected`]'s order.
     pub detectors: Vec<&'static str>,
     /// Every pose.
@@ -325,6 +328,7 @@ pub fn render_and_detect(
         },
         truth,
         noise: noise.is_valid().then_some(noise),
+        estimate_noise_scale: false,
         detectors: detectors.iter().map(|d| d.name()).collect(),
         poses,
         detect_ms,
@@ -424,7 +428,11 @@ pub fn calibrate_all(run: &PixelRun) -> Vec<CalibRow> {
                     (e.translation_m * 1e3, e.rotation_rad.to_degrees())
                 })
                 .map_err(|e| e.to_string());
-            let cfg = OursConfig { noise: run.noise, ..OursConfig::default() };
+            let cfg = OursConfig {
+                noise: run.noise,
+                estimate_noise_scale: run.estimate_noise_scale,
+                ..OursConfig::default()
+            };
             // As `calibrate` judges it: a refused selection-aware stage is a failure (the
             // unrefined estimate is only handed out when the user accepts it).
             let ours = solve_ours(&run.setup, &obs, &cfg).map_err(|e| e.to_string()).and_then(|r| {

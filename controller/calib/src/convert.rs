@@ -141,6 +141,6 @@ pub fn result_json(
         log_likelihood_ratio: ours.map(|o| o.log_likelihood_ratio),
         solve_ms,
         selection_stage: ours.and_then(selection_json),
-        noise_scale: ours.map(|o| o.noise_scale).filter(|k| *k != 1.0),
+        noise_scale: ours.and_then(|o| o.noise_scale),
     }
 }

@@ -99,12 +99,12 @@ pub struct ToolSection {
     pub wrist_to_tip_m: f64,
     /// How far past the tip (along the axis) the shaft detector may report the instrument:
     /// the jaws beyond a tip point at their pivot, metres (`estimator::calib::ShaftExtent`).
-    /// Default: simrobot's instrument, 18 mm jaws.
+    /// Default: simrobot's rendered instrument, 18 mm jaws.
     pub beyond_tip_m: f64,
     /// How far back from the fulcrum (out of the patient) the endoscope can see the shaft,
     /// metres: 0 inside a patient (the abdominal wall hides it; the most information); up to
     /// the wrist for a bench or a phantom with no wall. Default: simrobot's twin, which has no
-    /// wall (0.3 m, the whole instrument). Too small a value makes the calibration refuse good
+    /// wall (0.36 m, the rendered instrument's whole shaft and wrist link). Too small a value makes the calibration refuse good
     /// data; too large only gives up some information.
     pub before_fulcrum_m: f64,
     /// The shaft detector's precision of a line's end along the line, pixels (standard
@@ -115,11 +115,13 @@ pub struct ToolSection {
 
 impl Default for ToolSection {
     fn default() -> Self {
+        // simrobot's rendered instrument and our detector on its frames.
+        let e = crate::pixels::rendered_shaft_extent(&sim::endoscope::InstrumentGeometry::default());
         Self {
             wrist_to_tip_m: 0.3,
-            beyond_tip_m: 0.018,
-            before_fulcrum_m: 0.3,
-            line_end_sd_px: crate::pixels::DETECTOR_END_SD_PX,
+            beyond_tip_m: e.beyond_tip_m,
+            before_fulcrum_m: e.before_point_m,
+            line_end_sd_px: e.end_sd_px,
         }
     }
 }

@@ -276,8 +276,9 @@ pub struct OursResult {
     /// Why the selection-aware stage was not applied (the pose is then the guarded fit).
     pub selection_refused: Option<SelectionError>,
     /// The factor the noise model's standard deviations were multiplied by
-    /// ([`OursConfig::estimate_noise_scale`]; 1 when the model was taken as stated).
-    pub noise_scale: f64,
+    /// ([`OursConfig::estimate_noise_scale`], dimensionless); `None` when the model was taken
+    /// as stated.
+    pub noise_scale: Option<f64>,
 }
 
 /// One candidate solution and its negative log-likelihood.
@@ -912,7 +913,7 @@ fn solve_with_scale(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, O
     let k = k.clamp(NOISE_SCALE_BOUNDS[0], NOISE_SCALE_BOUNDS[1]);
     let scaled = OursConfig { noise: Some(noise.scaled(k)), estimate_noise_scale: false, ..*cfg };
     let mut second = solve_as_stated(set, &scaled)?;
-    second.noise_scale = k;
+    second.noise_scale = Some(k);
     Ok(second)
 }
 
@@ -1419,7 +1420,7 @@ fn solve_from(
         guard_kept: set.obs.len(),
         selection: None,
         selection_refused: None,
-        noise_scale: 1.0,
+        noise_scale: None,
     })
 }
 

@@ -1,7 +1,8 @@
 //! Diagnostic: a saved live dataset (`live --replay ... --save-dataset DIR`) solved under
 //! variants of the noise model and the pipeline's stages, errors against the run's truth;
 //! first, where the line points lie along the tool at the truth (`s / L`, and the points off
-//! `[0, L]`) and the shaft-position residuals there (`LIVE_PROBE_S=1`: every observation).
+//! `[0, L]`) and the shaft-position residuals there (`LIVE_PROBE_S=1`: every observation;
+//! `LIVE_PROBE_LEFT=1`: the left eye's observations only).
 //! Usage: `cargo run --release -p comanip-calib --example live_probe -- DIR [px mrad mm]...`
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
@@ -36,6 +37,10 @@ fn main() {
             .unwrap();
         }
         setup.shaft_extent.beyond_tip_m = 0.0;
+    }
+    // LIVE_PROBE_LEFT=1: the left eye's observations only.
+    if std::env::var("LIVE_PROBE_LEFT").is_ok() {
+        obs.retain(|o| o.eye == estimator::calib::Eye::Left);
     }
     if let Some(v) = std::env::var("LIVE_PROBE_END_PX").ok().and_then(|v| v.parse::<f64>().ok()) {
         setup.shaft_extent.end_sd_px = v;

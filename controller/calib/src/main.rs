@@ -149,6 +149,10 @@ enum Command {
         /// Seed of the kinematic noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Our pipeline's pixel σ of the detected lines, pixels (the truth lines have none);
+        /// default: `live`'s.
+        #[arg(long, default_value_t = comanip_calib::live_config::NoiseSection::default().pixel_px)]
+        sigma_px: f64,
     },
     /// Calibration from a recorded run (`simrobot generate --frames`): both arms' joints from
     /// the candump log, matched to the stereo frames by time, the tool line detected in both
@@ -432,7 +436,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 return Err(format!("{} image(s) could not be examined (listed in {})", s.failed, out.display()).into());
             }
         }
-        Command::Pixels { out_dir, grid, seed } => {
+        Command::Pixels { out_dir, grid, seed, sigma_px } => {
             use comanip_calib::detect::make_detector;
             use comanip_calib::pixels::{PixelProtocol, calibrate_all, render_and_detect, report_markdown};
             let p = PixelProtocol {
@@ -441,6 +445,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 sigma: grid.sigma,
                 units: grid.units.into(),
                 seed,
+                detected_sigma_px: sigma_px,
                 ..PixelProtocol::default()
             };
             let k = p.endoscope.camera.intrinsics;

@@ -86,6 +86,10 @@ pub struct PixelProtocol {
     pub seed: u64,
     /// The renderer (camera, realism options).
     pub endoscope: EndoscopeConfig,
+    /// σ of each detected line point in our pipeline's noise model, pixels (the truth lines
+    /// are exact projections and have none). Default: the live calibration's
+    /// (`LiveConfig`'s `[noise] pixel_px`), what a user states for a detector's lines.
+    pub detected_sigma_px: f64,
 }
 
 impl Default for PixelProtocol {
@@ -98,6 +102,7 @@ impl Default for PixelProtocol {
             units: NoiseUnits::Millimetre,
             seed: 1,
             endoscope: sim::world::default_endoscope_config(),
+            detected_sigma_px: crate::live_config::NoiseSection::default().pixel_px,
         }
     }
 }
@@ -113,7 +118,7 @@ pub enum PixelsError {
         /// Values per PSM joint.
         n_t: usize,
     },
-    /// σ negative or not finite.
+    /// A σ (the kinematic noise's or the detected lines' pixel σ) negative or not finite.
     #[error("noise σ must be finite and ≥ 0 (got {0})")]
     Sigma(f64),
     /// The renderer refused its configuration.
@@ -172,8 +177,11 @@ pub struct PixelRun {
     pub setup: Setup,
     /// Ground truth `T_e_t`, metres.
     pub truth: Isometry3<f64>,
-    /// The kinematic noise model (for our pipeline), `None` when noiseless.
+    /// The noise model of the truth lines (for our pipeline), `None` when noiseless.
     pub noise: Option<KinematicNoise>,
+    /// The noise model of the detected lines: [`Self::noise`] with the detector's pixel σ
+    /// (`None` when noiseless: the pipeline then weighs every line alike, in pixels).
+    pub detected_noise: Option<KinematicNoise>,
     /// Our pipeline takes the noise model as known up to a scale it estimates
     /// (`OursConfig::estimate_noise_scale`).
     pub estimate_noise_scale: bool,
@@ -185,6 +193,16 @@ pub struct PixelRun {
     pub detect_ms: Vec<f64>,
     /// Rendering time, seconds.
     pub render_s: f64,
+}
+
+impl PixelRun {
+    /// The noise model our pipeline is given for a line source.
+    pub fn noise_of(&self, source: LineSource) -> Option<KinematicNoise> {
+        match source {
+            LineSource::Truth => self.noise,
+            LineSource::Detector(_) => self.detected_noise,
+        }
+    }
 }
 
 fn grid(range: [f64; 2], n: usize) -> Vec<f64> {
@@ -221,6 +239,9 @@ pub fn render_and_detect(
     }
     if !(p.sigma.is_finite() && p.sigma >= 0.0) {
         return Err(PixelsError::Sigma(p.sigma));
+    }
+    if !(p.detected_sigma_px.is_finite() && p.detected_sigma_px >= 0.0) {
+        return Err(PixelsError::Sigma(p.detected_sigma_px));
     }
     let cfg = p.endoscope.clone();
     let k = cfg.camera.intrinsics;
@@ -318,6 +339,7 @@ pub fn render_and_detect(
     }
     let detect_ms = times.iter_mut().map(|t| median(t)).collect();
     let noise = KinematicNoise { rot_rad: p.sigma, trans_m: p.sigma * rho, pixel_px: 0.0 };
+    let noise = noise.is_valid().then_some(noise);
     Ok(PixelRun {
         setup: Setup {
             intrinsics: k,
@@ -327,7 +349,8 @@ pub fn render_and_detect(
             shaft_extent: rendered_shaft_extent(&p.endoscope.instrument),
         },
         truth,
-        noise: noise.is_valid().then_some(noise),
+        noise,
+        detected_noise: noise.map(|n| KinematicNoise { pixel_px: p.detected_sigma_px, ..n }),
         estimate_noise_scale: false,
         detectors: detectors.iter().map(|d| d.name()).collect(),
         poses,
@@ -429,7 +452,7 @@ pub fn calibrate_all(run: &PixelRun) -> Vec<CalibRow> {
                 })
                 .map_err(|e| e.to_string());
             let cfg = OursConfig {
-                noise: run.noise,
+                noise: run.noise_of(source),
                 estimate_noise_scale: run.estimate_noise_scale,
                 ..OursConfig::default()
             };
@@ -515,7 +538,11 @@ pub fn report_markdown(p: &PixelProtocol, run: &PixelRun, rows: &[CalibRow], com
     );
     let _ = writeln!(s, "|---|---|---|---|---|---|");
     s.push_str(&detection_rows(run));
-    let _ = writeln!(s, "\nCalibration (e_t mm / e_R °, against the truth `T_e_t`):\n");
+    let _ = writeln!(
+        s,
+        "\nCalibration (e_t mm / e_R °, against the truth `T_e_t`). Our pipeline's noise model: the protocol's kinematic σ, and a pixel σ of {} px for the detected lines (the truth lines have none).\n",
+        p.detected_sigma_px
+    );
     let _ = writeln!(s, "| lines | eyes | observations | paper pipeline | our pipeline |");
     let _ = writeln!(s, "|---|---|---|---|---|");
     s.push_str(&calibration_rows(rows));
@@ -539,7 +566,7 @@ pub fn write_datasets(run: &PixelRun, p: &PixelProtocol, dir: &std::path::Path) 
     }
     for (source, name) in sources {
         let obs = observations(run, source, true);
-        let file = crate::convert::dataset_json(&run.setup, &obs, run.noise);
+        let file = crate::convert::dataset_json(&run.setup, &obs, run.noise_of(source));
         write(format!("dataset_{name}.json"), to_json(&file))?;
     }
     let t = TruthFile {

@@ -134,3 +134,25 @@ fn calibration_from_rendered_pixels_recovers_the_pose() {
     let (t_mm, r_deg) = row("ours", "both").ours.clone().unwrap();
     assert!(t_mm < 5.0 && r_deg < 1.0, "{t_mm} mm, {r_deg}°");
 }
+
+#[test]
+fn detected_lines_carry_a_pixel_term_and_truth_lines_none() {
+    // One pose, kinematic noise on: the truth lines are exact projections (no pixel term), a
+    // detector's lines get the stated pixel σ on top of the same kinematic noise.
+    let p = PixelProtocol { n_e: 1, n_t: 1, sigma: 0.01, detected_sigma_px: 0.7, ..PixelProtocol::default() };
+    let k = p.endoscope.camera.intrinsics;
+    let mut detectors = vec![make_detector(DetectorChoice::Ours, k).unwrap()];
+    let run = render_and_detect(&p, &mut detectors, |_, _| {}).unwrap();
+    let truth = run.noise_of(LineSource::Truth).unwrap();
+    let detected = run.noise_of(LineSource::Detector(0)).unwrap();
+    assert_eq!(truth.pixel_px, 0.0);
+    assert_eq!(detected.pixel_px, 0.7);
+    assert_eq!((detected.rot_rad, detected.trans_m), (truth.rot_rad, truth.trans_m));
+    assert!(truth.rot_rad > 0.0);
+    // A pixel σ that is not a standard deviation is refused before anything is rendered.
+    for bad in [-0.1, f64::NAN] {
+        let p = PixelProtocol { n_e: 1, n_t: 1, detected_sigma_px: bad, ..PixelProtocol::default() };
+        let e = render_and_detect(&p, &mut detectors, |_, _| {}).err().unwrap();
+        assert!(e.to_string().contains("noise σ"), "{e}");
+    }
+}

@@ -452,30 +452,3 @@ fn the_shaft_extent_says_where_a_line_may_lie_along_the_tool() {
     };
     assert!(matches!(prepare(&bad, &shifted), Err(estimator::calib::prepare::PrepareError::ShaftExtent(_))));
 }
-
-#[test]
-fn the_selection_stage_is_judged_with_one_variance_estimate_for_both_fits() {
-    use estimator::calib::selection::{SelectionConfig, refine_selected};
-    // Hausman's test takes one estimate of the noise variance for both estimators. The
-    // guarded fit's covariance is its inverse information times its dispersion; the stage's
-    // must be scaled by the same dispersion. Then a guarded fit whose residuals are twice as
-    // dispersed (covariance and dispersion doubled) moves nothing but the yardstick: the
-    // statistic halves. With the stage's covariance taken as the noise model states it, the
-    // doubled dispersion read as an efficiency gain of the stage in every direction instead.
-    let d = generate_calibration(&protocol(9000, false, 0.01, NoiseUnits::Millimetre, 1000)).unwrap();
-    let set = prepare(&d.setup, &d.observations).unwrap();
-    let noise = d.noise.unwrap();
-    let guarded =
-        solve_ours_prepared(&set, &OursConfig { noise: Some(noise), selection: None, ..OursConfig::default() })
-            .unwrap();
-    assert!(guarded.dispersion.is_finite() && guarded.dispersion > 0.0);
-    let unit = guarded.covariance / guarded.dispersion;
-    // The refusal off: the statistic is reported whatever it is.
-    let cfg = SelectionConfig { false_refusal_probability: 0.0, ..SelectionConfig::default() };
-    let one = refine_selected(&set, &noise, &guarded.pose, &unit, 1.0, &cfg).unwrap();
-    let two = refine_selected(&set, &noise, &guarded.pose, &(unit * 2.0), 2.0, &cfg).unwrap();
-    assert_eq!(one.pose, two.pose);
-    let (s1, s2) = (one.move_test.unwrap().statistic, two.move_test.unwrap().statistic);
-    assert!(s1 > 0.0 && (s2 * 2.0 - s1).abs() <= 1e-6 * s1, "{s1} {s2}");
-    assert_eq!(one.move_test.unwrap().hausman_rank, two.move_test.unwrap().hausman_rank);
-}

@@ -43,28 +43,27 @@ fn diag(set: &PreparedSet, cfg: &OursConfig, truth: &Isometry3<f64>, seed: u64, 
     let sd_t = (guarded.covariance[(0, 0)] + guarded.covariance[(1, 1)] + guarded.covariance[(2, 2)]).sqrt() * 1e3;
     let mg = mahalanobis(&guarded.pose, truth, &guarded.covariance);
     let sel = SelectionConfig { false_refusal_probability: 0.0, ..SelectionConfig::default() };
-    let stage =
-        match refine_selected(set, &cfg.noise.unwrap(), &guarded.pose, &guarded.covariance, guarded.dispersion, &sel) {
-            Ok(f) => {
-                let (st, sr) = err(&f.pose);
-                let ms = mahalanobis(&f.pose, truth, &f.covariance);
-                let h = match f.move_test {
-                    Some(t) => format!(
-                        "hausman {:.1} (rank {}) limit {:.1} {}",
-                        t.statistic,
-                        t.hausman_rank,
-                        t.limit,
-                        if t.passes() { "pass" } else { "REFUSE" }
-                    ),
-                    None => "hausman n/a REFUSE".into(),
-                };
-                format!(
-                    "stage et {st:.2} er {sr:.3} shift {:.1} {h} truth@{ms:.1}sd sel {} plain {} out {}",
-                    f.shift_sigmas, f.selected, f.plain, f.left_out
-                )
-            }
-            Err(e) => format!("stage error {e}"),
-        };
+    let stage = match refine_selected(set, &cfg.noise.unwrap(), &guarded.pose, &guarded.covariance, &sel) {
+        Ok(f) => {
+            let (st, sr) = err(&f.pose);
+            let ms = mahalanobis(&f.pose, truth, &f.covariance);
+            let h = match f.move_test {
+                Some(t) => format!(
+                    "hausman {:.1} (rank {}) limit {:.1} {}",
+                    t.statistic,
+                    t.hausman_rank,
+                    t.limit,
+                    if t.passes() { "pass" } else { "REFUSE" }
+                ),
+                None => "hausman n/a REFUSE".into(),
+            };
+            format!(
+                "stage et {st:.2} er {sr:.3} shift {:.1} {h} truth@{ms:.1}sd sel {} plain {} out {}",
+                f.shift_sigmas, f.selected, f.plain, f.left_out
+            )
+        }
+        Err(e) => format!("stage error {e}"),
+    };
     println!(
         "{seed} {k} n={} guarded et {gt:.2} er {gr:.3} sd_t {sd_t:.2} truth@{mg:.1}sd scale {:.2} kept {} | {stage}",
         set.obs.len(),

@@ -8,15 +8,9 @@
 //! efficient estimator is uncorrelated with its difference from any other consistent one), so
 //! `H = dᵀ (Σ_g − Σ_s)⁺ d` is χ² with as many degrees of freedom as the rank of the difference.
 //!
-//! **One variance estimate for both.** The guarded fit's covariance is its inverse information
-//! scaled by its residuals' dispersion; the stage's is its inverse information at the guarded
-//! fit's pose scaled by the same dispersion (`selection::refine_selected`), as Hausman takes one
-//! estimate of the noise variance for both estimators. With the stage's unscaled, a dispersion
-//! above 1 (a noise model slightly too small) read as an efficiency gain of the stage in every
-//! direction, and moves of two standard deviations were refused.
-//!
 //! **A difference that is not positive definite.** The two covariances are estimated (at two
-//! poses, the stage leaving some lines out), so `Σ_g − Σ_s` need not be positive definite. The test is computed in the stage's whitened coordinates
+//! poses, each scaled by its own dispersion, the stage leaving some lines out), so `Σ_g − Σ_s`
+//! need not be positive definite. The test is computed in the stage's whitened coordinates
 //! (invariant to the units of translation and rotation): with `Σ_s = L Lᵀ` and the eigen
 //! decomposition `L⁻¹ Σ_g L⁻ᵀ = V Λ Vᵀ`, the difference is `L V (Λ − I) Vᵀ Lᵀ`, and the
 //! move's whitened components `y = Vᵀ L⁻¹ d` are independent under the hypothesis. Each

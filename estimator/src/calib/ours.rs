@@ -252,11 +252,6 @@ pub struct OursResult {
     pub pose: Isometry3<f64>,
     /// Covariance of `(t m, δφ rad)` (left increment in `{e}`): `σ̂² (JᵀWJ)⁻¹`.
     pub covariance: Matrix6<f64>,
-    /// `σ̂²` of [`Self::covariance`]: the residuals' dispersion at the solution (the
-    /// Huber-weighted whitened squared residual per degree of freedom; the selection-aware
-    /// stage's own when it was applied). Dimensionless, 1 when the noise model is right;
-    /// pixels² without a noise model.
-    pub dispersion: f64,
     /// Pixel residuals at the solution.
     pub residuals: ResidualStats,
     /// Robust scale of the (whitened) residual norms at the solution (≈1 when the noise
@@ -1003,10 +998,10 @@ pub fn apply_selection_stage(
         candidate_nll(set, &ocfg, &p.rotation.to_rotation_matrix().into_inner(), &p.translation.vector, result.scale)
     };
     let mut on_likelihood = false;
-    let fit = match refine_selected_with(set, noise, &result.pose, &result.covariance, result.dispersion, cfg, extra) {
+    let fit = match refine_selected_with(set, noise, &result.pose, &result.covariance, cfg, extra) {
         Err(e @ SelectionError::RanAway { .. }) if cfg.more_likely_overrides_test => {
             let loose = SelectionConfig { false_refusal_probability: 0.0, ..*cfg };
-            match refine_selected_with(set, noise, &result.pose, &result.covariance, result.dispersion, &loose, extra) {
+            match refine_selected_with(set, noise, &result.pose, &result.covariance, &loose, extra) {
                 Ok(fit) if nll(&fit.pose) + DEFAULT_MIN_LOG_LIKELIHOOD_RATIO < nll(&result.pose) => {
                     on_likelihood = true;
                     Ok(fit)
@@ -1032,7 +1027,6 @@ pub fn apply_selection_stage(
     match fit {
         Ok(fit) => {
             result.covariance = fit.covariance;
-            result.dispersion = fit.dispersion;
             result.pose = fit.pose;
             result.residuals = ResidualStats { inliers: fit.selected + fit.plain, ..residual_stats(set, &fit.pose) };
             result.selection = Some(SelectionSummary {
@@ -1418,7 +1412,6 @@ fn solve_from(
     Ok(OursResult {
         pose,
         covariance: cov,
-        dispersion: sigma2,
         residuals,
         scale: best.scale,
         alternative: alt_pose,

@@ -1096,9 +1096,6 @@ pub struct SelectionFit {
     /// Covariance of `(t m, δφ rad)`: the inverse Gauss-Newton matrix of the line residuals
     /// used, scaled by their dispersion (whitened squared residual per degree of freedom).
     pub covariance: Matrix6<f64>,
-    /// That dispersion (dimensionless: the whitened squared residual per degree of freedom
-    /// at the stage's pose; 1 when the noise model is right).
-    pub dispersion: f64,
     /// How far the stage moved from its start, in standard deviations of the start's
     /// Gauss-Newton metric on all observations (dimensionless; for information).
     pub shift_sigmas: f64,
@@ -1153,20 +1150,17 @@ pub enum SelectionError {
 }
 
 /// Maximum likelihood of the kept lines from `start` (`T_e_t`, metres; the guarded fit, with
-/// its covariance `start_covariance` of `(t m, δφ rad)`, that is its inverse information
-/// scaled by its dispersion `start_dispersion`, [`super::ours::OursResult::dispersion`]),
-/// under `noise` and the selection (module docs). Refused when no observation can be
-/// modelled, the information is singular, or the move from `start` fails the Hausman-type
-/// test ([`super::hausman`]).
+/// its covariance `start_covariance` of `(t m, δφ rad)`), under `noise` and the selection
+/// (module docs). Refused when no observation can be modelled, the information is singular,
+/// or the move from `start` fails the Hausman-type test ([`super::hausman`]).
 pub fn refine_selected(
     set: &PreparedSet,
     noise: &KinematicNoise,
     start: &Isometry3<f64>,
     start_covariance: &Matrix6<f64>,
-    start_dispersion: f64,
     cfg: &SelectionConfig,
 ) -> Result<SelectionFit, SelectionError> {
-    refine_selected_with(set, noise, start, start_covariance, start_dispersion, cfg, None)
+    refine_selected_with(set, noise, start, start_covariance, cfg, None)
 }
 
 /// [`refine_selected`] with `extra` terms added to the likelihood of every observation not
@@ -1176,7 +1170,6 @@ pub fn refine_selected_with(
     noise: &KinematicNoise,
     start: &Isometry3<f64>,
     start_covariance: &Matrix6<f64>,
-    start_dispersion: f64,
     cfg: &SelectionConfig,
     extra: Option<ExtraTerms<'_>>,
 ) -> Result<SelectionFit, SelectionError> {
@@ -1188,7 +1181,6 @@ pub fn refine_selected_with(
     let mut iterations = 0;
     let mut counts = (0, 0, 0);
     let mut covariance = None;
-    let mut dispersion = f64::NAN;
     // The Gauss-Newton matrix at the start, to measure how far the stage moves.
     let mut start_metric: Option<Matrix6<f64>> = None;
     for _pass in 0..2 {
@@ -1288,7 +1280,7 @@ pub fn refine_selected_with(
                 dof += 2.0;
             }
         }
-        dispersion = quad / (dof - 6.0).max(1.0);
+        let dispersion = quad / (dof - 6.0).max(1.0);
         covariance = h.try_inverse().map(|c| c * dispersion);
     }
     let covariance = covariance.filter(|c| c.iter().all(|v| v.is_finite())).ok_or(SelectionError::Singular)?;
@@ -1301,16 +1293,10 @@ pub fn refine_selected_with(
     // The move judged by the covariance of the difference of the two fits (Hausman). The
     // stage's covariance is taken at its start (its information where both fits should be
     // under the hypothesis), so a stage that ran off to where its information vanishes
-    // cannot widen its own yardstick. Both covariances are scaled by the same estimate of
-    // the residuals' variance, the guarded fit's dispersion (as Hausman's test takes one
-    // variance estimate for both estimators): the stage's information is the model's, and
-    // taking it unscaled against a guarded covariance scaled by a dispersion above 1 (a noise
-    // model slightly too small, such as detected lines with no pixel term) read the ratio of
-    // the two variance estimates as an efficiency gain in every direction, and the test
-    // then refused moves of two standard deviations.
+    // cannot widen its own yardstick.
     let enforce = cfg.false_refusal_probability > 0.0;
     let p = if enforce { cfg.false_refusal_probability } else { DEFAULT_FALSE_REFUSAL_PROBABILITY };
-    let stage_cov = start_metric.and_then(|m| m.try_inverse()).map(|c| c * start_dispersion);
+    let stage_cov = start_metric.and_then(|m| m.try_inverse());
     let test = stage_cov.and_then(|c| move_test(&d, start_covariance, &c, p));
     match test {
         Some(t) if t.passes() || !enforce => {}
@@ -1327,7 +1313,6 @@ pub fn refine_selected_with(
         left_out: counts.2,
         iterations,
         covariance,
-        dispersion,
         shift_sigmas: sigmas,
         move_test: test,
     })

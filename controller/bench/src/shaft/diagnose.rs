@@ -23,6 +23,11 @@
 //! `=1`/`=2` on those matching an instrument) and each frame without instrument 1 that has a
 //! false detection (`FALSE ...`) is printed to stderr: a debugging aid, not part of the tables.
 //!
+//! With `SHAFT_DIAG_ACC` set, each matched eligible frame prints `ACC level family seed` and a
+//! JSON object to stderr: the returned contours' signed angle errors and offsets against the
+//! true contours, the span against the visible length, the middle line's error (an accuracy
+//! aid).
+//!
 //! A diagnostic only: it runs on whatever set it is given, and is meant for the tuning set.
 
 use std::collections::BTreeMap;

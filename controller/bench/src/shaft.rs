@@ -588,6 +588,45 @@ pub fn cell<'a>(records: impl Iterator<Item = &'a FrameRecord>, d: usize) -> Cel
     c
 }
 
+/// Detector `a` against detector `b` on the eligible frames where both matched instrument 1
+/// (the unpaired medians of [`Cell`] are over different frames: a detector that finds harder
+/// frames carries their errors).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct PairedCell {
+    /// Eligible frames both matched.
+    pub common: usize,
+    /// Angle error medians on those frames, degrees: `a`'s, `b`'s.
+    pub angle_deg: [Option<f64>; 2],
+    /// Midpoint offset medians on those frames, pixels: `a`'s, `b`'s.
+    pub offset_px: [Option<f64>; 2],
+    /// Frames where `a`'s angle error is smaller than `b`'s, and where its offset is.
+    pub a_better: [usize; 2],
+}
+
+/// Detector `a` against detector `b` (indices into the report's detectors) over `records`,
+/// on the eligible frames both matched.
+pub fn paired<'a>(records: impl Iterator<Item = &'a FrameRecord>, a: usize, b: usize) -> PairedCell {
+    let mut p = PairedCell::default();
+    let (mut aa, mut ba, mut ao, mut bo) = (vec![], vec![], vec![], vec![]);
+    for r in records.filter(|r| r.eligible) {
+        let (Some(ea), Some(eb)) =
+            (r.results.get(a).and_then(|x| x.score.matched), r.results.get(b).and_then(|x| x.score.matched))
+        else {
+            continue;
+        };
+        p.common += 1;
+        p.a_better[0] += usize::from(ea.angle_deg < eb.angle_deg);
+        p.a_better[1] += usize::from(ea.offset_mid_px < eb.offset_mid_px);
+        aa.push(ea.angle_deg);
+        ba.push(eb.angle_deg);
+        ao.push(ea.offset_mid_px);
+        bo.push(eb.offset_mid_px);
+    }
+    p.angle_deg = [quantile(&aa, 0.5), quantile(&ba, 0.5)];
+    p.offset_px = [quantile(&ao, 0.5), quantile(&bo, 0.5)];
+    p
+}
+
 fn f(v: Option<f64>, digits: usize) -> String {
     v.map_or_else(|| "–".into(), |x| format!("{x:.digits$}"))
 }
@@ -685,6 +724,10 @@ impl ShaftReport {
                 m.push_str(&table_row(level.key(), name, &self.level_cell(level, d)));
             }
         }
+        if let Some(t) = self.paired_markdown() {
+            let _ = writeln!(m, "\n### Paired accuracy: ours against each other detector on the frames both detect\n");
+            m.push_str(&t);
+        }
         if let Some(t) = self.targets_markdown() {
             let _ = writeln!(m, "\n### Issue 17's targets for ours\n");
             m.push_str(&t);
@@ -698,6 +741,35 @@ impl ShaftReport {
             }
         }
         m
+    }
+
+    /// Ours (the detector named `ours`) against each other detector, per level, on the
+    /// eligible frames both matched: the medians of the angle error and the offset on those
+    /// frames, and on how many of them ours' error is the smaller. `None` without `ours`.
+    pub fn paired_markdown(&self) -> Option<String> {
+        let ours = self.detectors.iter().position(|d| d == "ours")?;
+        let mut m = String::from(
+            "| level | other detector | frames both detect | angle ° median ours / other | offset px median ours / \
+             other | ours smaller: angle / offset (frames) |\n|---|---|---|---|---|---|\n",
+        );
+        for &level in &self.levels {
+            for (d, name) in self.detectors.iter().enumerate().filter(|&(d, _)| d != ours) {
+                let p = paired(self.records.iter().filter(|r| r.level == level), ours, d);
+                let _ = writeln!(
+                    m,
+                    "| {} | {name} | {} | {} / {} | {} / {} | {} / {} |",
+                    level.key(),
+                    p.common,
+                    f(p.angle_deg[0], 3),
+                    f(p.angle_deg[1], 3),
+                    f(p.offset_px[0], 2),
+                    f(p.offset_px[1], 2),
+                    p.a_better[0],
+                    p.a_better[1],
+                );
+            }
+        }
+        Some(m)
     }
 
     /// Issue 17's targets for the detector named `ours`, per level: detection ≥ 95 % of the
@@ -880,5 +952,53 @@ mod tests {
         assert!(t.contains("| clean | yes | **no** | **no** | yes | **no** | yes |"), "{t}");
         let md = report.markdown();
         assert!(md.contains("| clean | ours | 2 (0) | 100.0 % (2) | 0 / 0 (1) |"), "{md}");
+    }
+
+    #[test]
+    fn the_paired_medians_are_over_the_frames_both_detectors_match_only() {
+        // Ours matches three frames, the peer two of them; ours' hardest frame (angle 1.0°)
+        // is one the peer misses: unpaired, ours' median is the worse; paired, the better.
+        let records = vec![
+            record(
+                true,
+                true,
+                vec![result("ours", Some((0.02, 0.1)), 0, 1.0), result("peer", Some((0.05, 0.4)), 0, 1.0)],
+            ),
+            record(
+                true,
+                true,
+                vec![result("ours", Some((0.06, 0.2)), 0, 1.0), result("peer", Some((0.03, 0.3)), 0, 1.0)],
+            ),
+            record(true, true, vec![result("ours", Some((1.0, 3.0)), 0, 1.0), result("peer", None, 0, 1.0)]),
+            record(
+                false,
+                true,
+                vec![result("ours", Some((0.9, 0.9)), 0, 1.0), result("peer", Some((0.0, 0.0)), 0, 1.0)],
+            ),
+        ];
+        let unpaired = (cell(records.iter(), 0).angle_deg[0], cell(records.iter(), 1).angle_deg[0]);
+        assert!(unpaired.0.unwrap() > unpaired.1.unwrap());
+        let p = paired(records.iter(), 0, 1);
+        assert_eq!(p.common, 2);
+        assert!((p.angle_deg[0].unwrap() - 0.04).abs() < 1e-12, "{p:?}");
+        assert!((p.angle_deg[1].unwrap() - 0.04).abs() < 1e-12, "{p:?}");
+        assert!((p.offset_px[0].unwrap() - 0.15).abs() < 1e-12, "{p:?}");
+        assert!((p.offset_px[1].unwrap() - 0.35).abs() < 1e-12, "{p:?}");
+        assert_eq!(p.a_better, [1, 2]);
+        let report = ShaftReport {
+            set: SeedSet::Report,
+            frames_per_family: 1,
+            seeds: vec![1],
+            levels: vec![ClutterLevel::Clean],
+            detectors: vec!["ours".into(), "peer".into()],
+            peers: PeerStatus::NotRequested,
+            records,
+            overlays: vec![],
+            elapsed_s: 0.0,
+            load_average: [String::new(), String::new()],
+        };
+        let t = report.paired_markdown().unwrap();
+        assert!(t.contains("| clean | peer | 2 | 0.040 / 0.040 | 0.15 / 0.35 | 1 / 2 |"), "{t}");
+        assert!(report.markdown().contains("### Paired accuracy"));
     }
 }

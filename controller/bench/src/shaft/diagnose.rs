@@ -23,6 +23,11 @@
 //! `=1`/`=2` on those matching an instrument) and each frame without instrument 1 that has a
 //! false detection (`FALSE ...`) is printed to stderr: a debugging aid, not part of the tables.
 //!
+//! With `SHAFT_DIAG_ACC` set, each matched eligible frame prints `ACC level family seed` and a
+//! JSON object to stderr: the returned contours' signed angle errors and offsets against the
+//! true contours, the span against the visible length, the middle line's error (an accuracy
+//! aid).
+//!
 //! A diagnostic only: it runs on whatever set it is given, and is meant for the tuning set.
 
 use std::collections::BTreeMap;
@@ -214,6 +219,98 @@ fn write_diag_png(frame: &RenderedFrame, level: ClutterLevel, fam: &str, trace: 
     }
 }
 
+/// With `SHAFT_DIAG_ACC` in the environment: one line per matched eligible frame on stderr,
+/// `ACC level family seed` and a JSON object: the axis's errors, and per returned contour
+/// (matched to the nearer true one) its signed angle error (degrees) and its signed offset
+/// at the true contour's visible midpoint (pixels, positive outwards, away from the axis);
+/// the returned span's length against the true visible length; the angle errors of the
+/// middle line of the returned contours and of the exact axis built from the true contours.
+/// A debugging aid for the accuracy.
+fn print_accuracy(
+    frame: &RenderedFrame,
+    level: ClutterLevel,
+    fam: &str,
+    i1: &super::metrics::TruthAxis,
+    det: &vision::ShaftDetection,
+    tc: &[TrueContour; 2],
+    k: &Intrinsics,
+) {
+    let unit = |l: [f64; 3]| {
+        let n = l[0].hypot(l[1]);
+        l.map(|v| v / n)
+    };
+    let mid = i1.midpoint();
+    let axis = unit(i1.line);
+    // Signed angle of line `l` from line `r`, degrees (directions taken along r's).
+    let signed = |l: [f64; 3], r: [f64; 3]| {
+        let (l, r) = (unit(l), unit(r));
+        let (dl, dr) = ([-l[1], l[0]], [-r[1], r[0]]);
+        let (c, s) = (dl[0] * dr[0] + dl[1] * dr[1], dl[0] * dr[1] - dl[1] * dr[0]);
+        let a = s.atan2(c).to_degrees();
+        if a > 90.0 {
+            a - 180.0
+        } else if a < -90.0 {
+            a + 180.0
+        } else {
+            a
+        }
+    };
+    let mut per = Vec::new();
+    for (tl, seg) in tc {
+        let tm = [0.5 * (seg[0][0] + seg[1][0]), 0.5 * (seg[0][1] + seg[1][1])];
+        let Some(c) = det.contours.iter().map(|c| unit(c.abc)).min_by(|a, b| {
+            (a[0] * tm[0] + a[1] * tm[1] + a[2]).abs().total_cmp(&(b[0] * tm[0] + b[1] * tm[1] + b[2]).abs())
+        }) else {
+            continue;
+        };
+        // Outwards: from the axis towards the true contour.
+        let side = (axis[0] * tm[0] + axis[1] * tm[1] + axis[2]).signum();
+        let cd = c[0] * tm[0] + c[1] * tm[1] + c[2];
+        // The detected contour's point nearest tm is tm - cd·n; outwards distance.
+        let foot = [tm[0] - cd * c[0], tm[1] - cd * c[1]];
+        let out = side * (axis[0] * foot[0] + axis[1] * foot[1] + axis[2])
+            - side * (axis[0] * tm[0] + axis[1] * tm[1] + axis[2]);
+        let seg_len = (seg[1][0] - seg[0][0]).hypot(seg[1][1] - seg[0][1]);
+        // Normals along the axis's, so that the signs compare between the two contours.
+        let along = |l: [f64; 3]| if l[0] * axis[0] + l[1] * axis[1] < 0.0 { l.map(|v| -v) } else { l };
+        per.push(serde_json::json!({"ang": signed(along(c), along(unit(*tl))), "out": out, "seg": seg_len}));
+    }
+    let c0 = unit(det.contours[0].abc);
+    let c1 = {
+        let c = unit(det.contours[1].abc);
+        // Orient alike (normals along the same direction) for the middle line.
+        if c[0] * c0[0] + c[1] * c0[1] < 0.0 { c.map(|v| -v) } else { c }
+    };
+    let middle = [0.5 * (c0[0] + c1[0]), 0.5 * (c0[1] + c1[1]), 0.5 * (c0[2] + c1[2])];
+    let true_axis = (|| {
+        let a = vision::shaft::ImageLine::new(tc[0].0).ok()?;
+        let b = vision::shaft::ImageLine::new(tc[1].0).ok()?;
+        vision::shaft::axis_from_contours(&k.k(), &a, &b, mid).ok()
+    })();
+    let e = super::metrics::line_errors(&det.centreline.abc, i1);
+    let omega = {
+        let w = frame.spec.scene.instrument.omega_rad_s;
+        (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt()
+    };
+    let len = (det.ends_px[1][0] - det.ends_px[0][0]).hypot(det.ends_px[1][1] - det.ends_px[0][1]);
+    let v = serde_json::json!({
+        "ang": e.map(|e| e.angle_deg), "sang": signed(
+            if det.centreline.abc[0] * axis[0] + det.centreline.abc[1] * axis[1] < 0.0 {
+                det.centreline.abc.map(|v| -v)
+            } else {
+                det.centreline.abc
+            },
+            axis,
+        ), "off": e.map(|e| e.offset_mid_px),
+        "len": len, "vis": i1.visible_px, "seg": i1.segment_px(), "conf": det.confidence, "contours": per, "axis_det": det.centreline.abc,
+        "tc": [tc[0].0, tc[1].0], "tseg": [tc[0].1, tc[1].1],
+        "omega": omega,
+        "middle_ang": super::metrics::angle_deg(&middle, &i1.line),
+        "true_contours_axis_ang": true_axis.and_then(|a| super::metrics::angle_deg(&a.abc, &i1.line)),
+    });
+    eprintln!("ACC {} {} {} {v}", level.key(), fam, frame.spec.seed);
+}
+
 /// A pair's outcome and its rank.
 type TracePairOutcome = (PairOutcome, Option<usize>);
 
@@ -366,6 +463,11 @@ pub fn run(
             if let Some(e) = s.matched {
                 cell.detected += 1;
                 cell.angles_deg.push(e.angle_deg);
+                if std::env::var_os("SHAFT_DIAG_ACC").is_some()
+                    && let (Some(r), Some(tc)) = (s.matched_rank, true_contours(frame))
+                {
+                    print_accuracy(frame, level, fam, i1, &dets[r], &tc, k);
+                }
                 continue;
             }
             let class = match true_contours(frame) {

@@ -1387,7 +1387,7 @@ pub const MOVING_STEP_MIN_GAIN: f64 = 1.0;
 pub struct MovingStep {
     /// `T_e_t` after the step, metres.
     pub pose: Isometry3<f64>,
-    /// The combined fit's covariance of `(t m, δφ rad)`, `(Dᵀ S⁻¹ D)⁻¹` (module
+    /// The combined fit's covariance of `(t m, δφ rad)`, `(Dᵀ S⁻¹ D)⁻¹` (see
     /// [`moving_covariance_step`]; the moments' dispersion measured, not assumed).
     pub covariance: Matrix6<f64>,
     /// The largest variance ratio of the held fit (its sandwich covariance) to the combined

@@ -8,6 +8,8 @@
 //! the selection stage), `BORDER_GUARD=<sigmas>` sets the border guard (0: off), `DIAG=1`
 //! prints the guarded fit and the selection stage separately, `AXIS=1` the axis of the
 //! rotation error against the line of sight and the tool (which 180° turn a mirror is).
+//! `MOVING=1` turns on the moving-covariance step (`SelectionConfig::moving_covariance_step`;
+//! printed as `moving gain <g> taken|held`), `MOVING=force` takes it whatever its gain.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -101,6 +103,14 @@ fn main() {
             if let Ok(v) = std::env::var("BORDER_GUARD") {
                 cfg.border_guard_sigmas = v.parse().unwrap();
             }
+            // MOVING=1/0: the last step on the moving-covariance likelihood on / off.
+            if let (Ok(v), Some(sel)) = (std::env::var("MOVING"), cfg.selection.as_mut()) {
+                sel.moving_covariance_step = v != "0";
+                // MOVING=force: take every step (the test reported, not applied).
+                if v == "force" {
+                    sel.moving_step_min_gain = 0.0;
+                }
+            }
             let t0 = std::time::Instant::now();
             let r = solve_ours_prepared(&set, &cfg);
             let dt = t0.elapsed().as_secs_f64() * 1e3;
@@ -115,9 +125,13 @@ fn main() {
                     let er = (r.pose.rotation.inverse() * d.truth.rotation).angle().to_degrees();
                     let stage = match (&r.selection, &r.selection_refused) {
                         (Some(s), _) => format!(
-                            "applied shift {:.2}{}",
+                            "applied shift {:.2}{}{}",
                             s.shift_sigmas,
-                            if s.accepted_on_likelihood { " on likelihood" } else { "" }
+                            if s.accepted_on_likelihood { " on likelihood" } else { "" },
+                            s.moving_step.map_or(String::new(), |(h, take)| format!(
+                                " moving gain {h:.2} {}",
+                                if take { "taken" } else { "held" }
+                            ))
                         ),
                         (None, Some(e)) => format!("refused {e}"),
                         _ => "none".into(),

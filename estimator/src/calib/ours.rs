@@ -22,7 +22,9 @@
 //! Stages with a noise model: the robust fit from the linear starts and their mirrors; the
 //! border guard (refits on observations whose tip is predicted well inside the image); the
 //! selection-aware stage ([`super::selection`]: the likelihood of the kept lines, on all
-//! observations), refused when it runs away ([`OursResult::selection_refused`]).
+//! observations), refused when it runs away ([`OursResult::selection_refused`]); optionally
+//! (off by default, [`SelectionConfig::moving_covariance_step`]) a last step adding how the
+//! lines' covariances move with the pose ([`super::selection::moving_covariance_step`]).
 //!
 //! Parameters: `t` (metres, `{e}`) and a left rotation increment `δφ` (radians, `{e}`),
 //! `R ← exp(δφ^) R`. The covariance is reported in that order `(tx, ty, tz, φx, φy, φz)`.
@@ -40,7 +42,9 @@ use super::paper::{
 };
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::residual::{damped_step, residual, residual_and_jacobian, residual_covariance};
-use super::selection::{SelectionConfig, SelectionError, kept_given_line_ln, refine_selected_with, tip_well_inside};
+use super::selection::{
+    SelectionConfig, SelectionError, kept_given_line_ln, moving_covariance_step, refine_selected_with, tip_well_inside,
+};
 use super::shaft_position::{
     ShaftModel, axis_seen_at, model_and_residuals_at, residuals_at_with, stage_terms, translation_from_shaft_ends,
 };
@@ -314,6 +318,11 @@ pub struct SelectionSummary {
     /// ([`apply_selection_stage`]).
     #[serde(default)]
     pub accepted_on_likelihood: bool,
+    /// The last step on the likelihood with moving covariances
+    /// ([`super::selection::moving_covariance_step`]): its information gain (dimensionless)
+    /// and whether it was taken; `None` when not tried or not computable.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub moving_step: Option<(f64, bool)>,
 }
 
 /// Inverse Cholesky factor `L⁻¹` of a 2×2 SPD matrix (identity if not SPD).
@@ -1025,7 +1034,19 @@ pub fn apply_selection_stage(
         }
     });
     match fit {
-        Ok(fit) => {
+        Ok(mut fit) => {
+            // The last step on the moving covariances (off by default): the stage's
+            // covariance is kept (the step's own, `MovingStep::covariance`, is smaller).
+            let mut moving_step = None;
+            let step = cfg.moving_covariance_step.then(|| moving_covariance_step(set, noise, cfg, &fit.pose, extra));
+            if let Some(step) = step.flatten() {
+                let take = step.information_gain >= cfg.moving_step_min_gain
+                    && shaft_explanation(set, &step.pose, SHAFT_MARGIN).explains();
+                moving_step = Some((step.information_gain, take));
+                if take {
+                    fit.pose = step.pose;
+                }
+            }
             result.covariance = fit.covariance;
             result.pose = fit.pose;
             result.residuals = ResidualStats { inliers: fit.selected + fit.plain, ..residual_stats(set, &fit.pose) };
@@ -1035,6 +1056,7 @@ pub fn apply_selection_stage(
                 left_out: fit.left_out,
                 shift_sigmas: fit.shift_sigmas,
                 accepted_on_likelihood: on_likelihood,
+                moving_step,
             });
         }
         Err(e) => result.selection_refused = Some(e),

@@ -35,12 +35,18 @@
 //! line when its tip is predicted well inside the image (its selection hardly matters) and
 //! left out otherwise; gross outliers of the first-order model are left out too. Both
 //! decisions use the predicted geometry and the fit's own residual scale, and are counted.
+//!
+//! ## Covariances that move with the pose (an option, off by default)
+//! Within a pass the stage holds each line's covariance and selection model. How they would
+//! move with the pose is information too (the lines' scatter changes with depth and lever
+//! arm), but only unbiased when the covariance model is right: [`moving_covariance_step`]
+//! adds it as moments whose dispersion is measured (docs/calibration.md, session 20).
 
 use std::vec::Vec;
 
 use nalgebra::{
-    Isometry3, Matrix2, Matrix3, Matrix4, Matrix6, Rotation3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3,
-    Vector6,
+    Isometry3, Matrix2, Matrix3, Matrix4, Matrix6, Rotation3, SMatrix, SVector, Translation3, UnitQuaternion, Vector2,
+    Vector3, Vector6,
 };
 
 use super::KinematicNoise;
@@ -794,6 +800,15 @@ pub struct SelectionConfig {
     /// fit's on all observations (the likelihood the candidates are compared by). `false`: the
     /// test alone decides.
     pub more_likely_overrides_test: bool,
+    /// Our pipeline ([`super::ours::apply_selection_stage`]): a last step that adds the
+    /// information in how the lines' covariances move with the pose
+    /// ([`moving_covariance_step`]), taken when that information is worth it
+    /// ([`SelectionConfig::moving_step_min_gain`]) and the pose still explains the shafts.
+    pub moving_covariance_step: bool,
+    /// The moving-covariance step is taken when its
+    /// [`information_gain`](MovingStep::information_gain) is at least this (dimensionless;
+    /// 0 takes every step).
+    pub moving_step_min_gain: f64,
 }
 
 /// More terms of the stage's negative log-likelihood, per observation not screened out: a
@@ -818,6 +833,8 @@ impl Default for SelectionConfig {
             max_iterations: 50,
             false_refusal_probability: DEFAULT_FALSE_REFUSAL_PROBABILITY,
             more_likely_overrides_test: true,
+            moving_covariance_step: false,
+            moving_step_min_gain: MOVING_STEP_MIN_GAIN,
         }
     }
 }
@@ -1149,6 +1166,45 @@ pub enum SelectionError {
     },
 }
 
+/// Every observation's model at `(R, t)`, gross outliers of the first-order model left out
+/// (whitened squared residual per degree of freedom above [`SelectionConfig::outlier_threshold`]
+/// times its robust scale).
+fn screened_models(
+    set: &PreparedSet,
+    noise: &KinematicNoise,
+    cfg: &SelectionConfig,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+) -> Result<Vec<Model>, SelectionError> {
+    let mut models: Vec<Model> = set.obs.iter().map(|o| model_at(set, o, r, t, noise, cfg)).collect();
+    let d2: Vec<f64> = set
+        .obs
+        .iter()
+        .zip(&models)
+        .map(|(o, m)| match m {
+            Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) => {
+                let e = residual(set, o, r, t);
+                e.dot(&(srr_inv * e)) / 2.0
+            }
+            Model::Out => f64::NAN,
+        })
+        .collect();
+    let mut sorted: Vec<f64> = d2.iter().copied().filter(|v| v.is_finite()).collect();
+    if sorted.is_empty() {
+        return Err(SelectionError::NoModel);
+    }
+    sorted.sort_unstable_by(|a, b| a.total_cmp(b));
+    // The median of χ²₂/2 is ln 2.
+    let scale = (sorted[sorted.len() / 2] / core::f64::consts::LN_2).max(1.0);
+    for (m, d) in models.iter_mut().zip(&d2) {
+        // A NaN (no model) is out as well.
+        if d.is_nan() || *d > cfg.outlier_threshold * scale {
+            *m = Model::Out;
+        }
+    }
+    Ok(models)
+}
+
 /// Maximum likelihood of the kept lines from `start` (`T_e_t`, metres; the guarded fit, with
 /// its covariance `start_covariance` of `(t m, δφ rad)`), under `noise` and the selection
 /// (module docs). Refused when no observation can be modelled, the information is singular,
@@ -1184,34 +1240,7 @@ pub fn refine_selected_with(
     // The Gauss-Newton matrix at the start, to measure how far the stage moves.
     let mut start_metric: Option<Matrix6<f64>> = None;
     for _pass in 0..2 {
-        let mut models: Vec<Model> = set.obs.iter().map(|o| model_at(set, o, &r, &t, noise, cfg)).collect();
-
-        // Gross outliers of the first-order model.
-        let d2: Vec<f64> = set
-            .obs
-            .iter()
-            .zip(&models)
-            .map(|(o, m)| match m {
-                Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) => {
-                    let e = residual(set, o, &r, &t);
-                    e.dot(&(srr_inv * e)) / 2.0
-                }
-                Model::Out => f64::NAN,
-            })
-            .collect();
-        let mut sorted: Vec<f64> = d2.iter().copied().filter(|v| v.is_finite()).collect();
-        if sorted.is_empty() {
-            return Err(SelectionError::NoModel);
-        }
-        sorted.sort_unstable_by(|a, b| a.total_cmp(b));
-        // The median of χ²₂/2 is ln 2.
-        let scale = (sorted[sorted.len() / 2] / core::f64::consts::LN_2).max(1.0);
-        for (m, d) in models.iter_mut().zip(&d2) {
-            // A NaN (no model) is out as well.
-            if d.is_nan() || *d > cfg.outlier_threshold * scale {
-                *m = Model::Out;
-            }
-        }
+        let models = screened_models(set, noise, cfg, &r, &t)?;
         counts = models.iter().fold((0, 0, 0), |c, m| match m {
             Model::Selected { .. } => (c.0 + 1, c.1, c.2),
             Model::Plain(_) => (c.0, c.1 + 1, c.2),
@@ -1315,6 +1344,250 @@ pub fn refine_selected_with(
         covariance,
         shift_sigmas: sigmas,
         move_test: test,
+    })
+}
+
+/// The pose increment `(t m, δφ rad)` applied as the stage applies it: `R ← exp(δφ^) R`,
+/// `t ← t + δt`.
+fn apply_step(r: &Matrix3<f64>, t: &Vector3<f64>, d: &Vector6<f64>) -> (Matrix3<f64>, Vector3<f64>) {
+    (Rotation3::new(d.fixed_rows::<3>(3).into_owned()).into_inner() * r, t + d.fixed_rows::<3>(0))
+}
+
+/// Observation `o`'s model rebuilt at `(R, t)` with the kind it had at the step's start
+/// (`kind`): a selected line stays selected where its tip can still be conditioned on it,
+/// else becomes a plain line; a plain line stays plain; a line left out stays out.
+fn model_moved(
+    set: &PreparedSet,
+    o: &Prepared,
+    kind: &Model,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+) -> Model {
+    let plain = || residual_covariance(set, o, r, t, noise).try_inverse().map_or(Model::Out, Model::Plain);
+    match kind {
+        Model::Out => Model::Out,
+        Model::Plain(_) => plain(),
+        Model::Selected { .. } => match tip_projection(set, o, r, t).map(|tp| selected_model(set, o, r, t, noise, &tp))
+        {
+            Some(m @ Model::Selected { .. }) => m,
+            _ => plain(),
+        },
+    }
+}
+
+/// The default of [`SelectionConfig::moving_step_min_gain`]: the step is taken when the
+/// covariances' dependence on the pose at least doubles the information in some direction
+/// (dimensionless). Chosen on the tuning geometries (9000-9019): the gain's median is 0.3 in
+/// millimetres (σ = 0.02), 3.5 in metres (σ = 0.01).
+pub const MOVING_STEP_MIN_GAIN: f64 = 1.0;
+
+/// The last step's outcome ([`moving_covariance_step`]).
+#[derive(Clone, Copy, Debug)]
+pub struct MovingStep {
+    /// `T_e_t` after the step, metres.
+    pub pose: Isometry3<f64>,
+    /// The combined fit's covariance of `(t m, δφ rad)`, `(Dᵀ S⁻¹ D)⁻¹` (see
+    /// [`moving_covariance_step`]; the moments' dispersion measured, not assumed).
+    pub covariance: Matrix6<f64>,
+    /// The largest variance ratio of the held fit (its sandwich covariance) to the combined
+    /// fit, minus one, over directions (dimensionless, ≥ 0 up to rounding): how much
+    /// information the covariances' dependence on the pose adds where it adds most.
+    pub information_gain: f64,
+    /// Hansen's overidentification statistic of the twelve moments at the step's end
+    /// (dimensionless; χ²₆ when both sets of moments hold at one pose). For information.
+    pub overidentification: f64,
+}
+
+/// The kept lines' likelihood with each line's covariance moving with the pose.
+struct Moving<'a> {
+    set: &'a PreparedSet,
+    noise: &'a KinematicNoise,
+    /// Each observation's kind at the step's start.
+    kinds: Vec<Model>,
+    extra: Option<ExtraTerms<'a>>,
+}
+
+impl Moving<'_> {
+    /// Each line's negative log-likelihood at `(R, t)`, its model and covariance rebuilt there,
+    /// with the covariance's log-determinant (0 for one left out), into `out`; the extra
+    /// terms not included.
+    fn per_obs(&self, r: &Matrix3<f64>, t: &Vector3<f64>, out: &mut Vec<f64>) -> Option<()> {
+        out.clear();
+        for (o, k) in self.set.obs.iter().zip(&self.kinds) {
+            if matches!(k, Model::Out) {
+                out.push(0.0);
+                continue;
+            }
+            let m = model_moved(self.set, o, k, r, t, self.noise);
+            let (mut f, _, _) = term(self.set, o, &m, r, t, false)?;
+            if let Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) = m {
+                f -= 0.5 * srr_inv.determinant().max(f64::MIN_POSITIVE).ln();
+            }
+            out.push(f);
+        }
+        Some(())
+    }
+
+    /// Per observation, the gradient of the moving likelihood at `(R, t)`: the lines' by
+    /// central differences of step `h` per coordinate, plus the extra terms' as the stage
+    /// takes it (their noise model held where it is evaluated: they have no log-determinant,
+    /// and moving their model without it would bias the fit).
+    fn per_obs_gradients(&self, r: &Matrix3<f64>, t: &Vector3<f64>, h: &Vector6<f64>) -> Option<Vec<Vector6<f64>>> {
+        let mut g = vec![Vector6::zeros(); self.set.obs.len()];
+        let (mut vp, mut vn) = (Vec::new(), Vec::new());
+        for a in 0..6 {
+            let mut e = Vector6::zeros();
+            e[a] = h[a];
+            let (rp, tp) = apply_step(r, t, &e);
+            let (rn, tn) = apply_step(r, t, &-e);
+            self.per_obs(&rp, &tp, &mut vp)?;
+            self.per_obs(&rn, &tn, &mut vn)?;
+            for (gi, (p, n)) in g.iter_mut().zip(vp.iter().zip(&vn)) {
+                gi[a] = (p - n) / (2.0 * h[a]);
+            }
+        }
+        if let Some(extra) = self.extra {
+            for ((gi, o), k) in g.iter_mut().zip(&self.set.obs).zip(&self.kinds) {
+                if !matches!(k, Model::Out) {
+                    *gi += extra(o, r, t, true).1;
+                }
+            }
+        }
+        g.iter().all(|v| v.iter().all(|x| x.is_finite())).then_some(g)
+    }
+
+    /// The Gauss-Newton matrix of the likelihood with its models held at `(R, t)` (the
+    /// stage's) and each observation's gradient of it there (zero for one left out).
+    fn held(&self, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<(Matrix6<f64>, Vec<Vector6<f64>>)> {
+        let mut gn = Matrix6::zeros();
+        let mut grads = Vec::with_capacity(self.set.obs.len());
+        for (o, k) in self.set.obs.iter().zip(&self.kinds) {
+            if matches!(k, Model::Out) {
+                grads.push(Vector6::zeros());
+                continue;
+            }
+            let m = model_moved(self.set, o, k, r, t, self.noise);
+            let (_, mut g, hh) = term(self.set, o, &m, r, t, true)?;
+            gn += hh;
+            if let Some(extra) = self.extra {
+                let (_, ge, he) = extra(o, r, t, true);
+                g += ge;
+                gn += he;
+            }
+            grads.push(g);
+        }
+        Some((gn, grads))
+    }
+
+    /// The information the line covariances' dependence on the pose adds at `(R, t)`,
+    /// `½ tr(Σ⁻¹ ∂ₐΣ Σ⁻¹ ∂ᵦΣ)` summed over the lines (central differences of step `h` per
+    /// coordinate).
+    fn covariance_information(&self, r: &Matrix3<f64>, t: &Vector3<f64>, h: &Vector6<f64>) -> Option<Matrix6<f64>> {
+        let mut ic = Matrix6::zeros();
+        for (o, k) in self.set.obs.iter().zip(&self.kinds) {
+            if matches!(k, Model::Out) {
+                continue;
+            }
+            let s_inv = residual_covariance(self.set, o, r, t, self.noise).try_inverse()?;
+            let mut ds = [Matrix2::zeros(); 6];
+            for (a, d) in ds.iter_mut().enumerate() {
+                let mut e = Vector6::zeros();
+                e[a] = h[a];
+                let (rp, tp) = apply_step(r, t, &e);
+                let (rn, tn) = apply_step(r, t, &-e);
+                let dsa = (residual_covariance(self.set, o, &rp, &tp, self.noise)
+                    - residual_covariance(self.set, o, &rn, &tn, self.noise))
+                    / (2.0 * h[a]);
+                *d = s_inv * dsa;
+            }
+            for a in 0..6 {
+                for b in a..6 {
+                    let v = 0.5 * (ds[a] * ds[b]).trace();
+                    ic[(a, b)] += v;
+                    if a != b {
+                        ic[(b, a)] += v;
+                    }
+                }
+            }
+        }
+        Some(ic)
+    }
+}
+
+/// A last step from the selection-aware stage's pose `start` (`T_e_t`, metres) that adds the
+/// information in how each line's covariance moves with the pose.
+///
+/// The stage holds each line's covariance (and selection model) within a pass: a weighted
+/// least-squares fit, consistent whatever the weights. Letting them move with the pose, with
+/// their log-determinants, adds information (how the lines' scatter changes with depth and
+/// lever arm) but is only unbiased when the covariance model is right. Two sets of moments,
+/// per observation `i` at the pose: `g_i`, the gradient of the stage's likelihood (models
+/// held; the stage's estimating equation), and `c_i`, what letting the lines' models move adds
+/// to it (zero mean at the truth when the model is right). One Gauss-Newton step of the
+/// generalised method of moments (Hansen, "Large sample properties of generalized method of
+/// moments estimators", Econometrica 1982) from `start` with the moments' covariance
+/// measured, `S = Σ mᵢ mᵢᵀ`, `mᵢ = (gᵢ, cᵢ)`, and their expected derivatives
+/// `D = (H, I_Σ)` (the stage's Gauss-Newton matrix, the covariances' Fisher information):
+/// `Δ = −(Dᵀ S⁻¹ D)⁻¹ Dᵀ S⁻¹ Σ mᵢ`. Where the moving covariances' moments scatter more than
+/// the model says, the measured `S` weights them down. The observations' kinds (selected,
+/// plain, left out) are those at `start`. `None` when a moment or matrix cannot be evaluated.
+pub fn moving_covariance_step(
+    set: &PreparedSet,
+    noise: &KinematicNoise,
+    cfg: &SelectionConfig,
+    start: &Isometry3<f64>,
+    extra: Option<ExtraTerms<'_>>,
+) -> Option<MovingStep> {
+    let (r0, t0) = (start.rotation.to_rotation_matrix().into_inner(), start.translation.vector);
+    let kinds = screened_models(set, noise, cfg, &r0, &t0).ok()?;
+    let lik = Moving { set, noise, kinds, extra };
+    let (gn, gh) = lik.held(&r0, &t0)?;
+    // Work in units of the held fit's standard deviations; differences a thousandth of one.
+    let sd = Vector6::from_fn(|a, _| gn.try_inverse().map_or(0.0, |c| c[(a, a)].max(0.0).sqrt()));
+    if !sd.iter().all(|v| v.is_finite() && *v > 0.0) {
+        return None;
+    }
+    let tm = Matrix6::from_diagonal(&sd);
+    let h = sd * 1e-3;
+    let gf = lik.per_obs_gradients(&r0, &t0, &h)?;
+    let ic = lik.covariance_information(&r0, &t0, &h)?;
+    let mut s12 = SMatrix::<f64, 12, 12>::zeros();
+    let mut mbar = SVector::<f64, 12>::zeros();
+    for (a, b) in gh.iter().zip(&gf) {
+        let mut m = SVector::<f64, 12>::zeros();
+        m.fixed_rows_mut::<6>(0).copy_from(&(tm * a));
+        m.fixed_rows_mut::<6>(6).copy_from(&(tm * (b - a)));
+        s12 += m * m.transpose();
+        mbar += m;
+    }
+    let gs = tm * gn * tm;
+    let mut dm = SMatrix::<f64, 12, 6>::zeros();
+    dm.fixed_view_mut::<6, 6>(0, 0).copy_from(&gs);
+    dm.fixed_view_mut::<6, 6>(6, 0).copy_from(&(tm * ic * tm));
+    let ch = s12.cholesky()?;
+    let wd = ch.solve(&dm);
+    let am_inv = (dm.transpose() * wd).try_inverse()?;
+    let step = -(am_inv * (wd.transpose() * mbar));
+    let resid = mbar + dm * step;
+    let overidentification = resid.dot(&ch.solve(&resid));
+    // The held fit's sandwich covariance `H⁻¹ S_gg H⁻¹` against the combined fit's, in the
+    // combined fit's whitened coordinates.
+    let g_inv = gs.try_inverse()?;
+    let c_held = g_inv * s12.fixed_view::<6, 6>(0, 0) * g_inv.transpose();
+    let sym = |m: &Matrix6<f64>| (m + m.transpose()) * 0.5;
+    let l_inv = sym(&am_inv).cholesky()?.l().try_inverse()?;
+    let information_gain = sym(&(l_inv * c_held * l_inv.transpose())).symmetric_eigen().eigenvalues.max() - 1.0;
+    let (r, t) = apply_step(&r0, &t0, &(tm * step));
+    let fin = |m: &Matrix6<f64>| m.iter().all(|v| v.is_finite());
+    let covariance = tm * am_inv * tm;
+    (fin(&covariance) && information_gain.is_finite() && r.iter().chain(t.iter()).all(|v| v.is_finite())).then(|| {
+        MovingStep {
+            pose: Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r)),
+            covariance,
+            information_gain,
+            overidentification,
+        }
     })
 }
 

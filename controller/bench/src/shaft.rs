@@ -930,18 +930,7 @@ mod tests {
         assert_eq!(c.rate(), Some(1.0));
         assert!((c.offset_px[0].unwrap() - 0.2).abs() < 1e-12);
         assert_eq!(c.ms[0], Some(2.0));
-        let report = ShaftReport {
-            set: SeedSet::Report,
-            frames_per_family: 1,
-            seeds: vec![1],
-            levels: vec![ClutterLevel::Clean],
-            detectors: vec!["ours".into(), "peer".into()],
-            peers: PeerStatus::NotRequested,
-            records,
-            overlays: vec![],
-            elapsed_s: 0.0,
-            load_average: [String::new(), String::new()],
-        };
+        let report = clean_report(records);
         let t = report.targets_markdown().unwrap();
         // Detected 100 %, angle 0.06°, offset 0.2 px, no false, better than the peer, 2 ms.
         assert!(t.contains("| clean | yes | yes | yes | yes | yes | yes |"), "{t}");
@@ -952,6 +941,22 @@ mod tests {
         assert!(t.contains("| clean | yes | **no** | **no** | yes | **no** | yes |"), "{t}");
         let md = report.markdown();
         assert!(md.contains("| clean | ours | 2 (0) | 100.0 % (2) | 0 / 0 (1) |"), "{md}");
+    }
+
+    /// A report of `records` at the clean level, ours against one peer.
+    fn clean_report(records: Vec<FrameRecord>) -> ShaftReport {
+        ShaftReport {
+            set: SeedSet::Report,
+            frames_per_family: 1,
+            seeds: vec![1],
+            levels: vec![ClutterLevel::Clean],
+            detectors: vec!["ours".into(), "peer".into()],
+            peers: PeerStatus::NotRequested,
+            records,
+            overlays: vec![],
+            elapsed_s: 0.0,
+            load_average: [String::new(), String::new()],
+        }
     }
 
     #[test]
@@ -985,18 +990,7 @@ mod tests {
         assert!((p.offset_px[0].unwrap() - 0.15).abs() < 1e-12, "{p:?}");
         assert!((p.offset_px[1].unwrap() - 0.35).abs() < 1e-12, "{p:?}");
         assert_eq!(p.a_better, [1, 2]);
-        let report = ShaftReport {
-            set: SeedSet::Report,
-            frames_per_family: 1,
-            seeds: vec![1],
-            levels: vec![ClutterLevel::Clean],
-            detectors: vec!["ours".into(), "peer".into()],
-            peers: PeerStatus::NotRequested,
-            records,
-            overlays: vec![],
-            elapsed_s: 0.0,
-            load_average: [String::new(), String::new()],
-        };
+        let report = clean_report(records);
         let t = report.paired_markdown().unwrap();
         assert!(t.contains("| clean | peer | 2 | 0.040 / 0.040 | 0.15 / 0.35 | 1 / 2 |"), "{t}");
         assert!(report.markdown().contains("### Paired accuracy"));

@@ -371,9 +371,9 @@ pub fn to_pixel_run(
             shaft_extent: data.shaft_extent,
         },
         truth,
-        // One model for every line source: a recorded run states the pixel σ itself.
         noise: noise.is_valid().then_some(noise),
-        detected_noise: noise.is_valid().then_some(noise),
+        // One model for every line source: a recorded run states the pixel σ itself.
+        detected_pixel_px: None,
         estimate_noise_scale,
         detectors: detectors.iter().map(|d| d.name()).collect(),
         poses,

@@ -179,9 +179,9 @@ pub struct PixelRun {
     pub truth: Isometry3<f64>,
     /// The noise model of the truth lines (for our pipeline), `None` when noiseless.
     pub noise: Option<KinematicNoise>,
-    /// The noise model of the detected lines: [`Self::noise`] with the detector's pixel σ
-    /// (`None` when noiseless: the pipeline then weighs every line alike, in pixels).
-    pub detected_noise: Option<KinematicNoise>,
+    /// The pixel σ of the detected lines in place of [`Self::noise`]'s, pixels (`None`: one
+    /// model for every line source). See [`Self::noise_of`].
+    pub detected_pixel_px: Option<f64>,
     /// Our pipeline takes the noise model as known up to a scale it estimates
     /// (`OursConfig::estimate_noise_scale`).
     pub estimate_noise_scale: bool,
@@ -196,11 +196,13 @@ pub struct PixelRun {
 }
 
 impl PixelRun {
-    /// The noise model our pipeline is given for a line source.
+    /// The noise model our pipeline is given for a line source: [`Self::noise`], with
+    /// [`Self::detected_pixel_px`] for a detector's lines (`None` when noiseless: the pipeline
+    /// then weighs every line alike, in pixels).
     pub fn noise_of(&self, source: LineSource) -> Option<KinematicNoise> {
-        match source {
-            LineSource::Truth => self.noise,
-            LineSource::Detector(_) => self.detected_noise,
+        match (source, self.detected_pixel_px) {
+            (LineSource::Detector(_), Some(pixel_px)) => self.noise.map(|n| KinematicNoise { pixel_px, ..n }),
+            _ => self.noise,
         }
     }
 }
@@ -350,7 +352,7 @@ pub fn render_and_detect(
         },
         truth,
         noise,
-        detected_noise: noise.map(|n| KinematicNoise { pixel_px: p.detected_sigma_px, ..n }),
+        detected_pixel_px: Some(p.detected_sigma_px),
         estimate_noise_scale: false,
         detectors: detectors.iter().map(|d| d.name()).collect(),
         poses,

@@ -275,6 +275,9 @@ pub struct OursResult {
     /// Observations kept by the border guard (all of them when the guard is off or did not
     /// drop any).
     pub guard_kept: usize,
+    /// The pose (`T_e_t`, metres) at which the border guard drew the observations it kept
+    /// (its last round's start; `None` when the guard kept all of them).
+    pub guard_from: Option<Isometry3<f64>>,
     /// The selection-aware stage's bookkeeping, when it ran and was applied.
     pub selection: Option<SelectionSummary>,
     /// Why the selection-aware stage was not applied (the pose is then the guarded fit).
@@ -967,6 +970,7 @@ fn solve_as_stated(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, Ou
             Ok(next) if !within(&result, &next.pose, GUARD_MAX_SHIFT_SIGMAS) => break,
             Ok(mut next) => {
                 next.guard_kept = sub.obs.len();
+                next.guard_from = Some(result.pose);
                 next.alternative = result.alternative;
                 next.log_likelihood_ratio = result.log_likelihood_ratio;
                 result = next;
@@ -1075,13 +1079,13 @@ pub fn apply_selection_stage(
 /// inverse of its Gauss-Newton matrix times the observation's score, both as its covariance
 /// takes them: whitened line residuals with Huber weights at `huber_k · ŝ`, and the
 /// shaft-position terms when `cfg.shaft_position`); zero for an observation the border guard
-/// leaves out at that pose (the guard's last subset, up to observations that crossed its limit
-/// in the last refit). `None` without a noise model or when the matrix is singular.
+/// left out (drawn again at [`OursResult::guard_from`]). `None` without a noise model or when
+/// the matrix is singular.
 fn guarded_influence(set: &PreparedSet, cfg: &OursConfig, result: &OursResult) -> Option<Vec<Vector6<f64>>> {
     let noise = cfg.noise?;
     let r = result.pose.rotation.to_rotation_matrix().into_inner();
     let t = result.pose.translation.vector;
-    let guarded = result.guard_kept < set.obs.len() && cfg.border_guard_sigmas > 0.0;
+    let guard = result.guard_from.map(|p| (p.rotation.to_rotation_matrix().into_inner(), p.translation.vector));
     let whiten = whitening(set, cfg, &r, &t);
     let c = cfg.huber_k * result.scale;
     let scale2 = result.scale * result.scale;
@@ -1091,7 +1095,9 @@ fn guarded_influence(set: &PreparedSet, cfg: &OursConfig, result: &OursResult) -
         .iter()
         .zip(&whiten)
         .map(|(o, w)| {
-            if guarded && !tip_well_inside(set, o, &r, &t, &noise, cfg.border_guard_sigmas) {
+            if let Some((gr, gt)) = &guard
+                && !tip_well_inside(set, o, gr, gt, &noise, cfg.border_guard_sigmas)
+            {
                 return (Matrix6::zeros(), Vector6::zeros());
             }
             let (res, jac) = residual_and_jacobian(set, o, &r, &t);
@@ -1493,6 +1499,7 @@ fn solve_from(
         log_likelihood_ratio: llr,
         iterations: candidates.iter().map(|c| c.iterations).sum(),
         guard_kept: set.obs.len(),
+        guard_from: None,
         selection: None,
         selection_refused: None,
         noise_scale: None,

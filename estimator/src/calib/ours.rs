@@ -1018,10 +1018,19 @@ pub fn apply_selection_stage(
         candidate_nll(set, &ocfg, &p.rotation.to_rotation_matrix().into_inner(), &p.translation.vector, result.scale)
     };
     let mut on_likelihood = false;
-    let fit = match refine_selected_with(set, noise, &result.pose, &result.covariance, cfg, extra, influence.as_deref()) {
+    let fit = match refine_selected_with(set, noise, &result.pose, &result.covariance, cfg, extra, influence.as_deref())
+    {
         Err(e @ SelectionError::RanAway { .. }) if cfg.more_likely_overrides_test => {
             let loose = SelectionConfig { false_refusal_probability: 0.0, ..*cfg };
-            match refine_selected_with(set, noise, &result.pose, &result.covariance, &loose, extra, influence.as_deref()) {
+            match refine_selected_with(
+                set,
+                noise,
+                &result.pose,
+                &result.covariance,
+                &loose,
+                extra,
+                influence.as_deref(),
+            ) {
                 Ok(fit) if nll(&fit.pose) + DEFAULT_MIN_LOG_LIKELIHOOD_RATIO < nll(&result.pose) => {
                     on_likelihood = true;
                     Ok(fit)

@@ -1239,8 +1239,7 @@ pub fn refine_selected_with(
     extra: Option<ExtraTerms<'_>>,
     start_influence: Option<&[Vector6<f64>]>,
 ) -> Result<SelectionFit, SelectionError> {
-    let start_influence =
-        start_influence.filter(|u| cfg.influence_move_test && u.len() == set.obs.len());
+    let start_influence = start_influence.filter(|u| cfg.influence_move_test && u.len() == set.obs.len());
     let mut r = start.rotation.to_rotation_matrix().into_inner();
     let mut t = start.translation.vector;
     let apply = |r: &Matrix3<f64>, t: &Vector3<f64>, d: &Vector6<f64>| {

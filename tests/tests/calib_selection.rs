@@ -310,3 +310,34 @@ fn a_refused_move_to_a_far_more_likely_pose_is_taken() {
     let e = pose_errors(&o.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() < 1.5 && e.translation_m < 0.015, "{e:?}");
 }
+
+#[test]
+fn the_measured_move_test_passes_consistent_stages_and_refuses_a_run_away() {
+    use sim::calib::random_geometry;
+    let measured = SelectionConfig { influence_move_test: true, ..SelectionConfig::default() };
+    // Consistent data (the default scene, σ = 0.01): the stage is taken, its move judged by
+    // its measured covariance.
+    for seed in 200..204 {
+        let d = generate_calibration(&protocol(CalibGeometry::default(), 0.01, seed)).unwrap();
+        let set = prepare(&d.setup, &d.observations).unwrap();
+        let cfg = OursConfig { noise: d.noise, selection: Some(measured), ..OursConfig::default() };
+        let o = solve_ours_prepared(&set, &cfg).unwrap();
+        assert!(o.selection.is_some_and(|s| !s.accepted_on_likelihood), "seed {seed}: {:?}", o.selection_refused);
+    }
+    // Tuning geometry 9000, metres, σ = 0.01, trial 1001: the stage moves from a guarded fit
+    // 8.5° off by 27 of its standard deviations; the measured test alone refuses it, the
+    // efficiency-based one too.
+    let g = random_geometry(9000, false).unwrap();
+    let d = generate_calibration(&protocol(g.geometry, 0.01, 1001)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    for influence_move_test in [true, false] {
+        let test_alone = SelectionConfig { more_likely_overrides_test: false, influence_move_test, ..measured };
+        let cfg = OursConfig { noise: d.noise, selection: Some(test_alone), ..OursConfig::default() };
+        let o = solve_ours_prepared(&set, &cfg).unwrap();
+        assert!(
+            matches!(o.selection_refused, Some(SelectionError::RanAway { statistic, limit, dof: 6, .. }) if statistic > limit),
+            "measured {influence_move_test}: {:?}",
+            o.selection_refused
+        );
+    }
+}

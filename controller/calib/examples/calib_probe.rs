@@ -10,6 +10,8 @@
 //! rotation error against the line of sight and the tool (which 180° turn a mirror is).
 //! `MOVING=1` turns on the moving-covariance step (`SelectionConfig::moving_covariance_step`;
 //! printed as `moving gain <g> taken|held`), `MOVING=force` takes it whatever its gain.
+//! `INFLUENCE=1` judges the stage's move with its measured covariance
+//! (`SelectionConfig::influence_move_test`).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -110,6 +112,10 @@ fn main() {
                 if v == "force" {
                     sel.moving_step_min_gain = 0.0;
                 }
+            }
+            // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
+            if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {
+                sel.influence_move_test = v != "0";
             }
             let t0 = std::time::Instant::now();
             let r = solve_ours_prepared(&set, &cfg);

@@ -169,9 +169,11 @@ fn main() {
     }
     for n in noises {
         let forced = SelectionConfig { false_refusal_probability: 0.0, ..SelectionConfig::default() };
+        let measured = SelectionConfig { influence_move_test: true, ..SelectionConfig::default() };
         for (name, cfg) in [
             ("product", OursConfig { noise: Some(n), ..OursConfig::default() }),
             ("stage forced", OursConfig { noise: Some(n), selection: Some(forced), ..OursConfig::default() }),
+            ("measured test", OursConfig { noise: Some(n), selection: Some(measured), ..OursConfig::default() }),
             ("no stage", OursConfig { noise: Some(n), selection: None, ..OursConfig::default() }),
             ("no shaft", OursConfig { noise: Some(n), shaft_position: false, ..OursConfig::default() }),
             (

@@ -163,7 +163,7 @@ pub fn run_trial(c: &Condition, seed: u64) -> Result<Trial, CalibProtocolError> 
                 solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: None, ..Default::default() });
             let full = match (&guarded, d.noise, OursConfig::default().selection) {
                 (Ok(g), Some(noise), Some(sel)) => {
-                    Some(apply_selection_stage(&set, &noise, &sel, OursConfig::default().shaft_position, *g))
+                    Some(apply_selection_stage(&set, &noise, &sel, &OursConfig::default(), *g))
                 }
                 (Ok(g), _, _) => Some(*g),
                 (Err(_), _, _) => None,

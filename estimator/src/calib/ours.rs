@@ -275,6 +275,9 @@ pub struct OursResult {
     /// Observations kept by the border guard (all of them when the guard is off or did not
     /// drop any).
     pub guard_kept: usize,
+    /// The pose (`T_e_t`, metres) at which the border guard drew the observations it kept
+    /// (its last round's start; `None` when the guard kept all of them).
+    pub guard_from: Option<Isometry3<f64>>,
     /// The selection-aware stage's bookkeeping, when it ran and was applied.
     pub selection: Option<SelectionSummary>,
     /// Why the selection-aware stage was not applied (the pose is then the guarded fit).
@@ -967,6 +970,7 @@ fn solve_as_stated(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, Ou
             Ok(next) if !within(&result, &next.pose, GUARD_MAX_SHIFT_SIGMAS) => break,
             Ok(mut next) => {
                 next.guard_kept = sub.obs.len();
+                next.guard_from = Some(result.pose);
                 next.alternative = result.alternative;
                 next.log_likelihood_ratio = result.log_likelihood_ratio;
                 result = next;
@@ -976,7 +980,7 @@ fn solve_as_stated(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, Ou
     }
     // The selection-aware stage, from the guarded fit, on all observations.
     Ok(match &cfg.selection {
-        Some(sel) => apply_selection_stage(set, &noise, sel, cfg.shaft_position, result),
+        Some(sel) => apply_selection_stage(set, &noise, sel, cfg, result),
         None => result,
     })
 }
@@ -984,15 +988,22 @@ fn solve_as_stated(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, Ou
 /// The selection-aware stage ([`super::selection`]) from a guarded fit of
 /// [`solve_ours_prepared`] (run with `selection: None`): the stage's pose, covariance and
 /// bookkeeping, or the guarded fit with the reason when the stage is refused. For comparing
-/// both without solving twice. `shaft_position`: add the shaft-position terms to the stage
-/// ([`OursConfig::shaft_position`]).
+/// both without solving twice. `ours`: the guarded fit's options (its
+/// [`OursConfig::shaft_position`] adds the shaft-position terms to the stage; its Huber
+/// constant and border guard give the guarded fit's influences for
+/// [`SelectionConfig::influence_move_test`]); its noise model is `noise`.
 pub fn apply_selection_stage(
     set: &PreparedSet,
     noise: &KinematicNoise,
     cfg: &SelectionConfig,
-    shaft_position: bool,
+    ours: &OursConfig,
     mut result: OursResult,
 ) -> OursResult {
+    let shaft_position = ours.shaft_position;
+    let influence = cfg
+        .influence_move_test
+        .then(|| guarded_influence(set, &OursConfig { noise: Some(*noise), ..*ours }, &result))
+        .flatten();
     let terms = |o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>, grad: bool| stage_terms(set, o, r, t, noise, grad);
     let extra: Option<super::selection::ExtraTerms<'_>> = if shaft_position { Some(&terms) } else { None };
     // A stage whose move fails the Hausman test is still taken when its pose is far more likely
@@ -1007,10 +1018,19 @@ pub fn apply_selection_stage(
         candidate_nll(set, &ocfg, &p.rotation.to_rotation_matrix().into_inner(), &p.translation.vector, result.scale)
     };
     let mut on_likelihood = false;
-    let fit = match refine_selected_with(set, noise, &result.pose, &result.covariance, cfg, extra) {
+    let fit = match refine_selected_with(set, noise, &result.pose, &result.covariance, cfg, extra, influence.as_deref())
+    {
         Err(e @ SelectionError::RanAway { .. }) if cfg.more_likely_overrides_test => {
             let loose = SelectionConfig { false_refusal_probability: 0.0, ..*cfg };
-            match refine_selected_with(set, noise, &result.pose, &result.covariance, &loose, extra) {
+            match refine_selected_with(
+                set,
+                noise,
+                &result.pose,
+                &result.covariance,
+                &loose,
+                extra,
+                influence.as_deref(),
+            ) {
                 Ok(fit) if nll(&fit.pose) + DEFAULT_MIN_LOG_LIKELIHOOD_RATIO < nll(&result.pose) => {
                     on_likelihood = true;
                     Ok(fit)
@@ -1062,6 +1082,54 @@ pub fn apply_selection_stage(
         Err(e) => result.selection_refused = Some(e),
     }
     result
+}
+
+/// The guarded fit's influence per observation of `set` at its pose (`(t m, δφ rad)`: the
+/// inverse of its Gauss-Newton matrix times the observation's score, both as its covariance
+/// takes them: whitened line residuals with Huber weights at `huber_k · ŝ`, and the
+/// shaft-position terms when `cfg.shaft_position`); zero for an observation the border guard
+/// left out (drawn again at [`OursResult::guard_from`]). `None` without a noise model or when
+/// the matrix is singular.
+fn guarded_influence(set: &PreparedSet, cfg: &OursConfig, result: &OursResult) -> Option<Vec<Vector6<f64>>> {
+    let noise = cfg.noise?;
+    let r = result.pose.rotation.to_rotation_matrix().into_inner();
+    let t = result.pose.translation.vector;
+    let guard = result.guard_from.map(|p| (p.rotation.to_rotation_matrix().into_inner(), p.translation.vector));
+    let whiten = whitening(set, cfg, &r, &t);
+    let c = cfg.huber_k * result.scale;
+    let scale2 = result.scale * result.scale;
+    let shaft_noise = cfg.noise.as_ref().filter(|_| cfg.shaft_position);
+    let parts: Vec<(Matrix6<f64>, Vector6<f64>)> = set
+        .obs
+        .iter()
+        .zip(&whiten)
+        .map(|(o, w)| {
+            if let Some((gr, gt)) = &guard
+                && !tip_well_inside(set, o, gr, gt, &noise, cfg.border_guard_sigmas)
+            {
+                return (Matrix6::zeros(), Vector6::zeros());
+            }
+            let (res, jac) = residual_and_jacobian(set, o, &r, &t);
+            let (e, j) = (w * res, w * jac);
+            let n = e.norm();
+            let lw = if n <= c { 1.0 } else { c / n };
+            let (mut h, mut g) = (j.transpose() * j * lw, j.transpose() * e * lw);
+            if let Some(noise) = shaft_noise {
+                let (_, es, js) = model_and_residuals_at(set, o, &r, &t, noise, true, Some((&res, &jac)));
+                for (e, j) in es.iter().zip(&js) {
+                    if *e != 0.0 {
+                        let n = (e * result.scale).abs();
+                        let wgt = lw * if n <= c { 1.0 } else { c / n };
+                        h += j * j.transpose() * (scale2 * wgt);
+                        g += j * (e * scale2 * wgt);
+                    }
+                }
+            }
+            (h, g)
+        })
+        .collect();
+    let h_inv = parts.iter().fold(Matrix6::zeros(), |a, p| a + p.0).try_inverse()?;
+    Some(parts.iter().map(|p| h_inv * p.1).collect())
 }
 
 /// One solve. `from`: refine only from this pose (no linear start, no mirror), keeping the
@@ -1440,6 +1508,7 @@ fn solve_from(
         log_likelihood_ratio: llr,
         iterations: candidates.iter().map(|c| c.iterations).sum(),
         guard_kept: set.obs.len(),
+        guard_from: None,
         selection: None,
         selection_refused: None,
         noise_scale: None,

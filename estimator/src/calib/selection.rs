@@ -50,7 +50,7 @@ use nalgebra::{
 };
 
 use super::KinematicNoise;
-use super::hausman::{MoveTest, move_test};
+use super::hausman::{MoveTest, influence_move_test, move_test};
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, damped_step, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
@@ -809,6 +809,11 @@ pub struct SelectionConfig {
     /// [`information_gain`](MovingStep::information_gain) is at least this (dimensionless;
     /// 0 takes every step).
     pub moving_step_min_gain: f64,
+    /// The Hausman-type test with the covariance of the move measured from each
+    /// observation's influence on the two fits ([`super::hausman::influence_move_test`])
+    /// instead of the difference of their covariances; used when the guarded fit's
+    /// influences are given ([`refine_selected_with`]'s `start_influence`).
+    pub influence_move_test: bool,
 }
 
 /// More terms of the stage's negative log-likelihood, per observation not screened out: a
@@ -835,6 +840,7 @@ impl Default for SelectionConfig {
             more_likely_overrides_test: true,
             moving_covariance_step: false,
             moving_step_min_gain: MOVING_STEP_MIN_GAIN,
+            influence_move_test: false,
         }
     }
 }
@@ -1216,11 +1222,14 @@ pub fn refine_selected(
     start_covariance: &Matrix6<f64>,
     cfg: &SelectionConfig,
 ) -> Result<SelectionFit, SelectionError> {
-    refine_selected_with(set, noise, start, start_covariance, cfg, None)
+    refine_selected_with(set, noise, start, start_covariance, cfg, None, None)
 }
 
 /// [`refine_selected`] with `extra` terms added to the likelihood of every observation not
-/// screened out.
+/// screened out, and, for [`SelectionConfig::influence_move_test`], the guarded fit's
+/// influence per observation of `set` (`start_influence[i]`: its inverse Gauss-Newton matrix
+/// times observation `i`'s score at `start`, `(t m, δφ rad)`; zero for an observation it did
+/// not use).
 pub fn refine_selected_with(
     set: &PreparedSet,
     noise: &KinematicNoise,
@@ -1228,7 +1237,9 @@ pub fn refine_selected_with(
     start_covariance: &Matrix6<f64>,
     cfg: &SelectionConfig,
     extra: Option<ExtraTerms<'_>>,
+    start_influence: Option<&[Vector6<f64>]>,
 ) -> Result<SelectionFit, SelectionError> {
+    let start_influence = start_influence.filter(|u| cfg.influence_move_test && u.len() == set.obs.len());
     let mut r = start.rotation.to_rotation_matrix().into_inner();
     let mut t = start.translation.vector;
     let apply = |r: &Matrix3<f64>, t: &Vector3<f64>, d: &Vector6<f64>| {
@@ -1239,7 +1250,9 @@ pub fn refine_selected_with(
     let mut covariance = None;
     // The Gauss-Newton matrix at the start, to measure how far the stage moves.
     let mut start_metric: Option<Matrix6<f64>> = None;
-    for _pass in 0..2 {
+    // Each observation's score at the start, for the measured test.
+    let mut start_scores: Vec<Vector6<f64>> = Vec::new();
+    for pass in 0..2 {
         let models = screened_models(set, noise, cfg, &r, &t)?;
         counts = models.iter().fold((0, 0, 0), |c, m| match m {
             Model::Selected { .. } => (c.0 + 1, c.1, c.2),
@@ -1264,6 +1277,20 @@ pub fn refine_selected_with(
         };
         let Some((mut f, mut g, mut h)) = eval(&r, &t, true) else { break };
         start_metric.get_or_insert(h);
+        if pass == 0 && start_influence.is_some() {
+            start_scores = set
+                .obs
+                .iter()
+                .zip(&models)
+                .map(|(o, m)| {
+                    let mut gi = term(set, o, m, &r, &t, true).map_or(Vector6::zeros(), |x| x.1);
+                    if let (Some(extra), false) = (extra, matches!(m, Model::Out)) {
+                        gi += extra(o, &r, &t, true).1;
+                    }
+                    gi
+                })
+                .collect();
+        }
         let mut lambda = 1e-4;
         for _ in 0..cfg.max_iterations {
             iterations += 1;
@@ -1326,7 +1353,15 @@ pub fn refine_selected_with(
     let enforce = cfg.false_refusal_probability > 0.0;
     let p = if enforce { cfg.false_refusal_probability } else { DEFAULT_FALSE_REFUSAL_PROBABILITY };
     let stage_cov = start_metric.and_then(|m| m.try_inverse());
-    let test = stage_cov.and_then(|c| move_test(&d, start_covariance, &c, p));
+    let test = match (start_influence, &stage_cov) {
+        // The measured test: each observation's influence on the stage (at the start, as its
+        // covariance above) minus its influence on the guarded fit.
+        (Some(ug), Some(c)) if start_scores.len() == ug.len() => {
+            let u: Vec<Vector6<f64>> = start_scores.iter().zip(ug).map(|(gs, ug)| c * gs - ug).collect();
+            influence_move_test(&d, &u, p)
+        }
+        _ => stage_cov.and_then(|c| move_test(&d, start_covariance, &c, p)),
+    };
     match test {
         Some(t) if t.passes() || !enforce => {}
         Some(t) => return Err(SelectionError::RanAway { sigmas, statistic: t.statistic, dof: t.dof, limit: t.limit }),

@@ -20,9 +20,15 @@
 //!    Non-maximum suppression along the gradient, a threshold, then each edgel's position and
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
 //!    undistortion per frame): there the contours are straight lines.
-//! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform (each edgel votes
-//!    once at its own normal, 1° × 2 px bins, peaks of a 9 × 3 box sum), then each peak's
-//!    edgels are gathered and refitted (total least squares) and its supported span found.
+//! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform, 1° × 2 px bins:
+//!    on a clear frame each edgel votes at every angle within ±`hough_normal_window_deg` (5°)
+//!    of its normal, at the distance its position gives there, and the peaks are 1 × 3 box
+//!    sums (a contour's edgels are exactly on one line while their normals scatter by
+//!    degrees: one vote at the measured normal lands `s·δθ` off in distance, `s` along the
+//!    line from the foot of the perpendicular from the centre, so a short contour far out
+//!    makes no peak); on a hazy frame each edgel votes once at its own normal, peaks of a
+//!    9 × 3 box sum. Then each peak's edgels are gathered and refitted (total least squares)
+//!    and its supported span found.
 //! 3. **Pairs with physics** (cheap tests on the hypotheses): two lines are the contours of
 //!    one cylinder of radius `r` only if they are within 25° of parallel, overlap along their
 //!    length, and the angle `θ` between their planes through the optical centre (normals

@@ -1,8 +1,10 @@
 //! Stage 2: straight-line hypotheses from the edgels (undistorted pixels, where the contours
-//! are straight): an orientation-guided Hough transform (each edgel votes once, at its own
-//! normal direction, so the cost is linear in the edgels), peaks on a 9 × 3 box sum (edgel normals at half resolution scatter by a few degrees), then each
-//! peak's edgels are gathered and refitted by total least squares, and the supported span is
-//! found along the line.
+//! are straight): an orientation-guided Hough transform (each edgel votes once at its own
+//! normal direction, peaks on a 9 × 3 box sum as edgel normals at half resolution scatter by
+//! a few degrees; or, with a normal window, at every angle within the window of its normal,
+//! peaks on a 1 × 3 box sum: [`Hough::run`]; either way the cost is linear in the edgels),
+//! then each peak's edgels are gathered and refitted by total least squares, and the
+//! supported span is found along the line.
 
 use super::edges::Edgel;
 use super::geom::{Line, fit_line};

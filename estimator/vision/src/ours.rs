@@ -21,8 +21,9 @@
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
 //!    undistortion per frame): there the contours are straight lines.
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform, 1° × 2 px bins:
-//!    on a clear frame each edgel votes at every angle within ±`hough_normal_window_deg` (5°)
-//!    of its normal, at the distance its position gives there, and the peaks are 1 × 3 box
+//!    by default each edgel votes once at its own normal (peaks of a 9 × 3 box sum); with
+//!    `hough_normal_window_deg` (an option, off by default) on a clear frame each edgel votes
+//!    at every angle within that many degrees of its normal, at the distance its position gives there, and the peaks are 1 × 3 box
 //!    sums (a contour's edgels are exactly on one line while their normals scatter by
 //!    degrees: one vote at the measured normal lands `s·δθ` off in distance, `s` along the
 //!    line from the foot of the perpendicular from the centre, so a short contour far out
@@ -267,8 +268,7 @@ pub struct OursConfig {
     pub haze_refit: bool,
     /// On a clear frame, each edgel votes in the Hough transform at every angle within this
     /// many degrees of its normal (1° bins), at the distance its position gives at that angle,
-    /// instead of once at its own normal (default 5; 0: one vote, the behaviour before session
-    /// 21). A contour is straight in undistorted pixels, while its edgels' normals (a 2×2
+    /// instead of once at its own normal (default 0: one vote; 5 was measured in session 21). A contour is straight in undistorted pixels, while its edgels' normals (a 2×2
     /// gradient at half resolution) scatter by degrees: one vote at the measured normal lands
     /// `s·δθ` from the line's distance bin (`s` the edgel's distance along the line from the
     /// foot of the perpendicular from the image centre: 10 px for 3° at 200 px), so a short
@@ -276,7 +276,9 @@ pub struct OursConfig {
     /// no line hypothesis. With the window every edgel votes at the true angle, where a
     /// contour's edgels all share one distance. On the extended tuning set (session 21) it
     /// found 1 more shaft of 120 at `default` and 3 more of 103 with the crossing instrument,
-    /// with 1 and 2 fewer wrong detections (`docs/detection.md`, ninth round). At most 45.
+    /// with 1 and 2 fewer wrong detections; on the report set 9 more shafts with the crossing
+    /// instrument but 7 more wrong detections, mostly motion-blurred frames: off by default
+    /// (`docs/detection.md`, ninth round). At most 45.
     pub hough_normal_window_deg: u32,
     /// Apply `hough_normal_window_deg` on hazy frames too (median chroma under
     /// `clear_chroma`; default false). On the tuning set (session 21) it found 5 more shafts of
@@ -313,7 +315,7 @@ impl Default for OursConfig {
             haze_normal_integration: false,
             occluded_end_waiver: false,
             haze_refit: true,
-            hough_normal_window_deg: 5,
+            hough_normal_window_deg: 0,
             hough_window_under_haze: false,
         }
     }

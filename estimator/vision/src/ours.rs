@@ -20,9 +20,16 @@
 //!    Non-maximum suppression along the gradient, a threshold, then each edgel's position and
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
 //!    undistortion per frame): there the contours are straight lines.
-//! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform (each edgel votes
-//!    once at its own normal, 1° × 2 px bins, peaks of a 9 × 3 box sum), then each peak's
-//!    edgels are gathered and refitted (total least squares) and its supported span found.
+//! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform, 1° × 2 px bins:
+//!    by default each edgel votes once at its own normal (peaks of a 9 × 3 box sum); with
+//!    `hough_normal_window_deg` (an option, off by default) on a clear frame each edgel votes
+//!    at every angle within that many degrees of its normal, at the distance its position gives there, and the peaks are 1 × 3 box
+//!    sums (a contour's edgels are exactly on one line while their normals scatter by
+//!    degrees: one vote at the measured normal lands `s·δθ` off in distance, `s` along the
+//!    line from the foot of the perpendicular from the centre, so a short contour far out
+//!    makes no peak); on a hazy frame each edgel votes once at its own normal, peaks of a
+//!    9 × 3 box sum. Then each peak's edgels are gathered and refitted (total least squares)
+//!    and its supported span found.
 //! 3. **Pairs with physics** (cheap tests on the hypotheses): two lines are the contours of
 //!    one cylinder of radius `r` only if they are within 25° of parallel, overlap along their
 //!    length, and the angle `θ` between their planes through the optical centre (normals
@@ -259,6 +266,26 @@ pub struct OursConfig {
     /// median under smoke fell from 0.062° to 0.041°, with smoke and the crossing instrument
     /// from 0.084° to 0.040° (`docs/detection.md`, eighth round).
     pub haze_refit: bool,
+    /// On a clear frame, each edgel votes in the Hough transform at every angle within this
+    /// many degrees of its normal (1° bins), at the distance its position gives at that angle,
+    /// instead of once at its own normal (default 0: one vote; 5 was measured in session 21). A contour is straight in undistorted pixels, while its edgels' normals (a 2×2
+    /// gradient at half resolution) scatter by degrees: one vote at the measured normal lands
+    /// `s·δθ` from the line's distance bin (`s` the edgel's distance along the line from the
+    /// foot of the perpendicular from the image centre: 10 px for 3° at 200 px), so a short
+    /// or faint contour far out in the image spreads its votes over several cells and makes
+    /// no line hypothesis. With the window every edgel votes at the true angle, where a
+    /// contour's edgels all share one distance. On the extended tuning set (session 21) it
+    /// found 1 more shaft of 120 at `default` and 3 more of 103 with the crossing instrument,
+    /// with 1 and 2 fewer wrong detections; on the report set 9 more shafts with the crossing
+    /// instrument but 7 more wrong detections, mostly motion-blurred frames: off by default
+    /// (`docs/detection.md`, ninth round). At most 45.
+    pub hough_normal_window_deg: u32,
+    /// Apply `hough_normal_window_deg` on hazy frames too (median chroma under
+    /// `clear_chroma`; default false). On the tuning set (session 21) it found 5 more shafts of
+    /// 120 under smoke and 4 more of 103 under smoke with the crossing instrument, but under
+    /// smoke 3 more wrong detections (the shaft with one contour on a shadow's or a
+    /// highlight's edge, 2-5° off): opt-in.
+    pub hough_window_under_haze: bool,
 }
 
 impl Default for OursConfig {
@@ -288,6 +315,8 @@ impl Default for OursConfig {
             haze_normal_integration: false,
             occluded_end_waiver: false,
             haze_refit: true,
+            hough_normal_window_deg: 0,
+            hough_window_under_haze: false,
         }
     }
 }
@@ -372,6 +401,7 @@ impl OursConfig {
             "finite and ≥ 0",
         )?;
         check((0.0..=1.0).contains(&self.jaw_width_ratio), "jaw_width_ratio", "in [0, 1]")?;
+        check(self.hough_normal_window_deg <= 45, "hough_normal_window_deg", "at most 45")?;
         check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
@@ -1237,7 +1267,9 @@ impl OursDetector {
         self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32, normal_clear);
         self.haze = Haze::new(f64::from(self.edges.chroma_median), &cfg);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
-        self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines);
+        let window =
+            if self.haze.scale < 1.0 && !cfg.hough_window_under_haze { 0 } else { cfg.hough_normal_window_deg };
+        self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines, window as usize);
         self.trace_rejects.clear();
         let buf = std::mem::take(&mut self.pair_buf);
         // Traced frames rank every pair (the trace records them all); otherwise the pairs are
@@ -2020,7 +2052,7 @@ mod tests {
         let cfg = det.cfg;
         det.edges.run(&view, &det.table, cfg.edge_threshold as f32, cfg.luma_weight as f32, cfg.clear_chroma as f32);
         det.haze = Haze::new(f64::from(det.edges.chroma_median), &cfg);
-        det.hough.run(&det.edges.edgels, 12, cfg.max_lines);
+        det.hough.run(&det.edges.edgels, 12, cfg.max_lines, cfg.hough_normal_window_deg as usize);
         let full = det.pairs(&view, Vec::new());
         assert!(full.len() >= 4, "only {} pairs of {} lines", full.len(), det.hough.lines.len());
         det.geometric_pairs();

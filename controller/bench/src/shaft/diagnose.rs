@@ -23,6 +23,15 @@
 //! `=1`/`=2` on those matching an instrument) and each frame without instrument 1 that has a
 //! false detection (`FALSE ...`) is printed to stderr: a debugging aid, not part of the tables.
 //!
+//! Each `MISS` line is preceded by a `NEAR` line: per true contour (its line and visible
+//! segment), the line hypotheses within 10° and 15 px of it (angle, distance of the
+//! hypothesis's span middle, its position along the contour, its votes).
+//!
+//! With `SHAFT_DIAG_WRONG` set, each returned detection matching no instrument prints `WRONG
+//! level family seed rank class=…`: which true contour each of its two contours lies on (`1a`,
+//! `1b`, `2a`, `2b`, `-`: within 2° and 3 px at the true contour's visible middle), its
+//! errors against both instruments' axes, its ends and confidence.
+//!
 //! With `SHAFT_DIAG_ACC` set, each matched eligible frame prints `ACC level family seed` and a
 //! JSON object to stderr: the returned contours' signed angle errors and offsets against the
 //! true contours, the span against the visible length, the middle line's error (an accuracy
@@ -311,6 +320,58 @@ fn print_accuracy(
     eprintln!("ACC {} {} {} {v}", level.key(), fam, frame.spec.seed);
 }
 
+/// With `SHAFT_DIAG_WRONG` in the environment: one line per returned detection matching no
+/// instrument, `WRONG level family seed rank class` and its figures: which true contour each
+/// of its two contours lies on (`1`/`2`: instrument, `-`: none; within 2° and 3 px at the true
+/// visible contour's middle), its angle and offset against both instruments' axes, its ends.
+/// A debugging aid for the wrong detections.
+fn print_wrong(frame: &RenderedFrame, level: ClutterLevel, fam: &str, dets: &[vision::ShaftDetection]) {
+    let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
+    let i1 = frame.inst1.as_ref();
+    let contours_of = |lab: u8| -> Option<[TrueContour; 2]> {
+        let inst = frame.truth.instruments.iter().find(|i| i.label == lab)?;
+        let [c0, c1] = inst.contours.as_ref()?;
+        Some([(c0.line_ideal, c0.segment_ideal_px?), (c1.line_ideal, c1.segment_ideal_px?)])
+    };
+    let tcs = [contours_of(label::INSTRUMENT), if inst2.is_some() { contours_of(label::SECOND) } else { None }];
+    let on = |abc: &[f64; 3]| -> String {
+        for (k, tc) in tcs.iter().enumerate() {
+            for (ci, (l, seg)) in tc.iter().flatten().enumerate() {
+                let m = [0.5 * (seg[0][0] + seg[1][0]), 0.5 * (seg[0][1] + seg[1][1])];
+                if angle_deg(abc, l).is_some_and(|a| a <= 2.0) && distance_px(abc, m).is_some_and(|d| d <= 3.0) {
+                    return format!("{}{}", k + 1, if ci == 0 { "a" } else { "b" });
+                }
+            }
+        }
+        "-".into()
+    };
+    for (r, det) in dets.iter().enumerate() {
+        let e1 = i1.and_then(|t| super::metrics::line_errors(&det.centreline.abc, t));
+        let e2 = inst2.and_then(|t| super::metrics::line_errors(&det.centreline.abc, t));
+        if e1.is_some_and(|e| e.matches()) || e2.is_some_and(|e| e.matches()) {
+            continue;
+        }
+        let sides = det.contours.map(|c| on(&c.abc));
+        let mut k: Vec<String> = sides.iter().map(|s| s.chars().next().unwrap_or('-').to_string()).collect();
+        k.sort();
+        eprintln!(
+            "WRONG {} {} {} r{} class={} sides={:?} e1={:?} e2={:?} ends={:?} conf={:.3} eligible={} crossed={:.2}",
+            level.key(),
+            fam,
+            frame.spec.seed,
+            r,
+            k.join("+"),
+            sides,
+            e1.map(|e| (e.angle_deg, e.offset_mid_px)),
+            e2.map(|e| (e.angle_deg, e.offset_mid_px)),
+            det.ends_px,
+            det.confidence,
+            i1.is_some_and(|t| t.eligible()),
+            i1.map_or(0.0, |t| t.crossed_fraction),
+        );
+    }
+}
+
 /// A pair's outcome and its rank.
 type TracePairOutcome = (PairOutcome, Option<usize>);
 
@@ -421,6 +482,9 @@ pub fn run(
             if std::env::var_os("SHAFT_DIAG_ALL").is_some() {
                 print_verified(frame, level, fam, &trace);
             }
+            if std::env::var_os("SHAFT_DIAG_WRONG").is_some() {
+                print_wrong(frame, level, fam, &dets);
+            }
             if !frame.inst1_in_view {
                 let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };
                 let s = score_frame(&dets, None, inst2);
@@ -509,6 +573,36 @@ pub fn run(
                         )
                     })
                     .collect();
+                // Per true contour, the nearest line hypotheses: (line, angle °, distance of its
+                // span's middle from the contour px, s of the middle along the contour, votes).
+                let near: Vec<String> = true_contours(frame)
+                    .iter()
+                    .flatten()
+                    .map(|(l, [p, q])| {
+                        let len = (q[0] - p[0]).hypot(q[1] - p[1]).max(1e-9);
+                        let t = [(q[0] - p[0]) / len, (q[1] - p[1]) / len];
+                        let mut v: Vec<(usize, f64, f64, f64, usize)> = trace
+                            .lines
+                            .iter()
+                            .enumerate()
+                            .filter_map(|(i, h)| {
+                                let m = [0.5 * (h.ends[0][0] + h.ends[1][0]), 0.5 * (h.ends[0][1] + h.ends[1][1])];
+                                let s = (m[0] - p[0]) * t[0] + (m[1] - p[1]) * t[1];
+                                Some((i, angle_deg(&h.abc, l)?, distance_px(l, m)?, s, h.votes))
+                            })
+                            .filter(|x| x.1 < 10.0 && x.2 < 15.0)
+                            .collect();
+                        v.sort_by(|a, b| a.2.total_cmp(&b.2));
+                        format!(
+                            "[len {len:.0} abc {l:?} seg {p:?} {q:?}: {}]",
+                            v.iter()
+                                .map(|x| format!("{}:{:.1}°/{:.1}px/s{:.0}/v{}", x.0, x.1, x.2, x.3, x.4))
+                                .collect::<Vec<_>>()
+                                .join(" ")
+                        )
+                    })
+                    .collect();
+                eprintln!("NEAR {} {} {} {}", level.key(), fam, frame.spec.seed, near.join(" "));
                 eprintln!(
                     "MISS {} {} {} class={} cov={:?} lines={} on={:?} {} vis={:.0} pairs=[{}]",
                     level.key(),

@@ -1,0 +1,77 @@
+//! The Hough transform's normal window (`OursConfig::hough_normal_window_deg`) on synthetic
+//! images (`vision::synth`): a short shaft in a corner of a noisy clear frame, far from the
+//! image centre, is found only with the window (its edgels' scattered normals spread one vote
+//! each over many distance bins), and noisy tissue alone still gives nothing.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
+
+use estimator::calib::Intrinsics;
+use nalgebra::Vector2;
+use vision::ours::{OursConfig, OursDetector};
+use vision::synth::{Cylinder, Scene, render};
+use vision::{RgbView, ShaftDetection, ShaftDetector};
+
+/// A shaft whose distal end is at the measured pixel `tip_px`, depth `z_m`, pointing away
+/// from the tip along the image direction `angle_deg`, tilted in depth by `tilt_deg`.
+fn shaft(k: &Intrinsics, tip_px: [f64; 2], z_m: f64, angle_deg: f64, tilt_deg: f64) -> Cylinder {
+    let p = k.undistort_px(&Vector2::new(tip_px[0], tip_px[1]));
+    let (x, y) = ((p.x - k.cx) / k.fx * z_m, (p.y - k.cy) / k.fy * z_m);
+    let (a, t) = (angle_deg.to_radians(), tilt_deg.to_radians());
+    Cylinder {
+        point_m: [x, y, z_m],
+        direction: [a.cos() * t.cos(), a.sin() * t.cos(), t.sin()],
+        radius_m: 0.004,
+        extent_m: [0.0, 0.4],
+        albedo: 0.8,
+    }
+}
+
+fn run(k: &Intrinsics, cfg: OursConfig, img: &[u8]) -> Vec<ShaftDetection> {
+    let mut det = OursDetector::new(*k, cfg).unwrap();
+    det.detect(&RgbView::new(k.width as usize, k.height as usize, img).unwrap()).unwrap()
+}
+
+/// True when `d` is within 1° of `c`'s axis and its span's middle within 3 px of it.
+fn matches(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> bool {
+    let truth = c.axis_line(k).unwrap();
+    let (a, b) = (d.centreline.abc, truth.abc);
+    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
+    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
+    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
+    let mid = 0.5 * (m0 + m1);
+    angle < 1.0 && truth.distance_px(mid.x, mid.y).abs() < 3.0
+}
+
+#[test]
+fn a_short_shaft_in_a_noisy_corner_is_found_only_with_the_normal_window() {
+    let k = vision::synth::endoscope_camera();
+    let off = OursConfig { hough_normal_window_deg: 0, ..OursConfig::default() };
+    let on = OursConfig { hough_normal_window_deg: 5, ..OursConfig::default() };
+    // (sensor noise, depth of the tip, scene seed): the shaft runs from its tip near the top
+    // left corner out through the left border.
+    for (noise, z, seed) in
+        [(8.0, 0.1, 301), (12.0, 0.1, 300), (12.0, 0.1, 301), (12.0, 0.14, 300), (16.0, 0.1, 300), (16.0, 0.14, 301)]
+    {
+        let c = shaft(&k, [90.0, 70.0], z, 150.0, 10.0);
+        let img = render(&k, &Scene { shafts: vec![c], seed, vessels: true, folds: true, noise });
+        let (without, with) = (run(&k, off, &img), run(&k, on, &img));
+        assert!(
+            !without.iter().any(|d| matches(&k, d, &c)),
+            "noise {noise}, z {z}, seed {seed}: found without the window"
+        );
+        assert!(!with.is_empty(), "noise {noise}, z {z}, seed {seed}: not found with the window");
+        for d in &with {
+            assert!(matches(&k, d, &c), "noise {noise}, z {z}, seed {seed}: a wrong detection {d:?}");
+        }
+    }
+}
+
+#[test]
+fn noisy_tissue_alone_gives_no_detection_with_the_normal_window() {
+    let k = vision::synth::endoscope_camera();
+    let on = OursConfig { hough_normal_window_deg: 5, ..OursConfig::default() };
+    for seed in 300..306 {
+        let img = render(&k, &Scene { shafts: vec![], seed, vessels: true, folds: true, noise: 16.0 });
+        let found = run(&k, on, &img);
+        assert!(found.is_empty(), "seed {seed}: {found:?}");
+    }
+}

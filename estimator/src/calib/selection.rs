@@ -1517,7 +1517,12 @@ impl Moving<'_> {
     /// The information the line covariances' dependence on the pose adds at `(R, t)`,
     /// `½ tr(Σ⁻¹ ∂ₐΣ Σ⁻¹ ∂ᵦΣ)` per observation (zero for one left out; central differences of
     /// step `h` per coordinate).
-    fn covariance_information(&self, r: &Matrix3<f64>, t: &Vector3<f64>, h: &Vector6<f64>) -> Option<Vec<Matrix6<f64>>> {
+    fn covariance_information(
+        &self,
+        r: &Matrix3<f64>,
+        t: &Vector3<f64>,
+        h: &Vector6<f64>,
+    ) -> Option<Vec<Matrix6<f64>>> {
         let mut ics = Vec::with_capacity(self.set.obs.len());
         for (o, k) in self.set.obs.iter().zip(&self.kinds) {
             let mut ic = Matrix6::zeros();
@@ -1620,11 +1625,7 @@ pub fn moving_covariance_step(
     let information_gain = gain(&s12, &dm)?;
     // Its sampling error: the jackknife over the observations (each left out of `S` and `D`).
     let n = ms.len() as f64;
-    let loo: Vec<f64> = ms
-        .iter()
-        .zip(&ds)
-        .filter_map(|(m, d)| gain(&(s12 - m * m.transpose()), &(dm - d)))
-        .collect();
+    let loo: Vec<f64> = ms.iter().zip(&ds).filter_map(|(m, d)| gain(&(s12 - m * m.transpose()), &(dm - d))).collect();
     let information_gain_sd = if loo.len() == ms.len() && ms.len() > 1 {
         let mean = loo.iter().sum::<f64>() / n;
         ((n - 1.0) / n * loo.iter().map(|g| (g - mean).powi(2)).sum::<f64>()).sqrt()
@@ -1683,7 +1684,35 @@ pub fn shifted_box_probability(mean: &Vector2<f64>, c: &Matrix2<f64>, lo: &Vecto
 
 #[cfg(test)]
 mod tests {
-    use super::{GL6, GL12, GL20};
+    use super::{GL6, GL12, GL20, gain};
+    use nalgebra::{Matrix6, SMatrix};
+
+    /// With uncorrelated unit moments, the held moments' derivative `I` and the extra ones'
+    /// `k I`, the combined information is `(1 + k²) I` against the held `I`: the gain is `k²`,
+    /// in any common units of the six coordinates; extra moments correlated with the held ones
+    /// as much as their derivatives say add nothing.
+    #[test]
+    fn the_gain_is_the_information_the_extra_moments_add() {
+        for k in [0.0, 0.5, 2.0] {
+            for unit in [1e-3, 1.0, 1e3] {
+                let mut d = SMatrix::<f64, 12, 6>::zeros();
+                d.fixed_view_mut::<6, 6>(0, 0).copy_from(&(Matrix6::identity() * unit));
+                d.fixed_view_mut::<6, 6>(6, 0).copy_from(&(Matrix6::identity() * (k * unit)));
+                let g = gain(&SMatrix::<f64, 12, 12>::identity(), &d).unwrap();
+                assert!((g - k * k).abs() < 1e-9 * (1.0 + k * k), "k {k}, unit {unit}: {g}");
+            }
+        }
+        // c = 0.5 g exactly (redundant moments) plus independent noise: S's blocks
+        // [[I, 0.5 I], [0.5 I, 0.25 I + I]], D = [I; 0.5 I].
+        let mut s = SMatrix::<f64, 12, 12>::identity();
+        s.fixed_view_mut::<6, 6>(0, 6).copy_from(&(Matrix6::identity() * 0.5));
+        s.fixed_view_mut::<6, 6>(6, 0).copy_from(&(Matrix6::identity() * 0.5));
+        s.fixed_view_mut::<6, 6>(6, 6).copy_from(&(Matrix6::identity() * 1.25));
+        let mut d = SMatrix::<f64, 12, 6>::zeros();
+        d.fixed_view_mut::<6, 6>(0, 0).copy_from(&Matrix6::identity());
+        d.fixed_view_mut::<6, 6>(6, 0).copy_from(&(Matrix6::identity() * 0.5));
+        assert!(gain(&s, &d).unwrap().abs() < 1e-9);
+    }
 
     /// Each n-point Gauss-Legendre rule integrates `x^k` over `[-1, 1]` exactly for `k < 2n`
     /// (the tables hold the negative nodes; the rules are symmetric).

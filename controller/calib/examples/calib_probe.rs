@@ -9,7 +9,8 @@
 //! prints the guarded fit and the selection stage separately, `AXIS=1` the axis of the
 //! rotation error against the line of sight and the tool (which 180° turn a mirror is).
 //! `MOVING=1` turns on the moving-covariance step (`SelectionConfig::moving_covariance_step`;
-//! printed as `moving gain <g> taken|held`), `MOVING=force` takes it whatever its gain.
+//! printed as `moving gain <g> sd <its jackknife standard error> taken|held`), `MOVING=force`
+//! takes it whatever its gain, `MOVING_Z=<z>` sets `SelectionConfig::moving_step_gain_z`.
 //! `INFLUENCE=1` judges the stage's move with its measured covariance
 //! (`SelectionConfig::influence_move_test`).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
@@ -110,7 +111,12 @@ fn main() {
                 sel.moving_covariance_step = v != "0";
                 // MOVING=force: take every step (the test reported, not applied).
                 if v == "force" {
-                    sel.moving_step_min_gain = 0.0;
+                    sel.moving_step_min_gain = f64::NEG_INFINITY;
+                }
+                // MOVING_Z=<z>: the gain must clear the threshold by z of its standard errors
+                // (0: session 20's gate, the gain as measured).
+                if let Ok(z) = std::env::var("MOVING_Z") {
+                    sel.moving_step_gain_z = z.parse().unwrap();
                 }
             }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
@@ -134,8 +140,8 @@ fn main() {
                             "applied shift {:.2}{}{}",
                             s.shift_sigmas,
                             if s.accepted_on_likelihood { " on likelihood" } else { "" },
-                            s.moving_step.map_or(String::new(), |(h, take)| format!(
-                                " moving gain {h:.2} {}",
+                            s.moving_step.map_or(String::new(), |(h, hsd, take)| format!(
+                                " moving gain {h:.2} sd {hsd:.3} {}",
                                 if take { "taken" } else { "held" }
                             ))
                         ),

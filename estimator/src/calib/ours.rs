@@ -22,9 +22,10 @@
 //! Stages with a noise model: the robust fit from the linear starts and their mirrors; the
 //! border guard (refits on observations whose tip is predicted well inside the image); the
 //! selection-aware stage ([`super::selection`]: the likelihood of the kept lines, on all
-//! observations), refused when it runs away ([`OursResult::selection_refused`]); optionally
-//! (off by default, [`SelectionConfig::moving_covariance_step`]) a last step adding how the
-//! lines' covariances move with the pose ([`super::selection::moving_covariance_step`]).
+//! observations), refused when it runs away ([`OursResult::selection_refused`]); then (on by
+//! default, [`SelectionConfig::moving_covariance_step`]) a last step adding how the lines'
+//! covariances move with the pose ([`super::selection::moving_covariance_step`]), taken where
+//! that information is significantly worth it ([`SelectionConfig::moving_step_worth_it`]).
 //!
 //! Parameters: `t` (metres, `{e}`) and a left rotation increment `δφ` (radians, `{e}`),
 //! `R ← exp(δφ^) R`. The covariance is reported in that order `(tx, ty, tz, φx, φy, φz)`.
@@ -322,10 +323,11 @@ pub struct SelectionSummary {
     #[serde(default)]
     pub accepted_on_likelihood: bool,
     /// The last step on the likelihood with moving covariances
-    /// ([`super::selection::moving_covariance_step`]): its information gain (dimensionless)
-    /// and whether it was taken; `None` when not tried or not computable.
+    /// ([`super::selection::moving_covariance_step`]): its information gain, that gain's
+    /// jackknife standard error (both dimensionless) and whether it was taken; `None` when not
+    /// tried or not computable.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub moving_step: Option<(f64, bool)>,
+    pub moving_step: Option<(f64, f64, bool)>,
 }
 
 /// Inverse Cholesky factor `L⁻¹` of a 2×2 SPD matrix (identity if not SPD).
@@ -1055,14 +1057,14 @@ pub fn apply_selection_stage(
     });
     match fit {
         Ok(mut fit) => {
-            // The last step on the moving covariances (off by default): the stage's
+            // The last step on the moving covariances (on by default): the stage's
             // covariance is kept (the step's own, `MovingStep::covariance`, is smaller).
             let mut moving_step = None;
             let step = cfg.moving_covariance_step.then(|| moving_covariance_step(set, noise, cfg, &fit.pose, extra));
             if let Some(step) = step.flatten() {
-                let take = step.information_gain >= cfg.moving_step_min_gain
-                    && shaft_explanation(set, &step.pose, SHAFT_MARGIN).explains();
-                moving_step = Some((step.information_gain, take));
+                let take =
+                    cfg.moving_step_worth_it(&step) && shaft_explanation(set, &step.pose, SHAFT_MARGIN).explains();
+                moving_step = Some((step.information_gain, step.information_gain_sd, take));
                 if take {
                     fit.pose = step.pose;
                 }

@@ -36,11 +36,13 @@
 //! left out otherwise; gross outliers of the first-order model are left out too. Both
 //! decisions use the predicted geometry and the fit's own residual scale, and are counted.
 //!
-//! ## Covariances that move with the pose (an option, off by default)
+//! ## Covariances that move with the pose (on by default since session 21)
 //! Within a pass the stage holds each line's covariance and selection model. How they would
 //! move with the pose is information too (the lines' scatter changes with depth and lever
 //! arm), but only unbiased when the covariance model is right: [`moving_covariance_step`]
-//! adds it as moments whose dispersion is measured (docs/calibration.md, session 20).
+//! adds it as moments whose dispersion is measured (docs/calibration.md, session 20), and
+//! the step is taken only where the information it adds is significantly large given its
+//! own jackknife standard error ([`SelectionConfig::moving_step_worth_it`], session 21).
 
 use std::vec::Vec;
 
@@ -803,17 +805,35 @@ pub struct SelectionConfig {
     /// Our pipeline ([`super::ours::apply_selection_stage`]): a last step that adds the
     /// information in how the lines' covariances move with the pose
     /// ([`moving_covariance_step`]), taken when that information is worth it
-    /// ([`SelectionConfig::moving_step_min_gain`]) and the pose still explains the shafts.
+    /// ([`SelectionConfig::moving_step_min_gain`], [`SelectionConfig::moving_step_gain_z`])
+    /// and the pose still explains the shafts.
     pub moving_covariance_step: bool,
     /// The moving-covariance step is taken when its
-    /// [`information_gain`](MovingStep::information_gain) is at least this (dimensionless;
-    /// 0 takes every step).
+    /// [`information_gain`](MovingStep::information_gain) is above this by
+    /// [`moving_step_gain_z`](Self::moving_step_gain_z) of its standard errors
+    /// (dimensionless; `-∞` takes every step).
     pub moving_step_min_gain: f64,
+    /// How many of the gain's own standard errors
+    /// ([`information_gain_sd`](MovingStep::information_gain_sd)) it must clear
+    /// [`moving_step_min_gain`](Self::moving_step_min_gain) by (dimensionless, a one-sided
+    /// normal quantile; 0: the gain as measured decides, session 20's gate).
+    pub moving_step_gain_z: f64,
     /// The Hausman-type test with the covariance of the move measured from each
     /// observation's influence on the two fits ([`super::hausman::influence_move_test`])
     /// instead of the difference of their covariances; used when the guarded fit's
     /// influences are given ([`refine_selected_with`]'s `start_influence`).
     pub influence_move_test: bool,
+}
+
+impl SelectionConfig {
+    /// Whether the moving-covariance step with this outcome is worth taking: its information
+    /// gain clears [`moving_step_min_gain`](Self::moving_step_min_gain) by
+    /// [`moving_step_gain_z`](Self::moving_step_gain_z) of its jackknife standard errors.
+    /// The shafts' check is the caller's.
+    pub fn moving_step_worth_it(&self, step: &MovingStep) -> bool {
+        let z = if self.moving_step_gain_z > 0.0 { self.moving_step_gain_z * step.information_gain_sd } else { 0.0 };
+        step.information_gain - z >= self.moving_step_min_gain
+    }
 }
 
 /// More terms of the stage's negative log-likelihood, per observation not screened out: a
@@ -838,9 +858,10 @@ impl Default for SelectionConfig {
             max_iterations: 50,
             false_refusal_probability: DEFAULT_FALSE_REFUSAL_PROBABILITY,
             more_likely_overrides_test: true,
-            moving_covariance_step: false,
+            moving_covariance_step: true,
             moving_step_min_gain: MOVING_STEP_MIN_GAIN,
             influence_move_test: false,
+            moving_step_gain_z: MOVING_STEP_GAIN_Z,
         }
     }
 }
@@ -1413,9 +1434,15 @@ fn model_moved(
 
 /// The default of [`SelectionConfig::moving_step_min_gain`]: the step is taken when the
 /// covariances' dependence on the pose at least doubles the information in some direction
-/// (dimensionless). Chosen on the tuning geometries (9000-9019): the gain's median is 0.3 in
+/// (dimensionless; by [`MOVING_STEP_GAIN_Z`] of the gain's standard errors). Chosen on the tuning geometries (9000-9019): the gain's median is 0.3 in
 /// millimetres (σ = 0.02), 3.5 in metres (σ = 0.01).
 pub const MOVING_STEP_MIN_GAIN: f64 = 1.0;
+
+/// The default of [`SelectionConfig::moving_step_gain_z`]: the gain must clear
+/// [`MOVING_STEP_MIN_GAIN`] by 1.645 of its jackknife standard errors, a one-sided test at
+/// 5 % (dimensionless). The gain is estimated from the moments' measured covariance, so near
+/// the threshold, or where one observation carries it, it is mostly sampling noise.
+pub const MOVING_STEP_GAIN_Z: f64 = 1.645;
 
 /// The last step's outcome ([`moving_covariance_step`]).
 #[derive(Clone, Copy, Debug)]
@@ -1429,6 +1456,10 @@ pub struct MovingStep {
     /// fit, minus one, over directions (dimensionless, ≥ 0 up to rounding): how much
     /// information the covariances' dependence on the pose adds where it adds most.
     pub information_gain: f64,
+    /// The jackknife standard error of [`information_gain`](Self::information_gain) over the
+    /// observations (dimensionless; each observation left out of the moments' covariance and
+    /// their derivatives in turn); infinite when a leave-one-out gain cannot be evaluated.
+    pub information_gain_sd: f64,
     /// Hansen's overidentification statistic of the twelve moments at the step's end
     /// (dimensionless; χ²₆ when both sets of moments hold at one pose). For information.
     pub overidentification: f64,
@@ -1494,34 +1525,44 @@ impl Moving<'_> {
 
     /// The Gauss-Newton matrix of the likelihood with its models held at `(R, t)` (the
     /// stage's) and each observation's gradient of it there (zero for one left out).
-    fn held(&self, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<(Matrix6<f64>, Vec<Vector6<f64>>)> {
-        let mut gn = Matrix6::zeros();
+    /// Per observation (zero for one left out), its Gauss-Newton matrix and gradient.
+    #[allow(clippy::type_complexity, reason = "two per-observation lists, used once")]
+    fn held(&self, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<(Vec<Matrix6<f64>>, Vec<Vector6<f64>>)> {
+        let mut gns = Vec::with_capacity(self.set.obs.len());
         let mut grads = Vec::with_capacity(self.set.obs.len());
         for (o, k) in self.set.obs.iter().zip(&self.kinds) {
             if matches!(k, Model::Out) {
+                gns.push(Matrix6::zeros());
                 grads.push(Vector6::zeros());
                 continue;
             }
             let m = model_moved(self.set, o, k, r, t, self.noise);
-            let (_, mut g, hh) = term(self.set, o, &m, r, t, true)?;
-            gn += hh;
+            let (_, mut g, mut hh) = term(self.set, o, &m, r, t, true)?;
             if let Some(extra) = self.extra {
                 let (_, ge, he) = extra(o, r, t, true);
                 g += ge;
-                gn += he;
+                hh += he;
             }
+            gns.push(hh);
             grads.push(g);
         }
-        Some((gn, grads))
+        Some((gns, grads))
     }
 
     /// The information the line covariances' dependence on the pose adds at `(R, t)`,
-    /// `½ tr(Σ⁻¹ ∂ₐΣ Σ⁻¹ ∂ᵦΣ)` summed over the lines (central differences of step `h` per
-    /// coordinate).
-    fn covariance_information(&self, r: &Matrix3<f64>, t: &Vector3<f64>, h: &Vector6<f64>) -> Option<Matrix6<f64>> {
-        let mut ic = Matrix6::zeros();
+    /// `½ tr(Σ⁻¹ ∂ₐΣ Σ⁻¹ ∂ᵦΣ)` per observation (zero for one left out; central differences of
+    /// step `h` per coordinate).
+    fn covariance_information(
+        &self,
+        r: &Matrix3<f64>,
+        t: &Vector3<f64>,
+        h: &Vector6<f64>,
+    ) -> Option<Vec<Matrix6<f64>>> {
+        let mut ics = Vec::with_capacity(self.set.obs.len());
         for (o, k) in self.set.obs.iter().zip(&self.kinds) {
+            let mut ic = Matrix6::zeros();
             if matches!(k, Model::Out) {
+                ics.push(ic);
                 continue;
             }
             let s_inv = residual_covariance(self.set, o, r, t, self.noise).try_inverse()?;
@@ -1545,8 +1586,9 @@ impl Moving<'_> {
                     }
                 }
             }
+            ics.push(ic);
         }
-        Some(ic)
+        Some(ics)
     }
 }
 
@@ -1577,7 +1619,8 @@ pub fn moving_covariance_step(
     let (r0, t0) = (start.rotation.to_rotation_matrix().into_inner(), start.translation.vector);
     let kinds = screened_models(set, noise, cfg, &r0, &t0).ok()?;
     let lik = Moving { set, noise, kinds, extra };
-    let (gn, gh) = lik.held(&r0, &t0)?;
+    let (gns, gh) = lik.held(&r0, &t0)?;
+    let gn: Matrix6<f64> = gns.iter().sum();
     // Work in units of the held fit's standard deviations; differences a thousandth of one.
     let sd = Vector6::from_fn(|a, _| gn.try_inverse().map_or(0.0, |c| c[(a, a)].max(0.0).sqrt()));
     if !sd.iter().all(|v| v.is_finite() && *v > 0.0) {
@@ -1586,33 +1629,44 @@ pub fn moving_covariance_step(
     let tm = Matrix6::from_diagonal(&sd);
     let h = sd * 1e-3;
     let gf = lik.per_obs_gradients(&r0, &t0, &h)?;
-    let ic = lik.covariance_information(&r0, &t0, &h)?;
+    let ics = lik.covariance_information(&r0, &t0, &h)?;
+    // Per observation, its moments and its part of their expected derivatives.
+    let mut ms = Vec::with_capacity(gh.len());
+    let mut ds = Vec::with_capacity(gh.len());
     let mut s12 = SMatrix::<f64, 12, 12>::zeros();
     let mut mbar = SVector::<f64, 12>::zeros();
-    for (a, b) in gh.iter().zip(&gf) {
+    let mut dm = SMatrix::<f64, 12, 6>::zeros();
+    for (((a, b), gi), ci) in gh.iter().zip(&gf).zip(&gns).zip(&ics) {
         let mut m = SVector::<f64, 12>::zeros();
         m.fixed_rows_mut::<6>(0).copy_from(&(tm * a));
         m.fixed_rows_mut::<6>(6).copy_from(&(tm * (b - a)));
+        let mut d = SMatrix::<f64, 12, 6>::zeros();
+        d.fixed_view_mut::<6, 6>(0, 0).copy_from(&(tm * gi * tm));
+        d.fixed_view_mut::<6, 6>(6, 0).copy_from(&(tm * ci * tm));
         s12 += m * m.transpose();
         mbar += m;
+        dm += d;
+        if m.iter().any(|v| *v != 0.0) {
+            ms.push(m);
+            ds.push(d);
+        }
     }
-    let gs = tm * gn * tm;
-    let mut dm = SMatrix::<f64, 12, 6>::zeros();
-    dm.fixed_view_mut::<6, 6>(0, 0).copy_from(&gs);
-    dm.fixed_view_mut::<6, 6>(6, 0).copy_from(&(tm * ic * tm));
     let ch = s12.cholesky()?;
     let wd = ch.solve(&dm);
     let am_inv = (dm.transpose() * wd).try_inverse()?;
     let step = -(am_inv * (wd.transpose() * mbar));
     let resid = mbar + dm * step;
     let overidentification = resid.dot(&ch.solve(&resid));
-    // The held fit's sandwich covariance `H⁻¹ S_gg H⁻¹` against the combined fit's, in the
-    // combined fit's whitened coordinates.
-    let g_inv = gs.try_inverse()?;
-    let c_held = g_inv * s12.fixed_view::<6, 6>(0, 0) * g_inv.transpose();
-    let sym = |m: &Matrix6<f64>| (m + m.transpose()) * 0.5;
-    let l_inv = sym(&am_inv).cholesky()?.l().try_inverse()?;
-    let information_gain = sym(&(l_inv * c_held * l_inv.transpose())).symmetric_eigen().eigenvalues.max() - 1.0;
+    let information_gain = gain(&s12, &dm)?;
+    // Its sampling error: the jackknife over the observations (each left out of `S` and `D`).
+    let n = ms.len() as f64;
+    let loo: Vec<f64> = ms.iter().zip(&ds).filter_map(|(m, d)| gain(&(s12 - m * m.transpose()), &(dm - d))).collect();
+    let information_gain_sd = if loo.len() == ms.len() && ms.len() > 1 {
+        let mean = loo.iter().sum::<f64>() / n;
+        ((n - 1.0) / n * loo.iter().map(|g| (g - mean).powi(2)).sum::<f64>()).sqrt()
+    } else {
+        f64::INFINITY
+    };
     let (r, t) = apply_step(&r0, &t0, &(tm * step));
     let fin = |m: &Matrix6<f64>| m.iter().all(|v| v.is_finite());
     let covariance = tm * am_inv * tm;
@@ -1621,9 +1675,25 @@ pub fn moving_covariance_step(
             pose: Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_matrix(&r)),
             covariance,
             information_gain,
+            information_gain_sd,
             overidentification,
         }
     })
+}
+
+/// The largest variance ratio of the held fit (its sandwich covariance `G⁻¹ S_gg G⁻¹`) to the
+/// combined fit (`(Dᵀ S⁻¹ D)⁻¹`), minus one, from the twelve moments' measured covariance `S`
+/// and their expected derivatives `D = (G, I_Σ)` (any common coordinates; dimensionless).
+/// `None` when a matrix is singular.
+fn gain(s12: &SMatrix<f64, 12, 12>, dm: &SMatrix<f64, 12, 6>) -> Option<f64> {
+    let ch = s12.cholesky()?;
+    let am_inv = (dm.transpose() * ch.solve(dm)).try_inverse()?;
+    let g_inv = dm.fixed_view::<6, 6>(0, 0).into_owned().try_inverse()?;
+    let c_held = g_inv * s12.fixed_view::<6, 6>(0, 0) * g_inv.transpose();
+    let sym = |m: &Matrix6<f64>| (m + m.transpose()) * 0.5;
+    let l_inv = sym(&am_inv).cholesky()?.l().try_inverse()?;
+    let g = sym(&(l_inv * c_held * l_inv.transpose())).symmetric_eigen().eigenvalues.max() - 1.0;
+    g.is_finite().then_some(g)
 }
 
 /// Probability that `mean + ξ`, `ξ ~ N(0, c)` (2-D, pixels²), lies in the box `[lo, hi]`; a
@@ -1649,7 +1719,35 @@ pub fn shifted_box_probability(mean: &Vector2<f64>, c: &Matrix2<f64>, lo: &Vecto
 
 #[cfg(test)]
 mod tests {
-    use super::{GL6, GL12, GL20};
+    use super::{GL6, GL12, GL20, gain};
+    use nalgebra::{Matrix6, SMatrix};
+
+    /// With uncorrelated unit moments, the held moments' derivative `I` and the extra ones'
+    /// `k I`, the combined information is `(1 + k²) I` against the held `I`: the gain is `k²`,
+    /// in any common units of the six coordinates; extra moments correlated with the held ones
+    /// as much as their derivatives say add nothing.
+    #[test]
+    fn the_gain_is_the_information_the_extra_moments_add() {
+        for k in [0.0, 0.5, 2.0] {
+            for unit in [1e-3, 1.0, 1e3] {
+                let mut d = SMatrix::<f64, 12, 6>::zeros();
+                d.fixed_view_mut::<6, 6>(0, 0).copy_from(&(Matrix6::identity() * unit));
+                d.fixed_view_mut::<6, 6>(6, 0).copy_from(&(Matrix6::identity() * (k * unit)));
+                let g = gain(&SMatrix::<f64, 12, 12>::identity(), &d).unwrap();
+                assert!((g - k * k).abs() < 1e-9 * (1.0 + k * k), "k {k}, unit {unit}: {g}");
+            }
+        }
+        // c = 0.5 g exactly (redundant moments) plus independent noise: S's blocks
+        // [[I, 0.5 I], [0.5 I, 0.25 I + I]], D = [I; 0.5 I].
+        let mut s = SMatrix::<f64, 12, 12>::identity();
+        s.fixed_view_mut::<6, 6>(0, 6).copy_from(&(Matrix6::identity() * 0.5));
+        s.fixed_view_mut::<6, 6>(6, 0).copy_from(&(Matrix6::identity() * 0.5));
+        s.fixed_view_mut::<6, 6>(6, 6).copy_from(&(Matrix6::identity() * 1.25));
+        let mut d = SMatrix::<f64, 12, 6>::zeros();
+        d.fixed_view_mut::<6, 6>(0, 0).copy_from(&Matrix6::identity());
+        d.fixed_view_mut::<6, 6>(6, 0).copy_from(&(Matrix6::identity() * 0.5));
+        assert!(gain(&s, &d).unwrap().abs() < 1e-9);
+    }
 
     /// Each n-point Gauss-Legendre rule integrates `x^k` over `[-1, 1]` exactly for `k < 2n`
     /// (the tables hold the negative nodes; the rules are symmetric).

@@ -41,17 +41,26 @@ use nalgebra::{Matrix6, Vector6};
 /// whitened eigen-directions) for a direction to be tested (dimensionless).
 pub const MIN_VARIANCE_GAIN: f64 = 0.05;
 
+/// Fewest observations with a non-zero influence for [`influence_move_test`] (five per
+/// covariance entry of the 6 × 6 difference's 21).
+pub const MIN_INFLUENCES: usize = 105;
+
 /// The test's outcome.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MoveTest {
     /// `dᵀ (Σ_g − Σ_s)⁺ d` on the tested directions (dimensionless; χ² with `dof` degrees of
     /// freedom when both estimators are consistent).
     pub statistic: f64,
-    /// Degrees of freedom (6: every direction is tested).
+    /// Degrees of freedom (6 for [`move_test`]: every direction is tested; for
+    /// [`influence_move_test`], the directions with a measured variance).
     pub dof: usize,
-    /// Directions judged by Hausman's variance `λ_i − 1` (0-6); the others by the
-    /// Cauchy-Schwarz bound (module docs).
+    /// [`move_test`]: directions judged by Hausman's variance `λ_i − 1` (0-6), the others by
+    /// the Cauchy-Schwarz bound (module docs); [`influence_move_test`]: equal to `dof`.
     pub hausman_rank: usize,
+    /// Which test: `true` for the move's covariance measured from the observations'
+    /// influences ([`influence_move_test`]), `false` for the efficiency-based variances
+    /// ([`move_test`]).
+    pub measured: bool,
     /// The refusal limit: the χ² quantile of `dof` degrees of freedom at one minus the
     /// false-refusal probability.
     pub limit: f64,
@@ -98,7 +107,7 @@ pub fn move_test(
         let y = eig.eigenvectors.column(i).dot(&z);
         statistic += y * y / var;
     }
-    Some(MoveTest { statistic, dof: 6, hausman_rank, limit: chi2_quantile(6, 1.0 - false_refusal) })
+    Some(MoveTest { statistic, dof: 6, hausman_rank, limit: chi2_quantile(6, 1.0 - false_refusal), measured: false })
 }
 
 /// The move test with the difference's covariance measured from the data: `influence[i]` is
@@ -112,7 +121,8 @@ pub fn move_test(
 /// the efficiency argument or [`MIN_VARIANCE_GAIN`]'s floor: the statistic `dᵀ V⁺ d` is
 /// continuous in the data. Directions whose variance is below `1e-12` of the largest are left
 /// out (`dof` counts the others; `hausman_rank` = `dof`). `None` when an input is not finite,
-/// fewer than 7 observations have an influence, or `V` is zero.
+/// fewer than [`MIN_INFLUENCES`] observations have an influence (a 6 × 6 covariance from a
+/// handful of vectors is no χ² yardstick), or a component's variance is zero.
 pub fn influence_move_test(d: &Vector6<f64>, influence: &[Vector6<f64>], false_refusal: f64) -> Option<MoveTest> {
     if !(d.iter().all(|v| v.is_finite())
         && influence.iter().all(|u| u.iter().all(|v| v.is_finite()))
@@ -122,7 +132,7 @@ pub fn influence_move_test(d: &Vector6<f64>, influence: &[Vector6<f64>], false_r
         return None;
     }
     let active = influence.iter().filter(|u| u.iter().any(|v| *v != 0.0)).count();
-    if active < 7 {
+    if active < MIN_INFLUENCES {
         return None;
     }
     let mean = influence.iter().fold(Vector6::zeros(), |a, u| a + u) / influence.len() as f64;
@@ -148,7 +158,13 @@ pub fn influence_move_test(d: &Vector6<f64>, influence: &[Vector6<f64>], false_r
             dof += 1;
         }
     }
-    (dof > 0).then(|| MoveTest { statistic, dof, hausman_rank: dof, limit: chi2_quantile(dof, 1.0 - false_refusal) })
+    (dof > 0).then(|| MoveTest {
+        statistic,
+        dof,
+        hausman_rank: dof,
+        limit: chi2_quantile(dof, 1.0 - false_refusal),
+        measured: true,
+    })
 }
 
 /// Survival function `P(X > x)` of the χ² distribution with `k ≥ 1` degrees of freedom (closed
@@ -338,7 +354,7 @@ mod tests {
             assert!((meas.statistic - 0.25 / gain).abs() < 1e-6 * meas.statistic, "{gain}: {meas:?}");
         }
         // Too few observations, or one that is not finite: no test.
-        assert!(influence_move_test(&d, &u[..6], 1e-3).is_none());
+        assert!(influence_move_test(&d, &u[..MIN_INFLUENCES - 1], 1e-3).is_none());
         let mut bad = u.clone();
         bad[3][2] = f64::NAN;
         assert!(influence_move_test(&d, &bad, 1e-3).is_none());

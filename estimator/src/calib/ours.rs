@@ -328,6 +328,11 @@ pub struct SelectionSummary {
     /// tried or not computable.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub moving_step: Option<(f64, f64, bool)>,
+    /// The stage's move was judged by the measured test
+    /// ([`SelectionConfig::influence_move_test`] with the guarded fit's influences valid:
+    /// [`super::hausman::influence_move_test`]); `false`: the efficiency-based test.
+    #[serde(default)]
+    pub move_test_measured: bool,
 }
 
 /// Inverse Cholesky factor `L⁻¹` of a 2×2 SPD matrix (identity if not SPD).
@@ -1001,10 +1006,11 @@ pub fn apply_selection_stage(
     ours: &OursConfig,
     mut result: OursResult,
 ) -> OursResult {
-    let shaft_position = ours.shaft_position;
+    // As [`solve_as_stated`] gates them: no shaft-position terms without the arms' noise.
+    let shaft_position = ours.shaft_position && noise.has_kinematic_terms();
     let influence = cfg
         .influence_move_test
-        .then(|| guarded_influence(set, &OursConfig { noise: Some(*noise), ..*ours }, &result))
+        .then(|| guarded_influence(set, &OursConfig { noise: Some(*noise), shaft_position, ..*ours }, &result))
         .flatten();
     let terms = |o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>, grad: bool| stage_terms(set, o, r, t, noise, grad);
     let extra: Option<super::selection::ExtraTerms<'_>> = if shaft_position { Some(&terms) } else { None };
@@ -1079,6 +1085,7 @@ pub fn apply_selection_stage(
                 shift_sigmas: fit.shift_sigmas,
                 accepted_on_likelihood: on_likelihood,
                 moving_step,
+                move_test_measured: fit.move_test.is_some_and(|t| t.measured),
             });
         }
         Err(e) => result.selection_refused = Some(e),
@@ -1090,8 +1097,12 @@ pub fn apply_selection_stage(
 /// inverse of its Gauss-Newton matrix times the observation's score, both as its covariance
 /// takes them: whitened line residuals with Huber weights at `huber_k · ŝ`, and the
 /// shaft-position terms when `cfg.shaft_position`); zero for an observation the border guard
-/// left out (drawn again at [`OursResult::guard_from`]). `None` without a noise model or when
-/// the matrix is singular.
+/// left out (drawn again at [`OursResult::guard_from`]). `None` without a noise model, when
+/// the matrix is singular, or when the fit is not at a stationary point of that objective:
+/// the influences' sum (one Newton step from the fit) more than [`MAX_GUARDED_OFFSET_SD`] of
+/// the fit's standard deviations (in the influences' own metric) — the guarded fit stops after
+/// [`WHITENING_PASSES`] re-whitenings, and its last objective need not be the one rebuilt
+/// here; the stage then keeps the efficiency-based test.
 fn guarded_influence(set: &PreparedSet, cfg: &OursConfig, result: &OursResult) -> Option<Vec<Vector6<f64>>> {
     let noise = cfg.noise?;
     let r = result.pose.rotation.to_rotation_matrix().into_inner();
@@ -1131,8 +1142,18 @@ fn guarded_influence(set: &PreparedSet, cfg: &OursConfig, result: &OursResult) -
         })
         .collect();
     let h_inv = parts.iter().fold(Matrix6::zeros(), |a, p| a + p.0).try_inverse()?;
-    Some(parts.iter().map(|p| h_inv * p.1).collect())
+    let u: Vec<Vector6<f64>> = parts.iter().map(|p| h_inv * p.1).collect();
+    let sum = u.iter().fold(Vector6::zeros(), |a, x| a + x);
+    let spread = u.iter().fold(Matrix6::zeros(), |a, x| a + x * x.transpose());
+    let offset2 = spread.try_inverse().map(|s| sum.dot(&(s * sum)))?;
+    (offset2.is_finite() && offset2 <= MAX_GUARDED_OFFSET_SD * MAX_GUARDED_OFFSET_SD).then_some(u)
 }
+
+/// Largest distance (in the guarded fit's standard deviations, its influences' metric) from
+/// the guarded fit to the stationary point of the guarded objective as the measured move test
+/// rebuilds it ([`SelectionConfig::influence_move_test`]) for that test to be used (0.1: the fit is at that objective's minimum to a
+/// tenth of its noise; on the default scene the distance is below 1e-4).
+pub const MAX_GUARDED_OFFSET_SD: f64 = 0.1;
 
 /// One solve. `from`: refine only from this pose (no linear start, no mirror), keeping the
 /// ambiguity decision already made on the full data.

@@ -1176,6 +1176,10 @@ pub enum SelectionError {
         dof: usize,
         /// The limit: the χ² quantile at one minus the false-refusal probability.
         limit: f64,
+        /// The move's covariance was measured from the observations' influences
+        /// ([`SelectionConfig::influence_move_test`] with valid influences); `false`: the
+        /// efficiency-based test.
+        measured: bool,
     },
     /// The stage's pose puts more than [`super::ours::MAX_UNEXPLAINED_SHARE`] of the
     /// observed shafts behind the camera or off the instrument's shaft
@@ -1385,9 +1389,18 @@ pub fn refine_selected_with(
     };
     match test {
         Some(t) if t.passes() || !enforce => {}
-        Some(t) => return Err(SelectionError::RanAway { sigmas, statistic: t.statistic, dof: t.dof, limit: t.limit }),
+        Some(t) => {
+            return Err(SelectionError::RanAway {
+                sigmas,
+                statistic: t.statistic,
+                dof: t.dof,
+                limit: t.limit,
+                measured: t.measured,
+            });
+        }
         None if enforce => {
-            return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN });
+            let measured = start_influence.is_some();
+            return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN, measured });
         }
         None => {}
     }

@@ -278,7 +278,8 @@ pub struct OursConfig {
     /// found 1 more shaft of 120 at `default` and 3 more of 103 with the crossing instrument,
     /// with 1 and 2 fewer wrong detections; on the report set 9 more shafts with the crossing
     /// instrument but 7 more wrong detections, mostly motion-blurred frames: off by default
-    /// (`docs/detection.md`, ninth round). At most 45.
+    /// (`docs/detection.md`, ninth round). At most 5: the gather takes an edgel only within
+    /// 5.7-8.1° of the line's normal, so a wider window would vote edgels it never gathers.
     pub hough_normal_window_deg: u32,
     /// Apply `hough_normal_window_deg` on hazy frames too (median chroma under
     /// `clear_chroma`; default false). On the tuning set (session 21) it found 5 more shafts of
@@ -401,7 +402,7 @@ impl OursConfig {
             "finite and ≥ 0",
         )?;
         check((0.0..=1.0).contains(&self.jaw_width_ratio), "jaw_width_ratio", "in [0, 1]")?;
-        check(self.hough_normal_window_deg <= 45, "hough_normal_window_deg", "at most 45")?;
+        check(self.hough_normal_window_deg <= 5, "hough_normal_window_deg", "at most 5")?;
         check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }

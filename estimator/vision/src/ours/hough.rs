@@ -85,7 +85,8 @@ impl Hough {
     /// `±window` bins of its normal, each at its own distance `ρ(θ) = (p − c)·n(θ)`: the
     /// edgel's position is exact to a pixel while its normal, from a 2×2 gradient at half
     /// resolution, scatters by degrees (noise, haze), and one vote at the measured normal
-    /// lands `|p − c|·δθ` away in distance (a 3° error 300 px from the centre is 16 px, eight
+    /// lands `s·δθ` away in distance, `s` the edgel's distance along the line from the foot of
+    /// the perpendicular from the centre (a 3° error 300 px along is 16 px, eight
     /// bins). With the window, the edgels of a straight contour all vote into the same cell at
     /// the contour's true angle whatever their normals' errors within the window, and a peak
     /// is the 1 (angle) × 3 (distance) box sum. Without it (`window` 0) each edgel votes once

@@ -328,11 +328,28 @@ fn the_measured_move_test_passes_consistent_stages_and_refuses_a_run_away() {
             o.selection,
             o.selection_refused
         );
-        // Without the option the efficiency-based test judges the same stage.
-        let default = OursConfig { noise: d.noise, ..OursConfig::default() };
-        let o = solve_ours_prepared(&set, &default).unwrap();
+        // With the option off the efficiency-based test judges the same stage.
+        let efficiency = SelectionConfig { influence_move_test: false, ..measured };
+        let o = solve_ours_prepared(
+            &set,
+            &OursConfig { noise: d.noise, selection: Some(efficiency), ..OursConfig::default() },
+        )
+        .unwrap();
         assert!(o.selection.is_some_and(|s| !s.move_test_measured), "seed {seed}: {:?}", o.selection);
     }
+    // Fewer observations than the measured covariance needs (`MIN_INFLUENCES`): the
+    // efficiency-based test judges the stage, which is taken as without the option.
+    let d = generate_calibration(&protocol(CalibGeometry::default(), 0.01, 200)).unwrap();
+    let few = &d.observations[..estimator::calib::hausman::MIN_INFLUENCES - 5];
+    let set = prepare(&d.setup, few).unwrap();
+    let with =
+        solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: Some(measured), ..OursConfig::default() });
+    let efficiency = SelectionConfig { influence_move_test: false, ..measured };
+    let without =
+        solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: Some(efficiency), ..OursConfig::default() });
+    let (with, without) = (with.unwrap(), without.unwrap());
+    assert!(with.selection.is_some_and(|s| !s.move_test_measured), "{:?} {:?}", with.selection, with.selection_refused);
+    assert_eq!(with.pose, without.pose);
     // Tuning geometry 9000, metres, σ = 0.01, trial 1001: the stage moves from a guarded fit
     // 8.5° off by 27 of its standard deviations. That guarded fit stopped after its last
     // re-whitening short of the objective the measured test rebuilds (one Newton step of that

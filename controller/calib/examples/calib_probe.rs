@@ -137,9 +137,10 @@ fn main() {
                     let er = (r.pose.rotation.inverse() * d.truth.rotation).angle().to_degrees();
                     let stage = match (&r.selection, &r.selection_refused) {
                         (Some(s), _) => format!(
-                            "applied shift {:.2}{}{}",
+                            "applied shift {:.2}{}{}{}",
                             s.shift_sigmas,
                             if s.accepted_on_likelihood { " on likelihood" } else { "" },
+                            if s.move_test_measured { " measured" } else { "" },
                             s.moving_step.map_or(String::new(), |(h, hsd, take)| format!(
                                 " moving gain {h:.2} sd {hsd:.3} {}",
                                 if take { "taken" } else { "held" }

@@ -1383,7 +1383,8 @@ pub fn refine_selected_with(
         // covariance above) minus its influence on the guarded fit.
         (Some(ug), Some(c)) if start_scores.len() == ug.len() => {
             let u: Vec<Vector6<f64>> = start_scores.iter().zip(ug).map(|(gs, ug)| c * gs - ug).collect();
-            influence_move_test(&d, &u, p)
+            // Too few influences for the measured covariance: the efficiency-based test.
+            influence_move_test(&d, &u, p).or_else(|| move_test(&d, start_covariance, c, p))
         }
         _ => stage_cov.and_then(|c| move_test(&d, start_covariance, &c, p)),
     };
@@ -1399,8 +1400,13 @@ pub fn refine_selected_with(
             });
         }
         None if enforce => {
-            let measured = start_influence.is_some();
-            return Err(SelectionError::RanAway { sigmas, statistic: f64::NAN, dof: 0, limit: f64::NAN, measured });
+            return Err(SelectionError::RanAway {
+                sigmas,
+                statistic: f64::NAN,
+                dof: 0,
+                limit: f64::NAN,
+                measured: false,
+            });
         }
         None => {}
     }

@@ -10,25 +10,11 @@ use vision::ours::{OursConfig, OursConfigError, OursDetector};
 use vision::synth::{Cylinder, Scene, render};
 use vision::{DetectError, RgbView, ShaftDetection, ShaftDetector};
 
+mod common;
+use common::{shaft};
+
 fn camera() -> Intrinsics {
     vision::synth::endoscope_camera()
-}
-
-/// A shaft whose distal end is at pixel `tip_px` (measured) at depth `z_m`, pointing away
-/// from the tip along the image direction `angle_deg`, tilted in depth by `tilt_deg`
-/// (positive: farther away from the tip).
-fn shaft(k: &Intrinsics, tip_px: [f64; 2], z_m: f64, angle_deg: f64, tilt_deg: f64) -> Cylinder {
-    let p = k.undistort_px(&Vector2::new(tip_px[0], tip_px[1]));
-    let x = (p.x - k.cx) / k.fx * z_m;
-    let y = (p.y - k.cy) / k.fy * z_m;
-    let (a, t) = (angle_deg.to_radians(), tilt_deg.to_radians());
-    Cylinder {
-        point_m: [x, y, z_m],
-        direction: [a.cos() * t.cos(), a.sin() * t.cos(), t.sin()],
-        radius_m: 0.004,
-        extent_m: [0.0, 0.4],
-        albedo: 0.8,
-    }
 }
 
 fn scene(shafts: Vec<Cylinder>, seed: u64) -> Scene {

@@ -6,29 +6,12 @@
 
 use estimator::calib::Intrinsics;
 use nalgebra::Vector2;
-use vision::ours::{OursConfig, OursDetector};
+use vision::ours::OursConfig;
 use vision::synth::{Cylinder, Scene, render};
-use vision::{RgbView, ShaftDetection, ShaftDetector};
+use vision::ShaftDetection;
 
-/// A shaft whose distal end is at the measured pixel `tip_px`, depth `z_m`, pointing away
-/// from the tip along the image direction `angle_deg`, tilted in depth by `tilt_deg`.
-fn shaft(k: &Intrinsics, tip_px: [f64; 2], z_m: f64, angle_deg: f64, tilt_deg: f64) -> Cylinder {
-    let p = k.undistort_px(&Vector2::new(tip_px[0], tip_px[1]));
-    let (x, y) = ((p.x - k.cx) / k.fx * z_m, (p.y - k.cy) / k.fy * z_m);
-    let (a, t) = (angle_deg.to_radians(), tilt_deg.to_radians());
-    Cylinder {
-        point_m: [x, y, z_m],
-        direction: [a.cos() * t.cos(), a.sin() * t.cos(), t.sin()],
-        radius_m: 0.004,
-        extent_m: [0.0, 0.4],
-        albedo: 0.8,
-    }
-}
-
-fn run(k: &Intrinsics, cfg: OursConfig, img: &[u8]) -> Vec<ShaftDetection> {
-    let mut det = OursDetector::new(*k, cfg).unwrap();
-    det.detect(&RgbView::new(k.width as usize, k.height as usize, img).unwrap()).unwrap()
-}
+mod common;
+use common::{run, shaft};
 
 /// True when `d` is within 1° of `c`'s axis and its span's middle within 3 px of it.
 fn matches(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> bool {

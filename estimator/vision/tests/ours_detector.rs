@@ -4,14 +4,13 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
-use nalgebra::Vector2;
 use proptest::prelude::*;
 use vision::ours::{OursConfig, OursConfigError, OursDetector};
 use vision::synth::{Cylinder, Scene, render};
 use vision::{DetectError, RgbView, ShaftDetection, ShaftDetector};
 
 mod common;
-use common::{shaft};
+use common::{errors, shaft};
 
 fn camera() -> Intrinsics {
     vision::synth::endoscope_camera()
@@ -19,18 +18,6 @@ fn camera() -> Intrinsics {
 
 fn scene(shafts: Vec<Cylinder>, seed: u64) -> Scene {
     Scene { shafts, seed, vessels: true, folds: true, noise: 4.0 }
-}
-
-/// Angle (degrees) and offset (pixels, at the middle of the detected span) of a detection
-/// against a true cylinder.
-fn errors(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> (f64, f64) {
-    let truth = c.axis_line(k).unwrap();
-    let (a, b) = (d.centreline.abc, truth.abc);
-    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
-    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
-    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
-    let mid = 0.5 * (m0 + m1);
-    (angle, truth.distance_px(mid.x, mid.y).abs())
 }
 
 fn detect(k: &Intrinsics, s: &Scene) -> Vec<ShaftDetection> {

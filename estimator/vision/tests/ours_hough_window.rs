@@ -5,23 +5,17 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
-use nalgebra::Vector2;
+use vision::ShaftDetection;
 use vision::ours::OursConfig;
 use vision::synth::{Cylinder, Scene, render};
-use vision::ShaftDetection;
 
 mod common;
-use common::{run, shaft};
+use common::{errors, run, shaft};
 
 /// True when `d` is within 1° of `c`'s axis and its span's middle within 3 px of it.
 fn matches(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> bool {
-    let truth = c.axis_line(k).unwrap();
-    let (a, b) = (d.centreline.abc, truth.abc);
-    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
-    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
-    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
-    let mid = 0.5 * (m0 + m1);
-    angle < 1.0 && truth.distance_px(mid.x, mid.y).abs() < 3.0
+    let (angle, offset) = errors(k, d, c);
+    angle < 1.0 && offset < 3.0
 }
 
 #[test]

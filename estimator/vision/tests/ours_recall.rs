@@ -5,13 +5,12 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
-use nalgebra::Vector2;
 use vision::ours::{OursConfig, OursDetector, PairOutcome};
 use vision::synth::{Cylinder, Scene, render};
 use vision::{RgbView, ShaftDetection, ShaftDetector};
 
 mod common;
-use common::{run, shaft};
+use common::{errors, run, shaft};
 
 fn camera() -> Intrinsics {
     vision::synth::endoscope_camera()
@@ -28,17 +27,6 @@ fn haze(img: &mut [u8], transmittance: f64, airlight: [f64; 3]) {
             *v = (f64::from(*v) * transmittance + a * (1.0 - transmittance)).round().clamp(0.0, 255.0) as u8;
         }
     }
-}
-
-/// Angle (degrees) and offset (pixels, at the middle of the detected span) against `c`.
-fn errors(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> (f64, f64) {
-    let truth = c.axis_line(k).unwrap();
-    let (a, b) = (d.centreline.abc, truth.abc);
-    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
-    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
-    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
-    let mid = 0.5 * (m0 + m1);
-    (angle, truth.distance_px(mid.x, mid.y).abs())
 }
 
 /// The detection matching `c` (within 1° and 3 px), if any.

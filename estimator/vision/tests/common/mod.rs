@@ -30,3 +30,16 @@ pub fn run(k: &Intrinsics, cfg: OursConfig, img: &[u8]) -> Vec<ShaftDetection> {
     let mut det = OursDetector::new(*k, cfg).unwrap();
     det.detect(&RgbView::new(k.width as usize, k.height as usize, img).unwrap()).unwrap()
 }
+
+/// Angle (degrees) and offset (undistorted pixels, at the middle of the detected span) of a
+/// detection against a true cylinder `c`.
+#[allow(dead_code, reason = "not every test file uses every helper")]
+pub fn errors(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> (f64, f64) {
+    let truth = c.axis_line(k).unwrap();
+    let (a, b) = (d.centreline.abc, truth.abc);
+    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
+    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
+    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
+    let mid = 0.5 * (m0 + m1);
+    (angle, truth.distance_px(mid.x, mid.y).abs())
+}

@@ -4,47 +4,20 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
-use nalgebra::Vector2;
 use proptest::prelude::*;
 use vision::ours::{OursConfig, OursConfigError, OursDetector};
 use vision::synth::{Cylinder, Scene, render};
 use vision::{DetectError, RgbView, ShaftDetection, ShaftDetector};
 
+mod common;
+use common::{errors, shaft};
+
 fn camera() -> Intrinsics {
     vision::synth::endoscope_camera()
 }
 
-/// A shaft whose distal end is at pixel `tip_px` (measured) at depth `z_m`, pointing away
-/// from the tip along the image direction `angle_deg`, tilted in depth by `tilt_deg`
-/// (positive: farther away from the tip).
-fn shaft(k: &Intrinsics, tip_px: [f64; 2], z_m: f64, angle_deg: f64, tilt_deg: f64) -> Cylinder {
-    let p = k.undistort_px(&Vector2::new(tip_px[0], tip_px[1]));
-    let x = (p.x - k.cx) / k.fx * z_m;
-    let y = (p.y - k.cy) / k.fy * z_m;
-    let (a, t) = (angle_deg.to_radians(), tilt_deg.to_radians());
-    Cylinder {
-        point_m: [x, y, z_m],
-        direction: [a.cos() * t.cos(), a.sin() * t.cos(), t.sin()],
-        radius_m: 0.004,
-        extent_m: [0.0, 0.4],
-        albedo: 0.8,
-    }
-}
-
 fn scene(shafts: Vec<Cylinder>, seed: u64) -> Scene {
     Scene { shafts, seed, vessels: true, folds: true, noise: 4.0 }
-}
-
-/// Angle (degrees) and offset (pixels, at the middle of the detected span) of a detection
-/// against a true cylinder.
-fn errors(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> (f64, f64) {
-    let truth = c.axis_line(k).unwrap();
-    let (a, b) = (d.centreline.abc, truth.abc);
-    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
-    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
-    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
-    let mid = 0.5 * (m0 + m1);
-    (angle, truth.distance_px(mid.x, mid.y).abs())
 }
 
 fn detect(k: &Intrinsics, s: &Scene) -> Vec<ShaftDetection> {

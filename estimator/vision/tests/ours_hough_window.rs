@@ -5,40 +5,17 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
-use nalgebra::Vector2;
-use vision::ours::{OursConfig, OursDetector};
+use vision::ShaftDetection;
+use vision::ours::OursConfig;
 use vision::synth::{Cylinder, Scene, render};
-use vision::{RgbView, ShaftDetection, ShaftDetector};
 
-/// A shaft whose distal end is at the measured pixel `tip_px`, depth `z_m`, pointing away
-/// from the tip along the image direction `angle_deg`, tilted in depth by `tilt_deg`.
-fn shaft(k: &Intrinsics, tip_px: [f64; 2], z_m: f64, angle_deg: f64, tilt_deg: f64) -> Cylinder {
-    let p = k.undistort_px(&Vector2::new(tip_px[0], tip_px[1]));
-    let (x, y) = ((p.x - k.cx) / k.fx * z_m, (p.y - k.cy) / k.fy * z_m);
-    let (a, t) = (angle_deg.to_radians(), tilt_deg.to_radians());
-    Cylinder {
-        point_m: [x, y, z_m],
-        direction: [a.cos() * t.cos(), a.sin() * t.cos(), t.sin()],
-        radius_m: 0.004,
-        extent_m: [0.0, 0.4],
-        albedo: 0.8,
-    }
-}
-
-fn run(k: &Intrinsics, cfg: OursConfig, img: &[u8]) -> Vec<ShaftDetection> {
-    let mut det = OursDetector::new(*k, cfg).unwrap();
-    det.detect(&RgbView::new(k.width as usize, k.height as usize, img).unwrap()).unwrap()
-}
+mod common;
+use common::{errors, run, shaft};
 
 /// True when `d` is within 1° of `c`'s axis and its span's middle within 3 px of it.
 fn matches(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> bool {
-    let truth = c.axis_line(k).unwrap();
-    let (a, b) = (d.centreline.abc, truth.abc);
-    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
-    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
-    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
-    let mid = 0.5 * (m0 + m1);
-    angle < 1.0 && truth.distance_px(mid.x, mid.y).abs() < 3.0
+    let (angle, offset) = errors(k, d, c);
+    angle < 1.0 && offset < 3.0
 }
 
 #[test]

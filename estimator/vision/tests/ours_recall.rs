@@ -5,28 +5,15 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "test code (helpers too): a panic is a failed test")]
 
 use estimator::calib::Intrinsics;
-use nalgebra::Vector2;
 use vision::ours::{OursConfig, OursDetector, PairOutcome};
 use vision::synth::{Cylinder, Scene, render};
 use vision::{RgbView, ShaftDetection, ShaftDetector};
 
+mod common;
+use common::{errors, run, shaft};
+
 fn camera() -> Intrinsics {
     vision::synth::endoscope_camera()
-}
-
-/// A shaft whose distal end is at the measured pixel `tip_px`, depth `z_m`, pointing away
-/// from the tip along the image direction `angle_deg`, tilted in depth by `tilt_deg`.
-fn shaft(k: &Intrinsics, tip_px: [f64; 2], z_m: f64, angle_deg: f64, tilt_deg: f64) -> Cylinder {
-    let p = k.undistort_px(&Vector2::new(tip_px[0], tip_px[1]));
-    let (x, y) = ((p.x - k.cx) / k.fx * z_m, (p.y - k.cy) / k.fy * z_m);
-    let (a, t) = (angle_deg.to_radians(), tilt_deg.to_radians());
-    Cylinder {
-        point_m: [x, y, z_m],
-        direction: [a.cos() * t.cos(), a.sin() * t.cos(), t.sin()],
-        radius_m: 0.004,
-        extent_m: [0.0, 0.4],
-        albedo: 0.8,
-    }
 }
 
 fn scene(shafts: Vec<Cylinder>, seed: u64) -> Scene {
@@ -40,22 +27,6 @@ fn haze(img: &mut [u8], transmittance: f64, airlight: [f64; 3]) {
             *v = (f64::from(*v) * transmittance + a * (1.0 - transmittance)).round().clamp(0.0, 255.0) as u8;
         }
     }
-}
-
-fn run(k: &Intrinsics, cfg: OursConfig, img: &[u8]) -> Vec<ShaftDetection> {
-    let mut det = OursDetector::new(*k, cfg).unwrap();
-    det.detect(&RgbView::new(k.width as usize, k.height as usize, img).unwrap()).unwrap()
-}
-
-/// Angle (degrees) and offset (pixels, at the middle of the detected span) against `c`.
-fn errors(k: &Intrinsics, d: &ShaftDetection, c: &Cylinder) -> (f64, f64) {
-    let truth = c.axis_line(k).unwrap();
-    let (a, b) = (d.centreline.abc, truth.abc);
-    let angle = (a[0] * b[1] - a[1] * b[0]).abs().asin().to_degrees();
-    let m0 = k.undistort_px(&Vector2::new(d.ends_px[0][0], d.ends_px[0][1]));
-    let m1 = k.undistort_px(&Vector2::new(d.ends_px[1][0], d.ends_px[1][1]));
-    let mid = 0.5 * (m0 + m1);
-    (angle, truth.distance_px(mid.x, mid.y).abs())
 }
 
 /// The detection matching `c` (within 1° and 3 px), if any.

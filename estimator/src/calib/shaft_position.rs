@@ -397,6 +397,10 @@ struct AxisJacobians {
     d: Vector3<f64>,
     jp: SMatrix<f64, 3, 6>,
     jd: SMatrix<f64, 3, 6>,
+    /// The gradients of `d·d` and `d·p`: the closest approach's parts that do not depend on
+    /// the ray (computed once for both line points, the same arithmetic).
+    dc: Vector6<f64>,
+    ddp: Vector6<f64>,
 }
 
 /// [`AxisJacobians`] of observation `o` at pose `(R, t)`.
@@ -409,7 +413,9 @@ fn axis_jacobians(o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> AxisJacob
     jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.p_t))));
     let mut jd = SMatrix::<f64, 3, 6>::zeros();
     jd.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.m_t))));
-    AxisJacobians { p, d, jp, jd }
+    let dc = (d.transpose() * jd).transpose() * 2.0;
+    let ddp = (p.transpose() * jd + d.transpose() * jp).transpose();
+    AxisJacobians { p, d, jp, jd, dc, ddp }
 }
 
 /// Gradients w.r.t. the pose `(t, δφ)` (`R ← exp(δφ^) R`) of [`axis_seen_at`]'s depth and
@@ -417,8 +423,8 @@ fn axis_jacobians(o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> AxisJacob
 /// `ax`, by differentiating the closest approach's closed form; `None` where [`axis_seen_at`]
 /// is.
 fn closest_approach_gradient_with(v: &Vector3<f64>, ax: &AxisJacobians) -> Option<(Vector6<f64>, Vector6<f64>)> {
-    let AxisJacobians { p, d, jp, jd } = ax;
-    let (p, d, jp, jd) = (*p, *d, *jp, *jd);
+    let AxisJacobians { p, d, jp, jd, dc, ddp } = ax;
+    let (p, d, dc, ddp) = (*p, *d, *dc, *ddp);
     let v = *v;
     let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
     let (vp, dpr) = (v.dot(&p), d.dot(&p));
@@ -427,9 +433,7 @@ fn closest_approach_gradient_with(v: &Vector3<f64>, ax: &AxisJacobians) -> Optio
         return None;
     }
     let db = (v.transpose() * jd).transpose();
-    let dc = (d.transpose() * jd).transpose() * 2.0;
     let dvp = (v.transpose() * jp).transpose();
-    let ddp = (p.transpose() * jd + d.transpose() * jp).transpose();
     let dden = dc * a - db * (2.0 * b);
     let lambda = (c * vp - b * dpr) / den;
     let dl = ((dc * vp + dvp * c - db * dpr - ddp * b) - dden * lambda) / den;

@@ -47,7 +47,8 @@ use super::selection::{
     SelectionConfig, SelectionError, kept_given_line_ln, moving_covariance_step, refine_selected_with, tip_well_inside,
 };
 use super::shaft_position::{
-    ShaftModel, axis_seen_at, model_and_residuals_at, residuals_at_with, stage_terms, translation_from_shaft_ends,
+    ShaftModel, axis_seen_at, model_and_residuals_at, model_and_residuals_into, residuals_at_with, stage_terms,
+    translation_from_shaft_ends,
 };
 use super::{Observation, Setup, par};
 
@@ -488,7 +489,8 @@ fn refine(
                 x.jte = x.j.transpose() * x.e;
                 gram_upper(&mut x.jtj, &x.j);
                 if let Some(noise) = shaft_noise {
-                    (x.model, x.es, x.gs) = model_and_residuals_at(set, o, &r, &t, noise, true, Some((&res, &jac)));
+                    let slots = (&mut x.model, &mut x.es, &mut x.gs);
+                    model_and_residuals_into(set, o, &r, &t, noise, true, Some((&res, &jac)), slots);
                 }
             });
             norms.clear();

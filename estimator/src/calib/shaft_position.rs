@@ -181,6 +181,25 @@ pub fn model_and_residuals_at(
     grad: bool,
     line: Option<(&Vector2<f64>, &Jac6)>,
 ) -> (ShaftModel, [f64; TERMS], [Vector6<f64>; TERMS]) {
+    let mut out = (ShaftModel::default(), [0.0; TERMS], [Vector6::zeros(); TERMS]);
+    model_and_residuals_into(set, o, r, t, noise, grad, line, (&mut out.0, &mut out.1, &mut out.2));
+    out
+}
+
+/// [`model_and_residuals_at`] written into `out` (model, residuals, gradients) in place, the
+/// same values: for the refinement's per-observation slots (no copy of the result).
+#[allow(clippy::too_many_arguments, reason = "model_and_residuals_at's arguments and its result's slots")]
+pub(crate) fn model_and_residuals_into(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    grad: bool,
+    line: Option<(&Vector2<f64>, &Jac6)>,
+    out: (&mut ShaftModel, &mut [f64; TERMS], &mut [Vector6<f64>; TERMS]),
+) {
+    let (m_out, e, g) = out;
     let focal = focal_px(set);
     let ends = with_end_precision(set, noise);
     let mut seen = [None; 2];
@@ -193,9 +212,9 @@ pub fn model_and_residuals_at(
         sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(&ends, focal, o.insertion_m, v_unit, &d_unit, depth, s));
     }
     let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
-    let m = ShaftModel { sds, tip: tip.map(|x| x.0) };
-    let mut e = metric_residuals(o, &seen, &sds, m.tip.map(|x| x.point));
-    let mut g = [Vector6::zeros(); TERMS];
+    *m_out = ShaftModel { sds, tip: tip.map(|x| x.0) };
+    *e = metric_residuals(o, &seen, &sds, m_out.tip.map(|x| x.point));
+    *g = [Vector6::zeros(); TERMS];
     if let Some((tm, tp)) = &tip {
         let z = match (grad, line) {
             (true, Some((res, jr))) => tm.z_with(o, tp, res, Some(jr)),
@@ -212,9 +231,8 @@ pub fn model_and_residuals_at(
         }
     }
     if grad {
-        metric_gradients(o, r, t, &sds, &e, &mut g);
+        metric_gradients(o, r, t, &sds, e, g);
     }
-    (m, e, g)
 }
 
 /// The focal length (pixels) of the set's camera, from `K⁻¹`.

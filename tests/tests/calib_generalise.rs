@@ -476,6 +476,7 @@ fn the_moving_covariance_step_is_on_by_default_and_taken_only_where_it_significa
     let (held, _, _) = solve(9004, NoiseUnits::Metre, 0.01, 1002, false);
     let (moved, step, _) = solve(9004, NoiseUnits::Metre, 0.01, 1002, true);
     let (gain, gain_sd, taken) = step.expect("the step is computed");
+    let gain_sd = gain_sd.expect("a gain above the threshold has its standard error");
     assert!(taken && gain - MOVING_STEP_GAIN_Z * gain_sd >= MOVING_STEP_MIN_GAIN, "gain {gain} ± {gain_sd}");
     assert!(moved.rotation_rad < 0.5 * held.rotation_rad, "{moved:?} vs {held:?}");
     assert!(moved.translation_m < held.translation_m, "{moved:?} vs {held:?}");
@@ -483,8 +484,10 @@ fn the_moving_covariance_step_is_on_by_default_and_taken_only_where_it_significa
     // step is not taken and the pose is the one without the step.
     let (_, _, off_pose) = solve(9000, NoiseUnits::Millimetre, 0.02, 1000, false);
     let (_, step, pose) = solve(9000, NoiseUnits::Millimetre, 0.02, 1000, true);
-    let (gain, _, taken) = step.expect("the step is computed");
+    let (gain, gain_sd, taken) = step.expect("the step is computed");
     assert!(!taken && gain < MOVING_STEP_MIN_GAIN, "gain {gain}");
+    // Below the threshold its standard error cannot change the decision: not computed.
+    assert_eq!(gain_sd, None);
     assert_eq!(pose, off_pose);
     // Tuning geometry 9003, millimetres, σ = 0.02, trial 0: a spike of the gain (≈ 8, the
     // reading's median is 0.3) that a few observations carry: its jackknife standard error is
@@ -493,6 +496,7 @@ fn the_moving_covariance_step_is_on_by_default_and_taken_only_where_it_significa
     let (_, _, off_pose) = solve(9003, NoiseUnits::Millimetre, 0.02, 1000, false);
     let (_, step, pose) = solve(9003, NoiseUnits::Millimetre, 0.02, 1000, true);
     let (gain, gain_sd, taken) = step.expect("the step is computed");
+    let gain_sd = gain_sd.expect("a gain above the threshold has its standard error");
     assert!(gain > 2.0 * MOVING_STEP_MIN_GAIN && gain_sd > 0.5 * gain && !taken, "gain {gain} ± {gain_sd}");
     assert_eq!(pose, off_pose);
 }

@@ -9,7 +9,8 @@
 //! prints the guarded fit and the selection stage separately, `AXIS=1` the axis of the
 //! rotation error against the line of sight and the tool (which 180° turn a mirror is).
 //! `MOVING=1` turns on the moving-covariance step (`SelectionConfig::moving_covariance_step`;
-//! printed as `moving gain <g> sd <its jackknife standard error> taken|held`), `MOVING=force`
+//! printed as `moving gain <g> sd <its jackknife standard error, n/a when not computed>
+//! taken|held`), `MOVING=force`
 //! takes it whatever its gain, `MOVING_Z=<z>` sets `SelectionConfig::moving_step_gain_z`.
 //! `INFLUENCE=1` judges the stage's move with its measured covariance
 //! (`SelectionConfig::influence_move_test`).
@@ -142,7 +143,8 @@ fn main() {
                             if s.accepted_on_likelihood { " on likelihood" } else { "" },
                             if s.move_test_measured { " measured" } else { "" },
                             s.moving_step.map_or(String::new(), |(h, hsd, take)| format!(
-                                " moving gain {h:.2} sd {hsd:.3} {}",
+                                " moving gain {h:.2} sd {} {}",
+                                hsd.map_or("n/a".into(), |v| format!("{v:.3}")),
                                 if take { "taken" } else { "held" }
                             ))
                         ),

@@ -144,3 +144,39 @@ pub fn result_json(
         noise_scale: ours.and_then(|o| o.noise_scale),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use estimator::calib::ours::SelectionSummary;
+
+    /// Our pipeline's selection-stage summary survives a JSON round trip whether or not the
+    /// moving-covariance step's jackknife standard error was computed (serde_json writes a
+    /// non-finite number as `null`, which an `f64` cannot read back: the error is an `Option`,
+    /// finite when present), and a summary written before it was optional still reads.
+    #[test]
+    fn the_selection_summary_survives_a_json_round_trip() {
+        let base = SelectionSummary {
+            selected: 700,
+            plain: 20,
+            left_out: 9,
+            shift_sigmas: 1.25,
+            accepted_on_likelihood: false,
+            moving_step: None,
+            move_test_measured: false,
+        };
+        for moving_step in [None, Some((0.3, None, false)), Some((5.0, Some(0.9), true))] {
+            let s = SelectionSummary { moving_step, ..base };
+            let text = serde_json::to_string(&s).unwrap();
+            let back: SelectionSummary = serde_json::from_str(&text).unwrap();
+            assert_eq!(back, s, "{text}");
+        }
+        let not_computed = serde_json::to_string(&SelectionSummary { moving_step: Some((0.3, None, false)), ..base });
+        assert!(not_computed.unwrap().contains("\"moving_step\":[0.3,null,false]"));
+        // The earlier form, a number where the standard error was computed.
+        let old = r#"{"selected":700,"plain":20,"left_out":9,"shift_sigmas":1.25,"moving_step":[5.0,0.9,true]}"#;
+        let back: SelectionSummary = serde_json::from_str(old).unwrap();
+        assert_eq!(back.moving_step, Some((5.0, Some(0.9), true)));
+        // What the earlier `f64` could not read back: its infinite value, written as `null`.
+        assert!(serde_json::from_str::<(f64, f64, bool)>("[5.0,null,false]").is_err());
+    }
+}

@@ -47,7 +47,8 @@ use super::selection::{
     SelectionConfig, SelectionError, kept_given_line_ln, moving_covariance_step, refine_selected_with, tip_well_inside,
 };
 use super::shaft_position::{
-    ShaftModel, axis_seen_at, model_and_residuals_at, residuals_at_with, stage_terms, translation_from_shaft_ends,
+    ShaftModel, axis_seen_at, model_and_residuals_at, model_and_residuals_into, residuals_at_with, stage_terms,
+    translation_from_shaft_ends,
 };
 use super::{Observation, Setup, par};
 
@@ -325,9 +326,16 @@ pub struct SelectionSummary {
     /// The last step on the likelihood with moving covariances
     /// ([`super::selection::moving_covariance_step`]): its information gain, that gain's
     /// jackknife standard error (both dimensionless) and whether it was taken; `None` when not
-    /// tried or not computable.
+    /// tried or not computable. The standard error is `None` when it was not computed (it
+    /// cannot change the decision: the gain is below
+    /// [`SelectionConfig::moving_step_min_gain`], or [`SelectionConfig::moving_step_gain_z`] is
+    /// not positive; [`SelectionConfig::moving_step_needs_sd`]) or is not finite (a
+    /// leave-one-out gain could not be evaluated; the step is then taken only with
+    /// `moving_step_min_gain = -∞`): always finite
+    /// when present, so the summary survives a JSON round trip (serde_json writes a non-finite
+    /// number as `null`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub moving_step: Option<(f64, f64, bool)>,
+    pub moving_step: Option<(f64, Option<f64>, bool)>,
     /// The stage's move was judged by the measured test
     /// ([`SelectionConfig::influence_move_test`] with the guarded fit's influences valid:
     /// [`super::hausman::influence_move_test`]); `false`: the efficiency-based test.
@@ -385,13 +393,28 @@ fn robust_scale_with(norms: &[f64], scratch: &mut Vec<f64>) -> f64 {
     (median(scratch) / CHI2_MEDIAN).max(1e-12)
 }
 
-/// `h += jᵀ j · wgt` on the upper triangle only (each element the same arithmetic as the full
-/// product, so [`mirror_upper`] afterwards gives the full product's sum bit for bit).
-fn add_weighted_gram(h: &mut Matrix6<f64>, j: &super::residual::Jac6, wgt: f64) {
+/// The upper triangle of `jᵀ j` (column by column, `a ≤ b`) into `out`: each element the same
+/// arithmetic as the full product's.
+fn gram_upper(out: &mut [f64; 21], j: &super::residual::Jac6) {
+    let mut k = 0;
     for b in 0..6 {
         let (j0b, j1b) = (j[(0, b)], j[(1, b)]);
         for a in 0..=b {
-            h[(a, b)] += (j[(0, a)] * j0b + j[(1, a)] * j1b) * wgt;
+            out[k] = j[(0, a)] * j0b + j[(1, a)] * j1b;
+            k += 1;
+        }
+    }
+}
+
+/// `h += jᵀ j · wgt` on the upper triangle only, from [`gram_upper`]'s `jtj` (each element the
+/// same arithmetic as the full product, so [`mirror_upper`] afterwards gives the full
+/// product's sum bit for bit).
+fn add_weighted_upper(h: &mut Matrix6<f64>, jtj: &[f64; 21], wgt: f64) {
+    let mut k = 0;
+    for b in 0..6 {
+        for a in 0..=b {
+            h[(a, b)] += jtj[k] * wgt;
+            k += 1;
         }
     }
 }
@@ -462,8 +485,12 @@ fn refine(
                 let (res, jac) = residual_and_jacobian(set, o, &r, &t);
                 (x.e, x.j) = (w * res, w * jac);
                 x.norm = x.e.norm();
+                // The weight-free parts of its Gauss-Newton terms (summed below, weighted).
+                x.jte = x.j.transpose() * x.e;
+                gram_upper(&mut x.jtj, &x.j);
                 if let Some(noise) = shaft_noise {
-                    (x.model, x.es, x.gs) = model_and_residuals_at(set, o, &r, &t, noise, true, Some((&res, &jac)));
+                    let slots = (&mut x.model, &mut x.es, &mut x.gs);
+                    model_and_residuals_into(set, o, &r, &t, noise, true, Some((&res, &jac)), slots);
                 }
             });
             norms.clear();
@@ -474,8 +501,8 @@ fn refine(
             for x in &at_pose {
                 let n = &x.norm;
                 let wgt = if *n <= c { 1.0 } else { c / n };
-                add_weighted_gram(&mut h, &x.j, wgt);
-                g += x.j.transpose() * x.e * wgt;
+                add_weighted_upper(&mut h, &x.jtj, wgt);
+                g += x.jte * wgt;
                 cost += huber(*n, c);
             }
             // The shaft-position terms (with a noise model): flat while every observed line
@@ -510,16 +537,20 @@ fn refine(
                 };
                 let t_new = t + step.fixed_rows::<3>(0);
                 let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
-                par::map_into(&set.obs, &mut trial, |o| residual(set, o, &r_new, &t_new));
+                // Each observation's line residuals and their whitened norm.
+                par::map_into(&idx, &mut trial, |&i| {
+                    let res = residual(set, &set.obs[i], &r_new, &t_new);
+                    (res, (whiten[i] * res).norm())
+                });
                 // The lines' cost, then the shaft terms' sum in the same order as a `sum` (from
                 // −0), stopped once it exceeds `cost`: every term is ≥ 0, so a partial sum
                 // above `cost` rejects the step as the whole sum would.
-                let lines: f64 = trial.iter().zip(&whiten).map(|(res, w)| huber((w * res).norm(), c)).sum::<f64>();
+                let lines: f64 = trial.iter().map(|(_, n)| huber(*n, c)).sum::<f64>();
                 let mut shaft = -0.0;
                 if lines <= cost && shaft_noise.is_some() {
                     par::map_into(&idx, &mut trial_shaft, |&i| {
                         line_weights[i]
-                            * residuals_at_with(set, &set.obs[i], &r_new, &t_new, &at_pose[i].model, &trial[i])
+                            * residuals_at_with(set, &set.obs[i], &r_new, &t_new, &at_pose[i].model, &trial[i].0)
                                 .iter()
                                 .map(|e| huber((e * scale).abs(), c))
                                 .sum::<f64>()
@@ -571,6 +602,10 @@ struct ObsTerms {
     e: Vector2<f64>,
     j: super::residual::Jac6,
     norm: f64,
+    /// `jᵀ e` and the upper triangle of `jᵀ j` ([`gram_upper`]): the line terms' gradient and
+    /// Gauss-Newton matrix before their Huber weight.
+    jte: Vector6<f64>,
+    jtj: [f64; 21],
     model: ShaftModel,
     es: [f64; super::shaft_position::TERMS],
     gs: [Vector6<f64>; super::shaft_position::TERMS],
@@ -1070,7 +1105,8 @@ pub fn apply_selection_stage(
             if let Some(step) = step.flatten() {
                 let take =
                     cfg.moving_step_worth_it(&step) && shaft_explanation(set, &step.pose, SHAFT_MARGIN).explains();
-                moving_step = Some((step.information_gain, step.information_gain_sd, take));
+                let sd = step.information_gain_sd.filter(|sd| sd.is_finite());
+                moving_step = Some((step.information_gain, sd, take));
                 if take {
                     fit.pose = step.pose;
                 }
@@ -1540,7 +1576,7 @@ fn solve_from(
 
 #[cfg(test)]
 mod tests {
-    use super::{add_weighted_gram, mirror_upper};
+    use super::{add_weighted_upper, gram_upper, mirror_upper};
     use crate::calib::residual::Jac6;
     use nalgebra::Matrix6;
 
@@ -1559,7 +1595,9 @@ mod tests {
             let j = Jac6::from_fn(|_, _| next());
             let wgt = next().abs().min(1.0);
             full += j.transpose() * j * wgt;
-            add_weighted_gram(&mut upper, &j, wgt);
+            let mut jtj = [0.0; 21];
+            gram_upper(&mut jtj, &j);
+            add_weighted_upper(&mut upper, &jtj, wgt);
         }
         mirror_upper(&mut upper);
         for (a, b) in full.iter().zip(upper.iter()) {

@@ -64,6 +64,9 @@ pub struct Prepared {
     /// that direction normalised: fixed by [`Prepared::px`] (computed once here for the
     /// shaft-position terms, [`super::shaft_position`]).
     pub(crate) rays: [(Vector3<f64>, Vector3<f64>); 2],
+    /// [`Prepared::psm_f2`]'s rotation as a matrix (computed once here for the noise
+    /// Jacobians, [`super::residual::noise_jacobian`], [`super::selection::tip_projection`]).
+    pub(crate) r2: Matrix3<f64>,
 }
 
 /// All observations, prepared, with the camera model.
@@ -238,6 +241,7 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
                 let v = k_inv_t.tr_mul(&Vector3::new(u.x, u.y, 1.0));
                 (v, v.normalize())
             }),
+            r2: f2.rotation.to_rotation_matrix().into_inner(),
         });
     }
     let views = count_distinct(obs.iter().map(|p| p.o_ec), 2, |a, b| (a - b).norm() > SAME_VIEW_M);

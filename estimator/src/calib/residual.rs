@@ -96,7 +96,7 @@ pub fn noise_jacobian(set: &PreparedSet, o: &Prepared, r: &Matrix3<f64>, t: &Vec
     let ad = &o.eye_inv_adjoint;
     dn.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dn_c * *ad));
     // Tool: δP = R2(ρa + ρb − d[ẑ]×φa), δD = −R2[ẑ]×(φa + φb), mapped into the camera.
-    let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
+    let a = rt * r * o.r2;
     let z = skew(&Vector3::z());
     let d = o.insertion_m;
     // `(−x) y = −(x y)` exactly (rounding is symmetric): the shared products once.

@@ -53,6 +53,7 @@ use nalgebra::{
 
 use super::KinematicNoise;
 use super::hausman::{MoveTest, influence_move_test, move_test};
+use super::par;
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, damped_step, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
@@ -152,7 +153,7 @@ fn tip_projection_from(o: &Prepared, r: &Matrix3<f64>, pixel: TipPixel) -> TipPr
     let mut dp_c = SMatrix::<f64, 3, 6>::zeros();
     dp_c.fixed_view_mut::<3, 3>(0, 0).copy_from(&-Matrix3::identity());
     dp_c.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&p));
-    let a = rt * r * o.psm_f2.rotation.to_rotation_matrix().into_inner();
+    let a = rt * r * o.r2;
     let mut dp = SMatrix::<f64, 3, 18>::zeros();
     dp.fixed_view_mut::<3, 6>(0, 0).copy_from(&(dp_c * o.eye_inv_adjoint));
     dp.fixed_view_mut::<3, 3>(0, 6).copy_from(&a);
@@ -828,11 +829,26 @@ pub struct SelectionConfig {
 impl SelectionConfig {
     /// Whether the moving-covariance step with this outcome is worth taking: its information
     /// gain clears [`moving_step_min_gain`](Self::moving_step_min_gain) by
-    /// [`moving_step_gain_z`](Self::moving_step_gain_z) of its jackknife standard errors.
-    /// The shafts' check is the caller's.
+    /// [`moving_step_gain_z`](Self::moving_step_gain_z) of its jackknife standard errors (a
+    /// standard error not computed counts as infinite: such a step is taken only when
+    /// `moving_step_min_gain` is `-∞`). The shafts' check is the caller's.
     pub fn moving_step_worth_it(&self, step: &MovingStep) -> bool {
-        let z = if self.moving_step_gain_z > 0.0 { self.moving_step_gain_z * step.information_gain_sd } else { 0.0 };
+        let z = if self.moving_step_gain_z > 0.0 {
+            self.moving_step_gain_z * step.information_gain_sd.unwrap_or(f64::INFINITY)
+        } else {
+            0.0
+        };
         step.information_gain - z >= self.moving_step_min_gain
+    }
+
+    /// Whether the gain's standard error can change [`moving_step_worth_it`]'s answer for a
+    /// step of this `information_gain` (dimensionless): only with `moving_step_gain_z > 0`
+    /// and the gain itself at least [`moving_step_min_gain`](Self::moving_step_min_gain)
+    /// (a standard error is ≥ 0, so below it the step is never worth it).
+    ///
+    /// [`moving_step_worth_it`]: Self::moving_step_worth_it
+    pub fn moving_step_needs_sd(&self, information_gain: f64) -> bool {
+        self.moving_step_gain_z > 0.0 && information_gain >= self.moving_step_min_gain
     }
 }
 
@@ -840,8 +856,9 @@ impl SelectionConfig {
 /// function of the observation and the pose `(R, t)` returning its value and, when asked, its
 /// gradient w.r.t. `(t m, δφ rad)` and Gauss-Newton matrix (our pipeline's shaft-position
 /// terms, [`super::ours`]; this module does not know them).
+/// `Sync`: evaluated per observation on the calibration's pool ([`super::par`]).
 pub type ExtraTerms<'a> =
-    &'a dyn Fn(&Prepared, &Matrix3<f64>, &Vector3<f64>, bool) -> (f64, Vector6<f64>, Matrix6<f64>);
+    &'a (dyn Fn(&Prepared, &Matrix3<f64>, &Vector3<f64>, bool) -> (f64, Vector6<f64>, Matrix6<f64>) + Sync);
 
 /// The default of [`SelectionConfig::false_refusal_probability`]: 1e-3 (a stage consistent
 /// with the guarded fit is refused once in a thousand datasets; the limit is the χ²₆ quantile
@@ -1207,19 +1224,20 @@ fn screened_models(
     r: &Matrix3<f64>,
     t: &Vector3<f64>,
 ) -> Result<Vec<Model>, SelectionError> {
-    let mut models: Vec<Model> = set.obs.iter().map(|o| model_at(set, o, r, t, noise, cfg)).collect();
-    let d2: Vec<f64> = set
-        .obs
-        .iter()
-        .zip(&models)
-        .map(|(o, m)| match m {
+    // Per observation ([`par`]): its model and its whitened squared residual over two.
+    let (mut models, d2): (Vec<Model>, Vec<f64>) = par::map(&set.obs, |o| {
+        let m = model_at(set, o, r, t, noise, cfg);
+        let d = match &m {
             Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) => {
                 let e = residual(set, o, r, t);
                 e.dot(&(srr_inv * e)) / 2.0
             }
             Model::Out => f64::NAN,
-        })
-        .collect();
+        };
+        (m, d)
+    })
+    .into_iter()
+    .unzip();
     let mut sorted: Vec<f64> = d2.iter().copied().filter(|v| v.is_finite()).collect();
     if sorted.is_empty() {
         return Err(SelectionError::NoModel);
@@ -1234,6 +1252,30 @@ fn screened_models(
         }
     }
     Ok(models)
+}
+
+/// One observation's terms of the stage's negative log-likelihood at `(R, t)` (value, and with
+/// `grad` gradient and Gauss-Newton matrix): its own ([`term`]; `None` when it cannot be
+/// evaluated) and, for one not left out, the `extra` terms'.
+type ObsTerms = (Option<(f64, Vector6<f64>, Matrix6<f64>)>, Option<(f64, Vector6<f64>, Matrix6<f64>)>);
+
+/// [`ObsTerms`] of observation `o` with model `m`.
+fn obs_terms(
+    set: &PreparedSet,
+    o: &Prepared,
+    m: &Model,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    grad: bool,
+    extra: Option<ExtraTerms<'_>>,
+) -> ObsTerms {
+    let own = term(set, o, m, r, t, grad);
+    // Not evaluated past a term that cannot be (the sum stops there).
+    let more = match (own, extra) {
+        (Some(_), Some(extra)) if !matches!(m, Model::Out) => Some(extra(o, r, t, grad)),
+        _ => None,
+    };
+    (own, more)
 }
 
 /// Maximum likelihood of the kept lines from `start` (`T_e_t`, metres; the guarded fit, with
@@ -1277,6 +1319,7 @@ pub fn refine_selected_with(
     let mut start_metric: Option<Matrix6<f64>> = None;
     // Each observation's score at the start, for the measured test.
     let mut start_scores: Vec<Vector6<f64>> = Vec::new();
+    let idx: Vec<usize> = (0..set.obs.len()).collect();
     for pass in 0..2 {
         let models = screened_models(set, noise, cfg, &r, &t)?;
         counts = models.iter().fold((0, 0, 0), |c, m| match m {
@@ -1284,15 +1327,18 @@ pub fn refine_selected_with(
             Model::Plain(_) => (c.0, c.1 + 1, c.2),
             Model::Out => (c.0, c.1, c.2 + 1),
         });
-        let eval = |r: &Matrix3<f64>, t: &Vector3<f64>, grad: bool| -> Option<(f64, Vector6<f64>, Matrix6<f64>)> {
+        // Each observation's terms computed per observation ([`par`], into `parts`), then
+        // summed in observation order as one loop would.
+        let mut parts: Vec<ObsTerms> = Vec::with_capacity(set.obs.len());
+        let mut eval = |r: &Matrix3<f64>, t: &Vector3<f64>, grad: bool| -> Option<(f64, Vector6<f64>, Matrix6<f64>)> {
+            par::map_into(&idx, &mut parts, |&i| obs_terms(set, &set.obs[i], &models[i], r, t, grad, extra));
             let mut acc = (0.0, Vector6::zeros(), Matrix6::zeros());
-            for (o, m) in set.obs.iter().zip(&models) {
-                let (f, g, h) = term(set, o, m, r, t, grad)?;
+            for (own, more) in &parts {
+                let (f, g, h) = (*own)?;
                 acc.0 += f;
                 acc.1 += g;
                 acc.2 += h;
-                if let (Some(extra), false) = (extra, matches!(m, Model::Out)) {
-                    let (f, g, h) = extra(o, r, t, grad);
+                if let Some((f, g, h)) = more {
                     acc.0 += f;
                     acc.1 += g;
                     acc.2 += h;
@@ -1478,7 +1524,11 @@ pub struct MovingStep {
     /// The jackknife standard error of [`information_gain`](Self::information_gain) over the
     /// observations (dimensionless; each observation left out of the moments' covariance and
     /// their derivatives in turn); infinite when a leave-one-out gain cannot be evaluated.
-    pub information_gain_sd: f64,
+    /// `None` when not computed because it cannot change the decision
+    /// ([`SelectionConfig::moving_step_needs_sd`]: the gain alone is below
+    /// [`SelectionConfig::moving_step_min_gain`], or the gate does not read it); it costs a
+    /// 12×12 Cholesky factorisation and a 6×6 eigen-decomposition per observation.
+    pub information_gain_sd: Option<f64>,
     /// Hansen's overidentification statistic of the twelve moments at the step's end
     /// (dimensionless; χ²₆ when both sets of moments hold at one pose). For information.
     pub overidentification: f64,
@@ -1491,54 +1541,51 @@ struct Moving<'a> {
     /// Each observation's kind at the step's start.
     kinds: Vec<Model>,
     extra: Option<ExtraTerms<'a>>,
+    /// The observations' indices (for [`par`]'s maps).
+    idx: Vec<usize>,
 }
 
 impl Moving<'_> {
-    /// Each line's negative log-likelihood at `(R, t)`, its model and covariance rebuilt there,
-    /// with the covariance's log-determinant (0 for one left out), into `out`; the extra
-    /// terms not included.
-    fn per_obs(&self, r: &Matrix3<f64>, t: &Vector3<f64>, out: &mut Vec<f64>) -> Option<()> {
-        out.clear();
-        for (o, k) in self.set.obs.iter().zip(&self.kinds) {
-            if matches!(k, Model::Out) {
-                out.push(0.0);
-                continue;
-            }
-            let m = model_moved(self.set, o, k, r, t, self.noise);
-            let (mut f, _, _) = term(self.set, o, &m, r, t, false)?;
-            if let Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) = m {
-                f -= 0.5 * srr_inv.determinant().max(f64::MIN_POSITIVE).ln();
-            }
-            out.push(f);
+    /// Observation `i`'s line negative log-likelihood at `(R, t)`, its model and covariance
+    /// rebuilt there, with the covariance's log-determinant (0 for one left out); the extra
+    /// terms not included. `None` when it cannot be evaluated.
+    fn one(&self, i: usize, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<f64> {
+        let (o, k) = (&self.set.obs[i], &self.kinds[i]);
+        if matches!(k, Model::Out) {
+            return Some(0.0);
         }
-        Some(())
+        let m = model_moved(self.set, o, k, r, t, self.noise);
+        let (mut f, _, _) = term(self.set, o, &m, r, t, false)?;
+        if let Model::Selected { srr_inv, .. } | Model::Plain(srr_inv) = m {
+            f -= 0.5 * srr_inv.determinant().max(f64::MIN_POSITIVE).ln();
+        }
+        Some(f)
     }
 
     /// Per observation, the gradient of the moving likelihood at `(R, t)`: the lines' by
-    /// central differences of step `h` per coordinate, plus the extra terms' as the stage
-    /// takes it (their noise model held where it is evaluated: they have no log-determinant,
-    /// and moving their model without it would bias the fit).
+    /// central differences of step `h` per coordinate ([`Self::one`]), plus the extra terms' as
+    /// the stage takes it (their noise model held where it is evaluated: they have no
+    /// log-determinant, and moving their model without it would bias the fit). `None` when a
+    /// value cannot be evaluated or a gradient is not finite.
     fn per_obs_gradients(&self, r: &Matrix3<f64>, t: &Vector3<f64>, h: &Vector6<f64>) -> Option<Vec<Vector6<f64>>> {
-        let mut g = vec![Vector6::zeros(); self.set.obs.len()];
-        let (mut vp, mut vn) = (Vec::new(), Vec::new());
-        for a in 0..6 {
+        // The twelve poses, then each observation's differences ([`par`]).
+        let poses: [[(Matrix3<f64>, Vector3<f64>); 2]; 6] = core::array::from_fn(|a| {
             let mut e = Vector6::zeros();
             e[a] = h[a];
-            let (rp, tp) = apply_step(r, t, &e);
-            let (rn, tn) = apply_step(r, t, &-e);
-            self.per_obs(&rp, &tp, &mut vp)?;
-            self.per_obs(&rn, &tn, &mut vn)?;
-            for (gi, (p, n)) in g.iter_mut().zip(vp.iter().zip(&vn)) {
+            [apply_step(r, t, &e), apply_step(r, t, &-e)]
+        });
+        let each = par::map(&self.idx, |&i| {
+            let mut gi = Vector6::zeros();
+            for (a, [(rp, tp), (rn, tn)]) in poses.iter().enumerate() {
+                let (p, n) = (self.one(i, rp, tp)?, self.one(i, rn, tn)?);
                 gi[a] = (p - n) / (2.0 * h[a]);
             }
-        }
-        if let Some(extra) = self.extra {
-            for ((gi, o), k) in g.iter_mut().zip(&self.set.obs).zip(&self.kinds) {
-                if !matches!(k, Model::Out) {
-                    *gi += extra(o, r, t, true).1;
-                }
+            if let Some(extra) = self.extra.filter(|_| !matches!(self.kinds[i], Model::Out)) {
+                gi += extra(&self.set.obs[i], r, t, true).1;
             }
-        }
+            Some(gi)
+        });
+        let g: Vec<Vector6<f64>> = each.into_iter().collect::<Option<_>>()?;
         g.iter().all(|v| v.iter().all(|x| x.is_finite())).then_some(g)
     }
 
@@ -1547,13 +1594,11 @@ impl Moving<'_> {
     /// Per observation (zero for one left out), its Gauss-Newton matrix and gradient.
     #[allow(clippy::type_complexity, reason = "two per-observation lists, used once")]
     fn held(&self, r: &Matrix3<f64>, t: &Vector3<f64>) -> Option<(Vec<Matrix6<f64>>, Vec<Vector6<f64>>)> {
-        let mut gns = Vec::with_capacity(self.set.obs.len());
-        let mut grads = Vec::with_capacity(self.set.obs.len());
-        for (o, k) in self.set.obs.iter().zip(&self.kinds) {
+        // Per observation ([`par`]); `None` for one that cannot be evaluated.
+        let each = par::map(&self.idx, |&i| {
+            let (o, k) = (&self.set.obs[i], &self.kinds[i]);
             if matches!(k, Model::Out) {
-                gns.push(Matrix6::zeros());
-                grads.push(Vector6::zeros());
-                continue;
+                return Some((Matrix6::zeros(), Vector6::zeros()));
             }
             let m = model_moved(self.set, o, k, r, t, self.noise);
             let (_, mut g, mut hh) = term(self.set, o, &m, r, t, true)?;
@@ -1562,6 +1607,12 @@ impl Moving<'_> {
                 g += ge;
                 hh += he;
             }
+            Some((hh, g))
+        });
+        let mut gns = Vec::with_capacity(self.set.obs.len());
+        let mut grads = Vec::with_capacity(self.set.obs.len());
+        for x in each {
+            let (hh, g) = x?;
             gns.push(hh);
             grads.push(g);
         }
@@ -1577,12 +1628,12 @@ impl Moving<'_> {
         t: &Vector3<f64>,
         h: &Vector6<f64>,
     ) -> Option<Vec<Matrix6<f64>>> {
-        let mut ics = Vec::with_capacity(self.set.obs.len());
-        for (o, k) in self.set.obs.iter().zip(&self.kinds) {
+        // Per observation ([`par`]); `None` for one that cannot be evaluated.
+        par::map(&self.idx, |&i| {
+            let (o, k) = (&self.set.obs[i], &self.kinds[i]);
             let mut ic = Matrix6::zeros();
             if matches!(k, Model::Out) {
-                ics.push(ic);
-                continue;
+                return Some(ic);
             }
             let s_inv = residual_covariance(self.set, o, r, t, self.noise).try_inverse()?;
             let mut ds = [Matrix2::zeros(); 6];
@@ -1605,9 +1656,10 @@ impl Moving<'_> {
                     }
                 }
             }
-            ics.push(ic);
-        }
-        Some(ics)
+            Some(ic)
+        })
+        .into_iter()
+        .collect()
     }
 }
 
@@ -1637,7 +1689,7 @@ pub fn moving_covariance_step(
 ) -> Option<MovingStep> {
     let (r0, t0) = (start.rotation.to_rotation_matrix().into_inner(), start.translation.vector);
     let kinds = screened_models(set, noise, cfg, &r0, &t0).ok()?;
-    let lik = Moving { set, noise, kinds, extra };
+    let lik = Moving { set, noise, kinds, extra, idx: (0..set.obs.len()).collect() };
     let (gns, gh) = lik.held(&r0, &t0)?;
     let gn: Matrix6<f64> = gns.iter().sum();
     // Work in units of the held fit's standard deviations; differences a thousandth of one.
@@ -1650,8 +1702,8 @@ pub fn moving_covariance_step(
     let gf = lik.per_obs_gradients(&r0, &t0, &h)?;
     let ics = lik.covariance_information(&r0, &t0, &h)?;
     // Per observation, its moments and its part of their expected derivatives.
+    // The non-zero moments, each with its part of the derivatives (for the jackknife).
     let mut ms = Vec::with_capacity(gh.len());
-    let mut ds = Vec::with_capacity(gh.len());
     let mut s12 = SMatrix::<f64, 12, 12>::zeros();
     let mut mbar = SVector::<f64, 12>::zeros();
     let mut dm = SMatrix::<f64, 12, 6>::zeros();
@@ -1666,8 +1718,7 @@ pub fn moving_covariance_step(
         mbar += m;
         dm += d;
         if m.iter().any(|v| *v != 0.0) {
-            ms.push(m);
-            ds.push(d);
+            ms.push((m, d));
         }
     }
     let ch = s12.cholesky()?;
@@ -1677,15 +1728,20 @@ pub fn moving_covariance_step(
     let resid = mbar + dm * step;
     let overidentification = resid.dot(&ch.solve(&resid));
     let information_gain = gain(&s12, &dm)?;
-    // Its sampling error: the jackknife over the observations (each left out of `S` and `D`).
-    let n = ms.len() as f64;
-    let loo: Vec<f64> = ms.iter().zip(&ds).filter_map(|(m, d)| gain(&(s12 - m * m.transpose()), &(dm - d))).collect();
-    let information_gain_sd = if loo.len() == ms.len() && ms.len() > 1 {
-        let mean = loo.iter().sum::<f64>() / n;
-        ((n - 1.0) / n * loo.iter().map(|g| (g - mean).powi(2)).sum::<f64>()).sqrt()
-    } else {
-        f64::INFINITY
-    };
+    // Its sampling error: the jackknife over the observations (each left out of `S` and `D`),
+    // only where it can change the decision.
+    let information_gain_sd = cfg.moving_step_needs_sd(information_gain).then(|| {
+        let n = ms.len() as f64;
+        // Each leave-one-out gain in parallel ([`par`]), kept in order.
+        let loo: Vec<f64> =
+            par::map(&ms, |(m, d)| gain(&(s12 - m * m.transpose()), &(dm - d))).into_iter().flatten().collect();
+        if loo.len() == ms.len() && ms.len() > 1 {
+            let mean = loo.iter().sum::<f64>() / n;
+            ((n - 1.0) / n * loo.iter().map(|g| (g - mean).powi(2)).sum::<f64>()).sqrt()
+        } else {
+            f64::INFINITY
+        }
+    });
     let (r, t) = apply_step(&r0, &t0, &(tm * step));
     let fin = |m: &Matrix6<f64>| m.iter().all(|v| v.is_finite());
     let covariance = tm * am_inv * tm;

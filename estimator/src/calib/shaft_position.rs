@@ -181,6 +181,25 @@ pub fn model_and_residuals_at(
     grad: bool,
     line: Option<(&Vector2<f64>, &Jac6)>,
 ) -> (ShaftModel, [f64; TERMS], [Vector6<f64>; TERMS]) {
+    let mut out = (ShaftModel::default(), [0.0; TERMS], [Vector6::zeros(); TERMS]);
+    model_and_residuals_into(set, o, r, t, noise, grad, line, (&mut out.0, &mut out.1, &mut out.2));
+    out
+}
+
+/// [`model_and_residuals_at`] written into `out` (model, residuals, gradients) in place, the
+/// same values: for the refinement's per-observation slots (no copy of the result).
+#[allow(clippy::too_many_arguments, reason = "model_and_residuals_at's arguments and its result's slots")]
+pub(crate) fn model_and_residuals_into(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    grad: bool,
+    line: Option<(&Vector2<f64>, &Jac6)>,
+    out: (&mut ShaftModel, &mut [f64; TERMS], &mut [Vector6<f64>; TERMS]),
+) {
+    let (m_out, e, g) = out;
     let focal = focal_px(set);
     let ends = with_end_precision(set, noise);
     let mut seen = [None; 2];
@@ -193,9 +212,9 @@ pub fn model_and_residuals_at(
         sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(&ends, focal, o.insertion_m, v_unit, &d_unit, depth, s));
     }
     let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
-    let m = ShaftModel { sds, tip: tip.map(|x| x.0) };
-    let mut e = metric_residuals(o, &seen, &sds, m.tip.map(|x| x.point));
-    let mut g = [Vector6::zeros(); TERMS];
+    *m_out = ShaftModel { sds, tip: tip.map(|x| x.0) };
+    *e = metric_residuals(o, &seen, &sds, m_out.tip.map(|x| x.point));
+    *g = [Vector6::zeros(); TERMS];
     if let Some((tm, tp)) = &tip {
         let z = match (grad, line) {
             (true, Some((res, jr))) => tm.z_with(o, tp, res, Some(jr)),
@@ -212,9 +231,8 @@ pub fn model_and_residuals_at(
         }
     }
     if grad {
-        metric_gradients(o, r, t, &sds, &e, &mut g);
+        metric_gradients(o, r, t, &sds, e, g);
     }
-    (m, e, g)
 }
 
 /// The focal length (pixels) of the set's camera, from `K⁻¹`.
@@ -397,6 +415,10 @@ struct AxisJacobians {
     d: Vector3<f64>,
     jp: SMatrix<f64, 3, 6>,
     jd: SMatrix<f64, 3, 6>,
+    /// The gradients of `d·d` and `d·p`: the closest approach's parts that do not depend on
+    /// the ray (computed once for both line points, the same arithmetic).
+    dc: Vector6<f64>,
+    ddp: Vector6<f64>,
 }
 
 /// [`AxisJacobians`] of observation `o` at pose `(R, t)`.
@@ -409,7 +431,9 @@ fn axis_jacobians(o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> AxisJacob
     jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.p_t))));
     let mut jd = SMatrix::<f64, 3, 6>::zeros();
     jd.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rt * skew(&(r * o.m_t))));
-    AxisJacobians { p, d, jp, jd }
+    let dc = (d.transpose() * jd).transpose() * 2.0;
+    let ddp = (p.transpose() * jd + d.transpose() * jp).transpose();
+    AxisJacobians { p, d, jp, jd, dc, ddp }
 }
 
 /// Gradients w.r.t. the pose `(t, δφ)` (`R ← exp(δφ^) R`) of [`axis_seen_at`]'s depth and
@@ -417,8 +441,8 @@ fn axis_jacobians(o: &Prepared, r: &Matrix3<f64>, t: &Vector3<f64>) -> AxisJacob
 /// `ax`, by differentiating the closest approach's closed form; `None` where [`axis_seen_at`]
 /// is.
 fn closest_approach_gradient_with(v: &Vector3<f64>, ax: &AxisJacobians) -> Option<(Vector6<f64>, Vector6<f64>)> {
-    let AxisJacobians { p, d, jp, jd } = ax;
-    let (p, d, jp, jd) = (*p, *d, *jp, *jd);
+    let AxisJacobians { p, d, jp, jd, dc, ddp } = ax;
+    let (p, d, dc, ddp) = (*p, *d, *dc, *ddp);
     let v = *v;
     let (a, b, c) = (v.dot(&v), v.dot(&d), d.dot(&d));
     let (vp, dpr) = (v.dot(&p), d.dot(&p));
@@ -427,9 +451,7 @@ fn closest_approach_gradient_with(v: &Vector3<f64>, ax: &AxisJacobians) -> Optio
         return None;
     }
     let db = (v.transpose() * jd).transpose();
-    let dc = (d.transpose() * jd).transpose() * 2.0;
     let dvp = (v.transpose() * jp).transpose();
-    let ddp = (p.transpose() * jd + d.transpose() * jp).transpose();
     let dden = dc * a - db * (2.0 * b);
     let lambda = (c * vp - b * dpr) / den;
     let dl = ((dc * vp + dvp * c - db * dpr - ddp * b) - dden * lambda) / den;

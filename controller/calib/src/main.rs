@@ -358,11 +358,12 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             p.seed = seed;
             let g = generate(&p, wrong_lines, &dataset, &truth)?;
             hw_io::outln!(
-                "{} observations kept ({} with a wrong line), {} of {} dropped (tool not in view); wrote {} and {}",
+                "{} observations kept ({} with a wrong line), {} of {} dropped (tool not in view), {} not generated (tool through the endoscope); wrote {} and {}",
                 g.kept,
                 g.wrong,
                 g.dropped,
                 g.generated,
+                g.collided,
                 dataset.display(),
                 truth.display()
             )?;

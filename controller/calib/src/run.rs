@@ -56,6 +56,8 @@ pub struct Generated {
     pub kept: usize,
     /// Combinations dropped (tool not in view).
     pub dropped: usize,
+    /// Combinations not generated (the tool through the endoscope).
+    pub collided: usize,
     /// Combinations tried.
     pub generated: usize,
     /// Observations whose line was replaced by a wrong one.
@@ -90,10 +92,17 @@ pub fn generate(
         seed: protocol.seed,
         generated: d.generated,
         dropped: d.dropped,
+        collided: d.collided,
         wrong_lines: wrong.clone(),
     };
     write(truth, &to_json(&t))?;
-    Ok(Generated { kept: d.observations.len(), dropped: d.dropped, generated: d.generated, wrong: wrong.len() })
+    Ok(Generated {
+        kept: d.observations.len(),
+        dropped: d.dropped,
+        collided: d.collided,
+        generated: d.generated,
+        wrong: wrong.len(),
+    })
 }
 
 fn write(path: &Path, text: &str) -> Result<(), GenerateError> {

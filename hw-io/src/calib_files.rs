@@ -369,6 +369,14 @@ pub struct SelectionStageJson {
     /// Why it was refused, when it was.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refused: Option<String>,
+    /// The move test's statistic (dimensionless, χ² when the stage and the robust fit are
+    /// consistent); absent when it was not computed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub move_statistic: Option<f64>,
+    /// The move test's refusal limit (the χ² quantile at one minus the false-refusal
+    /// probability); absent with `move_statistic`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub move_limit: Option<f64>,
 }
 
 /// The result file (JSON).

@@ -137,8 +137,9 @@ fn main() {
                     let er = (r.pose.rotation.inverse() * d.truth.rotation).angle().to_degrees();
                     let stage = match (&r.selection, &r.selection_refused) {
                         (Some(s), _) => format!(
-                            "applied shift {:.2}{}{}{}",
+                            "applied shift {:.2} stat {:.2}{}{}{}",
                             s.shift_sigmas,
+                            s.move_statistic.map_or(f64::NAN, |(x, _)| x),
                             if s.accepted_on_likelihood { " on likelihood" } else { "" },
                             if s.move_test_measured { " measured" } else { "" },
                             s.moving_step.map_or(String::new(), |(h, hsd, take)| format!(

@@ -231,6 +231,10 @@ pub struct OursOptions {
     /// Take the dataset's noise model as known up to a scale, estimated from the data
     /// (`estimator::calib::ours::OursConfig::estimate_noise_scale`).
     pub estimate_noise_scale: bool,
+    /// The probability (in `(0, 1)`) that the stage's move test refuses a stage consistent
+    /// with the guarded fit (`estimator::calib::selection::SelectionConfig::false_refusal_probability`);
+    /// `None`: the default, 1e-3.
+    pub false_refusal_probability: Option<f64>,
 }
 
 /// Reads a dataset (optionally overriding its intrinsics from a YAML file), runs the
@@ -251,7 +255,7 @@ pub fn calibrate(
     pipeline: Pipeline,
     ours: OursOptions,
 ) -> Result<Vec<CalibrateSummary>, CalibrateError> {
-    let OursOptions { accept_unrefined, estimate_noise_scale } = ours;
+    let OursOptions { accept_unrefined, estimate_noise_scale, false_refusal_probability } = ours;
     let text = read(dataset)?;
     let file = parse_dataset(&text).map_err(|source| CalibrateError::File { path: dataset.to_owned(), source })?;
     let (mut setup, obs, noise) = convert::dataset(&file);
@@ -341,7 +345,11 @@ pub fn calibrate(
         }
         if wanted.contains(&"ours") {
             let started = Instant::now();
-            let r = solve_ours_prepared(set, &OursConfig { noise, estimate_noise_scale, ..OursConfig::default() });
+            let mut cfg = OursConfig { noise, estimate_noise_scale, ..OursConfig::default() };
+            if let (Some(p), Some(sel)) = (false_refusal_probability, cfg.selection.as_mut()) {
+                sel.false_refusal_probability = p;
+            }
+            let r = solve_ours_prepared(set, &cfg);
             let ms = started.elapsed().as_secs_f64() * 1e3;
             match r {
                 Ok(r) => {

@@ -5,7 +5,8 @@
 //! `cargo run --release -p comanip-calib --example calib_probe -- <first seed> <geometries>
 //! <trials> [mm|m] [sigma] [first trial]` (tuning geometries: seeds 9000..9019). Environment:
 //! `NO_SHAFT_POSITION=1` runs the lines alone (`OursConfig::shaft_position` off, in the fit and
-//! the selection stage), `BORDER_GUARD=<sigmas>` sets the border guard (0: off), `DIAG=1`
+//! the selection stage), `FALSE_REFUSAL=<p>` the move test's false-refusal probability,
+//! `BORDER_GUARD=<sigmas>` sets the border guard (0: off), `DIAG=1`
 //! prints the guarded fit and the selection stage separately, `AXIS=1` the axis of the
 //! rotation error against the line of sight and the tool (which 180° turn a mirror is).
 //! `MOVING=1` turns on the moving-covariance step (`SelectionConfig::moving_covariance_step`;
@@ -118,6 +119,12 @@ fn main() {
                 if let Ok(z) = std::env::var("MOVING_Z") {
                     sel.moving_step_gain_z = z.parse().unwrap();
                 }
+            }
+            // FALSE_REFUSAL=<p>: the move test's false-refusal probability (default 1e-3).
+            if let (Some(p), Some(sel)) =
+                (std::env::var("FALSE_REFUSAL").ok().and_then(|v| v.parse::<f64>().ok()), cfg.selection.as_mut())
+            {
+                sel.false_refusal_probability = p;
             }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {

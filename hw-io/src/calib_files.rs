@@ -259,6 +259,10 @@ pub struct DatasetFile {
     pub observations: Vec<ObservationJson>,
 }
 
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
 /// Ground truth of a simulated dataset (JSON).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -285,6 +289,10 @@ pub struct TruthFile {
     pub generated: usize,
     /// Combinations dropped because the tool was not in view.
     pub dropped: usize,
+    /// Combinations not generated because the tool would pass through the endoscope (the
+    /// scene's instrument bodies); absent when none was.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub collided: usize,
     /// Observations (0-based, dataset order) whose line was replaced by a wrong one (a
     /// simulated detector error); absent when none was.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -361,6 +369,14 @@ pub struct SelectionStageJson {
     /// Why it was refused, when it was.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refused: Option<String>,
+    /// The move test's statistic (dimensionless, χ² when the stage and the robust fit are
+    /// consistent); absent when it was not computed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub move_statistic: Option<f64>,
+    /// The move test's refusal limit (the χ² quantile at one minus the false-refusal
+    /// probability); absent with `move_statistic`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub move_limit: Option<f64>,
 }
 
 /// The result file (JSON).
@@ -916,6 +932,7 @@ mod tests {
             seed: 1,
             generated: 729,
             dropped: 223,
+            collided: 0,
             wrong_lines: Vec::new(),
         };
         // None: the key is not written, and a file without it (as before) parses.

@@ -16,6 +16,14 @@
 //! visible shaft, and the tip in view when the rule requires it; the others are dropped and
 //! counted.
 //!
+//! The instruments are solid ([`Bodies`], session 22): a combination whose actual tool shaft
+//! (tip to RCM) would pass through the endoscope (its RCM to the lens), closer than the sum of
+//! their radii, is not generated and is counted apart ([`CalibDataset::collided`]); one whose
+//! camera sits inside the shaft's cylinder extended past the tip sees the shaft end-on, has no
+//! silhouette lines, and is dropped with the lines out of view. Before session 22 the
+//! generator let the instrument pass through the lens, which put singular line images in the
+//! data (docs/calibration.md, "Session 21: a millimetre refusal traced...").
+//!
 //! [`random_geometry`] draws valid scenes for the generalisation protocol (RCM-to-RCM distance,
 //! tool-to-scope angle, twist, joint ranges that keep the tool in view, lens distortion).
 //!
@@ -82,6 +90,92 @@ pub struct CalibGeometry {
     pub psm_insertion_m: f64,
     /// The line detector's acceptance rule (pixels as measured).
     pub selection: SelectionRule,
+    /// The instruments' bodies: a combination that puts the tool shaft through the endoscope
+    /// is physically impossible and is not generated ([`Bodies`]).
+    pub bodies: Bodies,
+}
+
+/// The two instruments as cylinders, for the rule that no generated pose puts one through the
+/// other: the tool's shaft (tip to its RCM) and the endoscope (its RCM to the lens, closed by
+/// a hemisphere at the lens) must stay at least `tool_radius_m + scope_radius_m` apart,
+/// measured between their axes' segments in robot 1's RCM frame `{e}` (metres).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bodies {
+    /// Radius of the tool's shaft, metres (an 8 mm instrument: 0.004).
+    pub tool_radius_m: f64,
+    /// Radius of the endoscope, metres (a 10 mm laparoscope: 0.005).
+    pub scope_radius_m: f64,
+}
+
+impl Default for Bodies {
+    /// An 8 mm instrument beside a 10 mm endoscope.
+    fn default() -> Self {
+        Self { tool_radius_m: 0.004, scope_radius_m: 0.005 }
+    }
+}
+
+impl Bodies {
+    /// No bodies: every combination is generated, the tool may pass through the lens (the
+    /// protocol as sessions 15-21 ran it; kept for comparison).
+    pub const NONE: Self = Self { tool_radius_m: 0.0, scope_radius_m: 0.0 };
+
+    /// Whether the tool shaft (segment `tip_e` → `rcm_e`) collides with the endoscope
+    /// (segment `scope_rcm_e` → `lens_e`), all in `{e}`, metres.
+    pub fn collide(
+        &self,
+        tip_e: &Vector3<f64>,
+        rcm_e: &Vector3<f64>,
+        scope_rcm_e: &Vector3<f64>,
+        lens_e: &Vector3<f64>,
+    ) -> bool {
+        let clearance = self.tool_radius_m + self.scope_radius_m;
+        clearance > 0.0 && segment_distance(tip_e, rcm_e, scope_rcm_e, lens_e) < clearance
+    }
+
+    /// Whether the camera (optical centre `lens_e`) lies inside the tool shaft's cylinder
+    /// extended along its axis (through `tip_e`, unit direction `back_e`), all in `{e}`,
+    /// metres: it then sees the shaft end-on, with no silhouette lines (the tangent planes
+    /// from the optical centre to the cylinder do not exist), and no line can be detected.
+    pub fn end_on(&self, tip_e: &Vector3<f64>, back_e: &Vector3<f64>, lens_e: &Vector3<f64>) -> bool {
+        let v = lens_e - tip_e;
+        (v - back_e * v.dot(back_e)).norm() < self.tool_radius_m
+    }
+}
+
+/// The shortest distance between segments `p0 p1` and `q0 q1` (same unit as the points).
+/// The closest points are found by minimising over the two segment parameters in `[0, 1]²`
+/// (Ericson, "Real-Time Collision Detection", 2005, Sec. 5.1.9); degenerate segments (points)
+/// and parallel segments are handled.
+pub fn segment_distance(p0: &Vector3<f64>, p1: &Vector3<f64>, q0: &Vector3<f64>, q1: &Vector3<f64>) -> f64 {
+    let d1 = p1 - p0;
+    let d2 = q1 - q0;
+    let r = p0 - q0;
+    let (a, e, f) = (d1.norm_squared(), d2.norm_squared(), d2.dot(&r));
+    let tiny = 1e-18;
+    let (s, t) = if a <= tiny && e <= tiny {
+        (0.0, 0.0)
+    } else if a <= tiny {
+        (0.0, (f / e).clamp(0.0, 1.0))
+    } else {
+        let c = d1.dot(&r);
+        if e <= tiny {
+            ((-c / a).clamp(0.0, 1.0), 0.0)
+        } else {
+            let b = d1.dot(&d2);
+            let denom = a * e - b * b;
+            let mut s = if denom > tiny * a * e { ((b * f - c * e) / denom).clamp(0.0, 1.0) } else { 0.0 };
+            let mut t = (b * s + f) / e;
+            if t < 0.0 {
+                t = 0.0;
+                s = (-c / a).clamp(0.0, 1.0);
+            } else if t > 1.0 {
+                t = 1.0;
+                s = ((b - c) / a).clamp(0.0, 1.0);
+            }
+            (s, t)
+        }
+    };
+    ((p0 + d1 * s) - (q0 + d2 * t)).norm()
 }
 
 impl Default for CalibGeometry {
@@ -121,6 +215,7 @@ impl Default for CalibGeometry {
             psm_pitch_rad: [-15.0 * deg, 15.0 * deg],
             psm_insertion_m: 0.120,
             selection: SelectionRule { ends_are_shaft_ends: true, ..SelectionRule::tip_in_view(40.0) },
+            bodies: Bodies::default(),
         }
     }
 }
@@ -155,8 +250,12 @@ pub struct CalibDataset {
     pub observations: Vec<Observation>,
     /// Joint combinations tried (`n_e⁴ n_t²`).
     pub generated: usize,
-    /// Combinations dropped because the tool was not (enough) in view.
+    /// Combinations dropped because the tool was not (enough) in view, or seen end-on
+    /// ([`Bodies::end_on`]).
     pub dropped: usize,
+    /// Combinations not generated because the tool shaft would pass through the endoscope
+    /// ([`Bodies`]); `generated = observations + dropped + collided`.
+    pub collided: usize,
     /// The injected noise as a model for the estimator and the CRB (`None` when noiseless).
     pub noise: Option<KinematicNoise>,
 }
@@ -299,6 +398,7 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
     let psm = psm_grid(g, p.n_t);
     let mut observations = Vec::with_capacity(ecm.len() * psm.len());
     let mut dropped = 0;
+    let mut collided = 0;
     for qe in &ecm {
         let f4 = ecm_frames(qe)[3];
         for qt in &psm {
@@ -318,6 +418,16 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
             let f3 = f2 * Isometry3::translation(0.0, 0.0, qt[2]) * db;
             let tip_e = g.truth * nalgebra::Point3::from(f3.translation.vector);
             let back_e = g.truth.rotation * (f3.rotation * -Vector3::z());
+            let rcm_e = tip_e.coords + back_e * qt[2];
+            let lens_e = cam.translation.vector;
+            if g.bodies.collide(&tip_e.coords, &rcm_e, &Vector3::zeros(), &lens_e) {
+                collided += 1;
+                continue;
+            }
+            if g.bodies.end_on(&tip_e.coords, &back_e, &lens_e) {
+                dropped += 1;
+                continue;
+            }
             match observe_shaft(g, &cam, &tip_e.coords, &back_e, qt[2]) {
                 Some([a, b]) => {
                     let s = p.pixel_sigma_px;
@@ -350,6 +460,7 @@ pub fn generate_calibration(p: &CalibProtocol) -> Result<CalibDataset, CalibProt
         observations,
         generated,
         dropped,
+        collided,
         noise: noise.is_valid().then_some(noise),
     })
 }
@@ -387,9 +498,11 @@ pub struct RandomGeometryError {
 /// - joint ranges: ECM yaw/pitch ±4° up to ±30 % of the half field of view, roll ±10-30°,
 ///   insertion putting the camera 40-120 mm from the working point; PSM yaw/pitch ±5-12°;
 ///   kept only when the tool stays in view (below);
-/// - the detector's rule: 40 px of visible shaft, tip not required, no margin.
+/// - the detector's rule: 40 px of visible shaft, tip not required, no margin;
+/// - an 8 mm instrument and a 10 mm endoscope ([`Bodies::default`]).
 ///
-/// Valid: at least 50 % of the noiseless 3⁴×3² grid's lines recorded and all nine tool
+/// Valid: at least 50 % of the noiseless 3⁴×3² grid's lines recorded (combinations with the
+/// tool through the endoscope count against it) and all nine tool
 /// orientations among them; otherwise redrawn (at most 200 times).
 pub fn random_geometry(seed: u64, distortion: bool) -> Result<GeometryDraw, RandomGeometryError> {
     let deg = core::f64::consts::PI / 180.0;
@@ -471,6 +584,7 @@ pub fn random_geometry(seed: u64, distortion: bool) -> Result<GeometryDraw, Rand
                 require_tip_in_view: false,
                 ends_are_shaft_ends: true,
             },
+            bodies: Bodies::default(),
         };
         // The lens model must be invertible over the whole image (undistortion converges).
         let k = &geometry.intrinsics;
@@ -580,6 +694,94 @@ mod tests {
             seed: 3,
         })
         .unwrap()
+    }
+
+    #[test]
+    fn segment_distance_handles_crossing_parallel_and_degenerate_segments() {
+        let v = Vector3::new;
+        // Skew segments crossing at right angles 2 apart.
+        let d = segment_distance(&v(-1.0, 0.0, 0.0), &v(1.0, 0.0, 0.0), &v(0.0, -1.0, 2.0), &v(0.0, 1.0, 2.0));
+        assert!((d - 2.0).abs() < 1e-12, "{d}");
+        // The lines cross, the segments do not: the closest points are end points.
+        let d = segment_distance(&v(1.0, 0.0, 0.0), &v(2.0, 0.0, 0.0), &v(0.0, 1.0, 0.0), &v(0.0, 3.0, 0.0));
+        assert!((d - 2f64.sqrt()).abs() < 1e-12, "{d}");
+        // Parallel, overlapping, 0.5 apart; parallel, disjoint.
+        let d = segment_distance(&v(0.0, 0.0, 0.0), &v(4.0, 0.0, 0.0), &v(1.0, 0.5, 0.0), &v(6.0, 0.5, 0.0));
+        assert!((d - 0.5).abs() < 1e-12, "{d}");
+        let d = segment_distance(&v(0.0, 0.0, 0.0), &v(1.0, 0.0, 0.0), &v(4.0, 0.0, 0.0), &v(6.0, 0.0, 0.0));
+        assert!((d - 3.0).abs() < 1e-12, "{d}");
+        // A point against a segment, and two points.
+        let p = v(0.5, 3.0, 0.0);
+        assert!((segment_distance(&p, &p, &v(0.0, 0.0, 0.0), &v(1.0, 0.0, 0.0)) - 3.0).abs() < 1e-12);
+        assert!((segment_distance(&p, &p, &v(0.5, 0.0, 4.0), &v(0.5, 0.0, 4.0)) - 5.0).abs() < 1e-12);
+        // Symmetric in its two segments.
+        let (a, b, c, e) = (v(0.1, 0.2, 0.3), v(1.0, -2.0, 0.5), v(-1.0, 0.0, 1.0), v(2.0, 1.0, -1.0));
+        assert!((segment_distance(&a, &b, &c, &e) - segment_distance(&c, &e, &a, &b)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bodies_collide_and_end_on_follow_the_radii() {
+        let b = Bodies::default();
+        let v = Vector3::new;
+        let (scope_rcm, lens) = (v(0.0, 0.0, 0.0), v(0.0, 0.0, 0.08));
+        // A tool crossing the scope axis 8 mm in front of the lens: 8 mm < 9 mm clearance.
+        let (tip, rcm) = (v(-0.05, 0.0, 0.088), v(0.1, 0.0, 0.088));
+        assert!(b.collide(&tip, &rcm, &scope_rcm, &lens));
+        // 10 mm in front: clear. Without bodies, nothing collides.
+        let (tip, rcm) = (v(-0.05, 0.0, 0.09), v(0.1, 0.0, 0.09));
+        assert!(!b.collide(&tip, &rcm, &scope_rcm, &lens));
+        assert!(!Bodies::NONE.collide(&lens, &lens, &scope_rcm, &lens));
+        // Pointing at the lens from 30 mm, 3 mm off its axis: end-on for an 8 mm shaft
+        // (radius 4 mm), not for a 5 mm one.
+        let tip = v(0.003, 0.0, 0.11);
+        let back = v(0.0, 0.0, 1.0);
+        assert!(b.end_on(&tip, &back, &lens));
+        assert!(!Bodies { tool_radius_m: 0.0025, ..b }.end_on(&tip, &back, &lens));
+    }
+
+    #[test]
+    fn no_generated_observation_puts_the_tool_through_the_endoscope() {
+        use estimator::calib::rcm_arms::{ecm_frames, psm_frames};
+        // Tuning geometry 9013 (distorted) has combinations with the tool through the lens.
+        let geometry = random_geometry(9013, true).unwrap().geometry;
+        let run = |geometry| {
+            generate_calibration(&CalibProtocol {
+                geometry,
+                n_e: 3,
+                n_t: 3,
+                sigma: 0.0,
+                units: NoiseUnits::Millimetre,
+                pixel_sigma_px: 0.0,
+                seed: 0,
+            })
+            .unwrap()
+        };
+        let clearance = |d: &CalibDataset, b: &Bodies| -> Vec<f64> {
+            d.observations
+                .iter()
+                .map(|o| {
+                    let lens = (ecm_frames(&o.ecm_joints)[3] * geometry.hand_eye).translation.vector;
+                    let f3 = psm_frames(&o.psm_joints)[2];
+                    let tip = geometry.truth * nalgebra::Point3::from(f3.translation.vector);
+                    let back = geometry.truth.rotation * (f3.rotation * -Vector3::z());
+                    let rcm = tip.coords + back * o.psm_joints[2];
+                    let gap = segment_distance(&tip.coords, &rcm, &Vector3::zeros(), &lens)
+                        - (b.tool_radius_m + b.scope_radius_m);
+                    if b.end_on(&tip.coords, &back, &lens) { -1.0 } else { gap }
+                })
+                .collect()
+        };
+        let with = run(geometry);
+        let without = run(CalibGeometry { bodies: Bodies::NONE, ..geometry });
+        assert_eq!(with.generated, with.observations.len() + with.dropped + with.collided);
+        assert!(with.collided > 0);
+        assert_eq!(without.collided, 0);
+        assert!(clearance(&with, &geometry.bodies).iter().all(|&g| g >= 0.0));
+        assert!(
+            clearance(&without, &geometry.bodies).iter().any(|&g| g < 0.0),
+            "the old protocol let the tool through"
+        );
+        assert!(with.observations.len() < without.observations.len());
     }
 
     #[test]

@@ -489,12 +489,13 @@ fn the_moving_covariance_step_is_on_by_default_and_taken_only_where_it_significa
     // Below the threshold its standard error cannot change the decision: not computed.
     assert_eq!(gain_sd, None);
     assert_eq!(pose, off_pose);
-    // Tuning geometry 9003, millimetres, σ = 0.02, trial 0: a spike of the gain (≈ 8, the
-    // reading's median is 0.3) that a few observations carry: its jackknife standard error is
-    // as large as the gain itself, so it is not significant and the step is not taken (session
-    // 20's gate, the gain as measured, took it).
-    let (_, _, off_pose) = solve(9003, NoiseUnits::Millimetre, 0.02, 1000, false);
-    let (_, step, pose) = solve(9003, NoiseUnits::Millimetre, 0.02, 1000, true);
+    // Tuning geometry 9012, metres, σ = 0.005, trial 0: a spike of the gain (≈ 45; the
+    // reading's median is below 1) that a few observations carry: its jackknife standard
+    // error is as large as the gain itself, so it is not significant and the step is not taken
+    // (session 20's gate, the gain as measured, would take it). Session 21's example, 9003 in
+    // millimetres, went with the instrument through the lens (session 22's solid bodies).
+    let (_, _, off_pose) = solve(9012, NoiseUnits::Metre, 0.005, 1000, false);
+    let (_, step, pose) = solve(9012, NoiseUnits::Metre, 0.005, 1000, true);
     let (gain, gain_sd, taken) = step.expect("the step is computed");
     let gain_sd = gain_sd.expect("a gain above the threshold has its standard error");
     assert!(gain > 2.0 * MOVING_STEP_MIN_GAIN && gain_sd > 0.5 * gain && !taken, "gain {gain} ± {gain_sd}");

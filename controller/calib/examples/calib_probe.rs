@@ -5,7 +5,8 @@
 //! `cargo run --release -p comanip-calib --example calib_probe -- <first seed> <geometries>
 //! <trials> [mm|m] [sigma] [first trial]` (tuning geometries: seeds 9000..9019). Environment:
 //! `NO_SHAFT_POSITION=1` runs the lines alone (`OursConfig::shaft_position` off, in the fit and
-//! the selection stage), `BORDER_GUARD=<sigmas>` sets the border guard (0: off), `DIAG=1`
+//! the selection stage), `FALSE_REFUSAL=<p>` the move test's false-refusal probability,
+//! `BORDER_GUARD=<sigmas>` sets the border guard (0: off), `DIAG=1`
 //! prints the guarded fit and the selection stage separately, `AXIS=1` the axis of the
 //! rotation error against the line of sight and the tool (which 180° turn a mirror is).
 //! `MOVING=1` turns on the moving-covariance step (`SelectionConfig::moving_covariance_step`;
@@ -120,6 +121,12 @@ fn main() {
                     sel.moving_step_gain_z = z.parse().unwrap();
                 }
             }
+            // FALSE_REFUSAL=<p>: the move test's false-refusal probability (default 1e-3).
+            if let (Some(p), Some(sel)) =
+                (std::env::var("FALSE_REFUSAL").ok().and_then(|v| v.parse::<f64>().ok()), cfg.selection.as_mut())
+            {
+                sel.false_refusal_probability = p;
+            }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {
                 sel.influence_move_test = v != "0";
@@ -138,8 +145,9 @@ fn main() {
                     let er = (r.pose.rotation.inverse() * d.truth.rotation).angle().to_degrees();
                     let stage = match (&r.selection, &r.selection_refused) {
                         (Some(s), _) => format!(
-                            "applied shift {:.2}{}{}{}",
+                            "applied shift {:.2} stat {:.2}{}{}{}",
                             s.shift_sigmas,
+                            s.move_statistic.map_or(f64::NAN, |(x, _)| x),
                             if s.accepted_on_likelihood { " on likelihood" } else { "" },
                             if s.move_test_measured { " measured" } else { "" },
                             s.moving_step.map_or(String::new(), |(h, hsd, take)| format!(

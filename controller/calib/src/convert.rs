@@ -86,6 +86,8 @@ fn selection_json(o: &OursResult) -> Option<SelectionStageJson> {
             left_out: s.left_out,
             shift_sigmas: s.shift_sigmas,
             refused: None,
+            move_statistic: s.move_statistic.map(|(x, _)| x),
+            move_limit: s.move_statistic.map(|(_, l)| l),
         }),
         (None, Some(e)) => Some(SelectionStageJson {
             applied: false,
@@ -97,6 +99,14 @@ fn selection_json(o: &OursResult) -> Option<SelectionStageJson> {
                 _ => 0.0,
             },
             refused: Some(e.to_string()),
+            move_statistic: match e {
+                estimator::calib::selection::SelectionError::RanAway { statistic, .. } => Some(*statistic),
+                _ => None,
+            },
+            move_limit: match e {
+                estimator::calib::selection::SelectionError::RanAway { limit, .. } => Some(*limit),
+                _ => None,
+            },
         }),
         (None, None) => None,
     }

@@ -333,13 +333,15 @@ fn draw_set(base: u64, n: usize) -> Result<Vec<GeometryDraw>, RandomGeometryErro
 
 fn geometry_list(draws: &[GeometryDraw], base: u64) -> String {
     let mut s = String::from(
-        "| seed | RCM distance mm | tool-scope angle ° | distortion | horizontal FOV ° | PSM insertion mm |\n|---|---|---|---|---|---|\n",
+        "| seed | RCM distance mm | tool-scope angle ° | distortion | horizontal FOV ° | PSM insertion mm | lines kept (noiseless, of 729) | not generated: tool through the endoscope |\n|---|---|---|---|---|---|---|---|\n",
     );
     for (i, g) in draws.iter().enumerate() {
         let fov = 2.0 * (320.0 / g.geometry.intrinsics.fx).atan();
+        let (kept, collided) = generate_calibration(&protocol(g, NoiseUnits::Millimetre, 0.0, 0))
+            .map_or((0, 0), |d| (d.observations.len(), d.collided));
         let _ = writeln!(
             s,
-            "| {} | {:.0} | {:.0} | {} | {:.0} | {:.0} |",
+            "| {} | {:.0} | {:.0} | {} | {:.0} | {:.0} | {kept} | {collided} |",
             base + i as u64,
             g.rcm_distance_m * 1e3,
             g.tool_scope_angle_rad.to_degrees(),

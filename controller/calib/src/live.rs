@@ -328,6 +328,7 @@ pub fn write_dataset(r: &ReplayReport, opts: &ReplayOptions, dir: &Path) -> Resu
         seed: 0,
         generated: r.progress.frames,
         dropped: r.progress.frames.saturating_sub(r.kept.len()),
+        collided: 0,
         wrong_lines: vec![],
     };
     std::fs::write(dir.join("truth.json"), to_json(&t))

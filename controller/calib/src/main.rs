@@ -112,6 +112,12 @@ enum Command {
         /// selection-aware stage do.
         #[arg(long)]
         estimate_noise_scale: bool,
+        /// How often the selection-aware stage's move test may refuse a stage that is in fact
+        /// consistent with the guarded fit: a probability in (0, 1), default 0.001 (the χ²₆
+        /// quantile 22.46 as the limit). Smaller refuses fewer good calibrations and lets
+        /// larger moves through.
+        #[arg(long, value_parser = parse_probability)]
+        false_refusal_probability: Option<f64>,
     },
     /// Detect the instrument shaft's lines in a directory of images; write them as JSON.
     Detect {
@@ -278,6 +284,15 @@ extern "C" fn on_request(_: libc::c_int) {
 }
 
 /// SIGUSR1 sets [`REQUEST`] (a failure to install it is reported, the process runs on).
+/// `--false-refusal-probability`: a probability strictly between 0 and 1.
+fn parse_probability(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(p) if p > 0.0 && p < 1.0 => Ok(p),
+        Ok(p) => Err(format!("{p} is not a probability strictly between 0 and 1")),
+        Err(e) => Err(format!("not a number: {e}")),
+    }
+}
+
 fn install_request_handler() {
     use nix::sys::signal::{SaFlags, SigAction, SigHandler, SigSet, Signal, sigaction};
     let action = SigAction::new(SigHandler::Handler(on_request), SaFlags::SA_RESTART, SigSet::empty());
@@ -358,11 +373,12 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             p.seed = seed;
             let g = generate(&p, wrong_lines, &dataset, &truth)?;
             hw_io::outln!(
-                "{} observations kept ({} with a wrong line), {} of {} dropped (tool not in view); wrote {} and {}",
+                "{} observations kept ({} with a wrong line), {} of {} dropped (tool not in view), {} not generated (tool through the endoscope); wrote {} and {}",
                 g.kept,
                 g.wrong,
                 g.dropped,
                 g.generated,
+                g.collided,
                 dataset.display(),
                 truth.display()
             )?;
@@ -375,6 +391,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
             plot,
             pipeline,
             accept_unrefined,
+            false_refusal_probability,
             estimate_noise_scale,
         } => {
             let s = calibrate(
@@ -384,7 +401,7 @@ fn run(cli: Cli) -> Result<(), Box<dyn std::error::Error>> {
                 &out,
                 plot.as_deref(),
                 pipeline,
-                comanip_calib::run::OursOptions { accept_unrefined, estimate_noise_scale },
+                comanip_calib::run::OursOptions { accept_unrefined, estimate_noise_scale, false_refusal_probability },
             )?;
             for r in &s {
                 match r.errors {

@@ -583,6 +583,7 @@ pub fn write_datasets(run: &PixelRun, p: &PixelProtocol, dir: &std::path::Path) 
         seed: p.seed,
         generated: run.poses.len(),
         dropped: run.poses.iter().filter(|q| q.truth[0].is_none()).count(),
+        collided: 0,
         wrong_lines: vec![],
     };
     write("truth.json".into(), to_json(&t))

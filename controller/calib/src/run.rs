@@ -56,6 +56,8 @@ pub struct Generated {
     pub kept: usize,
     /// Combinations dropped (tool not in view).
     pub dropped: usize,
+    /// Combinations not generated (the tool through the endoscope).
+    pub collided: usize,
     /// Combinations tried.
     pub generated: usize,
     /// Observations whose line was replaced by a wrong one.
@@ -90,10 +92,17 @@ pub fn generate(
         seed: protocol.seed,
         generated: d.generated,
         dropped: d.dropped,
+        collided: d.collided,
         wrong_lines: wrong.clone(),
     };
     write(truth, &to_json(&t))?;
-    Ok(Generated { kept: d.observations.len(), dropped: d.dropped, generated: d.generated, wrong: wrong.len() })
+    Ok(Generated {
+        kept: d.observations.len(),
+        dropped: d.dropped,
+        collided: d.collided,
+        generated: d.generated,
+        wrong: wrong.len(),
+    })
 }
 
 fn write(path: &Path, text: &str) -> Result<(), GenerateError> {
@@ -222,6 +231,10 @@ pub struct OursOptions {
     /// Take the dataset's noise model as known up to a scale, estimated from the data
     /// (`estimator::calib::ours::OursConfig::estimate_noise_scale`).
     pub estimate_noise_scale: bool,
+    /// The probability (in `(0, 1)`) that the stage's move test refuses a stage consistent
+    /// with the guarded fit (`estimator::calib::selection::SelectionConfig::false_refusal_probability`);
+    /// `None`: the default, 1e-3.
+    pub false_refusal_probability: Option<f64>,
 }
 
 /// Reads a dataset (optionally overriding its intrinsics from a YAML file), runs the
@@ -242,7 +255,7 @@ pub fn calibrate(
     pipeline: Pipeline,
     ours: OursOptions,
 ) -> Result<Vec<CalibrateSummary>, CalibrateError> {
-    let OursOptions { accept_unrefined, estimate_noise_scale } = ours;
+    let OursOptions { accept_unrefined, estimate_noise_scale, false_refusal_probability } = ours;
     let text = read(dataset)?;
     let file = parse_dataset(&text).map_err(|source| CalibrateError::File { path: dataset.to_owned(), source })?;
     let (mut setup, obs, noise) = convert::dataset(&file);
@@ -332,7 +345,11 @@ pub fn calibrate(
         }
         if wanted.contains(&"ours") {
             let started = Instant::now();
-            let r = solve_ours_prepared(set, &OursConfig { noise, estimate_noise_scale, ..OursConfig::default() });
+            let mut cfg = OursConfig { noise, estimate_noise_scale, ..OursConfig::default() };
+            if let (Some(p), Some(sel)) = (false_refusal_probability, cfg.selection.as_mut()) {
+                sel.false_refusal_probability = p;
+            }
+            let r = solve_ours_prepared(set, &cfg);
             let ms = started.elapsed().as_secs_f64() * 1e3;
             match r {
                 Ok(r) => {

@@ -313,7 +313,7 @@ fn both_writes_each_result_or_failure_and_exits_non_zero_only_when_all_failed() 
 fn a_selection_stage_that_cannot_model_the_data_fails_loudly_unless_accepted() {
     let dir = tempfile::tempdir().unwrap();
     // The metre reading at σ = 0.03 (30 mm per frame), seed 2: the guarded fit explains the
-    // shafts, the selection-aware stage's move from it is beyond their noise (Hausman test).
+    // shafts, the selection-aware stage's pose puts some behind the camera.
     run_ok(
         bin()
             .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "2"])
@@ -333,6 +333,44 @@ fn a_selection_stage_that_cannot_model_the_data_fails_loudly_unless_accepted() {
     assert!(out.status.success());
     assert!(r.failures.is_empty() && r.results.len() == 1);
     assert!(String::from_utf8_lossy(&out.stderr).contains("accept-unrefined"));
+    // A stricter false-refusal probability raises the test's limit from 22.46 to the χ²₆
+    // quantile at 1 − 1e-6, 38.26; the result file states both numbers.
+    let refused_limit = |r: &hw_io::calib_files::ResultFile| -> Option<f64> {
+        let stage = r.results[0].selection_stage.as_ref()?;
+        stage.refused.as_ref()?;
+        let (x, limit) = (stage.move_statistic?, stage.move_limit?);
+        assert!(x > limit, "refused with statistic {x} within its limit {limit}");
+        Some(limit)
+    };
+    // Seed 1: the stage moves from the guarded fit beyond their noise (the move test).
+    run_ok(
+        bin()
+            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "1"])
+            .arg("--dataset")
+            .arg(dir.path().join("moved.json"))
+            .arg("--truth")
+            .arg(dir.path().join("t1.json")),
+    );
+    let (_, r) = calibrate(dir.path(), "moved.json", "ours", &["--accept-unrefined"]);
+    let default_limit = refused_limit(&r).expect("refused at the default, with its limit");
+    assert!((default_limit - 22.5).abs() < 0.06, "{default_limit}");
+    let (out, r) =
+        calibrate(dir.path(), "moved.json", "ours", &["--accept-unrefined", "--false-refusal-probability", "1e-6"]);
+    assert!(out.status.success());
+    let stage = r.results[0].selection_stage.as_ref().expect("the stage ran");
+    let limit = stage.move_limit.expect("its test's limit");
+    assert!((limit - 38.26).abs() < 0.06, "{limit}");
+    // Not a probability: refused by the command line, nothing run.
+    let out = bin()
+        .args(["calibrate", "--pipeline", "ours", "--false-refusal-probability", "1.5", "--dataset"])
+        .arg(dir.path().join("wild.json"))
+        .arg("--out")
+        .arg(dir.path().join("never.json"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("strictly between 0 and 1"));
+    assert!(!dir.path().join("never.json").exists());
     // A noise model of 1 m per frame on millimetre data: no candidate puts the shafts where
     // an instrument can be; a typed failure, non-zero even with --accept-unrefined, no pose.
     generate(dir.path(), "0.01");

@@ -341,6 +341,13 @@ pub struct SelectionSummary {
     /// [`super::hausman::influence_move_test`]); `false`: the efficiency-based test.
     #[serde(default)]
     pub move_test_measured: bool,
+    /// The move test's statistic and its refusal limit (both dimensionless: the statistic is
+    /// χ²-distributed with [`super::hausman::MoveTest::dof`] degrees of freedom when the two
+    /// fits are consistent; the limit is that distribution's quantile at one minus
+    /// [`SelectionConfig::false_refusal_probability`]): how near the stage came to being
+    /// refused. `None` when the test could not be computed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub move_statistic: Option<(f64, f64)>,
 }
 
 /// Inverse Cholesky factor `L⁻¹` of a 2×2 SPD matrix (identity if not SPD).
@@ -1122,6 +1129,7 @@ pub fn apply_selection_stage(
                 accepted_on_likelihood: on_likelihood,
                 moving_step,
                 move_test_measured: fit.move_test.is_some_and(|t| t.measured),
+                move_statistic: fit.move_test.map(|t| (t.statistic, t.limit)),
             });
         }
         Err(e) => result.selection_refused = Some(e),

@@ -93,8 +93,10 @@ impl Hough {
     /// the perpendicular from the centre (a 3° error 300 px along is 16 px, eight
     /// bins). With the window, the edgels of a straight contour all vote into the same cell at
     /// the contour's true angle whatever their normals' errors within the window, and a peak
-    /// is the 1 (angle) × 3 (distance) box sum. Without it (`window` 0) each edgel votes once
-    /// at its own normal and a peak is the 9 × 3 box sum. Either against `min_votes`.
+    /// is the 1 (angle) × 3 (distance) box sum; once a peak's line is gathered, its edgels'
+    /// votes are taken back, so that one contour leaves one peak and `max_lines` counts
+    /// distinct lines. Without it (`window` 0) each edgel votes once at its own normal and a
+    /// peak is the 9 × 3 box sum. Either against `min_votes`.
     pub(crate) fn run(&mut self, edgels: &[Edgel], min_votes: u32, max_lines: usize, window: usize) {
         self.lines.clear();
         self.peaks.clear();

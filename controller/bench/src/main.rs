@@ -85,7 +85,7 @@ struct IsolationArgs {
 
 #[derive(clap::Args)]
 struct ShaftArgs {
-    /// Seeds per scenario family (9 families in the report set, 3 in the tuning set).
+    /// Seeds per scenario family (9 families in the report set, 4 in the tuning set: 3 of them in the report too, and `blur`).
     #[arg(long, default_value_t = 14)]
     frames_per_family: usize,
     /// Run the tuning set (tuning families, tuning seeds): the only frames to tune on.

@@ -687,7 +687,7 @@ impl ShaftReport {
             self.frames_per_family,
             self.set.tissue_seed(),
             fams.iter().map(|f| f.key).collect::<Vec<_>>().join(", "),
-            FAMILIES.iter().filter(|f| f.tuned).map(|f| f.key).collect::<Vec<_>>().join(", "),
+            fams.iter().filter(|f| f.tuned).map(|f| f.key).collect::<Vec<_>>().join(", "),
             FAMILIES.iter().filter(|f| !f.tuned).map(|f| f.key).collect::<Vec<_>>().join(", "),
             fams.len() * self.frames_per_family,
             metrics::ELIGIBLE_PX,

@@ -21,15 +21,19 @@
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
 //!    undistortion per frame): there the contours are straight lines.
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform, 1° × 2 px bins:
-//!    by default each edgel votes once at its own normal (peaks of a 9 × 3 box sum); with
-//!    `hough_normal_window_deg` (an option, off by default) on a clear frame each edgel votes
-//!    at every angle within that many degrees of its normal, at the distance its position gives there, and the peaks are 1 × 3 box
-//!    sums (a contour's edgels are exactly on one line while their normals scatter by
-//!    degrees: one vote at the measured normal lands `s·δθ` off in distance, `s` along the
-//!    line from the foot of the perpendicular from the centre, so a short contour far out
-//!    makes no peak); on a hazy frame each edgel votes once at its own normal, peaks of a
-//!    9 × 3 box sum. Then each peak's edgels are gathered and refitted (total least squares)
-//!    and its supported span found.
+//!    on a clear frame each edgel votes at every angle within `hough_normal_window_deg` of
+//!    its normal (5° by default; 0: once at its own normal, peaks of a 9 × 3 box sum), at the
+//!    distance its position gives there, and the peaks are 1 × 3 box sums (a contour's
+//!    edgels are exactly on one line while their normals scatter by degrees: one vote at the
+//!    measured normal lands `s·δθ` off in distance, `s` along the line from the foot of the perpendicular from the
+//!    centre, so a short contour far out makes no peak), and once a peak's line is gathered
+//!    its edgels' votes are taken back, so that one contour leaves one peak; on a hazy frame,
+//!    or on one whose instrument silhouettes are motion-blurred (more than
+//!    `hough_window_max_blurred` of the edgels with grey on one side and tissue on the other
+//!    have a step spread over more than a few pixels: each instant of the exposure leaves a
+//!    step of its own, which the window would turn into lines), each edgel votes once at its
+//!    own normal, peaks of a 9 × 3 box sum. Then each peak's edgels are gathered and refitted
+//!    (total least squares) and its supported span found.
 //! 3. **Pairs with physics** (cheap tests on the hypotheses): two lines are the contours of
 //!    one cylinder of radius `r` only if they are within 25° of parallel, overlap along their
 //!    length, and the angle `θ` between their planes through the optical centre (normals
@@ -266,10 +270,12 @@ pub struct OursConfig {
     /// median under smoke fell from 0.062° to 0.041°, with smoke and the crossing instrument
     /// from 0.084° to 0.040° (`docs/detection.md`, eighth round).
     pub haze_refit: bool,
-    /// On a clear frame, each edgel votes in the Hough transform at every angle within this
-    /// many degrees of its normal (1° bins), at the distance its position gives at that angle,
-    /// instead of once at its own normal (default 0: one vote; 5 was measured in session 21). A contour is straight in undistorted pixels, while its edgels' normals (a 2×2
-    /// gradient at half resolution) scatter by degrees: one vote at the measured normal lands
+    /// On a clear frame without motion blur (`hough_window_under_haze`,
+    /// `hough_window_max_blurred`), each edgel votes in the Hough transform at every angle
+    /// within this many degrees of its normal (1° bins), at the distance its position gives at
+    /// that angle, instead of once at its own normal (default 5; 0: one vote). A contour is
+    /// straight in undistorted pixels, while its edgels' normals (a 2×2 gradient at half
+    /// resolution) scatter by degrees: one vote at the measured normal lands
     /// `s·δθ` from the line's distance bin (`s` the edgel's distance along the line from the
     /// foot of the perpendicular from the image centre: 10 px for 3° at 200 px), so a short
     /// or faint contour far out in the image spreads its votes over several cells and makes
@@ -277,8 +283,12 @@ pub struct OursConfig {
     /// contour's edgels all share one distance. On the extended tuning set (session 21) it
     /// found 1 more shaft of 120 at `default` and 3 more of 103 with the crossing instrument,
     /// with 1 and 2 fewer wrong detections; on the report set 9 more shafts with the crossing
-    /// instrument but 7 more wrong detections, mostly motion-blurred frames: off by default
-    /// (`docs/detection.md`, ninth round). At most 5: the gather takes an edgel only within
+    /// instrument but 7 more wrong detections, mostly motion-blurred frames, and it was left
+    /// off (`docs/detection.md`, ninth round). With one peak per line and the motion-blur gate
+    /// (`hough_window_max_blurred`; session 22, tenth round), on the tuning set with a
+    /// motion-blur family 4 more shafts and 4 fewer wrong detections over the levels, and on
+    /// the report set 10 more shafts (`default` +2, `second` +8) with no level's wrong
+    /// detections up: on by default. At most 5: the gather takes an edgel only within
     /// 5.7-8.1° of the line's normal, so a wider window would vote edgels it never gathers.
     pub hough_normal_window_deg: u32,
     /// Apply `hough_normal_window_deg` on hazy frames too (median chroma under
@@ -287,6 +297,17 @@ pub struct OursConfig {
     /// smoke 3 more wrong detections (the shaft with one contour on a shadow's or a
     /// highlight's edge, 2-5° off): opt-in.
     pub hough_window_under_haze: bool,
+    /// Apply `hough_normal_window_deg` only on a frame where at most this fraction of the
+    /// silhouette edgels (grey on one side, tissue on the other) is blurred (default 0.1;
+    /// 1: always). A silhouette edgel is blurred when the chroma slope at it (half-resolution
+    /// pixels) is under a quarter of the whole chroma step across it (±3 pixels): a moving
+    /// instrument, rendered as the mean of the exposure's instants, has a staircase of weaker
+    /// parallel steps for each contour, which the window turns into line hypotheses of their
+    /// own, and a pair of one true contour and one step of another instant passes as a shaft
+    /// a few pixels off. On the tuning set's motion-blur family (session 22) the window raised
+    /// the wrong detections 12 → 27 without this gate and 12 → 11 with it (0.2: 18;
+    /// `docs/detection.md`, tenth round).
+    pub hough_window_max_blurred: f64,
 }
 
 impl Default for OursConfig {
@@ -316,8 +337,9 @@ impl Default for OursConfig {
             haze_normal_integration: false,
             occluded_end_waiver: false,
             haze_refit: true,
-            hough_normal_window_deg: 0,
+            hough_normal_window_deg: 5,
             hough_window_under_haze: false,
+            hough_window_max_blurred: 0.1,
         }
     }
 }
@@ -403,6 +425,7 @@ impl OursConfig {
         )?;
         check((0.0..=1.0).contains(&self.jaw_width_ratio), "jaw_width_ratio", "in [0, 1]")?;
         check(self.hough_normal_window_deg <= 5, "hough_normal_window_deg", "at most 5")?;
+        check((0.0..=1.0).contains(&self.hough_window_max_blurred), "hough_window_max_blurred", "in [0, 1]")?;
         check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
@@ -1268,8 +1291,9 @@ impl OursDetector {
         self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32, normal_clear);
         self.haze = Haze::new(f64::from(self.edges.chroma_median), &cfg);
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
-        let window =
-            if self.haze.scale < 1.0 && !cfg.hough_window_under_haze { 0 } else { cfg.hough_normal_window_deg };
+        let hazy = self.haze.scale < 1.0 && !cfg.hough_window_under_haze;
+        let blurred = f64::from(self.edges.silhouette_blurred) > cfg.hough_window_max_blurred;
+        let window = if hazy || blurred { 0 } else { cfg.hough_normal_window_deg };
         self.hough.run(&self.edges.edgels, min_votes, cfg.max_lines, window as usize);
         self.trace_rejects.clear();
         let buf = std::mem::take(&mut self.pair_buf);
@@ -1362,6 +1386,7 @@ impl OursDetector {
         tr.lines.extend(self.hough.lines.iter().map(|l| TraceLine { abc: l.line.abc(), ends: l.ends, votes: l.count }));
         tr.pairs.clear();
         tr.clashes.clear();
+        tr.silhouette = (self.edges.silhouette_edgels, self.edges.silhouette_blurred);
         for g in &self.cands {
             for f in &self.cands {
                 if let (true, Some(r)) = (g.rank != f.rank, clash(g, f, &jaws)) {

@@ -37,6 +37,11 @@
 //! true contours, the span against the visible length, the middle line's error (an accuracy
 //! aid).
 //!
+//! With `SHAFT_DIAG_SHARP` set, each frame prints `SHARP level family seed silhouette=N
+//! blurred=F`: its silhouette edgels (grey on one side, tissue on the other) and the fraction
+//! of them whose step is blurred, the motion-blur measure that gates the Hough window
+//! (`OursConfig::hough_window_max_blurred`).
+//!
 //! A diagnostic only: it runs on whatever set it is given, and is meant for the tuning set.
 
 use std::collections::BTreeMap;
@@ -484,6 +489,17 @@ pub fn run(
             }
             if std::env::var_os("SHAFT_DIAG_WRONG").is_some() {
                 print_wrong(frame, level, fam, &dets);
+            }
+            if std::env::var_os("SHAFT_DIAG_SHARP").is_some() {
+                eprintln!(
+                    "SHARP {} {} {} silhouette={} blurred={:.3} eligible={}",
+                    level.key(),
+                    fam,
+                    frame.spec.seed,
+                    trace.silhouette.0,
+                    trace.silhouette.1,
+                    frame.inst1.as_ref().is_some_and(|t| t.eligible())
+                );
             }
             if !frame.inst1_in_view {
                 let inst2 = if frame.inst2_in_view { frame.inst2.as_ref() } else { None };

@@ -43,7 +43,26 @@ pub(crate) struct EdgeBuffers {
     /// The frame's median half-resolution chroma `2R − G − B` (8-bit units): the haze
     /// estimate of `super::Haze`.
     pub(crate) chroma_median: f32,
+    /// The frame's silhouette edgels (grey on one side, tissue-coloured on the other: an
+    /// instrument's outline against the tissue).
+    pub(crate) silhouette_edgels: usize,
+    /// The fraction of the silhouette edgels whose step is blurred, its sharpness under
+    /// `BLURRED_SHARPNESS`, 0 with fewer than `MIN_SILHOUETTE_EDGELS` of them. The sharpness
+    /// is the chroma slope at the edgel (half-resolution central difference along its normal,
+    /// per pixel) over the whole chroma step across it (±3 half-resolution pixels): about 0.5
+    /// for a step within a pixel, lower for a blurred one (a motion-blurred silhouette is a
+    /// staircase of the exposure's instants: about 1/6 for three steps 2 px apart).
+    pub(crate) silhouette_blurred: f32,
 }
+
+/// The fewest silhouette edgels for `EdgeBuffers::silhouette_blurred` (fewer: 0).
+const MIN_SILHOUETTE_EDGELS: usize = 20;
+
+/// The sharpness under which a silhouette edgel counts as blurred (see
+/// `EdgeBuffers::silhouette_blurred`; on the tuning set's `default` frames, session 22, the
+/// slow families' silhouette edgels had a median fraction under it of 0.01-0.02, the
+/// motion-blurred `blur` family's 0.37).
+const BLURRED_SHARPNESS: f32 = 0.25;
 
 impl EdgeBuffers {
     /// Sets `chroma_median` from the histogram of the half-resolution chroma filled by
@@ -209,6 +228,9 @@ impl EdgeBuffers {
             }
         }
         // Non-maximum suppression and mapping to undistorted pixels.
+        let (mut n_sil, mut n_blurred) = (0usize, 0usize);
+        let grey = 0.25 * self.chroma_median;
+        let tissue = 0.6 * self.chroma_median;
         for i in 1..h2 - 1 {
             for j in 1..w2 - 1 {
                 let idx = i * w2 + j;
@@ -227,6 +249,22 @@ impl EdgeBuffers {
                     continue;
                 }
                 let [ex, ey] = self.eig[idx];
+                if self.chroma_median > 8.0 {
+                    // The chroma at ±k half-resolution pixels along the normal (nearest pixel).
+                    let at = |k: f32| -> Option<f32> {
+                        let (x, y) = (j as f32 + k * ex, i as f32 + k * ey);
+                        let (x, y) = (x.round(), y.round());
+                        (x >= 0.0 && y >= 0.0 && (x as usize) < w2 && (y as usize) < h2)
+                            .then(|| self.chroma[y as usize * w2 + x as usize])
+                    };
+                    if let (Some(a3), Some(a1), Some(b1), Some(b3)) = (at(-3.0), at(-1.0), at(1.0), at(3.0)) {
+                        let (lo, hi) = (a3.min(b3), a3.max(b3));
+                        if lo < grey && hi > tissue {
+                            n_sil += 1;
+                            n_blurred += usize::from(0.5 * (b1 - a1).abs() < BLURRED_SHARPNESS * (hi - lo));
+                        }
+                    }
+                }
                 // The edge's tangent, mapped; the undistorted normal is its perpendicular.
                 let (pos, tan) = table.map(j, i, -ey, ex);
                 if !pos.iter().all(|v| v.is_finite()) {
@@ -246,6 +284,8 @@ impl EdgeBuffers {
                 self.edgels.push(Edgel { p: pos, n: [nx, ny] });
             }
         }
+        self.silhouette_edgels = n_sil;
+        self.silhouette_blurred = if n_sil >= MIN_SILHOUETTE_EDGELS { n_blurred as f32 / n_sil as f32 } else { 0.0 };
     }
 }
 

@@ -35,6 +35,10 @@ pub(crate) struct Hough {
     peaks: Vec<(u32, usize, usize)>,
     kept: Vec<(usize, usize)>,
     members: Vec<[f64; 2]>,
+    /// The edgel index of each of `members`.
+    member_idx: Vec<u32>,
+    /// With the window: per edgel, whether its votes were taken back (a line gathered it).
+    unvoted: Vec<bool>,
     /// Per edgel, its angle bin.
     tbs: Vec<u16>,
     /// Start of each angle bin in `order` (prefix sums, `N_THETA + 1` entries).
@@ -89,8 +93,10 @@ impl Hough {
     /// the perpendicular from the centre (a 3° error 300 px along is 16 px, eight
     /// bins). With the window, the edgels of a straight contour all vote into the same cell at
     /// the contour's true angle whatever their normals' errors within the window, and a peak
-    /// is the 1 (angle) × 3 (distance) box sum. Without it (`window` 0) each edgel votes once
-    /// at its own normal and a peak is the 9 × 3 box sum. Either against `min_votes`.
+    /// is the 1 (angle) × 3 (distance) box sum; once a peak's line is gathered, its edgels'
+    /// votes are taken back, so that one contour leaves one peak and `max_lines` counts
+    /// distinct lines. Without it (`window` 0) each edgel votes once at its own normal and a
+    /// peak is the 9 × 3 box sum. Either against `min_votes`.
     pub(crate) fn run(&mut self, edgels: &[Edgel], min_votes: u32, max_lines: usize, window: usize) {
         self.lines.clear();
         self.peaks.clear();
@@ -109,14 +115,7 @@ impl Hough {
                 self.vote(tb, rho);
                 continue;
             }
-            let w = window.min(N_THETA / 2 - 1) as isize;
-            for b in tb as isize - w..=tb as isize + w {
-                // Past either end of [0, π) the bin wraps: the wrapped bin's own normal (the
-                // table's) is the unwrapped one's negated, and so is the distance.
-                let bw = b.rem_euclid(N_THETA as isize) as usize;
-                let [c, s] = self.trig[bw];
-                self.vote(bw, (e.p[0] - cx) * c + (e.p[1] - cy) * s);
-            }
+            self.vote_window(e, tb, window, true);
         }
         // Edgel indices sorted by angle bin (counting sort): a peak gathers from its bins only.
         for i in 0..N_THETA {
@@ -159,16 +158,31 @@ impl Hough {
         let mut kept = std::mem::take(&mut self.kept);
         kept.clear();
         let peaks = std::mem::take(&mut self.peaks);
+        // Suppression around a kept peak: ±4 angle bins (the 9 × 3 box's reach) and ±3
+        // distance bins; with the window, ±(window + 4) angle bins, and every vote of a
+        // gathered line's edgels is taken back before the next peak is judged (over the
+        // window, a contour's edgels also make cells at the neighbouring angles, a short
+        // contour's nearly as full as its own: without this one line left two or three
+        // peaks). Without the window `max_lines` counts the peaks taken; with it the distinct
+        // lines, at most `4·max_lines` peaks tried.
+        let reach = 4 + window.min(N_THETA / 2 - 5);
+        if window > 0 {
+            self.unvoted.clear();
+            self.unvoted.resize(edgels.len(), false);
+        }
         for &(_, tb, rb) in &peaks {
-            if kept.len() >= max_lines {
+            if window == 0 && kept.len() >= max_lines {
+                break;
+            }
+            if window > 0 && (self.lines.len() >= max_lines || kept.len() >= 4 * max_lines) {
                 break;
             }
             let near = kept.iter().any(|&(t2, r2)| {
                 let dt = tb.abs_diff(t2);
-                if dt <= 4 {
+                if dt <= reach {
                     return rb.abs_diff(r2) <= 3;
                 }
-                if N_THETA - dt <= 4 {
+                if N_THETA - dt <= reach {
                     return (2 * self.rho0).abs_diff(rb).abs_diff(r2) <= 3;
                 }
                 false
@@ -176,12 +190,28 @@ impl Hough {
             if near {
                 continue;
             }
+            if window > 0 {
+                // The peak's 1 × 3 box sum with the votes of the lines gathered so far taken back.
+                let left: u32 = (-1..=1isize).map(|dr| self.cell(tb as isize, rb as isize + dr)).sum();
+                if left < min_votes {
+                    continue;
+                }
+            }
             kept.push((tb, rb));
             let theta = (tb as f64 + 0.5) * std::f64::consts::PI / N_THETA as f64;
             let rho = (rb as f64 - self.rho0 as f64) * f64::from(RHO_STEP);
             let (n0, n1) = (theta.cos(), theta.sin());
             let line = Line { n: [n0, n1], c: -(rho + n0 * f64::from(cx) + n1 * f64::from(cy)) };
             if let Some(cand) = self.gather(edgels, tb, line) {
+                if window > 0 {
+                    for k in 0..self.member_idx.len() {
+                        let i = self.member_idx[k] as usize;
+                        if !self.unvoted[i] {
+                            self.unvoted[i] = true;
+                            self.vote_window(&edgels[i], usize::from(self.tbs[i]), window, false);
+                        }
+                    }
+                }
                 // Two peaks may refit to the same line: keep the better supported.
                 let mid = [0.5 * (cand.ends[0][0] + cand.ends[1][0]), 0.5 * (cand.ends[0][1] + cand.ends[1][1])];
                 let same = |l: &LineCand| {
@@ -202,6 +232,12 @@ impl Hough {
 
     /// One vote at angle bin `tb` and distance `rho` (pixels from the centre), if inside.
     fn vote(&mut self, tb: usize, rho: f32) {
+        self.vote_signed(tb, rho, true);
+    }
+
+    /// A vote at angle bin `tb` and distance `rho` (pixels from the centre), if inside: cast
+    /// (`add`) or taken back.
+    fn vote_signed(&mut self, tb: usize, rho: f32, add: bool) {
         if !rho.is_finite() || rho.abs() > RHO_STEP * self.rho0 as f32 {
             return;
         }
@@ -210,7 +246,21 @@ impl Hough {
             return;
         }
         let a = &mut self.acc[tb * self.n_rho + rb as usize];
-        *a = a.saturating_add(1);
+        *a = if add { a.saturating_add(1) } else { a.saturating_sub(1) };
+    }
+
+    /// The votes of edgel `e` (angle bin `tb`) at every angle bin within `±window` of its
+    /// normal, each at the distance its position gives there: cast (`add`) or taken back.
+    fn vote_window(&mut self, e: &Edgel, tb: usize, window: usize, add: bool) {
+        let [cx, cy] = self.centre;
+        let w = window.min(N_THETA / 2 - 1) as isize;
+        for b in tb as isize - w..=tb as isize + w {
+            // Past either end of [0, π) the bin wraps: the wrapped bin's own normal (the
+            // table's) is the unwrapped one's negated, and so is the distance.
+            let bw = b.rem_euclid(N_THETA as isize) as usize;
+            let [c, s] = self.trig[bw];
+            self.vote_signed(bw, (e.p[0] - cx) * c + (e.p[1] - cy) * s, add);
+        }
     }
 
     /// The edgels near `line` (twice: wide, then around the refit), the refit line and its
@@ -218,6 +268,7 @@ impl Hough {
     fn gather(&mut self, edgels: &[Edgel], tb: usize, mut line: Line) -> Option<LineCand> {
         for (tol_px, cos_tol) in [(3.5f64, 0.990f64), (2.0, 0.995)] {
             self.members.clear();
+            self.member_idx.clear();
             // The angle bins within ±9° (cos 0.990 is 8.1°), wrapping around π.
             let candidates = (tb as isize - 9..=tb as isize + 9).flat_map(|b| {
                 let b = b.rem_euclid(N_THETA as isize) as usize;
@@ -229,6 +280,7 @@ impl Hough {
                 let cosang = (f64::from(e.n[0]) * line.n[0] + f64::from(e.n[1]) * line.n[1]).abs();
                 if cosang >= cos_tol && line.distance(p).abs() <= tol_px {
                     self.members.push(p);
+                    self.member_idx.push(i);
                 }
             }
             if self.members.len() < 6 {
@@ -269,18 +321,25 @@ mod tests {
     /// into three cells 10 px apart, 10 votes each, and no 9 × 3 box reaches 12; with a window
     /// of 3° every edgel also votes at the true angle, into one cell.
     fn contour(theta_deg: f32) -> (Vec<Edgel>, Line) {
+        contour_at(theta_deg, 250.0, 200.0, 30, 3.0)
+    }
+
+    /// `n` edgels every 2 px along a straight contour at normal angle `theta_deg`, its foot
+    /// `foot_px` from the centre, the span's middle `shift_px` along from the foot, their
+    /// normals off by `+err_deg`, 0, `−err_deg` in turn.
+    fn contour_at(theta_deg: f32, foot_px: f32, shift_px: f32, n_edgels: usize, err_deg: f32) -> (Vec<Edgel>, Line) {
         let centre = [320.0f32, 240.0];
         let th = theta_deg.to_radians();
         let n = [th.cos(), th.sin()];
         let t = [-n[1], n[0]];
-        let foot = [centre[0] + 250.0 * n[0], centre[1] + 250.0 * n[1]];
+        let foot = [centre[0] + foot_px * n[0], centre[1] + foot_px * n[1]];
         let mut edgels = Vec::new();
-        for k in 0..30 {
-            let s = -30.0 + 2.0 * k as f32 + 0.5;
+        for k in 0..n_edgels {
+            let s = -(n_edgels as f32) + 2.0 * k as f32 + 0.5;
             let p = [foot[0] + s * t[0], foot[1] + s * t[1]];
             // Far from the line's foot, so that the error in distance is large: shift the span.
-            let p = [p[0] + 200.0 * t[0], p[1] + 200.0 * t[1]];
-            let err = [3.0f32, 0.0, -3.0][k % 3].to_radians();
+            let p = [p[0] + shift_px * t[0], p[1] + shift_px * t[1]];
+            let err = [err_deg, 0.0, -err_deg][k % 3].to_radians();
             let mut m = [(th + err).cos(), (th + err).sin()];
             if m[1] < 0.0 || (m[1] == 0.0 && m[0] < 0.0) {
                 m = [-m[0], -m[1]];
@@ -327,5 +386,39 @@ mod tests {
         assert!(found(&h, &truth));
         assert_eq!(h.lines.len(), 1);
         assert_eq!(h.lines[0].count, one.count);
+    }
+
+    #[test]
+    fn with_the_window_one_contour_leaves_one_peak() {
+        // A short contour far out votes nearly as fully at the angles around its own (its
+        // span's distance moves by `s·sin δ` there, a few bins): each of those cells was a
+        // peak of its own, refitted to the same line, and took a place in `max_lines`.
+        for theta in [20.0f32, 75.0, 130.0, 178.0] {
+            let (edgels, truth) = contour(theta);
+            let mut h = Hough::new([320.0, 240.0], 800.0);
+            for window in 3..=5 {
+                h.run(&edgels, 12, 40, window);
+                assert!(found(&h, &truth), "θ = {theta}°, window {window}: not found: {:?}", h.lines);
+                assert_eq!(h.lines.len(), 1, "θ = {theta}°, window {window}: {:?}", h.lines);
+                assert_eq!(h.kept.len(), 1, "θ = {theta}°, window {window}: peaks {:?}", h.kept);
+            }
+        }
+    }
+
+    #[test]
+    fn with_the_window_a_weaker_second_line_still_makes_the_list() {
+        // Two contours: the first of 30 edgels with scattered normals (cells of 20-30 votes at
+        // every angle within the window), the second of 16 with exact normals. With
+        // `max_lines` 2 both are lines: the first's neighbouring cells are not peaks once its
+        // edgels' votes are taken back.
+        for (ta, tb) in [(40.0f32, 120.0f32), (100.0, 10.0), (170.0, 60.0)] {
+            let (mut edgels, first) = contour_at(ta, 250.0, 200.0, 30, 3.0);
+            let (more, second) = contour_at(tb, 120.0, -60.0, 16, 0.0);
+            edgels.extend(more);
+            let mut h = Hough::new([320.0, 240.0], 800.0);
+            h.run(&edgels, 12, 2, 5);
+            assert!(found(&h, &first), "{ta}°/{tb}°: the first not found: {:?}", h.lines);
+            assert!(found(&h, &second), "{ta}°/{tb}°: the second not found: {:?}", h.lines);
+        }
     }
 }

@@ -166,4 +166,8 @@ pub struct OursTrace {
     /// Every clash between two verified pairs, by rank: `(g, f, rule)`, `f` would be dropped
     /// for `g` were `g` the better one.
     pub clashes: Vec<(usize, usize, ClashRule)>,
+    /// The frame's silhouette edgels (grey on one side, tissue on the other) and the fraction
+    /// of them whose step is blurred (the motion-blur measure that gates
+    /// `OursConfig::hough_normal_window_deg`; 0 with fewer than 20 of them).
+    pub silhouette: (usize, f32),
 }

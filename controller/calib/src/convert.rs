@@ -173,6 +173,7 @@ mod tests {
             accepted_on_likelihood: false,
             moving_step: None,
             move_test_measured: false,
+            move_statistic: Some((4.2, 22.457_744)),
         };
         for moving_step in [None, Some((0.3, None, false)), Some((5.0, Some(0.9), true))] {
             let s = SelectionSummary { moving_step, ..base };

@@ -856,7 +856,7 @@ impl SelectionConfig {
 /// function of the observation and the pose `(R, t)` returning its value and, when asked, its
 /// gradient w.r.t. `(t m, δφ rad)` and Gauss-Newton matrix (our pipeline's shaft-position
 /// terms, [`super::ours`]; this module does not know them).
-/// `Sync`: evaluated per observation on the calibration's pool ([`super::par`]).
+/// `Sync`: evaluated per observation on the calibration's pool (the private `calib::par` module).
 pub type ExtraTerms<'a> =
     &'a (dyn Fn(&Prepared, &Matrix3<f64>, &Vector3<f64>, bool) -> (f64, Vector6<f64>, Matrix6<f64>) + Sync);
 

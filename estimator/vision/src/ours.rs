@@ -22,7 +22,7 @@
 //!    undistortion per frame): there the contours are straight lines.
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform, 1° × 2 px bins:
 //!    on a clear frame each edgel votes at every angle within `hough_normal_window_deg` of
-//!    its normal (5° by default; 0: once at its own normal, peaks of a 9 × 3 box sum), at the
+//!    its normal (an option, 0 by default: once at its own normal, peaks of a 9 × 3 box sum), at the
 //!    distance its position gives there, and the peaks are 1 × 3 box sums (a contour's
 //!    edgels are exactly on one line while their normals scatter by degrees: one vote at the
 //!    measured normal lands `s·δθ` off in distance, `s` along the line from the foot of the perpendicular from the
@@ -273,7 +273,7 @@ pub struct OursConfig {
     /// On a clear frame without motion blur (`hough_window_under_haze`,
     /// `hough_window_max_blurred`), each edgel votes in the Hough transform at every angle
     /// within this many degrees of its normal (1° bins), at the distance its position gives at
-    /// that angle, instead of once at its own normal (default 5; 0: one vote). A contour is
+    /// that angle, instead of once at its own normal (default 0: one vote). A contour is
     /// straight in undistorted pixels, while its edgels' normals (a 2×2 gradient at half
     /// resolution) scatter by degrees: one vote at the measured normal lands
     /// `s·δθ` from the line's distance bin (`s` the edgel's distance along the line from the
@@ -288,7 +288,10 @@ pub struct OursConfig {
     /// (`hough_window_max_blurred`; session 22, tenth round), on the tuning set with a
     /// motion-blur family 4 more shafts and 4 fewer wrong detections over the levels, and on
     /// the report set 10 more shafts (`default` +2, `second` +8) with no level's wrong
-    /// detections up: on by default. At most 5: the gather takes an edgel only within
+    /// detections up; but with it on, the calibration from the rendered grid's detected lines
+    /// (`comanip-calib pixels`, both eyes) was refused by the selection stage's move test
+    /// (statistic 58.1), where it had been applied (0.216 mm / 0.370°): off by default until
+    /// that is understood (`docs/detection.md`, tenth round). At most 5: the gather takes an edgel only within
     /// 5.7-8.1° of the line's normal, so a wider window would vote edgels it never gathers.
     pub hough_normal_window_deg: u32,
     /// Apply `hough_normal_window_deg` on hazy frames too (median chroma under
@@ -337,7 +340,7 @@ impl Default for OursConfig {
             haze_normal_integration: false,
             occluded_end_waiver: false,
             haze_refit: true,
-            hough_normal_window_deg: 5,
+            hough_normal_window_deg: 0,
             hough_window_under_haze: false,
             hough_window_max_blurred: 0.1,
         }

@@ -239,6 +239,14 @@ pub struct CalibProtocol {
     pub seed: u64,
 }
 
+impl CalibProtocol {
+    /// The noiseless 3⁴×3² grid of `geometry` (σ = 0, no pixel noise, seed 0): what a scene
+    /// records without noise, for validity checks and tests.
+    pub fn noiseless(geometry: CalibGeometry) -> Self {
+        Self { geometry, n_e: 3, n_t: 3, sigma: 0.0, units: NoiseUnits::Millimetre, pixel_sigma_px: 0.0, seed: 0 }
+    }
+}
+
 /// A simulated dataset with its ground truth.
 #[derive(Clone, Debug)]
 pub struct CalibDataset {
@@ -598,15 +606,7 @@ pub fn random_geometry(seed: u64, distortion: bool) -> Result<GeometryDraw, Rand
         if !invertible {
             continue;
         }
-        let clean = generate_calibration(&CalibProtocol {
-            geometry,
-            n_e: 3,
-            n_t: 3,
-            sigma: 0.0,
-            units: NoiseUnits::Millimetre,
-            pixel_sigma_px: 0.0,
-            seed: 0,
-        });
+        let clean = generate_calibration(&CalibProtocol::noiseless(geometry));
         let Ok(clean) = clean else { continue };
         let mut orientations: Vec<[f64; 3]> = Vec::new();
         for o in &clean.observations {
@@ -744,18 +744,7 @@ mod tests {
         use estimator::calib::rcm_arms::{ecm_frames, psm_frames};
         // Tuning geometry 9013 (distorted) has combinations with the tool through the lens.
         let geometry = random_geometry(9013, true).unwrap().geometry;
-        let run = |geometry| {
-            generate_calibration(&CalibProtocol {
-                geometry,
-                n_e: 3,
-                n_t: 3,
-                sigma: 0.0,
-                units: NoiseUnits::Millimetre,
-                pixel_sigma_px: 0.0,
-                seed: 0,
-            })
-            .unwrap()
-        };
+        let run = |geometry| generate_calibration(&CalibProtocol::noiseless(geometry)).unwrap();
         let clearance = |d: &CalibDataset, b: &Bodies| -> Vec<f64> {
             d.observations
                 .iter()

@@ -86,16 +86,7 @@ fn views_collinear_with_robot_2s_rcm_are_their_own_error() {
     g.ecm_pitch_rad = [0.0; 2];
     g.ecm_roll_rad = [0.0; 2];
     g.psm_insertion_m = 0.07;
-    let d = generate_calibration(&CalibProtocol {
-        geometry: g,
-        n_e: 3,
-        n_t: 3,
-        sigma: 0.0,
-        units: NoiseUnits::Millimetre,
-        pixel_sigma_px: 0.0,
-        seed: 0,
-    })
-    .unwrap();
+    let d = generate_calibration(&CalibProtocol::noiseless(g)).unwrap();
     assert!(d.observations.len() >= 9, "kept {}", d.observations.len());
     assert!(matches!(
         solve_paper(&d.setup, &d.observations, &PaperConfig::default()),

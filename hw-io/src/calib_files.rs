@@ -377,6 +377,11 @@ pub struct SelectionStageJson {
     /// probability); absent with `move_statistic`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub move_limit: Option<f64>,
+    /// The move failed the test (`move_statistic` above `move_limit`) and the stage was
+    /// applied because its pose is far more likely than the guarded fit's on all
+    /// observations (the likelihood override, `docs/calibration.md`); absent when false.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub accepted_on_likelihood: bool,
 }
 
 /// The result file (JSON).

@@ -14,7 +14,8 @@
 //! taken|held`), `MOVING=force`
 //! takes it whatever its gain, `MOVING_Z=<z>` sets `SelectionConfig::moving_step_gain_z`.
 //! `INFLUENCE=1` judges the stage's move with its measured covariance
-//! (`SelectionConfig::influence_move_test`).
+//! (`SelectionConfig::influence_move_test`). `FROM_TRUTH=1` adds the truth's rotation as a
+//! start (`OursConfig::initial_quaternion`).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -130,6 +131,12 @@ fn main() {
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {
                 sel.influence_move_test = v != "0";
+            }
+            // FROM_TRUTH=1: the truth's rotation as one more start (is there a basin the starts
+            // missed?).
+            if std::env::var("FROM_TRUTH").is_ok() {
+                let q = d.truth.rotation;
+                cfg.initial_quaternion = Some([q.w, q.i, q.j, q.k]);
             }
             let t0 = std::time::Instant::now();
             let r = solve_ours_prepared(&set, &cfg);

@@ -88,26 +88,22 @@ fn selection_json(o: &OursResult) -> Option<SelectionStageJson> {
             refused: None,
             move_statistic: s.move_statistic.map(|(x, _)| x),
             move_limit: s.move_statistic.map(|(_, l)| l),
+            accepted_on_likelihood: s.accepted_on_likelihood,
         }),
-        (None, Some(e)) => Some(SelectionStageJson {
-            applied: false,
-            selected: 0,
-            plain: 0,
-            left_out: 0,
-            shift_sigmas: match e {
-                estimator::calib::selection::SelectionError::RanAway { sigmas, .. } if sigmas.is_finite() => *sigmas,
-                _ => 0.0,
-            },
-            refused: Some(e.to_string()),
-            move_statistic: match e {
-                estimator::calib::selection::SelectionError::RanAway { statistic, .. } => Some(*statistic),
-                _ => None,
-            },
-            move_limit: match e {
-                estimator::calib::selection::SelectionError::RanAway { limit, .. } => Some(*limit),
-                _ => None,
-            },
-        }),
+        (None, Some(e)) => {
+            let test = e.move_statistic();
+            Some(SelectionStageJson {
+                applied: false,
+                selected: 0,
+                plain: 0,
+                left_out: 0,
+                shift_sigmas: e.shift_sigmas().unwrap_or(0.0),
+                refused: Some(e.to_string()),
+                move_statistic: test.map(|(x, _)| x),
+                move_limit: test.map(|(_, l)| l),
+                accepted_on_likelihood: false,
+            })
+        }
         (None, None) => None,
     }
 }
@@ -157,7 +153,72 @@ pub fn result_json(
 
 #[cfg(test)]
 mod tests {
-    use estimator::calib::ours::SelectionSummary;
+    use estimator::calib::ours::{OursResult, ResidualStats, SelectionSummary};
+    use estimator::calib::selection::SelectionError;
+    use nalgebra::{Isometry3, Matrix6};
+
+    fn result(selection: Option<SelectionSummary>, selection_refused: Option<SelectionError>) -> OursResult {
+        OursResult {
+            pose: Isometry3::identity(),
+            covariance: Matrix6::identity(),
+            residuals: ResidualStats { count: 0, rms_px: 0.0, median_px: 0.0, max_px: 0.0, inliers: 0 },
+            scale: 1.0,
+            alternative: Isometry3::identity(),
+            log_likelihood_ratio: 10.0,
+            iterations: 1,
+            guard_kept: 0,
+            guard_from: None,
+            selection,
+            selection_refused,
+            noise_scale: None,
+        }
+    }
+
+    /// The result file says why an applied stage can be over its move limit (the likelihood
+    /// override), and keeps the move test's figures of a stage the shafts refused after it
+    /// passed the test.
+    #[test]
+    fn the_selection_stage_entry_keeps_the_override_and_the_statistic() {
+        let summary = SelectionSummary {
+            selected: 700,
+            plain: 20,
+            left_out: 9,
+            shift_sigmas: 6.0,
+            accepted_on_likelihood: true,
+            moving_step: None,
+            move_test_measured: false,
+            move_statistic: Some((40.0, 22.457_744)),
+        };
+        let applied = super::selection_json(&result(Some(summary), None)).unwrap();
+        assert!(applied.applied && applied.accepted_on_likelihood);
+        assert_eq!((applied.move_statistic, applied.move_limit), (Some(40.0), Some(22.457_744)));
+        let text = serde_json::to_string(&applied).unwrap();
+        assert!(text.contains("\"accepted_on_likelihood\":true"), "{text}");
+        let plain =
+            super::selection_json(&result(Some(SelectionSummary { accepted_on_likelihood: false, ..summary }), None));
+        let text = serde_json::to_string(&plain.unwrap()).unwrap();
+        assert!(!text.contains("accepted_on_likelihood"), "{text}");
+
+        let shafts = SelectionError::ShaftsNotExplained {
+            behind: 30,
+            off_shaft: 2,
+            observations: 729,
+            sigmas: 3.5,
+            move_statistic: Some((5.0, 22.457_744)),
+        };
+        let refused = super::selection_json(&result(None, Some(shafts))).unwrap();
+        assert!(!refused.applied && !refused.accepted_on_likelihood);
+        assert_eq!((refused.move_statistic, refused.move_limit), (Some(5.0), Some(22.457_744)));
+        assert_eq!(refused.shift_sigmas, 3.5);
+        assert!(refused.refused.as_deref().is_some_and(|r| r.contains("30 of 729")), "{:?}", refused.refused);
+
+        let ran =
+            SelectionError::RanAway { sigmas: f64::INFINITY, statistic: 58.1, dof: 6, limit: 22.46, measured: false };
+        let refused = super::selection_json(&result(None, Some(ran))).unwrap();
+        assert_eq!((refused.move_statistic, refused.move_limit, refused.shift_sigmas), (Some(58.1), Some(22.46), 0.0));
+        let none = super::selection_json(&result(None, Some(SelectionError::NoModel))).unwrap();
+        assert_eq!((none.move_statistic, none.move_limit), (None, None));
+    }
 
     /// Our pipeline's selection-stage summary survives a JSON round trip whether or not the
     /// moving-covariance step's jackknife standard error was computed (serde_json writes a

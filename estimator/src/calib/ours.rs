@@ -1100,6 +1100,8 @@ pub fn apply_selection_stage(
                 behind: x.behind,
                 off_shaft: x.off_shaft,
                 observations: x.observations,
+                sigmas: fit.shift_sigmas,
+                move_statistic: fit.move_test.map(|t| (t.statistic, t.limit)),
             })
         }
     });

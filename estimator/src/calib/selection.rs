@@ -1211,7 +1211,39 @@ pub enum SelectionError {
         off_shaft: usize,
         /// Observations.
         observations: usize,
+        /// The stage's move from the guarded fit in its standard deviations (as
+        /// [`SelectionError::RanAway`]'s `sigmas`).
+        sigmas: f64,
+        /// The move test's statistic and limit (dimensionless, as
+        /// [`super::ours::SelectionSummary::move_statistic`]): the test was passed (or
+        /// overridden on likelihood) before the shafts refused the stage; `None` when it could
+        /// not be computed.
+        move_statistic: Option<(f64, f64)>,
     },
+}
+
+impl SelectionError {
+    /// How far the refused stage had moved from the guarded fit, in standard deviations;
+    /// `None` when it produced no pose (or the move is not finite).
+    pub fn shift_sigmas(&self) -> Option<f64> {
+        match self {
+            Self::RanAway { sigmas, .. } | Self::ShaftsNotExplained { sigmas, .. } => {
+                sigmas.is_finite().then_some(*sigmas)
+            }
+            Self::NoModel | Self::Singular => None,
+        }
+    }
+
+    /// The move test's statistic and limit (dimensionless), when the refused stage computed
+    /// them: refused by the test itself ([`SelectionError::RanAway`]) or after it
+    /// ([`SelectionError::ShaftsNotExplained`]).
+    pub fn move_statistic(&self) -> Option<(f64, f64)> {
+        match self {
+            Self::RanAway { statistic, limit, .. } => Some((*statistic, *limit)),
+            Self::ShaftsNotExplained { move_statistic, .. } => *move_statistic,
+            Self::NoModel | Self::Singular => None,
+        }
+    }
 }
 
 /// Every observation's model at `(R, t)`, gross outliers of the first-order model left out

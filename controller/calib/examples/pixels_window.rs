@@ -10,8 +10,15 @@
 //! Environment: `OURS_A` and `OURS_B` the two detector configurations as JSON (`OursConfig`'s
 //! fields; default `{}` and `{"hough_normal_window_deg":5}`); `SWAP=i,j,...` swaps B's lines
 //! into A's at those differing frames' indices (as printed) and solves; `SWAP=each` solves
-//! once per differing frame (A with that frame's B line); `DROP=each` solves B without each
-//! differing frame's line; `OBS=1` prints every B observation's residual at the truth.
+//! once per differing frame (A with that frame's B line); `DROP=each` solves B with A's line
+//! in each differing frame in turn; `EXPERIMENTS=1` solves A and B without their wrong lines
+//! (more than `BAD_DEG`, default 1°, off the truth axis, or on an eye without a truth line), A
+//! with B's wrong lines where A's are not, and B with A's lines where B's are wrong;
+//! `TSV=FILE` writes one row per eye (truth ends; per detector its ends, angle and offset
+//! errors, widths and axis depths at its ends, confidence, and the returned pair's support,
+//! residual scale, contrast, length and width); `PNG_DIR=DIR` with `PNG_FRAMES=pose:eye,...`
+//! draws both detectors' overlays of those frames; `QUIET=1` leaves out the per-frame listing.
+//! Session 23's use: docs/detection.md, eleventh round.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use std::sync::{Arc, Mutex};

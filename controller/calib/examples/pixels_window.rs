@@ -323,6 +323,25 @@ fn main() {
         let r = variant(&|p, e| if !bad(p, 1, e) { p.detected[1][e] } else { p.detected[0][e] });
         solve(&r, LineSource::Detector(0), "A + B's good lines (B where B's is good)");
     }
+    if let Ok(c) = std::env::var("MIN_CONF") {
+        // A consumer's gate: the lines whose detection's confidence is under `c` left out.
+        let c: f64 = c.parse().unwrap();
+        let mut r = run.clone();
+        let mut dropped = [0usize; 2];
+        for (pi, pose) in r.poses.iter_mut().enumerate() {
+            for eye in 0..2 {
+                for (d, l) in [&la, &lb].into_iter().enumerate() {
+                    if l[2 * pi + eye].first().is_some_and(|x| x.confidence < c) {
+                        pose.detected[d][eye] = None;
+                        dropped[d] += 1;
+                    }
+                }
+            }
+        }
+        println!("confidence under {c}: A {} lines left out, B {}", dropped[0], dropped[1]);
+        solve(&r, LineSource::Detector(0), &format!("A, confidence >= {c}"));
+        solve(&r, LineSource::Detector(1), &format!("B, confidence >= {c}"));
+    }
     if std::env::var("DROP").as_deref() == Ok("each") {
         for (i, &(pi, eye)) in diffs.iter().enumerate() {
             let mut r = run.clone();

@@ -114,8 +114,8 @@ enum Command {
         estimate_noise_scale: bool,
         /// How often the selection-aware stage's move test may refuse a stage that is in fact
         /// consistent with the guarded fit: a probability in (0, 1), default 0.0001 (the χ²₆
-        /// quantile 27.86 as the limit; nominal, the statistic's tail is heavier). Smaller refuses fewer good calibrations and lets
-        /// larger moves through.
+        /// quantile 27.86 as the limit; nominal: the statistic's tail is heavier). Smaller
+        /// refuses fewer good calibrations and lets larger moves through.
         #[arg(long, value_parser = parse_probability)]
         false_refusal_probability: Option<f64>,
     },

@@ -14,7 +14,8 @@
 //! taken|held`), `MOVING=force`
 //! takes it whatever its gain, `MOVING_Z=<z>` sets `SelectionConfig::moving_step_gain_z`.
 //! `INFLUENCE=1` judges the stage's move with its measured covariance
-//! (`SelectionConfig::influence_move_test`). `FROM_TRUTH=1` adds the truth's rotation as a
+//! (`SelectionConfig::influence_move_test`). `LIK=0` turns the likelihood descent of the
+//! unexplained candidates off (`OursConfig::likelihood_descent`). `FROM_TRUTH=1` adds the truth's rotation as a
 //! start (`OursConfig::initial_quaternion`).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
@@ -127,6 +128,11 @@ fn main() {
                 (std::env::var("FALSE_REFUSAL").ok().and_then(|v| v.parse::<f64>().ok()), cfg.selection.as_mut())
             {
                 sel.false_refusal_probability = p;
+            }
+            // LIK=0: the candidates that do not explain the shafts are compared where their
+            // refinement left them (no likelihood descent).
+            if let Ok(v) = std::env::var("LIK") {
+                cfg.likelihood_descent = v != "0";
             }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {

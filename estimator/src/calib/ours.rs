@@ -131,6 +131,15 @@ pub struct OursConfig {
     /// of the twin: the stage ran away and was refused at every solve). `false` (the default):
     /// the noise model is taken as stated.
     pub estimate_noise_scale: bool,
+    /// With a noise model: each candidate that, once refined, does not explain where the
+    /// shafts were seen ([`explains_shafts`]) descends the likelihood the candidates are
+    /// judged by ([`Candidate::nll`]: each observation whitened by its own covariance at the
+    /// candidate's pose; the private `descend_likelihood`) before they are compared. The
+    /// refinement minimises a surrogate (whitening held for a pass, Huber at a robust scale
+    /// re-estimated every iteration), which can walk the true basin's candidate out of the
+    /// physical region (tuning geometry 9017, metres, σ = 0.02: the mirror was then returned
+    /// with exit 0). `false`: candidates are compared where the refinement left them.
+    pub likelihood_descent: bool,
 }
 
 /// The bounds of the noise scale [`OursConfig::estimate_noise_scale`] applies
@@ -150,6 +159,7 @@ impl Default for OursConfig {
             selection: Some(SelectionConfig::default()),
             shaft_position: true,
             estimate_noise_scale: false,
+            likelihood_descent: true,
         }
     }
 }
@@ -756,6 +766,121 @@ fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<
         }
     }
     NllParts { norms, shaft, rest }
+}
+
+/// Most iterations of [`descend_likelihood`].
+const DESCENT_ITERATIONS: usize = 30;
+
+/// `(r, t)` moved by `step` (`(t m, δφ rad)`, left increment), as [`refine`] moves it.
+fn moved(r: &Matrix3<f64>, t: &Vector3<f64>, step: &Vector6<f64>) -> (Matrix3<f64>, Vector3<f64>) {
+    let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
+    (orthonormalize(&r_new), t + step.fixed_rows::<3>(0))
+}
+
+/// The Gauss-Newton matrix and gradient (w.r.t. `(t m, δφ rad)`) of [`candidate_nll`]'s
+/// residual terms at `(r, t)` and robust scale `s_ref`: the line residuals whitened by their
+/// own covariance at this pose (not a pass's, as in [`refine`]) and the shaft-position terms,
+/// Huber-weighted as the likelihood weighs them. The log-determinants and the detector's-rule
+/// terms are not in it: it gives [`descend_likelihood`] its directions, the whole likelihood
+/// decides its steps.
+fn likelihood_metric(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    s_ref: f64,
+) -> (Matrix6<f64>, Vector6<f64>) {
+    let c = cfg.huber_k * s_ref;
+    let s2 = s_ref * s_ref;
+    let shaft_noise = cfg.noise.as_ref().filter(|_| cfg.shaft_position);
+    let per_obs = par::map(&set.obs, |o| {
+        let (res, jac) = residual_and_jacobian(set, o, r, t);
+        let w = match &cfg.noise {
+            Some(noise) => whitener(&residual_covariance(set, o, r, t, noise)),
+            None => Matrix2::identity(),
+        };
+        let (e, j) = (w * res, w * jac);
+        let n = e.norm();
+        if !n.is_finite() {
+            return (Matrix6::zeros(), Vector6::zeros());
+        }
+        // Huber's weight; the shaft terms take their line's, as [`NllParts::nll`] does.
+        let lw = if n <= c { 1.0 } else { c / n };
+        let mut h = j.transpose() * j * (lw / s2);
+        let mut g = j.transpose() * e * (lw / s2);
+        if let Some(noise) = shaft_noise {
+            let (_, es, js) = model_and_residuals_at(set, o, r, t, noise, true, Some((&res, &jac)));
+            for (e, j) in es.iter().zip(&js) {
+                if *e != 0.0 {
+                    // In standard deviations: weighs `huber(e · s_ref, c) / s_ref²`.
+                    let n = (e * s_ref).abs();
+                    let wgt = lw * if n <= c { 1.0 } else { c / n };
+                    h += j * j.transpose() * wgt;
+                    g += j * (e * wgt);
+                }
+            }
+        }
+        (h, g)
+    });
+    per_obs.iter().fold((Matrix6::zeros(), Vector6::zeros()), |a, x| (a.0 + x.0, a.1 + x.1))
+}
+
+/// Descends [`candidate_nll`] at robust scale `s_ref` from `(r, t)`: Levenberg-Marquardt on
+/// [`likelihood_metric`] (the residuals whitened afresh at every iteration's pose), a step
+/// taken only when it lowers the whole likelihood (log-determinants and the detector's rule
+/// included). Never less likely than its start; stops when no damped step lowers it, when a
+/// step is under a thousandth of a standard deviation, or after [`DESCENT_ITERATIONS`].
+/// Returns the pose, its [`NllParts`] and the iterations.
+///
+/// The likelihood's own gradient (forward differences, log-determinants included) was tried
+/// first: it walked candidates behind the camera, where the lines' predicted covariance is
+/// smallest (`docs/calibration.md`, session 24).
+fn descend_likelihood(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    r0: &Matrix3<f64>,
+    t0: &Vector3<f64>,
+    s_ref: f64,
+) -> (Matrix3<f64>, Vector3<f64>, NllParts, usize) {
+    let (mut r, mut t) = (*r0, *t0);
+    let mut parts = nll_parts(set, cfg, &r, &t);
+    let mut f = parts.nll(cfg, s_ref);
+    let mut iterations = 0;
+    if !f.is_finite() {
+        return (r, t, parts, iterations);
+    }
+    let mut lambda = 1e-3;
+    for _ in 0..DESCENT_ITERATIONS {
+        iterations += 1;
+        let (h, g) = likelihood_metric(set, cfg, &r, &t, s_ref);
+        if !(h.iter().all(|v| v.is_finite()) && g.iter().all(|v| v.is_finite())) {
+            break;
+        }
+        let mut accepted = false;
+        let mut small = false;
+        while lambda < 1e10 {
+            let Some(step) = damped_step(&h, &g, lambda) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let (rn, tn) = moved(&r, &t, &step);
+            let pn = nll_parts(set, cfg, &rn, &tn);
+            let fn_ = pn.nll(cfg, s_ref);
+            if fn_ < f {
+                // Under a thousandth of a standard deviation (the metric's).
+                small = step.dot(&(h * step)) <= 1e-6 || f - fn_ <= 1e-12 * f.abs().max(1.0);
+                (r, t, parts, f) = (rn, tn, pn, fn_);
+                lambda = (lambda * 0.2).max(1e-9);
+                accepted = true;
+                break;
+            }
+            lambda *= 10.0;
+        }
+        if !accepted || small {
+            break;
+        }
+    }
+    (r, t, parts, iterations)
 }
 
 /// The runner-up of the candidates (`costs` their [`candidate_nll`], `ib` the best): the most
@@ -1459,6 +1584,34 @@ fn solve_from(
     if !s_ref.is_finite() {
         return Err(OursError::NoConvergence);
     }
+    // Each distinct candidate that does not explain the shafts descends the likelihood it is
+    // judged by ([`OursConfig::likelihood_descent`]); one that does is left where its
+    // refinement ended (descending every candidate changed results at the millimetre level
+    // for no better poses, at up to twice the solve time: docs/calibration.md, session 24).
+    let (candidates, parts) = if cfg.likelihood_descent && cfg.noise.is_some() && from.is_none() {
+        let (mut candidates, mut parts) = (candidates, parts);
+        for i in 0..candidates.len() {
+            if let Some(j) = candidates[i].merged {
+                // A merged candidate shares its target's pose (`j < i`: already descended).
+                let (r, t, scale) = (candidates[j].r, candidates[j].t, candidates[j].scale);
+                candidates[i] = Refined { r, t, scale, ..candidates[i].clone() };
+                continue;
+            }
+            let x = &candidates[i];
+            if !finite(x) || explains_shafts(set, &pose_of(&x.r, &x.t)) {
+                continue;
+            }
+            let (r, t, p, its) = descend_likelihood(set, cfg, &x.r, &x.t, s_ref);
+            let mut scratch = Vec::with_capacity(p.norms.len());
+            let scale = robust_scale_with(&p.norms, &mut scratch);
+            let x = &mut candidates[i];
+            (x.r, x.t, x.scale, x.iterations) = (r, t, scale, x.iterations + its);
+            parts[i] = Some(p);
+        }
+        (candidates, parts)
+    } else {
+        (candidates, parts)
+    };
     let nll_of = |r: &Matrix3<f64>, t: &Vector3<f64>| candidate_nll(set, cfg, r, t, s_ref);
     let costs: Vec<f64> =
         candidates.iter().enumerate().map(|(i, x)| nll_at(&parts[x.merged.unwrap_or(i)], x, s_ref)).collect();

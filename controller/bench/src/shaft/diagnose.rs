@@ -37,6 +37,9 @@
 //! true contours, the span against the visible length, the middle line's error (an accuracy
 //! aid).
 //!
+//! With `SHAFT_DIAG_PNG_EVERY` set (and `SHAFT_DIAG_PNG=DIR`), every frame's overlay is written,
+//! not only those printed.
+//!
 //! With `SHAFT_DIAG_SHARP` set, each frame prints `SHARP level family seed silhouette=N
 //! blurred=F`: its silhouette edgels (grey on one side, tissue on the other) and the fraction
 //! of them whose step is blurred, the motion-blur measure that gates the Hough window
@@ -489,6 +492,9 @@ pub fn run(
             }
             if std::env::var_os("SHAFT_DIAG_WRONG").is_some() {
                 print_wrong(frame, level, fam, &dets);
+            }
+            if std::env::var_os("SHAFT_DIAG_PNG_EVERY").is_some() {
+                write_diag_png(frame, level, fam, &trace);
             }
             if std::env::var_os("SHAFT_DIAG_SHARP").is_some() {
                 eprintln!(

@@ -10,17 +10,16 @@ use comanip_bench::shaft::{endoscope_config, intrinsics, render_frames};
 use vision::ShaftDetector as _;
 use vision::ours::{OursConfig, OursDetector};
 
-/// The tuning frame of `family` and `seed` at `clean` (no noise: the same pixels on every
-/// machine).
-fn spec(family: &str, seed: u64) -> FrameSpec {
-    let set = SeedSet::Tuning;
-    let fi = FAMILIES.iter().position(|f| f.key == family).unwrap();
-    let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, ClutterLevel::Clean)).unwrap();
-    FrameSpec { family: fi, seed, scene }
-}
-
 #[test]
 fn the_bridging_rule_drops_the_jaws_pair_and_keeps_the_shafts() {
+    // The tuning frames of a family and seed at `clean` (no noise: the same pixels on every
+    // machine).
+    let spec = |family: &str, seed: u64| {
+        let set = SeedSet::Tuning;
+        let fi = FAMILIES.iter().position(|f| f.key == family).unwrap();
+        let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, ClutterLevel::Clean)).unwrap();
+        FrameSpec { family: fi, seed, scene }
+    };
     let specs = [spec("blur", 1057), spec("along", 1001), spec("along", 1002)];
     let frames = render_frames(SeedSet::Tuning, ClutterLevel::Clean, &specs, &|| {}).unwrap();
     let rule = OursConfig { bridge_min_both: 5, ..OursConfig::default() };

@@ -77,7 +77,8 @@
 //!    the run with the most good stations is the shaft. Gaps of any length are bridged (the
 //!    stations on both sides lie on the same two contour lines with a grey interior: one
 //!    cylinder, a second instrument crossing in front); a gap over 64 px is an occlusion and
-//!    does not count against the support. Its ends are trimmed while either contour leaves its line systematically (the
+//!    does not count against the support (opt-in, `bridge_min_both`: only where both contours
+//!    run on on each side of it). Its ends are trimmed while either contour leaves its line systematically (the
 //!    wrist, a bent link, the tapered jaws), and both contours are refitted on the span.
 //! 6. **The exact axis** from the two contours, [`crate::shaft::axis_from_contours`] (the
 //!    middle line is wrong by up to pixels under perspective); the distance gate again, the

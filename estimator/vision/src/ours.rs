@@ -313,36 +313,42 @@ pub struct OursConfig {
     /// `docs/detection.md`, tenth round).
     pub hough_window_max_blurred: f64,
     /// A gap of over 64 px in a pair's visible span (no edge on either contour, or an interior
-    /// not grey) is bridged only when, on each side of it, the stations (every 2 px) where
-    /// both contours have an edge number at least this many (default 5; 0: every gap is
-    /// bridged, the behaviour before session 24). Such a gap is taken for a second instrument
-    /// crossing in front of the shaft, which hides both contours; on both sides of it the same
-    /// two silhouettes run on. Where the shaft runs along an image border close to the lens
-    /// and one of its silhouettes is outside the image, a pair of edges of its wrist or jaws
-    /// extended over the shaft has a long gap between the jaws and the border with only one of
-    /// its lines on an edge on the far side, and the gap, bridged, made it a shaft converging
-    /// on the jaws' tip (`docs/detection.md`, twelfth round).
+    /// not grey) is bridged only when, on each side of it, at least this many stations (every
+    /// 2 px) have both contours' edges, or the other contour's edges near its line there do not
+    /// turn away from it (`bridge_max_divergence_deg`) (default 0: every gap is bridged, main's
+    /// behaviour; 5 the setting measured). Such a gap is taken for a second instrument crossing
+    /// in front of the shaft, which hides both contours; on both sides of it the same two
+    /// silhouettes run on. Where the shaft runs along an image border close to the lens and
+    /// one of its silhouettes is outside the image, the two outer edges of its jaws extended
+    /// over the shaft have a long gap between the jaws and the border, with one of them on
+    /// the shaft's corner on the far side, and the gap, bridged, made them a shaft converging
+    /// on the jaws' tip. On the tuning set with the `along` family (session 24) 5 found 2
+    /// shafts fewer with the crossing instrument and 1 false detection fewer at three levels;
+    /// on the calibration's pixels grid it removed one wrong line of about 20
+    /// (`docs/detection.md`, twelfth round): opt-in.
     pub bridge_min_both: usize,
     /// Where a segment of a pair's visible span next to a gap of over 64 px has fewer than
     /// `bridge_min_both` stations with both contours' edges, the gap is bridged only when the
-    /// edges found within 3.5 px of each contour's line there (where it has no inlier edge)
-    /// turn away from it by at most this angle, degrees (default 3; 90: off).
+    /// edges found within 3.5 px of each contour's line there (where it has no inlier edge, at
+    /// least 4 of them) turn away from it by at most this angle, degrees (default 3; 90: off).
     pub bridge_max_divergence_deg: f64,
     /// The visible span's stations sample the interior also this far inside each contour
-    /// (undistorted pixels, at most half the width; default 4, 0: off): a station is good
-    /// only where the interior is grey against the outside right up to both contours. A
-    /// line that is not the shaft's silhouette but crosses it (an edge of the wrist or jaws
-    /// extended over the shaft) runs on outside the shaft, where it has tissue on both sides.
+    /// (undistorted pixels, at most half the width; default 0: off; 4 the setting measured): a
+    /// station is good only where the interior is grey against the outside right up to both
+    /// contours. On the tuning set (session 24) 4 removed a third of the `along` family's false
+    /// detections but added 4 at `default` and cost 3-4 shafts: opt-in.
     pub interior_near_px: f64,
     /// Over the verified span, where a contour has no inlier edge, the edges found within
     /// 3.5 px of its line may turn away from it by at most this angle, degrees
-    /// ([`PairReject::Diverging`]; default 90: off).
+    /// ([`PairReject::Diverging`]; default 90: off). With 3 (session 24) the tuning set lost
+    /// 19 shafts of 240 on clear frames: opt-in.
     pub span_max_divergence_deg: f64,
     /// The border test's reach past the span (a contour's edges followed past it, or a run
     /// of 32 px of edges on a contour line) counts only where both contours have edges
-    /// (default true; false: either contour, the behaviour before session 24). A shaft runs out
-    /// of the view with both silhouettes; a pair of jaws one of whose lines runs on along the
-    /// shaft's end to the border does not.
+    /// (default false: either contour, main's behaviour). A shaft runs out of the view with
+    /// both silhouettes; a pair of jaws one of whose lines runs on along the shaft's end to
+    /// the border does not; but with it a third of the tuning set's shafts on clear frames
+    /// were lost (session 24; a shaft whose other silhouette fades before the border): opt-in.
     pub border_reach_both: bool,
 }
 

@@ -77,7 +77,8 @@
 //!    the run with the most good stations is the shaft. Gaps of any length are bridged (the
 //!    stations on both sides lie on the same two contour lines with a grey interior: one
 //!    cylinder, a second instrument crossing in front); a gap over 64 px is an occlusion and
-//!    does not count against the support. Its ends are trimmed while either contour leaves its line systematically (the
+//!    does not count against the support (opt-in, `bridge_min_both`: only where both contours
+//!    run on on each side of it). Its ends are trimmed while either contour leaves its line systematically (the
 //!    wrist, a bent link, the tapered jaws), and both contours are refitted on the span.
 //! 6. **The exact axis** from the two contours, [`crate::shaft::axis_from_contours`] (the
 //!    middle line is wrong by up to pixels under perspective); the distance gate again, the
@@ -311,6 +312,44 @@ pub struct OursConfig {
     /// the wrong detections 12 → 27 without this gate and 12 → 11 with it (0.2: 18;
     /// `docs/detection.md`, tenth round).
     pub hough_window_max_blurred: f64,
+    /// A gap of over 64 px in a pair's visible span (no edge on either contour, or an interior
+    /// not grey) is bridged only when, on each side of it, at least this many stations (every
+    /// 2 px) have both contours' edges, or the other contour's edges near its line there do not
+    /// turn away from it (`bridge_max_divergence_deg`) (default 0: every gap is bridged, main's
+    /// behaviour; 5 the setting measured). Such a gap is taken for a second instrument crossing
+    /// in front of the shaft, which hides both contours; on both sides of it the same two
+    /// silhouettes run on. Where the shaft runs along an image border close to the lens and
+    /// one of its silhouettes is outside the image, the two outer edges of its jaws extended
+    /// over the shaft have a long gap between the jaws and the border, with one of them on
+    /// the shaft's corner on the far side, and the gap, bridged, made them a shaft converging
+    /// on the jaws' tip. On the tuning set with the `along` family (session 24) 5 found 2
+    /// shafts fewer with the crossing instrument and 1 false detection fewer at three levels;
+    /// on the calibration's pixels grid it removed one wrong line of about 20
+    /// (`docs/detection.md`, twelfth round): opt-in.
+    pub bridge_min_both: usize,
+    /// Where a segment of a pair's visible span next to a gap of over 64 px has fewer than
+    /// `bridge_min_both` stations with both contours' edges, the gap is bridged only when the
+    /// edges found within 3.5 px of each contour's line there (where it has no inlier edge, at
+    /// least 4 of them) turn away from it by at most this angle, degrees (default 3; 90: off).
+    pub bridge_max_divergence_deg: f64,
+    /// The visible span's stations sample the interior also this far inside each contour
+    /// (undistorted pixels, at most half the width; default 0: off; 4 the setting measured): a
+    /// station is good only where the interior is grey against the outside right up to both
+    /// contours. On the tuning set (session 24) 4 removed a third of the `along` family's false
+    /// detections but added 4 at `default` and cost 3-4 shafts: opt-in.
+    pub interior_near_px: f64,
+    /// Over the verified span, where a contour has no inlier edge, the edges found within
+    /// 3.5 px of its line may turn away from it by at most this angle, degrees
+    /// ([`PairReject::Diverging`]; default 90: off). With 3 (session 24) the tuning set lost
+    /// 19 shafts of 240 on clear frames: opt-in.
+    pub span_max_divergence_deg: f64,
+    /// The border test's reach past the span (a contour's edges followed past it, or a run
+    /// of 32 px of edges on a contour line) counts only where both contours have edges
+    /// (default false: either contour, main's behaviour). A shaft runs out of the view with
+    /// both silhouettes; a pair of jaws one of whose lines runs on along the shaft's end to
+    /// the border does not; but with it a third of the tuning set's shafts on clear frames
+    /// were lost (session 24; a shaft whose other silhouette fades before the border): opt-in.
+    pub border_reach_both: bool,
 }
 
 impl Default for OursConfig {
@@ -343,6 +382,11 @@ impl Default for OursConfig {
             hough_normal_window_deg: 0,
             hough_window_under_haze: false,
             hough_window_max_blurred: 0.1,
+            bridge_min_both: 0,
+            bridge_max_divergence_deg: 3.0,
+            interior_near_px: 0.0,
+            span_max_divergence_deg: 90.0,
+            border_reach_both: false,
         }
     }
 }
@@ -429,6 +473,8 @@ impl OursConfig {
         check((0.0..=1.0).contains(&self.jaw_width_ratio), "jaw_width_ratio", "in [0, 1]")?;
         check(self.hough_normal_window_deg <= 5, "hough_normal_window_deg", "at most 5")?;
         check((0.0..=1.0).contains(&self.hough_window_max_blurred), "hough_window_max_blurred", "in [0, 1]")?;
+        check(self.interior_near_px.is_finite() && self.interior_near_px >= 0.0, "interior_near_px", "finite and ≥ 0")?;
+        check((0.0..=90.0).contains(&self.bridge_max_divergence_deg), "bridge_max_divergence_deg", "in [0, 90]")?;
         check(self.min_contrast_scale > 0.0 && self.min_contrast_scale <= 1.0, "min_contrast_scale", "in (0, 1]")?;
         Ok(())
     }
@@ -490,6 +536,8 @@ struct Found {
     sigma: f64,
     contrast: f64,
     len: f64,
+    /// The fraction of the span's stations where each contour has an edge.
+    coverage: [f64; 2],
     /// The pair's rank in the verification order.
     rank: usize,
     /// The pair's ranking score before verification ([`OursDetector::pair_score`]).
@@ -524,6 +572,10 @@ pub struct OursDetector {
     bounds: ([f64; 2], [f64; 2]),
     has: Vec<u8>,
     margin: Vec<f64>,
+    /// The visible span's segments of good stations: (start, last, good, with both edges).
+    segs: Vec<(usize, usize, usize, usize)>,
+    /// The visible span's good stations.
+    good: Vec<bool>,
     cands: Vec<Found>,
     found: Vec<Found>,
     pair_buf: Vec<(f64, usize, usize)>,
@@ -603,6 +655,8 @@ impl OursDetector {
             bounds,
             has: Vec::new(),
             margin: Vec::new(),
+            segs: Vec::new(),
+            good: Vec::new(),
             cands: Vec::new(),
             found: Vec::new(),
             pair_buf: Vec::new(),
@@ -895,17 +949,30 @@ impl OursDetector {
             let margin = 4.0 * h.signum();
             let (Some(out0), Some(out1)) = (at(l0 - margin), at(l1 + margin)) else { continue };
             let inside = (i0 + i1 + i2) / 3.0;
-            self.margin[i] = (out0 - inside).min(out1 - inside);
+            // The interior just inside each contour too (`interior_near_px`): a line that
+            // runs on outside the shaft's silhouette has tissue just inside it.
+            let near = self.cfg.interior_near_px.min(0.5 * h.abs()) * h.signum();
+            let (in0, in1) = if near != 0.0 {
+                match (at(l0 + near), at(l1 - near)) {
+                    (Some(n0), Some(n1)) => (inside.max(n0), inside.max(n1)),
+                    _ => continue,
+                }
+            } else {
+                (inside, inside)
+            };
+            self.margin[i] = (out0 - in0).min(out1 - in1);
         }
         let need = self.haze.scale
             * match mode {
                 Evidence::Colour => 0.5 * self.cfg.min_chroma_contrast,
                 Evidence::Luma(_) => 0.5 * self.cfg.min_luma_contrast,
             };
-        // Runs of good stations: (start, last, good stations, stations in long gaps).
-        let mut best: Option<(usize, usize, usize, usize)> = None;
-        let mut run: Option<(usize, usize, usize, usize)> = None;
+        // Segments of good stations whose gaps are all shorter than `short_gap`: (start, last,
+        // good stations, good stations with both edges).
         let short_gap = (64.0 / STEP) as usize;
+        self.segs.clear();
+        self.good.clear();
+        self.good.resize(n, false);
         for i in 0..n {
             let (lo, hi) = (i.saturating_sub(2), (i + 2).min(n - 1));
             let (mut sum, mut cnt) = (0.0, 0);
@@ -918,31 +985,155 @@ impl OursDetector {
             // Both edges and a grey interior; or one edge (the other may fade against bright
             // fat or in a hazy corner) and a clearly grey interior.
             let mean = if cnt >= 2 { sum / cnt as f64 } else { f64::NEG_INFINITY };
-            let good = (self.has[i] == 3 && mean >= need) || (self.has[i] != 0 && mean >= 2.0 * need);
+            let both = self.has[i] == 3 && mean >= need;
+            let good = both || (self.has[i] != 0 && mean >= 2.0 * need);
             if !good {
                 continue;
             }
-            // Any gap is bridged: the stations on both sides have both edges on the same two
-            // contour lines and a grey interior between them, the same cylinder (crossed by
-            // another instrument in front, or its interior hidden by a highlight); a gap
-            // longer than `short_gap` is taken for an occlusion and does not count against the
-            // support.
-            run = match run {
-                Some((start, last, count, hidden)) => {
-                    let gap = i - last - 1;
-                    Some((start, i, count + 1, hidden + if gap >= short_gap { gap } else { 0 }))
+            self.good[i] = true;
+            match self.segs.last_mut() {
+                Some(seg) if i - seg.1 - 1 < short_gap => {
+                    seg.1 = i;
+                    seg.2 += 1;
+                    seg.3 += usize::from(both);
                 }
-                None => Some((i, i, 1, 0)),
-            };
-            if let Some(r) = run
-                && best.is_none_or(|b| r.2 > b.2)
-            {
-                best = Some(r);
+                _ => self.segs.push((i, i, 1, usize::from(both))),
             }
+        }
+        // Runs: segments joined across a long gap, which is taken for an occlusion (a second
+        // instrument crossing in front hides both contours; the gap does not count against the
+        // support), when both contours run on on each side of it (`two_sided`): the same two
+        // contour lines with a grey interior on both sides, one cylinder. Gaps shorter than
+        // `short_gap` count against the support. Best: the run with the most good stations;
+        // (start, last, good stations, stations in long gaps).
+        let mut best: Option<(usize, usize, usize, usize)> = None;
+        let mut k = 0;
+        while k < self.segs.len() {
+            let (start, mut last, mut count, _) = self.segs[k];
+            let mut hidden = 0;
+            let mut j = k;
+            while j + 1 < self.segs.len()
+                && self.two_sided(sampler, c, o, t, range, self.segs[j])
+                && self.two_sided(sampler, c, o, t, range, self.segs[j + 1])
+            {
+                hidden += self.segs[j + 1].0 - self.segs[j].1 - 1;
+                last = self.segs[j + 1].1;
+                count += self.segs[j + 1].2;
+                j += 1;
+            }
+            if best.is_none_or(|b| count > b.2) {
+                best = Some((start, last, count, hidden));
+            }
+            k = j + 1;
         }
         let (start, last, count, hidden) = best?;
         let span = [range[0] + start as f64 * STEP, range[0] + last as f64 * STEP];
         Some((span, count as f64 / (last - start + 1 - hidden).max(1) as f64))
+    }
+
+    /// Whether the segment `seg` (`(start, last, good stations, good stations with both
+    /// edges)`, stations of [`Self::visible_span`] every 2 px over `range` along `t` from `o`)
+    /// may be joined to the next across a long gap: at least [`OursConfig::bridge_min_both`] of
+    /// its good stations have both contours' edges; or, where a contour has no inlier edge,
+    /// the edges found near its line (a profile within 3.5 px of it) do not diverge from it:
+    /// over at least 4 of them, their offsets from the line change by less than
+    /// [`OursConfig::bridge_max_divergence_deg`] along it. The part of a shaft seen past a
+    /// crossing instrument may have the inlier edges of one contour only (the contour's
+    /// refinement stops at a gap of 24 px), while the other is there, parallel to its line
+    /// (a few pixels off where it was extrapolated across the gap); an edge of a wrist or jaws
+    /// extended over a shaft whose other silhouette is out of the image meets that
+    /// silhouette at the pair's error in angle.
+    #[allow(clippy::too_many_arguments)]
+    fn two_sided(
+        &self,
+        sampler: &Sampler<'_>,
+        c: [&Line; 2],
+        o: [f64; 2],
+        t: [f64; 2],
+        range: [f64; 2],
+        seg: (usize, usize, usize, usize),
+    ) -> bool {
+        const STEP: f64 = 2.0;
+        let (start, last, _, both) = seg;
+        if both >= self.cfg.bridge_min_both {
+            return true;
+        }
+        let d = [-t[1], t[0]];
+        let floor = 0.75 * self.cfg.edge_threshold;
+        let max_slope = self.cfg.bridge_max_divergence_deg.to_radians().tan();
+        (0..2).all(|k| {
+            // Least squares of the offsets against the station: sums of 1, s, s², o, s·o.
+            let (mut n, mut ss, mut sss, mut so, mut sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for i in start..=last {
+                if !self.good[i] || self.has[i] & (1 << k) != 0 {
+                    continue;
+                }
+                let s = range[0] + i as f64 * STEP;
+                let q = [o[0] + s * t[0], o[1] + s * t[1]];
+                let Some(l) = c[k].hit(q, d) else { continue };
+                let p = [q[0] + l * d[0], q[1] + l * d[1]];
+                if let Some((off, _)) = sampler.edge_offset(c[k], p, 4.0, floor).filter(|(off, _)| off.abs() <= 3.5) {
+                    let x = s - range[0] - start as f64 * STEP;
+                    (n, ss, sss, so, sso) = (n + 1.0, ss + x, sss + x * x, so + off, sso + x * off);
+                }
+            }
+            let den = n * sss - ss * ss;
+            if n < 4.0 || den <= 0.0 {
+                return true;
+            }
+            let slope = (n * sso - ss * so) / den;
+            slope.abs() <= max_slope
+        })
+    }
+
+    /// Whether, over the span `span` (along `t` from `o`; the stations of
+    /// [`Self::visible_span`] every 2 px over `range`), one of the contours `c`, along a run of
+    /// stations where it has no inlier edge, has edges near its line (a profile within 3.5 px
+    /// of it, at least 5) that turn away from it by more than
+    /// [`OursConfig::bridge_max_divergence_deg`]: the visible span's stations with one edge
+    /// are good, and a line that is an edge of a wrist or jaws extended over the shaft meets
+    /// the shaft's silhouette at the pair's error in angle there.
+    #[allow(clippy::too_many_arguments)]
+    fn diverges(
+        &self,
+        sampler: &Sampler<'_>,
+        c: [&Line; 2],
+        o: [f64; 2],
+        t: [f64; 2],
+        range: [f64; 2],
+        span: [f64; 2],
+    ) -> bool {
+        const STEP: f64 = 2.0;
+        let d = [-t[1], t[0]];
+        let floor = 0.75 * self.cfg.edge_threshold;
+        let max_slope = self.cfg.span_max_divergence_deg.to_radians().tan();
+        let first = ((span[0] - range[0]) / STEP).ceil().max(0.0) as usize;
+        let last = (((span[1] - range[0]) / STEP).floor().max(0.0) as usize).min(self.has.len().saturating_sub(1));
+        (0..2).any(|k| {
+            let (mut n, mut ss, mut sss, mut so, mut sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            let steep = |n: f64, ss: f64, sss: f64, so: f64, sso: f64| {
+                let den = n * sss - ss * ss;
+                n >= 5.0 && den > 0.0 && ((n * sso - ss * so) / den).abs() > max_slope
+            };
+            for i in first..=last {
+                if self.has[i] & (1 << k) != 0 {
+                    if steep(n, ss, sss, so, sso) {
+                        return true;
+                    }
+                    (n, ss, sss, so, sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                    continue;
+                }
+                let s = range[0] + i as f64 * STEP;
+                let q = [o[0] + s * t[0], o[1] + s * t[1]];
+                let Some(l) = c[k].hit(q, d) else { continue };
+                let p = [q[0] + l * d[0], q[1] + l * d[1]];
+                if let Some((off, _)) = sampler.edge_offset(c[k], p, 4.0, floor).filter(|(off, _)| off.abs() <= 3.5) {
+                    let x = s - span[0];
+                    (n, ss, sss, so, sso) = (n + 1.0, ss + x, sss + x * x, so + off, sso + x * off);
+                }
+            }
+            steep(n, ss, sss, so, sso)
+        })
     }
 
     /// Refits contour `which` with its inlier points inside `span`.
@@ -1043,6 +1234,9 @@ impl OursDetector {
             (ca, cb) = (na, nb);
         }
         let len = span[1] - span[0];
+        if self.cfg.span_max_divergence_deg < 90.0 && self.diverges(&sampler, [&ca.line, &cb.line], o, t, range, span) {
+            return Err(R::Diverging);
+        }
         let sigma = ca.sigma.max(cb.sigma);
         if sigma > cfg.max_residual_px {
             return Err(R::Residual);
@@ -1114,7 +1308,14 @@ impl OursDetector {
                     }
                     hi = *sv;
                 }
-                reach = [reach[0].min(lo), reach[1].max(hi)];
+                reach = if cfg.border_reach_both {
+                    [
+                        if reach[0] < span[0] { reach[0].max(lo) } else { lo },
+                        if reach[1] > span[1] { reach[1].min(hi) } else { hi },
+                    ]
+                } else {
+                    [reach[0].min(lo), reach[1].max(hi)]
+                };
             }
             // A contour running on past a gap of any length (a second instrument crossing in
             // front hides the part between): a run of at least 32 px where a contour has an
@@ -1122,7 +1323,8 @@ impl OursDetector {
             // the reach; the lines of a pair of jaws run on over tissue.
             let mut run = 0usize;
             for (i, &h) in self.has.iter().enumerate() {
-                run = if h != 0 { run + 1 } else { 0 };
+                let on = if cfg.border_reach_both { h == 3 } else { h != 0 };
+                run = if on { run + 1 } else { 0 };
                 if run >= 16 {
                     let (first, last) = (range[0] + (i + 1 - run) as f64 * 2.0, range[0] + i as f64 * 2.0);
                     reach = [reach[0].min(first), reach[1].max(last)];
@@ -1137,6 +1339,19 @@ impl OursDetector {
                 return Err(R::Border);
             }
         }
+        // The fraction of the span's stations with an edge of each contour (the trace's).
+        let coverage = {
+            let (mut n, mut c) = (0usize, [0usize; 2]);
+            for (i, h) in self.has.iter().enumerate() {
+                let sv = range[0] + i as f64 * 2.0;
+                if sv >= span[0] && sv <= span[1] {
+                    n += 1;
+                    c[0] += usize::from(h & 1 != 0);
+                    c[1] += usize::from(h & 2 != 0);
+                }
+            }
+            c.map(|v| v as f64 / n.max(1) as f64)
+        };
         let contrast = match mode {
             Evidence::Colour => {
                 (fine.outside[0] - fine.inside).min(fine.outside[1] - fine.inside)
@@ -1162,6 +1377,7 @@ impl OursDetector {
             sigma,
             contrast,
             len,
+            coverage,
             rank: 0,
             rank_score: 0.0,
         })
@@ -1430,6 +1646,7 @@ impl OursDetector {
                 contrast: f.contrast,
                 length_px: f.len,
                 width_px: f.width,
+                coverage: f.coverage,
                 ends: f.ends,
                 clash: self.clashes.iter().find(|c| c.0 == rank).map(|c| c.1),
             });
@@ -1906,6 +2123,7 @@ mod tests {
             sigma: 0.1,
             contrast: 1.0,
             len: u1 - u0,
+            coverage: [1.0; 2],
             rank: 0,
             rank_score: 1.0,
         }

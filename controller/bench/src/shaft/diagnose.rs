@@ -37,6 +37,11 @@
 //! true contours, the span against the visible length, the middle line's error (an accuracy
 //! aid).
 //!
+//! With `SHAFT_DIAG_ONLY=family:seed,...` only those frames are run.
+//!
+//! With `SHAFT_DIAG_PNG_EVERY` set (and `SHAFT_DIAG_PNG=DIR`), every frame's overlay is written,
+//! not only those printed.
+//!
 //! With `SHAFT_DIAG_SHARP` set, each frame prints `SHARP level family seed silhouette=N
 //! blurred=F`: its silhouette edgels (grey on one side, tissue on the other) and the fraction
 //! of them whose step is blurred, the motion-blur measure that gates the Hough window
@@ -82,6 +87,7 @@ fn reject_key(r: PairReject) -> &'static str {
         PairReject::FineColour => "fine colour",
         PairReject::Axis => "axis",
         PairReject::Border => "border",
+        PairReject::Diverging => "diverging",
     }
 }
 
@@ -457,7 +463,12 @@ pub fn run(
     levels: &[ClutterLevel],
     progress: &(dyn Fn() + Sync),
 ) -> Result<Diagnosis, ShaftBenchError> {
-    let specs = frame_specs(set, frames_per_family, &endoscope_config(set, ClutterLevel::Clean))?;
+    let mut specs = frame_specs(set, frames_per_family, &endoscope_config(set, ClutterLevel::Clean))?;
+    // `SHAFT_DIAG_ONLY=family:seed,...`: only those frames (a debugging aid).
+    if let Ok(only) = std::env::var("SHAFT_DIAG_ONLY") {
+        let keep: Vec<String> = only.split(',').map(|s| s.trim().to_owned()).collect();
+        specs.retain(|s| keep.contains(&format!("{}:{}", FAMILIES[s.family].key, s.seed)));
+    }
     // `SHAFT_DIAG_OURS`: settings of ours as JSON (the fields to change; the others keep
     // their defaults), to measure a setting against the default on the same frames.
     let cfg = match std::env::var("SHAFT_DIAG_OURS") {
@@ -489,6 +500,9 @@ pub fn run(
             }
             if std::env::var_os("SHAFT_DIAG_WRONG").is_some() {
                 print_wrong(frame, level, fam, &dets);
+            }
+            if std::env::var_os("SHAFT_DIAG_PNG_EVERY").is_some() {
+                write_diag_png(frame, level, fam, &trace);
             }
             if std::env::var_os("SHAFT_DIAG_SHARP").is_some() {
                 eprintln!(

@@ -68,6 +68,9 @@ pub enum PairReject {
     Axis,
     /// A short span that does not reach the image border.
     Border,
+    /// Where a contour has no inlier edge in the span, the edges near its line turn away from
+    /// it (`bridge_max_divergence_deg`): an edge of a wrist or jaws paired with a silhouette.
+    Diverging,
 }
 
 /// What became of a candidate pair.
@@ -126,6 +129,8 @@ pub struct TraceVerified {
     pub length_px: f64,
     /// The width between the contours at the span's middle, undistorted pixels.
     pub width_px: f64,
+    /// The fraction of the span's stations (every 2 px) where each contour has an inlier edge.
+    pub coverage: [f64; 2],
     /// The span's ends on the axis, undistorted pixels.
     pub ends: [[f64; 2]; 2],
     /// For a pair dropped in the final selection: the rank of the returned detection it

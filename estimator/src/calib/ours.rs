@@ -42,7 +42,7 @@ use super::paper::{
     translation_given_rotation, wxyz,
 };
 use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
-use super::residual::{damped_step, residual, residual_and_jacobian, residual_covariance};
+use super::residual::{damped_search, residual, residual_and_jacobian, residual_covariance};
 use super::selection::{
     SelectionConfig, SelectionError, kept_given_line_ln, moving_covariance_step, refine_selected_with, tip_well_inside,
 };
@@ -545,13 +545,8 @@ fn refine(
             }
             // The lower triangle, once (each element the same sum as the full products').
             mirror_upper(&mut h);
-            let mut accepted = false;
-            let mut small = false;
-            while lambda < 1e10 {
-                let Some(step) = damped_step(&h, &g, lambda) else {
-                    lambda *= 10.0;
-                    continue;
-                };
+            let mut next = None;
+            damped_search(&h, &g, &mut lambda, |step| {
                 let t_new = t + step.fixed_rows::<3>(0);
                 let r_new = Rotation3::new(step.fixed_rows::<3>(3).into_owned()).into_inner() * r;
                 // Each observation's line residuals and their whitened norm.
@@ -580,18 +575,18 @@ fn refine(
                     }
                 }
                 let new_cost = lines + shaft;
-                if new_cost <= cost {
-                    small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
+                let lower = new_cost <= cost;
+                if lower {
+                    let small = step.fixed_rows::<3>(0).norm() < 1e-12 && step.fixed_rows::<3>(3).norm() < 1e-12
                         || cost - new_cost <= 1e-14 * cost;
-                    t = t_new;
-                    r = orthonormalize(&r_new);
-                    lambda = (lambda * 0.2).max(1e-9);
-                    accepted = true;
-                    break;
+                    next = Some((t_new, r_new, small));
                 }
-                lambda *= 10.0;
-            }
-            if !accepted || small {
+                lower
+            });
+            let Some((t_new, r_new, small)) = next else { break };
+            t = t_new;
+            r = orthonormalize(&r_new);
+            if small {
                 break;
             }
             // In the basin of an already refined candidate: merged.
@@ -856,27 +851,22 @@ fn descend_likelihood(
         if !(h.iter().all(|v| v.is_finite()) && g.iter().all(|v| v.is_finite())) {
             break;
         }
-        let mut accepted = false;
-        let mut small = false;
-        while lambda < 1e10 {
-            let Some(step) = damped_step(&h, &g, lambda) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let (rn, tn) = moved(&r, &t, &step);
+        let mut next = None;
+        let step = damped_search(&h, &g, &mut lambda, |step| {
+            let (rn, tn) = moved(&r, &t, step);
             let pn = nll_parts(set, cfg, &rn, &tn);
-            let fn_ = pn.nll(cfg, s_ref);
-            if fn_ < f {
-                // Under a thousandth of a standard deviation (the metric's).
-                small = step.dot(&(h * step)) <= 1e-6 || f - fn_ <= 1e-12 * f.abs().max(1.0);
-                (r, t, parts, f) = (rn, tn, pn, fn_);
-                lambda = (lambda * 0.2).max(1e-9);
-                accepted = true;
-                break;
+            let f_new = pn.nll(cfg, s_ref);
+            let lower = f_new < f;
+            if lower {
+                next = Some((rn, tn, pn, f_new));
             }
-            lambda *= 10.0;
-        }
-        if !accepted || small {
+            lower
+        });
+        let (Some(step), Some((rn, tn, pn, f_new))) = (step, next) else { break };
+        // Under a thousandth of a standard deviation (the metric's).
+        let small = step.dot(&(h * step)) <= 1e-6 || f - f_new <= 1e-12 * f.abs().max(1.0);
+        (r, t, parts, f) = (rn, tn, pn, f_new);
+        if small {
             break;
         }
     }

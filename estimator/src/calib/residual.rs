@@ -139,3 +139,27 @@ pub fn damped_step(h: &Matrix6<f64>, g: &Vector6<f64>, lambda: f64) -> Option<Ve
     }
     a.cholesky().map(|ch| ch.solve(&-g))
 }
+
+/// One Levenberg-Marquardt iteration's damping search: from `lambda`, each damped step
+/// ([`damped_step`], `(t m, δφ rad)`) is offered to `accept` and `lambda` raised tenfold until
+/// one is accepted (`lambda` then lowered fivefold, to at least 1e-9, and the step returned)
+/// or `lambda` reaches 1e10 (`None`: no step lowers the cost).
+pub fn damped_search(
+    h: &Matrix6<f64>,
+    g: &Vector6<f64>,
+    lambda: &mut f64,
+    mut accept: impl FnMut(&Vector6<f64>) -> bool,
+) -> Option<Vector6<f64>> {
+    while *lambda < 1e10 {
+        let Some(step) = damped_step(h, g, *lambda) else {
+            *lambda *= 10.0;
+            continue;
+        };
+        if accept(&step) {
+            *lambda = (*lambda * 0.2).max(1e-9);
+            return Some(step);
+        }
+        *lambda *= 10.0;
+    }
+    None
+}

@@ -56,7 +56,7 @@ use super::hausman::{MoveTest, influence_move_test, move_test};
 use super::par;
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
-use super::residual::{Jac6, damped_step, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
+use super::residual::{Jac6, damped_search, noise_jacobian, residual, residual_and_jacobian, residual_covariance};
 
 /// The predicted tool tip of an observation, seen by its camera.
 #[derive(Clone, Copy, Debug)]
@@ -1399,14 +1399,9 @@ pub fn refine_selected_with(
         let mut lambda = 1e-4;
         for _ in 0..cfg.max_iterations {
             iterations += 1;
-            let mut accepted = false;
-            let mut small = false;
-            while lambda < 1e10 {
-                let Some(step) = damped_step(&h, &g, lambda) else {
-                    lambda *= 10.0;
-                    continue;
-                };
-                let (rn, tn) = apply(&r, &t, &step);
+            let mut next = None;
+            let step = damped_search(&h, &g, &mut lambda, |step| {
+                let (rn, tn) = apply(&r, &t, step);
                 // The value first; the gradient and Gauss-Newton matrix (same value, the
                 // selection terms' numeric gradients the bulk of the cost) only for an
                 // accepted step.
@@ -1416,19 +1411,19 @@ pub fn refine_selected_with(
                 };
                 match accept {
                     Some((fnew, gnew, hnew)) if fnew <= f => {
-                        // Converged when the step is below a hundredth of a standard deviation.
-                        small = step.dot(&(h * step)) < 1e-4;
-                        r = UnitQuaternion::from_matrix(&rn).to_rotation_matrix().into_inner();
-                        t = tn;
-                        (f, g, h) = (fnew, gnew, hnew);
-                        lambda = (lambda * 0.2).max(1e-9);
-                        accepted = true;
-                        break;
+                        next = Some((rn, tn, fnew, gnew, hnew));
+                        true
                     }
-                    _ => lambda *= 10.0,
+                    _ => false,
                 }
-            }
-            if !accepted || small {
+            });
+            let (Some(step), Some((rn, tn, fnew, gnew, hnew))) = (step, next) else { break };
+            // Converged when the step is below a hundredth of a standard deviation.
+            let small = step.dot(&(h * step)) < 1e-4;
+            r = UnitQuaternion::from_matrix(&rn).to_rotation_matrix().into_inner();
+            t = tn;
+            (f, g, h) = (fnew, gnew, hnew);
+            if small {
                 break;
             }
         }

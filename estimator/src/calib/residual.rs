@@ -163,3 +163,55 @@ pub fn damped_search(
     }
     None
 }
+
+#[cfg(test)]
+mod tests {
+    use super::{damped_search, damped_step};
+    use nalgebra::{Matrix6, Vector6};
+
+    /// The search offers steps at λ, 10λ, 100λ, … and returns the first accepted one, λ then
+    /// lowered fivefold; with none accepted it gives up at 1e10.
+    #[test]
+    fn the_damping_search_raises_lambda_until_a_step_is_accepted() {
+        let h = Matrix6::from_diagonal(&Vector6::new(1.0, 2.0, 3.0, 4.0, 5.0, 6.0));
+        let g = Vector6::new(1.0, -1.0, 0.5, 0.0, 2.0, -0.5);
+        // Accept the third offer (λ = 1e-2 from 1e-4).
+        let mut lambda = 1e-4;
+        let mut offers = Vec::new();
+        let step = damped_search(&h, &g, &mut lambda, |s| {
+            offers.push(*s);
+            offers.len() == 3
+        })
+        .expect("accepted");
+        assert_eq!(offers.len(), 3);
+        assert_eq!(step, damped_step(&h, &g, 1e-2).expect("SPD"));
+        // Each offer is shorter than the one before (more damping).
+        assert!(offers[0].norm() > offers[1].norm() && offers[1].norm() > offers[2].norm());
+        assert!((lambda - 2e-3).abs() < 1e-15, "{lambda}");
+        // Never accepted: no step, λ at the bound.
+        let mut lambda = 1e-4;
+        let mut count = 0;
+        assert!(
+            damped_search(&h, &g, &mut lambda, |_| {
+                count += 1;
+                false
+            })
+            .is_none()
+        );
+        assert!(lambda >= 1e10);
+        assert_eq!(count, 14);
+        // A negative curvature that the damping (relative to the diagonal, floored at 1e-12)
+        // cannot make positive definite: no step is ever offered.
+        let indefinite = Matrix6::from_diagonal(&Vector6::new(1.0, 1.0, 1.0, 1.0, 1.0, -1.0));
+        let mut lambda = 1e-4;
+        let mut offered = false;
+        assert!(
+            damped_search(&indefinite, &g, &mut lambda, |_| {
+                offered = true;
+                true
+            })
+            .is_none()
+        );
+        assert!(!offered && lambda >= 1e10);
+    }
+}

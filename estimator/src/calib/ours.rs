@@ -1576,8 +1576,8 @@ fn solve_from(
     }
     // Each distinct candidate that does not explain the shafts descends the likelihood it is
     // judged by ([`OursConfig::likelihood_descent`]); one that does is left where its
-    // refinement ended (descending every candidate changed results at the millimetre level
-    // for no better poses, at up to twice the solve time: docs/calibration.md, session 24).
+    // refinement ended (descending every candidate too left the millimetre errors as they
+    // were, refused one more metre trial and cost more: docs/calibration.md, session 24).
     let (candidates, parts) = if cfg.likelihood_descent && cfg.noise.is_some() && from.is_none() {
         let (mut candidates, mut parts) = (candidates, parts);
         for i in 0..candidates.len() {

@@ -15,7 +15,8 @@
 //! takes it whatever its gain, `MOVING_Z=<z>` sets `SelectionConfig::moving_step_gain_z`.
 //! `INFLUENCE=1` judges the stage's move with its measured covariance
 //! (`SelectionConfig::influence_move_test`). `LIK=0` turns the likelihood descent of the
-//! unexplained candidates off (`OursConfig::likelihood_descent`). `FROM_TRUTH=1` adds the truth's rotation as a
+//! unexplained candidates off (`OursConfig::likelihood_descent`). `BASIN=0` leaves the candidates that
+//! explain the shafts where their refinement ended (`OursConfig::descend_every_basin`). `FROM_TRUTH=1` adds the truth's rotation as a
 //! start (`OursConfig::initial_quaternion`).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
@@ -134,6 +135,11 @@ fn main() {
             if let Ok(v) = std::env::var("LIK") {
                 cfg.likelihood_descent = v != "0";
             }
+            // BASIN=0: only the unexplained candidates descend; the others are compared where
+            // their refinement left them.
+            if let Ok(v) = std::env::var("BASIN") {
+                cfg.descend_every_basin = v != "0";
+            }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {
                 sel.influence_move_test = v != "0";
@@ -143,6 +149,11 @@ fn main() {
             if std::env::var("FROM_TRUTH").is_ok() {
                 let q = d.truth.rotation;
                 cfg.initial_quaternion = Some([q.w, q.i, q.j, q.k]);
+            }
+            if std::env::var("NLLDIAG").is_ok() {
+                let q = d.truth.rotation;
+                let t = d.truth.translation.vector;
+                eprintln!("NLLTRUTH={},{},{},{},{},{},{}", q.w, q.i, q.j, q.k, t.x, t.y, t.z);
             }
             let t0 = std::time::Instant::now();
             let r = solve_ours_prepared(&set, &cfg);

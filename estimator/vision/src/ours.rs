@@ -155,7 +155,7 @@ use serde::{Deserialize, Serialize};
 use crate::detect::{DetectError, RgbView, ShaftDetection, ShaftDetector, check_size};
 use crate::shaft::{ImageLine, axis_from_contours};
 use edges::EdgeBuffers;
-use geom::{Line, robust_fit};
+use geom::{Line, SlopeFit, robust_fit};
 use hough::{Hough, LineCand};
 use lens::{HalfResTable, Lens};
 use profile::{Sampler, interior};
@@ -1058,31 +1058,19 @@ impl OursDetector {
         if both >= self.cfg.bridge_min_both {
             return true;
         }
-        let d = [-t[1], t[0]];
-        let floor = 0.75 * self.cfg.edge_threshold;
         let max_slope = self.cfg.bridge_max_divergence_deg.to_radians().tan();
         (0..2).all(|k| {
-            // Least squares of the offsets against the station: sums of 1, s, s², o, s·o.
-            let (mut n, mut ss, mut sss, mut so, mut sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            let mut fit = SlopeFit::default();
             for i in start..=last {
                 if !self.good[i] || self.has[i] & (1 << k) != 0 {
                     continue;
                 }
                 let s = range[0] + i as f64 * STEP;
-                let q = [o[0] + s * t[0], o[1] + s * t[1]];
-                let Some(l) = c[k].hit(q, d) else { continue };
-                let p = [q[0] + l * d[0], q[1] + l * d[1]];
-                if let Some((off, _)) = sampler.edge_offset(c[k], p, 4.0, floor).filter(|(off, _)| off.abs() <= 3.5) {
-                    let x = s - range[0] - start as f64 * STEP;
-                    (n, ss, sss, so, sso) = (n + 1.0, ss + x, sss + x * x, so + off, sso + x * off);
+                if let Some(off) = self.near_edge(sampler, c[k], o, t, s) {
+                    fit.add(s - range[0] - start as f64 * STEP, off);
                 }
             }
-            let den = n * sss - ss * ss;
-            if n < 4.0 || den <= 0.0 {
-                return true;
-            }
-            let slope = (n * sso - ss * so) / den;
-            slope.abs() <= max_slope
+            fit.slope(4.0).is_none_or(|slope| slope.abs() <= max_slope)
         })
     }
 
@@ -1104,36 +1092,41 @@ impl OursDetector {
         span: [f64; 2],
     ) -> bool {
         const STEP: f64 = 2.0;
-        let d = [-t[1], t[0]];
-        let floor = 0.75 * self.cfg.edge_threshold;
         let max_slope = self.cfg.span_max_divergence_deg.to_radians().tan();
         let first = ((span[0] - range[0]) / STEP).ceil().max(0.0) as usize;
         let last = (((span[1] - range[0]) / STEP).floor().max(0.0) as usize).min(self.has.len().saturating_sub(1));
+        let steep = |fit: &SlopeFit| fit.slope(5.0).is_some_and(|slope| slope.abs() > max_slope);
         (0..2).any(|k| {
-            let (mut n, mut ss, mut sss, mut so, mut sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            let steep = |n: f64, ss: f64, sss: f64, so: f64, sso: f64| {
-                let den = n * sss - ss * ss;
-                n >= 5.0 && den > 0.0 && ((n * sso - ss * so) / den).abs() > max_slope
-            };
+            let mut fit = SlopeFit::default();
             for i in first..=last {
                 if self.has[i] & (1 << k) != 0 {
-                    if steep(n, ss, sss, so, sso) {
+                    if steep(&fit) {
                         return true;
                     }
-                    (n, ss, sss, so, sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                    fit = SlopeFit::default();
                     continue;
                 }
                 let s = range[0] + i as f64 * STEP;
-                let q = [o[0] + s * t[0], o[1] + s * t[1]];
-                let Some(l) = c[k].hit(q, d) else { continue };
-                let p = [q[0] + l * d[0], q[1] + l * d[1]];
-                if let Some((off, _)) = sampler.edge_offset(c[k], p, 4.0, floor).filter(|(off, _)| off.abs() <= 3.5) {
-                    let x = s - span[0];
-                    (n, ss, sss, so, sso) = (n + 1.0, ss + x, sss + x * x, so + off, sso + x * off);
+                if let Some(off) = self.near_edge(sampler, c[k], o, t, s) {
+                    fit.add(s - span[0], off);
                 }
             }
-            steep(n, ss, sss, so, sso)
+            steep(&fit)
         })
+    }
+
+    /// The offset (pixels along `line`'s normal, within ±3.5 px) of the edge found near the
+    /// contour line `line` on the profile across it where the normal to `t` at the station
+    /// `s` (pixels along `t` from `o`) meets it, at least 0.75 of
+    /// [`OursConfig::edge_threshold`] strong; `None` when there is none or the normal does
+    /// not meet the line.
+    fn near_edge(&self, sampler: &Sampler<'_>, line: &Line, o: [f64; 2], t: [f64; 2], s: f64) -> Option<f64> {
+        let d = [-t[1], t[0]];
+        let q = [o[0] + s * t[0], o[1] + s * t[1]];
+        let l = line.hit(q, d)?;
+        let p = [q[0] + l * d[0], q[1] + l * d[1]];
+        let floor = 0.75 * self.cfg.edge_threshold;
+        sampler.edge_offset(line, p, 4.0, floor).map(|(off, _)| off).filter(|off| off.abs() <= 3.5)
     }
 
     /// Refits contour `which` with its inlier points inside `span`.

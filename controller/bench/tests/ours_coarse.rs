@@ -1,7 +1,8 @@
-//! Ours' coarse-scale fallback under haze (`OursConfig::coarse_edgels_under_haze`, session 25)
-//! on rendered tuning frames under smoke: four shafts the default misses (no shaft returned)
-//! are found on the coarse scale's silhouette edgels, and frames without the instrument still
-//! give nothing.
+//! Ours' two opt-in changes under haze (session 25) on rendered tuning frames under smoke:
+//! the coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`: four shafts the default
+//! misses, no shaft returned, are found on the coarse scale's silhouette edgels, and frames
+//! without the instrument still give nothing) and the contour walk's floor scaled by the haze
+//! (`OursConfig::haze_walk_floor`).
 
 use comanip_bench::shaft::metrics::score_frame;
 use comanip_bench::shaft::scenes::{ClutterLevel, FAMILIES, FrameSpec, SeedSet, draw_scene};
@@ -36,5 +37,33 @@ fn the_coarse_fallback_finds_hazy_shafts_and_nothing_on_empty_frames() {
     }
     for f in &render_frames(SeedSet::Tuning, level, &empty, &|| {}).unwrap() {
         assert!(new.detect(&f.view().unwrap()).unwrap().is_empty(), "a detection without the instrument");
+    }
+}
+
+/// Ours' contour walk with the floor scaled by the haze (`OursConfig::haze_walk_floor`,
+/// session 25) on the tuning frame whose miss it was traced from (`smoke` mid 1034: the
+/// shaft's span stopped short of the border, `verify: border`) and two more it finds under
+/// smoke; the default misses all three.
+#[test]
+fn the_hazy_walk_reaches_the_border() {
+    let level = ClutterLevel::Smoke;
+    let spec = |seed: u64| {
+        let set = SeedSet::Tuning;
+        let fi = FAMILIES.iter().position(|f| f.key == "mid").unwrap();
+        let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, level)).unwrap();
+        FrameSpec { family: fi, seed, scene }
+    };
+    let specs = [spec(1034), spec(1000), spec(1046)];
+    let rule = OursConfig { haze_walk_floor: true, ..OursConfig::default() };
+    let mut old = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
+    let mut new = OursDetector::new(intrinsics(), rule).unwrap();
+    for (i, f) in render_frames(SeedSet::Tuning, level, &specs, &|| {}).unwrap().iter().enumerate() {
+        let view = f.view().unwrap();
+        let inst1 = f.inst1.as_ref().filter(|t| t.eligible());
+        let a = score_frame(&old.detect(&view).unwrap(), inst1, None);
+        let b = score_frame(&new.detect(&view).unwrap(), inst1, None);
+        assert!(a.matched.is_none(), "frame {i}: the default finds the shaft ({a:?})");
+        assert!(b.matched.is_some(), "frame {i}: the shaft not found with the hazy walk ({b:?})");
+        assert_eq!(b.false_detections, 0, "frame {i}: a false detection with the hazy walk");
     }
 }

@@ -19,7 +19,10 @@
 //!    seen in either channel counts (under smoke the colour fades and luma carries the edge).
 //!    Non-maximum suppression along the gradient, a threshold, then each edgel's position and
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
-//!    undistortion per frame): there the contours are straight lines.
+//!    undistortion per frame): there the contours are straight lines. Opt-in
+//!    ([`OursConfig::coarse_edgels_under_haze`]): on a hazy frame where no shaft was found,
+//!    stages 2-7 run once more on the silhouette edgels of the image averaged over 2×2 blocks
+//!    (a faint, spread step is clearer on wider blocks).
 //! 2. **Line hypotheses** (`hough`): an orientation-guided Hough transform, 1° × 2 px bins:
 //!    on a clear frame each edgel votes at every angle within `hough_normal_window_deg` of
 //!    its normal (an option, 0 by default: once at its own normal, peaks of a 9 × 3 box sum), at the
@@ -155,7 +158,7 @@ use serde::{Deserialize, Serialize};
 use crate::detect::{DetectError, RgbView, ShaftDetection, ShaftDetector, check_size};
 use crate::shaft::{ImageLine, axis_from_contours};
 use edges::EdgeBuffers;
-use geom::{Line, robust_fit};
+use geom::{Line, SlopeFit, robust_fit};
 use hough::{Hough, LineCand};
 use lens::{HalfResTable, Lens};
 use profile::{Sampler, interior};
@@ -350,6 +353,32 @@ pub struct OursConfig {
     /// the border does not; but with it a third of the tuning set's shafts on clear frames
     /// were lost (session 24; a shaft whose other silhouette fades before the border): opt-in.
     pub border_reach_both: bool,
+    /// On a hazy frame (median chroma under `clear_chroma`) where no shaft was found, run the
+    /// line, pairing and verification stages once more on edgels at a coarser scale (default
+    /// false): the edgel stage on the image averaged over 2×2 blocks (its half-resolution
+    /// pass works on 4×4 blocks of the original), keeping only its silhouette edgels (grey
+    /// on one side, tissue-coloured on the other, ±3 coarse pixels along the normal), mapped
+    /// to the original's undistorted pixels. Haze scales a silhouette's step down by its
+    /// transmittance while the noise of the 2×2 block means stays, so a faint contour's
+    /// gradient per pixel falls under `edge_threshold`; over blocks twice as wide the
+    /// gradient of a step spread over a few pixels doubles and the noise halves. The contours
+    /// are still placed by the full-resolution profiles. On the tuning set (session 25) it
+    /// found 4 more shafts of 240 under smoke (none elsewhere), with no more wrong detections
+    /// at any level; adding every coarse edgel to the first pass instead found 10 more under
+    /// smoke but added 4-11 wrong detections per hazy level (soft tissue edges, shadows), and
+    /// the fallback on both scales' silhouette edgels 9 more with 2 more wrong
+    /// (`docs/detection.md`, thirteenth round): opt-in.
+    pub coarse_edgels_under_haze: bool,
+    /// On a hazy frame, the walk that follows a refined contour outwards past its Hough
+    /// support takes edges down to `0.75 · edge_threshold` times the frame's contrast scale
+    /// (and at least a third of the contour's median strength), as the hazy refit does,
+    /// instead of `0.75 · edge_threshold` (default false). Haze fades a contour with the
+    /// tissue's transmittance, most towards a vignetted border. On the tuning set (session
+    /// 25) it found 14 more shafts of 240 under smoke with 5 fewer wrong detections, but
+    /// under smoke with the crossing instrument 2 more of 209 with 11 more wrong detections
+    /// (pairs of lines on neither instrument's contours, confidence 0.02-0.3;
+    /// `docs/detection.md`, thirteenth round): opt-in.
+    pub haze_walk_floor: bool,
 }
 
 impl Default for OursConfig {
@@ -387,6 +416,8 @@ impl Default for OursConfig {
             interior_near_px: 0.0,
             span_max_divergence_deg: 90.0,
             border_reach_both: false,
+            coarse_edgels_under_haze: false,
+            haze_walk_floor: false,
         }
     }
 }
@@ -517,6 +548,22 @@ impl Haze {
     }
 }
 
+/// The camera `k` with half its resolution: each pixel the mean of a 2×2 block of `k`'s
+/// (the block `(2j, 2i)…(2j+1, 2i+1)`, centre `(2j + 0.5, 2i + 0.5)` of `k`), the same
+/// rays and distortion.
+fn half_camera(k: &Intrinsics) -> Intrinsics {
+    Intrinsics {
+        fx: 0.5 * k.fx,
+        fy: 0.5 * k.fy,
+        cx: 0.5 * (k.cx - 0.5),
+        cy: 0.5 * (k.cy - 0.5),
+        skew: 0.5 * k.skew,
+        width: k.width / 2,
+        height: k.height / 2,
+        distortion: k.distortion,
+    }
+}
+
 /// A verified shaft before it becomes a [`ShaftDetection`].
 #[derive(Clone, Copy, Debug)]
 struct Found {
@@ -561,6 +608,11 @@ pub struct OursDetector {
     cfg: OursConfig,
     lens: Lens,
     table: HalfResTable,
+    /// The coarse scale's edgel stage (`coarse_edgels_under_haze`): the table of the camera
+    /// with half the resolution, its buffers and the 2×2-averaged image.
+    coarse_table: HalfResTable,
+    coarse_edges: EdgeBuffers,
+    coarse_image: Vec<u8>,
     edges: EdgeBuffers,
     hough: Hough,
     pts: Vec<[f64; 2]>,
@@ -623,6 +675,7 @@ impl OursDetector {
         k.validate()?;
         cfg.validate()?;
         let table = HalfResTable::new(&k);
+        let coarse_table = HalfResTable::new(&half_camera(&k));
         let (mut rmax, c) = (1.0f32, [k.cx as f32, k.cy as f32]);
         let mut bounds = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         // A strong distortion may not invert everywhere (the table then holds far or
@@ -645,6 +698,9 @@ impl OursDetector {
             k,
             cfg,
             table,
+            coarse_table,
+            coarse_edges: EdgeBuffers::silhouettes_only(),
+            coarse_image: Vec::new(),
             edges: EdgeBuffers::default(),
             hough,
             pts: Vec::new(),
@@ -798,6 +854,8 @@ impl OursDetector {
     ) -> Option<Contour> {
         let mut line = start;
         let mut min_strength = 0.75 * self.cfg.edge_threshold;
+        // A third of the contour's median edge strength (set by the rounds below).
+        let mut third = 0.0f64;
         // The walk along the line: the foot of o on it, its own direction aligned with t.
         let frame = |line: &Line| {
             let lt = line.direction();
@@ -825,11 +883,20 @@ impl OursDetector {
             // (weak tissue texture along the line is not the contour).
             let mid = self.res.len() / 2;
             self.res.select_nth_unstable_by(mid, f64::total_cmp);
-            min_strength = min_strength.max(self.res[mid] / 3.0);
+            third = third.max(self.res[mid] / 3.0);
+            min_strength = min_strength.max(third);
             let f = robust_fit(&self.pts, line, &mut self.w, &mut self.res)?;
             line = f.line;
         }
-        // Follow the contour outwards from both ends of the core.
+        // Follow the contour outwards from both ends of the core. Under haze
+        // (`haze_walk_floor`) the absolute floor is scaled by the frame's contrast scale, as
+        // the hazy refit's is: the contour fades towards a vignetted, hazy border with the
+        // tissue's transmittance; a third of its own median strength still holds.
+        let walk_floor = if self.cfg.haze_walk_floor {
+            (0.75 * self.cfg.edge_threshold * self.haze.scale).max(third)
+        } else {
+            min_strength
+        };
         let (o_l, lt) = frame(&line);
         for dir in [-1.0f64, 1.0] {
             let (from, to) = if dir < 0.0 { (core[0], full[0]) } else { (core[1], full[1]) };
@@ -837,7 +904,7 @@ impl OursDetector {
             let mut s = from + 2.0 * dir;
             while (to - s) * dir > 0.0 && misses < 24 {
                 let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
-                match sampler.edge_offset(&line, p, 2.0, min_strength) {
+                match sampler.edge_offset(&line, p, 2.0, walk_floor) {
                     Some((off, _)) if off.abs() <= 1.5 => {
                         self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
                         misses = misses.saturating_sub(1);
@@ -1058,31 +1125,19 @@ impl OursDetector {
         if both >= self.cfg.bridge_min_both {
             return true;
         }
-        let d = [-t[1], t[0]];
-        let floor = 0.75 * self.cfg.edge_threshold;
         let max_slope = self.cfg.bridge_max_divergence_deg.to_radians().tan();
         (0..2).all(|k| {
-            // Least squares of the offsets against the station: sums of 1, s, s², o, s·o.
-            let (mut n, mut ss, mut sss, mut so, mut sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            let mut fit = SlopeFit::default();
             for i in start..=last {
                 if !self.good[i] || self.has[i] & (1 << k) != 0 {
                     continue;
                 }
                 let s = range[0] + i as f64 * STEP;
-                let q = [o[0] + s * t[0], o[1] + s * t[1]];
-                let Some(l) = c[k].hit(q, d) else { continue };
-                let p = [q[0] + l * d[0], q[1] + l * d[1]];
-                if let Some((off, _)) = sampler.edge_offset(c[k], p, 4.0, floor).filter(|(off, _)| off.abs() <= 3.5) {
-                    let x = s - range[0] - start as f64 * STEP;
-                    (n, ss, sss, so, sso) = (n + 1.0, ss + x, sss + x * x, so + off, sso + x * off);
+                if let Some(off) = self.near_edge(sampler, c[k], o, t, s) {
+                    fit.add(s - range[0] - start as f64 * STEP, off);
                 }
             }
-            let den = n * sss - ss * ss;
-            if n < 4.0 || den <= 0.0 {
-                return true;
-            }
-            let slope = (n * sso - ss * so) / den;
-            slope.abs() <= max_slope
+            fit.slope(4.0).is_none_or(|slope| slope.abs() <= max_slope)
         })
     }
 
@@ -1104,36 +1159,41 @@ impl OursDetector {
         span: [f64; 2],
     ) -> bool {
         const STEP: f64 = 2.0;
-        let d = [-t[1], t[0]];
-        let floor = 0.75 * self.cfg.edge_threshold;
         let max_slope = self.cfg.span_max_divergence_deg.to_radians().tan();
         let first = ((span[0] - range[0]) / STEP).ceil().max(0.0) as usize;
         let last = (((span[1] - range[0]) / STEP).floor().max(0.0) as usize).min(self.has.len().saturating_sub(1));
+        let steep = |fit: &SlopeFit| fit.slope(5.0).is_some_and(|slope| slope.abs() > max_slope);
         (0..2).any(|k| {
-            let (mut n, mut ss, mut sss, mut so, mut sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            let steep = |n: f64, ss: f64, sss: f64, so: f64, sso: f64| {
-                let den = n * sss - ss * ss;
-                n >= 5.0 && den > 0.0 && ((n * sso - ss * so) / den).abs() > max_slope
-            };
+            let mut fit = SlopeFit::default();
             for i in first..=last {
                 if self.has[i] & (1 << k) != 0 {
-                    if steep(n, ss, sss, so, sso) {
+                    if steep(&fit) {
                         return true;
                     }
-                    (n, ss, sss, so, sso) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                    fit = SlopeFit::default();
                     continue;
                 }
                 let s = range[0] + i as f64 * STEP;
-                let q = [o[0] + s * t[0], o[1] + s * t[1]];
-                let Some(l) = c[k].hit(q, d) else { continue };
-                let p = [q[0] + l * d[0], q[1] + l * d[1]];
-                if let Some((off, _)) = sampler.edge_offset(c[k], p, 4.0, floor).filter(|(off, _)| off.abs() <= 3.5) {
-                    let x = s - span[0];
-                    (n, ss, sss, so, sso) = (n + 1.0, ss + x, sss + x * x, so + off, sso + x * off);
+                if let Some(off) = self.near_edge(sampler, c[k], o, t, s) {
+                    fit.add(s - span[0], off);
                 }
             }
-            steep(n, ss, sss, so, sso)
+            steep(&fit)
         })
+    }
+
+    /// The offset (pixels along `line`'s normal, within ±3.5 px) of the edge found near the
+    /// contour line `line` on the profile across it where the normal to `t` at the station
+    /// `s` (pixels along `t` from `o`) meets it, at least 0.75 of
+    /// [`OursConfig::edge_threshold`] strong; `None` when there is none or the normal does
+    /// not meet the line.
+    fn near_edge(&self, sampler: &Sampler<'_>, line: &Line, o: [f64; 2], t: [f64; 2], s: f64) -> Option<f64> {
+        let d = [-t[1], t[0]];
+        let q = [o[0] + s * t[0], o[1] + s * t[1]];
+        let l = line.hit(q, d)?;
+        let p = [q[0] + l * d[0], q[1] + l * d[1]];
+        let floor = 0.75 * self.cfg.edge_threshold;
+        sampler.edge_offset(line, p, 4.0, floor).map(|(off, _)| off).filter(|off| off.abs() <= 3.5)
     }
 
     /// Refits contour `which` with its inlier points inside `span`.
@@ -1509,6 +1569,19 @@ impl OursDetector {
         let normal_clear = if cfg.haze_normal_integration { cfg.clear_chroma as f32 } else { 0.0 };
         self.edges.run(image, &self.table, cfg.edge_threshold as f32, cfg.luma_weight as f32, normal_clear);
         self.haze = Haze::new(f64::from(self.edges.chroma_median), &cfg);
+        let out = self.shafts(image);
+        // On a hazy frame where the edgels gave no shaft, once more on the coarse scale's
+        // silhouette edgels (`coarse_edgels_under_haze`).
+        if out.is_empty() && cfg.coarse_edgels_under_haze && self.haze.scale < 1.0 {
+            self.coarse_silhouettes(image, normal_clear);
+            return self.shafts(image);
+        }
+        out
+    }
+
+    /// Stages 2-7 on the frame's edgels (`self.edges`, the haze estimate set).
+    fn shafts(&mut self, image: &RgbView<'_>) -> Vec<ShaftDetection> {
+        let cfg = self.cfg;
         let min_votes = (0.3 * cfg.min_length_px).max(8.0) as u32;
         let hazy = self.haze.scale < 1.0 && !cfg.hough_window_under_haze;
         let blurred = f64::from(self.edges.silhouette_blurred) > cfg.hough_window_max_blurred;
@@ -1592,6 +1665,47 @@ impl OursDetector {
             self.record_trace(&outcomes);
         }
         self.found.iter().map(|f| f.det).collect()
+    }
+
+    /// Replaces `self.edges.edgels` by the silhouette edgels of the image averaged over 2×2
+    /// blocks ([`OursConfig::coarse_edgels_under_haze`]), mapped to undistorted pixels of the
+    /// original: a pixel `u'` of the half-resolution camera ([`half_camera`]) is `2u' + 0.5`
+    /// of the original, the normals unchanged.
+    fn coarse_silhouettes(&mut self, image: &RgbView<'_>, normal_clear: f32) {
+        self.edges.edgels.clear();
+        let (w, h) = (image.width(), image.height());
+        let (wc, hc) = (w / 2, h / 2);
+        if wc < 6 || hc < 6 {
+            return;
+        }
+        let data = image.data();
+        self.coarse_image.clear();
+        self.coarse_image.reserve(3 * wc * hc);
+        for i in 0..hc {
+            let (r0, r1) = (3 * (2 * i) * w, 3 * (2 * i + 1) * w);
+            for j in 0..wc {
+                for ch in 0..3 {
+                    let at = |r: usize, x: usize| u32::from(data[r + 3 * x + ch]);
+                    let sum = at(r0, 2 * j) + at(r0, 2 * j + 1) + at(r1, 2 * j) + at(r1, 2 * j + 1);
+                    self.coarse_image.push(((sum + 2) / 4) as u8);
+                }
+            }
+        }
+        let Ok(view) = RgbView::new(wc, hc, &self.coarse_image) else { return };
+        let cfg = self.cfg;
+        self.coarse_edges.run(
+            &view,
+            &self.coarse_table,
+            cfg.edge_threshold as f32,
+            cfg.luma_weight as f32,
+            normal_clear,
+        );
+        self.edges.edgels.extend(
+            self.coarse_edges
+                .edgels
+                .iter()
+                .map(|e| edges::Edgel { p: [2.0 * e.p[0] + 0.5, 2.0 * e.p[1] + 0.5], n: e.n }),
+        );
     }
 
     /// Fills `self.trace` from the frame's stages (`outcomes`: per verified rank, the
@@ -2126,6 +2240,24 @@ mod tests {
             coverage: [1.0; 2],
             rank: 0,
             rank_score: 1.0,
+        }
+    }
+
+    /// A pixel `x'` of the half-resolution camera (the mean of the 2×2 block whose centre is
+    /// `2x' + 0.5` of the original) sees the ray of that centre: its undistorted position
+    /// `u'` maps to the original's as `2u' + 0.5`.
+    #[test]
+    fn the_half_camera_sees_the_block_centres_rays() {
+        let k = Intrinsics { skew: 0.7, cx: 321.0, ..crate::synth::endoscope_camera() };
+        let h = half_camera(&k);
+        assert_eq!((h.width, h.height), (320, 240));
+        for (x, y) in [(0.0, 0.0), (10.0, 200.0), (159.5, 119.5), (319.0, 239.0), (250.25, 17.75)] {
+            let full = k.undistort_px(&nalgebra::Vector2::new(2.0 * x + 0.5, 2.0 * y + 0.5));
+            let half = h.undistort_px(&nalgebra::Vector2::new(x, y));
+            assert!(
+                (2.0 * half.x + 0.5 - full.x).abs() < 1e-6 && (2.0 * half.y + 0.5 - full.y).abs() < 1e-6,
+                "{x}, {y}"
+            );
         }
     }
 

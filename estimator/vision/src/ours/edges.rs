@@ -53,6 +53,11 @@ pub(crate) struct EdgeBuffers {
     /// for a step within a pixel, lower for a blurred one (a motion-blurred silhouette is a
     /// staircase of the exposure's instants: about 1/6 for three steps 2 px apart).
     pub(crate) silhouette_blurred: f32,
+    /// Keep only the silhouette edgels (grey on one side, tissue-coloured on the other, as
+    /// `silhouette_edgels` counts them; none when the frame's median chroma is 8 or less):
+    /// the coarse scale's edgels (`super::OursConfig::coarse_edgels_under_haze`), where soft
+    /// tissue edges (a shadow's, the haze's gradient) also pass the threshold.
+    pub(crate) silhouette_only: bool,
 }
 
 /// The fewest silhouette edgels for `EdgeBuffers::silhouette_blurred` (fewer: 0).
@@ -65,6 +70,11 @@ const MIN_SILHOUETTE_EDGELS: usize = 20;
 const BLURRED_SHARPNESS: f32 = 0.25;
 
 impl EdgeBuffers {
+    /// Buffers that keep only the silhouette edgels (`silhouette_only`).
+    pub(crate) fn silhouettes_only() -> Self {
+        Self { silhouette_only: true, ..Self::default() }
+    }
+
     /// Sets `chroma_median` from the histogram of the half-resolution chroma filled by
     /// `run` (1-unit bins over `[−256, 512)`).
     fn chroma_median(&mut self) {
@@ -249,6 +259,7 @@ impl EdgeBuffers {
                     continue;
                 }
                 let [ex, ey] = self.eig[idx];
+                let mut silhouette = false;
                 if self.chroma_median > 8.0 {
                     // The chroma at ±k half-resolution pixels along the normal (nearest pixel).
                     let at = |k: f32| -> Option<f32> {
@@ -260,10 +271,14 @@ impl EdgeBuffers {
                     if let (Some(a3), Some(a1), Some(b1), Some(b3)) = (at(-3.0), at(-1.0), at(1.0), at(3.0)) {
                         let (lo, hi) = (a3.min(b3), a3.max(b3));
                         if lo < grey && hi > tissue {
+                            silhouette = true;
                             n_sil += 1;
                             n_blurred += usize::from(0.5 * (b1 - a1).abs() < BLURRED_SHARPNESS * (hi - lo));
                         }
                     }
+                }
+                if self.silhouette_only && !silhouette {
+                    continue;
                 }
                 // The edge's tangent, mapped; the undistorted normal is its perpendicular.
                 let (pos, tan) = table.map(j, i, -ey, ex);

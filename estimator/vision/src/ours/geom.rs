@@ -109,6 +109,34 @@ pub(crate) fn robust_fit(pts: &[[f64; 2]], start: Line, w: &mut Vec<f64>, res: &
     Some(RobustFit { line, sigma })
 }
 
+/// A running least-squares slope of `y` against `x` (sums of 1, x, x², y, x·y), for the
+/// drift of edge offsets (pixels) along a contour (stations, pixels).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct SlopeFit {
+    n: f64,
+    sx: f64,
+    sxx: f64,
+    sy: f64,
+    sxy: f64,
+}
+
+impl SlopeFit {
+    /// Adds the point `(x, y)`.
+    pub(crate) fn add(&mut self, x: f64, y: f64) {
+        self.n += 1.0;
+        self.sx += x;
+        self.sxx += x * x;
+        self.sy += y;
+        self.sxy += x * y;
+    }
+
+    /// The fitted `dy/dx`; `None` with fewer than `min_n` points or all at one `x`.
+    pub(crate) fn slope(&self, min_n: f64) -> Option<f64> {
+        let den = self.n * self.sxx - self.sx * self.sx;
+        (self.n >= min_n && den > 0.0).then(|| (self.n * self.sxy - self.sx * self.sy) / den)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -127,5 +155,20 @@ mod tests {
         }
         assert!(w[110] == 0.0 && w[10] > 0.99);
         assert!(fit_line(&[[1.0, 1.0], [1.0, 1.0]], None).is_none());
+    }
+
+    #[test]
+    fn slope_fit_is_least_squares() {
+        let mut f = SlopeFit::default();
+        for (x, y) in [(0.0, 1.0), (2.0, 2.1), (4.0, 2.9), (6.0, 4.0)] {
+            f.add(x, y);
+        }
+        // Centred: Σ(x−3)(y−2.5) = 9.8, Σ(x−3)² = 20: slope 0.49.
+        assert!((f.slope(4.0).unwrap() - 0.49).abs() < 1e-12);
+        assert!(f.slope(5.0).is_none());
+        let mut same_x = SlopeFit::default();
+        same_x.add(3.0, 1.0);
+        same_x.add(3.0, 2.0);
+        assert!(same_x.slope(1.0).is_none());
     }
 }

@@ -1,0 +1,69 @@
+//! Ours' two opt-in changes under haze (session 25) on rendered tuning frames under smoke:
+//! the coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`: four shafts the default
+//! misses, no shaft returned, are found on the coarse scale's silhouette edgels, and frames
+//! without the instrument still give nothing) and the contour walk's floor scaled by the haze
+//! (`OursConfig::haze_walk_floor`).
+
+use comanip_bench::shaft::metrics::score_frame;
+use comanip_bench::shaft::scenes::{ClutterLevel, FAMILIES, FrameSpec, SeedSet, draw_scene};
+use comanip_bench::shaft::{endoscope_config, intrinsics, render_frames};
+use vision::ShaftDetector as _;
+use vision::ours::{OursConfig, OursDetector};
+
+#[test]
+fn the_coarse_fallback_finds_hazy_shafts_and_nothing_on_empty_frames() {
+    let level = ClutterLevel::Smoke;
+    let spec = |family: &str, seed: u64| {
+        let set = SeedSet::Tuning;
+        let fi = FAMILIES.iter().position(|f| f.key == family).unwrap();
+        let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, level)).unwrap();
+        FrameSpec { family: fi, seed, scene }
+    };
+    let found = [spec("mid", 1046), spec("mid", 1052), spec("mid", 1054), spec("along", 1042)];
+    let empty: Vec<FrameSpec> = (1000..1006).map(|s| spec("retracted", s)).collect();
+    let rule = OursConfig { coarse_edgels_under_haze: true, ..OursConfig::default() };
+    let mut old = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
+    let mut new = OursDetector::new(intrinsics(), rule).unwrap();
+    let frames = render_frames(SeedSet::Tuning, level, &found, &|| {}).unwrap();
+    for (i, f) in frames.iter().enumerate() {
+        let view = f.view().unwrap();
+        let inst1 = f.inst1.as_ref().filter(|t| t.eligible());
+        let inst2 = if f.inst2_in_view { f.inst2.as_ref() } else { None };
+        let a = score_frame(&old.detect(&view).unwrap(), inst1, inst2);
+        let b = score_frame(&new.detect(&view).unwrap(), inst1, inst2);
+        assert_eq!(a.detections, 0, "frame {i}: the default returns a shaft ({a:?})");
+        assert!(b.matched.is_some(), "frame {i}: the shaft not found on the coarse scale ({b:?})");
+        assert_eq!(b.false_detections, 0, "frame {i}: a false detection on the coarse scale");
+    }
+    for f in &render_frames(SeedSet::Tuning, level, &empty, &|| {}).unwrap() {
+        assert!(new.detect(&f.view().unwrap()).unwrap().is_empty(), "a detection without the instrument");
+    }
+}
+
+/// Ours' contour walk with the floor scaled by the haze (`OursConfig::haze_walk_floor`,
+/// session 25) on the tuning frame whose miss it was traced from (`smoke` mid 1034: the
+/// shaft's span stopped short of the border, `verify: border`) and two more it finds under
+/// smoke; the default misses all three.
+#[test]
+fn the_hazy_walk_reaches_the_border() {
+    let level = ClutterLevel::Smoke;
+    let spec = |seed: u64| {
+        let set = SeedSet::Tuning;
+        let fi = FAMILIES.iter().position(|f| f.key == "mid").unwrap();
+        let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, level)).unwrap();
+        FrameSpec { family: fi, seed, scene }
+    };
+    let specs = [spec(1034), spec(1000), spec(1046)];
+    let rule = OursConfig { haze_walk_floor: true, ..OursConfig::default() };
+    let mut old = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
+    let mut new = OursDetector::new(intrinsics(), rule).unwrap();
+    for (i, f) in render_frames(SeedSet::Tuning, level, &specs, &|| {}).unwrap().iter().enumerate() {
+        let view = f.view().unwrap();
+        let inst1 = f.inst1.as_ref().filter(|t| t.eligible());
+        let a = score_frame(&old.detect(&view).unwrap(), inst1, None);
+        let b = score_frame(&new.detect(&view).unwrap(), inst1, None);
+        assert!(a.matched.is_none(), "frame {i}: the default finds the shaft ({a:?})");
+        assert!(b.matched.is_some(), "frame {i}: the shaft not found with the hazy walk ({b:?})");
+        assert_eq!(b.false_detections, 0, "frame {i}: a false detection with the hazy walk");
+    }
+}

@@ -5,7 +5,7 @@
 //! family: a shaft close to the lens along an image border) still are.
 
 use comanip_bench::shaft::metrics::score_frame;
-use comanip_bench::shaft::scenes::{ClutterLevel, FAMILIES, FrameSpec, SeedSet, draw_scene};
+use comanip_bench::shaft::scenes::{ClutterLevel, SeedSet, frame_spec};
 use comanip_bench::shaft::{endoscope_config, intrinsics, render_frames};
 use vision::ShaftDetector as _;
 use vision::ours::{OursConfig, OursDetector};
@@ -15,10 +15,7 @@ fn the_bridging_rule_drops_the_jaws_pair_and_keeps_the_shafts() {
     // The tuning frames of a family and seed at `clean` (no noise: the same pixels on every
     // machine).
     let spec = |family: &str, seed: u64| {
-        let set = SeedSet::Tuning;
-        let fi = FAMILIES.iter().position(|f| f.key == family).unwrap();
-        let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, ClutterLevel::Clean)).unwrap();
-        FrameSpec { family: fi, seed, scene }
+        frame_spec(family, seed, &endoscope_config(SeedSet::Tuning, ClutterLevel::Clean)).unwrap()
     };
     let specs = [spec("blur", 1057), spec("along", 1001), spec("along", 1002)];
     let frames = render_frames(SeedSet::Tuning, ClutterLevel::Clean, &specs, &|| {}).unwrap();

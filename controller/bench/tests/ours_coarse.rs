@@ -1,11 +1,11 @@
-//! Ours' two opt-in changes under haze (session 25) on rendered tuning frames under smoke:
-//! the coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`: four shafts the default
-//! misses, no shaft returned, are found on the coarse scale's silhouette edgels, and frames
+//! Ours' two changes under haze (session 25) on rendered tuning frames under smoke:
+//! the coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`, on by default: four
+//! shafts the detector without it misses, no shaft returned, are found on the coarse scale's silhouette edgels, and frames
 //! without the instrument still give nothing) and the contour walk's floor scaled by the haze
-//! (`OursConfig::haze_walk_floor`).
+//! (`OursConfig::haze_walk_floor`, opt-in).
 
 use comanip_bench::shaft::metrics::score_frame;
-use comanip_bench::shaft::scenes::{ClutterLevel, FAMILIES, FrameSpec, SeedSet, draw_scene};
+use comanip_bench::shaft::scenes::{ClutterLevel, FrameSpec, SeedSet, frame_spec};
 use comanip_bench::shaft::{endoscope_config, intrinsics, render_frames};
 use vision::ShaftDetector as _;
 use vision::ours::{OursConfig, OursDetector};
@@ -13,17 +13,14 @@ use vision::ours::{OursConfig, OursDetector};
 #[test]
 fn the_coarse_fallback_finds_hazy_shafts_and_nothing_on_empty_frames() {
     let level = ClutterLevel::Smoke;
-    let spec = |family: &str, seed: u64| {
-        let set = SeedSet::Tuning;
-        let fi = FAMILIES.iter().position(|f| f.key == family).unwrap();
-        let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, level)).unwrap();
-        FrameSpec { family: fi, seed, scene }
-    };
+    let spec = |family: &str, seed: u64| frame_spec(family, seed, &endoscope_config(SeedSet::Tuning, level)).unwrap();
     let found = [spec("mid", 1046), spec("mid", 1052), spec("mid", 1054), spec("along", 1042)];
     let empty: Vec<FrameSpec> = (1000..1006).map(|s| spec("retracted", s)).collect();
-    let rule = OursConfig { coarse_edgels_under_haze: true, ..OursConfig::default() };
-    let mut old = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
-    let mut new = OursDetector::new(intrinsics(), rule).unwrap();
+    // On by default since session 25: the detector without it misses these frames.
+    assert!(OursConfig::default().coarse_edgels_under_haze);
+    let without = OursConfig { coarse_edgels_under_haze: false, ..OursConfig::default() };
+    let mut old = OursDetector::new(intrinsics(), without).unwrap();
+    let mut new = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
     let frames = render_frames(SeedSet::Tuning, level, &found, &|| {}).unwrap();
     for (i, f) in frames.iter().enumerate() {
         let view = f.view().unwrap();
@@ -47,15 +44,12 @@ fn the_coarse_fallback_finds_hazy_shafts_and_nothing_on_empty_frames() {
 #[test]
 fn the_hazy_walk_reaches_the_border() {
     let level = ClutterLevel::Smoke;
-    let spec = |seed: u64| {
-        let set = SeedSet::Tuning;
-        let fi = FAMILIES.iter().position(|f| f.key == "mid").unwrap();
-        let scene = draw_scene(&FAMILIES[fi], fi, seed, &endoscope_config(set, level)).unwrap();
-        FrameSpec { family: fi, seed, scene }
-    };
+    let spec = |seed: u64| frame_spec("mid", seed, &endoscope_config(SeedSet::Tuning, level)).unwrap();
     let specs = [spec(1034), spec(1000), spec(1046)];
-    let rule = OursConfig { haze_walk_floor: true, ..OursConfig::default() };
-    let mut old = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
+    // The coarse fallback off on both sides (it finds mid 1046 too).
+    let base = OursConfig { coarse_edgels_under_haze: false, ..OursConfig::default() };
+    let rule = OursConfig { haze_walk_floor: true, ..base };
+    let mut old = OursDetector::new(intrinsics(), base).unwrap();
     let mut new = OursDetector::new(intrinsics(), rule).unwrap();
     for (i, f) in render_frames(SeedSet::Tuning, level, &specs, &|| {}).unwrap().iter().enumerate() {
         let view = f.view().unwrap();

@@ -451,6 +451,9 @@ pub enum SceneError {
     /// The configuration's hand-eye pose is not a pose.
     #[error("the endoscope configuration's hand-eye pose is not finite")]
     HandEye,
+    /// No family has this key.
+    #[error("no scenario family is called {0:?}")]
+    UnknownFamily(String),
     /// No draw met the family's constraints within the attempt budget.
     #[error("family {family}, seed {seed}: no geometry met the constraints in {tries} draws")]
     NoGeometry {
@@ -461,6 +464,13 @@ pub enum SceneError {
         /// Draws tried.
         tries: usize,
     },
+}
+
+/// The frame of family `family` (its key, e.g. `"mid"`) and `seed` for the camera of `cfg`:
+/// [`draw_scene`] by the family's name (tests and diagnoses of single frames).
+pub fn frame_spec(family: &str, seed: u64, cfg: &EndoscopeConfig) -> Result<FrameSpec, SceneError> {
+    let fi = FAMILIES.iter().position(|f| f.key == family).ok_or_else(|| SceneError::UnknownFamily(family.into()))?;
+    Ok(FrameSpec { family: fi, seed, scene: draw_scene(&FAMILIES[fi], fi, seed, cfg)? })
 }
 
 /// Draws allowed per scene before giving up.

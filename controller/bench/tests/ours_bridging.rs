@@ -4,10 +4,11 @@
 //! returned with the rule, and the true shafts of those frames (two of them of the `along`
 //! family: a shaft close to the lens along an image border) still are.
 
-use comanip_bench::shaft::metrics::score_frame;
+mod support;
+
 use comanip_bench::shaft::scenes::{ClutterLevel, SeedSet, frame_spec};
 use comanip_bench::shaft::{endoscope_config, intrinsics, render_frames};
-use vision::ShaftDetector as _;
+use support::score_both;
 use vision::ours::{OursConfig, OursDetector};
 
 #[test]
@@ -23,11 +24,7 @@ fn the_bridging_rule_drops_the_jaws_pair_and_keeps_the_shafts() {
     let mut old = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
     let mut new = OursDetector::new(intrinsics(), rule).unwrap();
     for (i, f) in frames.iter().enumerate() {
-        let view = f.view().unwrap();
-        let inst1 = f.inst1.as_ref().filter(|t| t.eligible());
-        let inst2 = if f.inst2_in_view { f.inst2.as_ref() } else { None };
-        let a = score_frame(&old.detect(&view).unwrap(), inst1, inst2);
-        let b = score_frame(&new.detect(&view).unwrap(), inst1, inst2);
+        let (a, b) = score_both(&mut old, &mut new, f);
         // The shaft is found with and without the rule.
         assert!(a.matched.is_some() && b.matched.is_some(), "frame {i}: the shaft lost ({a:?} -> {b:?})");
         assert_eq!(b.false_detections, 0, "frame {i}: a false detection with the rule");

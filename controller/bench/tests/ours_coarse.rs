@@ -1,12 +1,14 @@
-//! Ours' two changes under haze (session 25) on rendered tuning frames under smoke:
-//! the coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`, on by default: four
-//! shafts the detector without it misses, no shaft returned, are found on the coarse scale's silhouette edgels, and frames
-//! without the instrument still give nothing) and the contour walk's floor scaled by the haze
-//! (`OursConfig::haze_walk_floor`, opt-in).
+//! Ours' two changes under haze (session 25) on rendered tuning frames under smoke: the
+//! coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`, on by default: four shafts
+//! the detector without it misses, no shaft returned, are found on the coarse scale's
+//! silhouette edgels, and frames without the instrument still give nothing) and the contour
+//! walk's floor scaled by the haze (`OursConfig::haze_walk_floor`, opt-in).
 
-use comanip_bench::shaft::metrics::score_frame;
+mod support;
+
 use comanip_bench::shaft::scenes::{ClutterLevel, FrameSpec, SeedSet, frame_spec};
 use comanip_bench::shaft::{endoscope_config, intrinsics, render_frames};
+use support::score_both;
 use vision::ShaftDetector as _;
 use vision::ours::{OursConfig, OursDetector};
 
@@ -23,11 +25,7 @@ fn the_coarse_fallback_finds_hazy_shafts_and_nothing_on_empty_frames() {
     let mut new = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
     let frames = render_frames(SeedSet::Tuning, level, &found, &|| {}).unwrap();
     for (i, f) in frames.iter().enumerate() {
-        let view = f.view().unwrap();
-        let inst1 = f.inst1.as_ref().filter(|t| t.eligible());
-        let inst2 = if f.inst2_in_view { f.inst2.as_ref() } else { None };
-        let a = score_frame(&old.detect(&view).unwrap(), inst1, inst2);
-        let b = score_frame(&new.detect(&view).unwrap(), inst1, inst2);
+        let (a, b) = score_both(&mut old, &mut new, f);
         assert_eq!(a.detections, 0, "frame {i}: the default returns a shaft ({a:?})");
         assert!(b.matched.is_some(), "frame {i}: the shaft not found on the coarse scale ({b:?})");
         assert_eq!(b.false_detections, 0, "frame {i}: a false detection on the coarse scale");
@@ -52,10 +50,9 @@ fn the_hazy_walk_reaches_the_border() {
     let mut old = OursDetector::new(intrinsics(), base).unwrap();
     let mut new = OursDetector::new(intrinsics(), rule).unwrap();
     for (i, f) in render_frames(SeedSet::Tuning, level, &specs, &|| {}).unwrap().iter().enumerate() {
-        let view = f.view().unwrap();
-        let inst1 = f.inst1.as_ref().filter(|t| t.eligible());
-        let a = score_frame(&old.detect(&view).unwrap(), inst1, None);
-        let b = score_frame(&new.detect(&view).unwrap(), inst1, None);
+        // No second instrument at this level.
+        assert!(!f.inst2_in_view);
+        let (a, b) = score_both(&mut old, &mut new, f);
         assert!(a.matched.is_none(), "frame {i}: the default finds the shaft ({a:?})");
         assert!(b.matched.is_some(), "frame {i}: the shaft not found with the hazy walk ({b:?})");
         assert_eq!(b.false_detections, 0, "frame {i}: a false detection with the hazy walk");

@@ -1,6 +1,6 @@
 //! Ours' two changes under haze (session 25) on rendered tuning frames under smoke: the
-//! coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`, on by default: four shafts
-//! the detector without it misses, no shaft returned, are found on the coarse scale's
+//! coarse-scale fallback (`OursConfig::coarse_edgels_under_haze`, opt-in: four shafts the
+//! default misses, no shaft returned, are found on the coarse scale's
 //! silhouette edgels, and frames without the instrument still give nothing) and the contour
 //! walk's floor scaled by the haze (`OursConfig::haze_walk_floor`, opt-in).
 
@@ -18,11 +18,9 @@ fn the_coarse_fallback_finds_hazy_shafts_and_nothing_on_empty_frames() {
     let spec = |family: &str, seed: u64| frame_spec(family, seed, &endoscope_config(SeedSet::Tuning, level)).unwrap();
     let found = [spec("mid", 1046), spec("mid", 1052), spec("mid", 1054), spec("along", 1042)];
     let empty: Vec<FrameSpec> = (1000..1006).map(|s| spec("retracted", s)).collect();
-    // On by default since session 25: the detector without it misses these frames.
-    assert!(OursConfig::default().coarse_edgels_under_haze);
-    let without = OursConfig { coarse_edgels_under_haze: false, ..OursConfig::default() };
-    let mut old = OursDetector::new(intrinsics(), without).unwrap();
-    let mut new = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
+    let rule = OursConfig { coarse_edgels_under_haze: true, ..OursConfig::default() };
+    let mut old = OursDetector::new(intrinsics(), OursConfig::default()).unwrap();
+    let mut new = OursDetector::new(intrinsics(), rule).unwrap();
     let frames = render_frames(SeedSet::Tuning, level, &found, &|| {}).unwrap();
     for (i, f) in frames.iter().enumerate() {
         let (a, b) = score_both(&mut old, &mut new, f);

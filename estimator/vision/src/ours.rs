@@ -19,7 +19,7 @@
 //!    seen in either channel counts (under smoke the colour fades and luma carries the edge).
 //!    Non-maximum suppression along the gradient, a threshold, then each edgel's position and
 //!    normal are mapped to **undistorted** pixels by a table built once (no per-pixel
-//!    undistortion per frame): there the contours are straight lines. By default
+//!    undistortion per frame): there the contours are straight lines. Opt-in
 //!    ([`OursConfig::coarse_edgels_under_haze`]): on a hazy frame where no shaft was found,
 //!    stages 2-7 run once more on the silhouette edgels of the image averaged over 2×2 blocks
 //!    (a faint, spread step is clearer on wider blocks).
@@ -355,7 +355,7 @@ pub struct OursConfig {
     pub border_reach_both: bool,
     /// On a hazy frame (median chroma under `clear_chroma`) where no shaft was found, run the
     /// line, pairing and verification stages once more on edgels at a coarser scale (default
-    /// true since session 25): the edgel stage on the image averaged over 2×2 blocks (its half-resolution
+    /// false): the edgel stage on the image averaged over 2×2 blocks (its half-resolution
     /// pass works on 4×4 blocks of the original), keeping only its silhouette edgels (grey
     /// on one side, tissue-coloured on the other, ±3 coarse pixels along the normal), mapped
     /// to the original's undistorted pixels. Haze scales a silhouette's step down by its
@@ -367,8 +367,9 @@ pub struct OursConfig {
     /// at any level; adding every coarse edgel to the first pass instead found 10 more under
     /// smoke but added 4-11 wrong detections per hazy level (soft tissue edges, shadows), and
     /// the fallback on both scales' silhouette edgels 9 more with 2 more wrong
-    /// (`docs/detection.md`, thirteenth round). On by default: it only runs where the
-    /// detector would otherwise answer "no shaft", and changed no other frame.
+    /// (`docs/detection.md`, thirteenth round). Opt-in: turned on by default once, the live
+    /// tracker's hardware-in-loop test then fell behind the camera (its cost on frames without
+    /// a shaft, under emulation, not yet measured there).
     pub coarse_edgels_under_haze: bool,
     /// On a hazy frame, the walk that follows a refined contour outwards past its Hough
     /// support takes edges down to `0.75 · edge_threshold` times the frame's contrast scale
@@ -417,7 +418,7 @@ impl Default for OursConfig {
             interior_near_px: 0.0,
             span_max_divergence_deg: 90.0,
             border_reach_both: false,
-            coarse_edgels_under_haze: true,
+            coarse_edgels_under_haze: false,
             haze_walk_floor: false,
         }
     }

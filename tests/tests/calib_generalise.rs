@@ -531,7 +531,7 @@ fn every_basin_is_judged_at_its_descended_likelihood() {
     use estimator::calib::ours::explains_shafts;
     // Tuning geometry 9005 (distorted), metre reading, σ = 0.02, trial seed 1014: every
     // candidate of the true basin explains the shafts, so none descended, and the refinement
-    // had left them 1 200-3 000 nats less likely than the truth; the mirror won by 670 nats
+    // had left them 1 800-3 000 nats less likely than the truth; the mirror won by 670 nats
     // (its stage refused: a non-zero exit, but the guarded fit was the mirror). Descended,
     // the true basin is the more likely by over 1 000 nats.
     let d = generate_calibration(&protocol(9005, true, 0.02, NoiseUnits::Metre, 1014)).unwrap();

@@ -147,7 +147,7 @@ pub struct OursConfig {
     /// When the most likely basin is that of the candidate the refinement alone would return,
     /// that candidate's pose is returned unchanged (the robust refinement's estimate); only
     /// where the descent finds another basin more likely does the answer move. On the tuning
-    /// geometries (metres, σ = 0.02) the true basin's refined candidates were 1 200-3 000
+    /// geometries (metres, σ = 0.02) the true basin's refined candidates were 1 800-3 000
     /// nats less likely than the truth and than their own descended poses, and a mirror won
     /// (docs/calibration.md, session 25). `false`: only the unexplained candidates descend.
     pub descend_every_basin: bool,

@@ -408,6 +408,14 @@ struct Refined {
     merged: Option<usize>,
 }
 
+impl Refined {
+    /// This candidate with `other`'s pose and robust scale (a merged candidate follows its
+    /// target).
+    fn at_pose_of(&self, other: &Refined) -> Refined {
+        Refined { r: other.r, t: other.t, scale: other.scale, ..self.clone() }
+    }
+}
+
 /// A candidate whose refinement comes within this many standard deviations (Mahalanobis, the
 /// current Gauss-Newton metric over the robust scale²) of an already refined candidate of the
 /// same objective (same whitening) is in that candidate's basin and converges to it: it is
@@ -883,6 +891,17 @@ fn descend_likelihood(
         }
     }
     (r, t, parts, iterations)
+}
+
+/// Moves candidate `x` to the end of its [`descend_likelihood`] at robust scale `s_ref`
+/// (pose, robust scale of the descended residuals, iterations added) and returns its
+/// likelihood parts there.
+fn descend_candidate(set: &PreparedSet, cfg: &OursConfig, x: &mut Refined, s_ref: f64) -> NllParts {
+    let (r, t, p, its) = descend_likelihood(set, cfg, &x.r, &x.t, s_ref);
+    let mut scratch = Vec::with_capacity(p.norms.len());
+    let scale = robust_scale_with(&p.norms, &mut scratch);
+    (x.r, x.t, x.scale, x.iterations) = (r, t, scale, x.iterations + its);
+    p
 }
 
 /// The runner-up of the candidates (`costs` their [`candidate_nll`], `ib` the best): the most
@@ -1595,20 +1614,14 @@ fn solve_from(
         for i in 0..candidates.len() {
             if let Some(j) = candidates[i].merged {
                 // A merged candidate shares its target's pose (`j < i`: already descended).
-                let (r, t, scale) = (candidates[j].r, candidates[j].t, candidates[j].scale);
-                candidates[i] = Refined { r, t, scale, ..candidates[i].clone() };
+                candidates[i] = candidates[i].at_pose_of(&candidates[j]);
                 continue;
             }
             let x = &candidates[i];
             if !finite(x) || explains_shafts(set, &pose_of(&x.r, &x.t)) {
                 continue;
             }
-            let (r, t, p, its) = descend_likelihood(set, cfg, &x.r, &x.t, s_ref);
-            let mut scratch = Vec::with_capacity(p.norms.len());
-            let scale = robust_scale_with(&p.norms, &mut scratch);
-            let x = &mut candidates[i];
-            (x.r, x.t, x.scale, x.iterations) = (r, t, scale, x.iterations + its);
-            parts[i] = Some(p);
+            parts[i] = Some(descend_candidate(set, cfg, &mut candidates[i], s_ref));
         }
         (candidates, parts)
     } else {
@@ -1650,21 +1663,15 @@ fn solve_from(
             for i in 0..desc.len() {
                 if let Some(j) = desc[i].merged {
                     // `j < i`: already descended.
-                    let (r, t, scale) = (desc[j].r, desc[j].t, desc[j].scale);
-                    desc[i] = Refined { r, t, scale, ..desc[i].clone() };
+                    desc[i] = desc[i].at_pose_of(&desc[j]);
                     (costs_d[i], explains_d[i]) = (costs_d[j], explains_d[j]);
                     continue;
                 }
                 if !explains[i] || !finite(&desc[i]) {
                     continue;
                 }
-                let (r, t, p, its) = descend_likelihood(set, cfg, &desc[i].r, &desc[i].t, s_ref);
-                let mut scratch = Vec::with_capacity(p.norms.len());
-                let scale = robust_scale_with(&p.norms, &mut scratch);
-                costs_d[i] = p.nll(cfg, s_ref);
-                explains_d[i] = explains_shafts(set, &pose_of(&r, &t));
-                let x = &mut desc[i];
-                (x.r, x.t, x.scale, x.iterations) = (r, t, scale, x.iterations + its);
+                costs_d[i] = descend_candidate(set, cfg, &mut desc[i], s_ref).nll(cfg, s_ref);
+                explains_d[i] = explains_shafts(set, &pose_of(&desc[i].r, &desc[i].t));
             }
             let most_likely_d = argmin(&costs_d, &|_| true);
             let chosen_d = most_likely_d.filter(|i| explains_d[*i]);

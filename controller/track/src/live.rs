@@ -17,7 +17,8 @@
 //! buffer (two deep); before the next step the loop drains it and keeps the newest, counting
 //! the others as skipped, and frames lost in the transport (sequence gaps) are counted as
 //! skipped too. Every frame is accounted for: `processed + skipped + rejected` = the frames
-//! published since the first one received.
+//! published since the first one received; when the loop stops, the frames still waiting
+//! (and the transport's gap up to the newest of them) are counted as skipped.
 //!
 //! **Bad input is flagged, never published as valid**: stale or non-finite joints, a frame of
 //! the wrong format, a corrupt frame header, a tracker refusal each give an `Invalid` sample
@@ -315,6 +316,14 @@ impl MemoryFrames {
     /// Delivers `items` in order, `burst` (≥ 1) of them per [`FrameSource::wait`].
     pub fn new(items: Vec<Incoming<MemoryFrame>>, burst: usize) -> Self {
         Self { items, next: 0, available: 0, burst: burst.max(1) }
+    }
+
+    /// The first `n` items already waiting before the first [`FrameSource::wait`] (as frames
+    /// published while the loop was busy), for [`FrameSource::try_next`] too.
+    #[must_use]
+    pub fn waiting(mut self, n: usize) -> Self {
+        self.available = self.available.max(n);
+        self
     }
 
     fn take(&mut self) -> Option<Incoming<MemoryFrame>> {
@@ -774,6 +783,23 @@ where
         on_sample(&s, received_ns);
         handled += 1;
     }
+    // Stopping: the frames still waiting in the source (published before the stop, not taken
+    // by the loop) are counted as skipped, and the transport's gap up to the newest of them
+    // too, so that the counters account for every frame published up to the stop however far
+    // behind the loop had fallen (a corrupt one is refused as in the loop). A source error
+    // here ends the drain: the loop itself stopped cleanly.
+    let mut dropped = 0u64;
+    while let Ok(Some(item)) = source.try_next() {
+        match item {
+            Incoming::Frame(_) => dropped += 1,
+            Incoming::Rejected(_) => {
+                let s = live.rejected();
+                sink.publish(&s)?;
+                on_sample(&s, monotonic_now_ns());
+            }
+        }
+    }
+    live.skipped(dropped + source.missed().saturating_sub(missed_seen));
     Ok(live.counters())
 }
 

@@ -126,6 +126,26 @@ fn every_frame_is_accounted_for_the_newest_wins_and_the_poses_follow_the_truth()
     }
 }
 
+/// Told to stop with frames still waiting (published while the loop was busy): they are counted
+/// as skipped, a corrupt one as rejected with its refusal published, none tracked; without the
+/// stop's drain the counters would account for none of them.
+#[test]
+fn frames_waiting_at_the_stop_are_counted_not_lost() {
+    let f = fixture();
+    let first = common::first_in_view(&f.seq);
+    let mut frames = common::memory_frames(&f.seq, first..first + 3);
+    frames.insert(1, Incoming::Rejected(FrameHeaderError::Version { found: 9, expected: 1 }));
+    let mut l = live(&f.seq);
+    let mut src = MemoryFrames::new(frames, 1).waiting(4);
+    let mut out: Vec<TrackSample> = Vec::new();
+    let stop = AtomicBool::new(true);
+    let opts = LoopOptions { max_frames: None, idle_timeout: None, stop: &stop };
+    let c = run(&mut l, &mut src, &mut joints(f), &mut NoCalibration, &mut out, &opts, &mut |_, _| {}).unwrap();
+    assert_eq!((c.processed, c.skipped, c.rejected), (0, 3, 1), "{c:?}");
+    assert_eq!(out.len(), 1, "one refusal published");
+    assert_eq!(out[0].status(), Some(TrackStatus::Invalid));
+}
+
 /// Joints from the log, NaN for one frame.
 struct NanAt(BusJoints, u64);
 

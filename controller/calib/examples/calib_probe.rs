@@ -13,6 +13,7 @@
 //! printed as `moving gain <g> sd <its jackknife standard error, n/a when not computed>
 //! taken|held`), `MOVING=force`
 //! takes it whatever its gain, `MOVING_Z=<z>` sets `SelectionConfig::moving_step_gain_z`.
+//! `GEOMETRY=1` prints each geometry's class (RCM distance, tool-scope angle, distortion) on stderr.
 //! `INFLUENCE=1` judges the stage's move with its measured covariance
 //! (`SelectionConfig::influence_move_test`). `LIK=0` turns the likelihood descent of the
 //! unexplained candidates off (`OursConfig::likelihood_descent`). `BASIN=0` leaves the candidates that
@@ -100,6 +101,14 @@ fn main() {
         let seed = first + g;
         // Distortion on odd seeds, as `sweep` draws them (its sets start at even seeds).
         let draw = random_geometry(seed, seed % 2 == 1).unwrap();
+        if std::env::var("GEOMETRY").is_ok() {
+            eprintln!(
+                "geometry {seed}: RCM distance {:.0} mm, tool-scope angle {:.1}°, distorted {}",
+                draw.rcm_distance_m * 1e3,
+                draw.tool_scope_angle_rad.to_degrees(),
+                draw.distorted
+            );
+        }
         for k in first_trial..first_trial + trials {
             let p = protocol(&draw, units, sigma, 1000 + k);
             let d = generate_calibration(&p).unwrap();

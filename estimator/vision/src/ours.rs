@@ -379,8 +379,26 @@ pub struct OursConfig {
     /// 25) it found 14 more shafts of 240 under smoke with 5 fewer wrong detections, but
     /// under smoke with the crossing instrument 2 more of 209 with 11 more wrong detections
     /// (pairs of lines on neither instrument's contours, confidence 0.02-0.3;
-    /// `docs/detection.md`, thirteenth round): opt-in.
+    /// `docs/detection.md`, thirteenth round): opt-in. [`OursConfig::haze_walk_checked`]
+    /// (session 26) checks what the fainter edges may prove.
     pub haze_walk_floor: bool,
+    /// With `haze_walk_floor`, check what the lower floor's edges may prove (default
+    /// false; no effect without `haze_walk_floor` or on a clear frame): (1) a station of the
+    /// visible span where neither contour has an edge at the clear frame's floor (only the
+    /// hazy walk's fainter ones) is good only where the interior's margin over the outsides
+    /// is at least half the pair's own (its median over the stations with such an edge): a
+    /// shaft under even haze keeps its contrast along its length, while a pair of lines
+    /// walked on over tissue or a soft shadow has the haze's bare minimum there; (2) the
+    /// border test's waivers (a long or slender span) are judged on the extent of the
+    /// stations with an edge at the clear floor; (3) the border test's reach counts only
+    /// where the pair's axis is at a plausible depth (`min_depth_m / 2` to `max_depth_m`, as
+    /// at the span's ends): past the point where two converging lines meet there is no
+    /// cylinder. On the tuning set (session 26) the hazy walk with these checks found 17
+    /// more shafts of 240 under smoke than the default with 9 fewer wrong detections (152 →
+    /// 169, 10 → 1), and under smoke with the crossing instrument 2 more of 209 with 4 more
+    /// wrong (20 → 24; without the checks 11 more; `docs/detection.md`, fourteenth round):
+    /// opt-in.
+    pub haze_walk_checked: bool,
 }
 
 impl Default for OursConfig {
@@ -420,6 +438,7 @@ impl Default for OursConfig {
             border_reach_both: false,
             coarse_edgels_under_haze: false,
             haze_walk_floor: false,
+            haze_walk_checked: false,
         }
     }
 }
@@ -643,6 +662,19 @@ pub struct OursDetector {
     cache: Vec<Option<Option<Contour>>>,
     /// Per Hough line: its refined contour's inlier points, undistorted pixels.
     cache_pts: Vec<Vec<[f64; 2]>>,
+    /// Per Hough line: the inlier points of `cache_pts` found at the clear frame's floor
+    /// (not only by the hazy walk's lower one).
+    cache_strong: Vec<Vec<[f64; 2]>>,
+    /// The refinement's inlier points found at the clear frame's floor (its scratch).
+    strong_pts: Vec<[f64; 2]>,
+    /// Which of the refinement's walked points were found only under the hazy walk's lower
+    /// floor (its scratch).
+    walk_weak: Vec<bool>,
+    /// Per station of the visible span: the contours with an edge at the clear floor (bits;
+    /// filled only while [`Self::walk_checked`]).
+    strong: Vec<u8>,
+    /// The visible span's margins at the stations with an edge at the clear floor (scratch).
+    strong_margins: Vec<f64>,
     /// Record a trace of this frame ([`OursDetector::detect_traced`]).
     tracing: bool,
     /// The stations of a returned contour's span where its edges were found (the hazy
@@ -723,6 +755,11 @@ impl OursDetector {
             scored: Vec::new(),
             cache: Vec::new(),
             cache_pts: Vec::new(),
+            cache_strong: Vec::new(),
+            strong_pts: Vec::new(),
+            walk_weak: Vec::new(),
+            strong: Vec::new(),
+            strong_margins: Vec::new(),
             tracing: false,
             cover: Vec::new(),
             trace_rejects: Vec::new(),
@@ -829,6 +866,12 @@ impl OursDetector {
         })
     }
 
+    /// Whether the hazy walk's checks apply to this frame ([`OursConfig::haze_walk_checked`]
+    /// with [`OursConfig::haze_walk_floor`], on a hazy frame).
+    fn walk_checked(&self) -> bool {
+        self.cfg.haze_walk_floor && self.cfg.haze_walk_checked && self.haze.scale < 1.0
+    }
+
     /// The pair's frame: an origin on `a`'s span and a unit direction along `a`.
     fn pair_frame(a: &LineCand) -> ([f64; 2], [f64; 2]) {
         let o = a.ends[0];
@@ -900,6 +943,8 @@ impl OursDetector {
             min_strength
         };
         let (o_l, lt) = frame(&line);
+        let n_core = self.pts.len();
+        self.walk_weak.clear();
         for dir in [-1.0f64, 1.0] {
             let (from, to) = if dir < 0.0 { (core[0], full[0]) } else { (core[1], full[1]) };
             let mut misses = 0u32;
@@ -907,8 +952,9 @@ impl OursDetector {
             while (to - s) * dir > 0.0 && misses < 24 {
                 let p = [o_l[0] + s * lt[0], o_l[1] + s * lt[1]];
                 match sampler.edge_offset(&line, p, 2.0, walk_floor) {
-                    Some((off, _)) if off.abs() <= 1.5 => {
+                    Some((off, st)) if off.abs() <= 1.5 => {
                         self.pts.push([p[0] + off * line.n[0], p[1] + off * line.n[1]]);
+                        self.walk_weak.push(st < min_strength);
                         misses = misses.saturating_sub(1);
                     }
                     _ => misses += 2,
@@ -920,9 +966,13 @@ impl OursDetector {
         let line = f.line;
         let samp = &mut self.samp[which];
         samp.clear();
-        for (p, w) in self.pts.iter().zip(&self.w) {
+        self.strong_pts.clear();
+        for (k, (p, w)) in self.pts.iter().zip(&self.w).enumerate() {
             if *w > 0.0 {
                 samp.push(((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p));
+                if k < n_core || !self.walk_weak.get(k - n_core).copied().unwrap_or(false) {
+                    self.strong_pts.push(*p);
+                }
             }
         }
         samp.sort_by(|x, y| x.0.total_cmp(&y.0));
@@ -949,6 +999,9 @@ impl OursDetector {
         let pts = &mut self.cache_pts[idx];
         pts.clear();
         pts.extend(self.samp[0].iter().map(|(_, p)| *p));
+        let strong = &mut self.cache_strong[idx];
+        strong.clear();
+        strong.extend_from_slice(&self.strong_pts);
         self.cache[idx] = Some(c);
         c
     }
@@ -970,6 +1023,10 @@ impl OursDetector {
     /// or one contour has one and the contrast is full; the span is the run of good stations
     /// (gaps up to 64 px: a crossing instrument) with
     /// the most good stations. Returns the span and the fraction of good stations in it.
+    /// With [`OursConfig::haze_walk_checked`] on a hazy frame, a station where neither of the
+    /// pair's Hough lines `lines` has an edge found at the clear floor needs half the pair's
+    /// median margin as well.
+    #[allow(clippy::too_many_arguments)]
     fn visible_span(
         &mut self,
         sampler: &Sampler<'_>,
@@ -978,6 +1035,7 @@ impl OursDetector {
         t: [f64; 2],
         range: [f64; 2],
         mode: Evidence,
+        lines: [usize; 2],
     ) -> Option<([f64; 2], f64)> {
         const STEP: f64 = 2.0;
         let n = ((range[1] - range[0]) / STEP).floor().max(0.0) as usize + 1;
@@ -990,6 +1048,21 @@ impl OursDetector {
                     let i = i as usize;
                     for j in i.saturating_sub(1)..=(i + 1).min(n - 1) {
                         self.has[j] |= 1 << bit;
+                    }
+                }
+            }
+        }
+        // The stations with an edge found at the clear frame's floor (`haze_walk_checked`).
+        let checked = self.walk_checked();
+        self.strong.clear();
+        self.strong.resize(n, 0);
+        for (bit, idx) in lines.iter().enumerate().filter(|_| checked) {
+            for p in &self.cache_strong[*idx] {
+                let i = (((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1] - range[0]) / STEP).round();
+                if i >= 0.0 && (i as usize) < n {
+                    let i = i as usize;
+                    for j in i.saturating_sub(1)..=(i + 1).min(n - 1) {
+                        self.strong[j] |= 1 << bit;
                     }
                 }
             }
@@ -1039,6 +1112,22 @@ impl OursDetector {
         // Segments of good stations whose gaps are all shorter than `short_gap`: (start, last,
         // good stations, good stations with both edges).
         let short_gap = (64.0 / STEP) as usize;
+        // A station with only the hazy walk's fainter edges needs half the pair's own margin
+        // (its median over the stations with an edge at the clear floor).
+        let walked_need = if checked {
+            self.strong_margins.clear();
+            self.strong_margins.extend(
+                self.strong.iter().zip(&self.margin).filter(|(s, m)| **s != 0 && m.is_finite()).map(|(_, m)| *m),
+            );
+            let mid = self.strong_margins.len() / 2;
+            if self.strong_margins.is_empty() {
+                f64::INFINITY
+            } else {
+                0.5 * *self.strong_margins.select_nth_unstable_by(mid, f64::total_cmp).1
+            }
+        } else {
+            f64::NEG_INFINITY
+        };
         self.segs.clear();
         self.good.clear();
         self.good.resize(n, false);
@@ -1054,8 +1143,9 @@ impl OursDetector {
             // Both edges and a grey interior; or one edge (the other may fade against bright
             // fat or in a hazy corner) and a clearly grey interior.
             let mean = if cnt >= 2 { sum / cnt as f64 } else { f64::NEG_INFINITY };
-            let both = self.has[i] == 3 && mean >= need;
-            let good = both || (self.has[i] != 0 && mean >= 2.0 * need);
+            let faint = checked && self.strong[i] == 0 && mean < walked_need;
+            let both = self.has[i] == 3 && mean >= need && !faint;
+            let good = both || (self.has[i] != 0 && mean >= 2.0 * need && !faint);
             if !good {
                 continue;
             }
@@ -1239,7 +1329,8 @@ impl OursDetector {
             samp.extend(self.cache_pts[idx].iter().map(|p| ((p[0] - o[0]) * t[0] + (p[1] - o[1]) * t[1], *p)));
             samp.sort_by(|x, y| x.0.total_cmp(&y.0));
         }
-        let (span, support) = self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode).ok_or(R::NoSpan)?;
+        let (span, support) =
+            self.visible_span(&sampler, [&ca.line, &cb.line], o, t, range, mode, [ia, ib]).ok_or(R::NoSpan)?;
         let len = span[1] - span[0];
         if len < cfg.min_length_px {
             return Err(R::ShortSpan);
@@ -1345,9 +1436,24 @@ impl OursDetector {
         // A slender span (many widths long) is waived too: a pair of jaws is at most a few
         // shaft widths long, while a shaft cut short by a crossing instrument or faded into
         // a vignetted, hazy border region keeps its slender straight part.
-        let slender = len >= cfg.slender_span_widths * (la - lb).abs();
+        // With `haze_walk_checked`, the waivers are judged on the stations with an edge at the
+        // clear frame's floor.
+        let wlen = if self.walk_checked() {
+            let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            for (i, h) in self.strong.iter().enumerate() {
+                let sv = range[0] + i as f64 * 2.0;
+                if *h != 0 && sv >= span[0] && sv <= span[1] {
+                    lo = lo.min(sv);
+                    hi = hi.max(sv);
+                }
+            }
+            (hi - lo).max(0.0)
+        } else {
+            len
+        };
+        let slender = wlen >= cfg.slender_span_widths * (la - lb).abs();
         if cfg.border_margin_px.is_finite()
-            && len < cfg.long_span_px
+            && wlen < cfg.long_span_px
             && !slender
             && !(cfg.occluded_end_waiver && self.end_hidden([&ca.line, &cb.line], inside, o, t, span))
         {
@@ -1397,7 +1503,16 @@ impl OursDetector {
                 let (x, y) = self.lens.distort_px(p[0], p[1]);
                 [x, y]
             });
-            if !reach_px.iter().any(near) {
+            // With `haze_walk_checked`, a reach past the point where the contours meet (no
+            // cylinder there) or to an implausible depth does not count.
+            let checked = self.walk_checked();
+            let plausible = |sv: f64| {
+                !checked
+                    || self
+                        .axis_depth_at(&ca.line, &cb.line, inside, [o[0] + sv * t[0], o[1] + sv * t[1]])
+                        .is_some_and(|z| z >= 0.5 * cfg.min_depth_m && z <= cfg.max_depth_m)
+            };
+            if !reach_px.iter().zip(reach).any(|(p, sv)| near(p) && plausible(sv)) {
                 return Err(R::Border);
             }
         }
@@ -1605,6 +1720,9 @@ impl OursDetector {
         self.cache.resize(n_lines, None);
         if self.cache_pts.len() < n_lines {
             self.cache_pts.resize_with(n_lines, Vec::new);
+        }
+        if self.cache_strong.len() < n_lines {
+            self.cache_strong.resize_with(n_lines, Vec::new);
         }
         // Verify the best-ranked pairs, then keep the best-scoring consistent set (a pair
         // sharing a line, a contour or the axis with a better one is dropped).

@@ -14,8 +14,8 @@
 //! taken|held`), `MOVING=force`
 //! takes it whatever its gain, `MOVING_Z=<z>` sets `SelectionConfig::moving_step_gain_z`.
 //! `GEOMETRY=1` prints each geometry's class (RCM distance, tool-scope angle, distortion) on stderr.
-//! `INFLUENCE=1` judges the stage's move with its measured covariance
-//! (`SelectionConfig::influence_move_test`). `LIK=0` turns the likelihood descent of the
+//! `INFLUENCE=0` judges the stage's move with the efficiency-based covariance, `INFLUENCE=1`
+//! with its measured covariance (`SelectionConfig::influence_move_test`, the default since session 26). `LIK=0` turns the likelihood descent of the
 //! unexplained candidates off (`OursConfig::likelihood_descent`). `BASIN=0` leaves the candidates that
 //! explain the shafts where their refinement ended (`OursConfig::descend_every_basin`). `FROM_TRUTH=1` adds the truth's rotation as a
 //! start (`OursConfig::initial_quaternion`).

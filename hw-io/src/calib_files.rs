@@ -349,6 +349,10 @@ pub struct PipelineResultJson {
     /// deviations were multiplied by (dimensionless; absent when taken as stated).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_scale: Option<f64>,
+    /// Ours: how many observations its candidates were searched on (all of them, or a
+    /// subsample when the dataset is large; the result itself is refined and judged on all).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub searched_on: Option<usize>,
 }
 
 /// Our pipeline's selection-aware stage in a result file (`docs/calibration.md`).

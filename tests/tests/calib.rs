@@ -433,3 +433,35 @@ fn merged_starts_give_the_converged_pose() {
         assert!(sigmas < 0.05, "{units:?}: {sigmas} standard deviations apart");
     }
 }
+
+/// A large dataset's candidates are searched on a subsample spread over it
+/// (`OursConfig::search_observations`); the chosen basin is refined and judged on all
+/// observations, so the answer is the full search's, to a small fraction of its standard
+/// deviation. A small dataset is searched on all of it.
+#[test]
+fn a_large_dataset_is_searched_on_a_subsample_with_the_full_searchs_answer() {
+    for units in [NoiseUnits::Millimetre, NoiseUnits::Metre] {
+        let d = data(3, 4, 0.01, units, 7);
+        let obs = &d.observations[..729];
+        let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
+        let n = cfg.search_observations.expect("on by default");
+        let sub = solve_ours(&d.setup, obs, &cfg).unwrap();
+        let all = solve_ours(&d.setup, obs, &OursConfig { search_observations: None, ..cfg }).unwrap();
+        assert_eq!(all.searched_on, 729);
+        // The golden-ratio subsample keeps n of the 729, to within a few.
+        assert!(sub.searched_on.abs_diff(n) <= 3 && sub.searched_on < 729, "{} of {n}", sub.searched_on);
+        let sd_t = (all.covariance[(0, 0)] + all.covariance[(1, 1)] + all.covariance[(2, 2)]).sqrt();
+        let sd_r = (all.covariance[(3, 3)] + all.covariance[(4, 4)] + all.covariance[(5, 5)]).sqrt();
+        let dt = (sub.pose.translation.vector - all.pose.translation.vector).norm();
+        let dr = sub.pose.rotation.angle_to(&all.pose.rotation);
+        assert!(dt < 0.05 * sd_t && dr < 0.05 * sd_r, "{units:?}: {dt} m ({sd_t}), {dr} rad ({sd_r})");
+        // The runner-up is judged on all observations: a distinct, far less likely solution.
+        assert!(sub.log_likelihood_ratio > 100.0 * DEFAULT_MIN_LOG_LIKELIHOOD_RATIO, "{}", sub.log_likelihood_ratio);
+        assert!(sub.alternative.rotation.angle_to(&sub.pose.rotation) > 0.17);
+    }
+    let d = data(2, 3, 0.01, NoiseUnits::Millimetre, 7);
+    let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
+    assert!(d.observations.len() < 2 * cfg.search_observations.unwrap());
+    let r = solve_ours(&d.setup, &d.observations, &cfg).unwrap();
+    assert_eq!(r.searched_on, d.observations.len());
+}

@@ -18,7 +18,8 @@
 //! with its measured covariance (`SelectionConfig::influence_move_test`, the default since session 26). `LIK=0` turns the likelihood descent of the
 //! unexplained candidates off (`OursConfig::likelihood_descent`). `BASIN=0` leaves the candidates that
 //! explain the shafts where their refinement ended (`OursConfig::descend_every_basin`). `FROM_TRUTH=1` adds the truth's rotation as a
-//! start (`OursConfig::initial_quaternion`).
+//! start (`OursConfig::initial_quaternion`). `SEARCH=<n>` searches the candidates on n observations
+//! (`OursConfig::search_observations`; 0: on all of them).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -148,6 +149,11 @@ fn main() {
             // their refinement left them.
             if let Ok(v) = std::env::var("BASIN") {
                 cfg.descend_every_basin = v != "0";
+            }
+            // SEARCH=<n>: the candidates searched on n observations (0: on all of them).
+            if let Ok(v) = std::env::var("SEARCH") {
+                let n: usize = v.parse().unwrap();
+                cfg.search_observations = (n > 0).then_some(n);
             }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {

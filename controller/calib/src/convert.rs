@@ -148,6 +148,7 @@ pub fn result_json(
         solve_ms,
         selection_stage: ours.and_then(selection_json),
         noise_scale: ours.and_then(|o| o.noise_scale),
+        searched_on: ours.map(|o| o.searched_on),
     }
 }
 
@@ -171,6 +172,7 @@ mod tests {
             selection,
             selection_refused,
             noise_scale: None,
+            searched_on: 0,
         }
     }
 

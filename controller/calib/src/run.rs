@@ -235,6 +235,10 @@ pub struct OursOptions {
     /// with the guarded fit (`estimator::calib::selection::SelectionConfig::false_refusal_probability`);
     /// `None`: the default, 1e-3.
     pub false_refusal_probability: Option<f64>,
+    /// Search the candidates on every observation
+    /// (`estimator::calib::ours::OursConfig::search_observations` `None`); `false`: the
+    /// library's default subsample for large datasets.
+    pub search_on_all: bool,
 }
 
 /// Reads a dataset (optionally overriding its intrinsics from a YAML file), runs the
@@ -255,7 +259,7 @@ pub fn calibrate(
     pipeline: Pipeline,
     ours: OursOptions,
 ) -> Result<Vec<CalibrateSummary>, CalibrateError> {
-    let OursOptions { accept_unrefined, estimate_noise_scale, false_refusal_probability } = ours;
+    let OursOptions { accept_unrefined, estimate_noise_scale, false_refusal_probability, search_on_all } = ours;
     let text = read(dataset)?;
     let file = parse_dataset(&text).map_err(|source| CalibrateError::File { path: dataset.to_owned(), source })?;
     let (mut setup, obs, noise) = convert::dataset(&file);
@@ -346,6 +350,9 @@ pub fn calibrate(
         if wanted.contains(&"ours") {
             let started = Instant::now();
             let mut cfg = OursConfig { noise, estimate_noise_scale, ..OursConfig::default() };
+            if search_on_all {
+                cfg.search_observations = None;
+            }
             if let (Some(p), Some(sel)) = (false_refusal_probability, cfg.selection.as_mut()) {
                 sel.false_refusal_probability = p;
             }

@@ -151,6 +151,15 @@ pub struct OursConfig {
     /// nats less likely than the truth and than their own descended poses, and a mirror won
     /// (docs/calibration.md, session 25). `false`: only the unexplained candidates descend.
     pub descend_every_basin: bool,
+    /// The search on a subsample (coarse to fine): when there are at least twice this many
+    /// observations, the candidates (starts, 180° turns, descents, the choice of basin and its
+    /// runner-up) are found on this many of them, spread over the dataset by a golden-ratio
+    /// sequence (no aliasing with a grid of poses); the chosen basin and the runner-up are
+    /// then refined on all observations and judged there (likelihood ratio, ambiguity,
+    /// whether they explain the shafts). Anything the subsample's search cannot settle (an
+    /// error other than [`OursError::Ambiguous`], a basin that fails on all observations) is
+    /// searched again on all observations. `None`: always search on all observations.
+    pub search_observations: Option<usize>,
 }
 
 /// The bounds of the noise scale [`OursConfig::estimate_noise_scale`] applies
@@ -172,9 +181,13 @@ impl Default for OursConfig {
             estimate_noise_scale: false,
             likelihood_descent: true,
             descend_every_basin: true,
+            search_observations: Some(DEFAULT_SEARCH_OBSERVATIONS),
         }
     }
 }
+
+/// [`OursConfig::search_observations`]'s default.
+pub const DEFAULT_SEARCH_OBSERVATIONS: usize = 240;
 
 /// Why our pipeline failed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -310,6 +323,10 @@ pub struct OursResult {
     /// ([`OursConfig::estimate_noise_scale`], dimensionless); `None` when the model was taken
     /// as stated.
     pub noise_scale: Option<f64>,
+    /// How many observations the candidates were searched on
+    /// ([`OursConfig::search_observations`]): all of them, or the subsample's size (the
+    /// result itself is then refined and judged on all of them).
+    pub searched_on: usize,
 }
 
 /// One candidate solution and its negative log-likelihood.
@@ -1168,6 +1185,7 @@ fn solve_as_stated(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, Ou
                 next.guard_from = Some(result.pose);
                 next.alternative = result.alternative;
                 next.log_likelihood_ratio = result.log_likelihood_ratio;
+                next.searched_on = result.searched_on;
                 result = next;
             }
             Err(_) => break,
@@ -1354,7 +1372,124 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         return Err(OursError::NoiseModel);
     }
     let starts = start_rotations(set, cfg, from)?;
+    if from.is_none()
+        && let Some(n) = cfg.search_observations.filter(|n| *n >= 12 && set.obs.len() >= 2 * n)
+        && let Some(result) = coarse_to_fine(set, cfg, &starts, n)
+    {
+        return result;
+    }
     solve_from(set, cfg, from, &starts)
+}
+
+/// [`OursError::Ambiguous`] between `best` and `runner_up` (each a pose and its negative
+/// log-likelihood); the ratio is their difference, at least 0.
+fn ambiguous(cfg: &OursConfig, best: (Isometry3<f64>, f64), runner_up: (Isometry3<f64>, f64)) -> OursError {
+    let ((b, c_b), (a, c_a)) = (best, runner_up);
+    OursError::Ambiguous {
+        best: Box::new(Candidate { pose: b, nll: c_b }),
+        runner_up: Box::new(Candidate { pose: a, nll: c_a }),
+        log_likelihood_ratio: (c_a - c_b).max(0.0),
+        min: cfg.min_log_likelihood_ratio,
+        angle_deg: (b.rotation.inverse() * a.rotation).angle().to_degrees(),
+        distance_mm: (b.translation.vector - a.translation.vector).norm() * 1e3,
+    }
+}
+
+/// `n` of `set`'s observations, spread over the set by the golden-ratio sequence (index `i`
+/// kept when `frac(i φ⁻¹) < n / N`): a grid of poses in any order is sampled without aliasing.
+fn subsample(set: &PreparedSet, n: usize) -> PreparedSet {
+    const INV_PHI: f64 = 0.618_033_988_749_894_9;
+    let f = n as f64 / set.obs.len().max(1) as f64;
+    let obs = set.obs.iter().enumerate().filter(|(i, _)| (*i as f64 * INV_PHI).fract() < f).map(|(_, o)| *o).collect();
+    PreparedSet { obs, ..set.clone() }
+}
+
+/// [`OursConfig::search_observations`]: the candidates searched on a subsample, the chosen
+/// basin and its runner-up refined and judged on all observations. `None` when the
+/// subsample cannot settle it (the caller then searches on all observations).
+fn coarse_to_fine(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    starts: &Starts,
+    n: usize,
+) -> Option<Result<OursResult, OursError>> {
+    let sub = subsample(set, n);
+    let (best, alt) = match solve_from(&sub, cfg, None, starts) {
+        Ok(x) => (x.pose, x.alternative),
+        Err(OursError::Ambiguous { best, runner_up, .. }) => (best.pose, runner_up.pose),
+        Err(_) => return None,
+    };
+    let distinct =
+        |a: &Isometry3<f64>, b: &Isometry3<f64>| (a.rotation.inverse() * b.rotation).angle() > DISTINCT_SOLUTION_RAD;
+    if !distinct(&best, &alt) {
+        return None;
+    }
+    // The chosen basin, refined on all observations (its result is the answer).
+    let mut w = solve_once(set, cfg, Some(&best)).ok()?;
+    let rt = |p: &Isometry3<f64>| (p.rotation.to_rotation_matrix().into_inner(), p.translation.vector);
+    // Judged as the full search judges its basins: at their descended likelihoods
+    // ([`OursConfig::descend_every_basin`]), at one common robust scale.
+    let descend = cfg.likelihood_descent && cfg.descend_every_basin;
+    let judge = |p: &Isometry3<f64>, s_ref: f64| -> (f64, bool, Isometry3<f64>) {
+        let (r, t) = rt(p);
+        if descend {
+            let (r, t, parts, _) = descend_likelihood(set, cfg, &r, &t, s_ref);
+            let q = pose_of(&r, &t);
+            (parts.nll(cfg, s_ref), explains_shafts(set, &q), q)
+        } else {
+            (candidate_nll(set, cfg, &r, &t, s_ref), explains_shafts(set, p), *p)
+        }
+    };
+    // The runner-up where the subsample's search left it: as in the full search, a candidate
+    // more than [`SECOND_PASS_MARGIN_NATS`] less likely than the best is compared where it is
+    // (not refined further on all observations).
+    let (r_a, t_a) = rt(&alt);
+    let (r_w, t_w) = rt(&w.pose);
+    let far = candidate_nll(set, cfg, &r_a, &t_a, w.scale) - candidate_nll(set, cfg, &r_w, &t_w, w.scale);
+    let (mut a_pose, mut a_scale, mut a_its) = (alt, w.scale, 0);
+    if far.is_nan() || far <= SECOND_PASS_MARGIN_NATS {
+        let a = solve_once(set, cfg, Some(&alt)).ok()?;
+        if distinct(&w.pose, &a.pose) {
+            (a_pose, a_scale, a_its) = (a.pose, a.scale, a.iterations);
+        } else {
+            // No basin of its own on all observations: as the full search's runner-up when
+            // every candidate went to the best, the best's mirror, refined.
+            let [(r_m, t_m), ..] = flips(set, &r_w, &t_w);
+            let x = refine(set, cfg, whitening(set, cfg, &r_m, &t_m), r_m, t_m, &[]);
+            let ok = x.t.iter().chain(x.r.iter()).all(|v| v.is_finite()) && distinct(&w.pose, &pose_of(&x.r, &x.t));
+            let (r, t) = if ok { (x.r, x.t) } else { (r_m, t_m) };
+            (a_pose, a_scale, a_its) =
+                (pose_of(&r, &t), if ok { x.scale } else { w.scale }, a.iterations + x.iterations);
+        }
+    }
+    let s_ref = w.scale.min(a_scale);
+    let ((c_w, e_w, d_w), (c_a, e_a, d_a)) = (judge(&w.pose, s_ref), judge(&a_pose, s_ref));
+    if !(c_w.is_finite() && c_a.is_finite()) {
+        return None;
+    }
+    // The runner-up descends into the best's basin: no rival basin was found on all
+    // observations; searched again on all.
+    if !distinct(&d_w, &d_a) {
+        return None;
+    }
+    if c_a < c_w {
+        // On all observations the runner-up's basin is the more likely: searched again on all.
+        return None;
+    }
+    // The most likely basin does not explain the shafts: the full search refuses or decides.
+    if !e_w {
+        return None;
+    }
+    let llr = c_a - c_w;
+    // A runner-up that does not explain the shafts is no rival, however likely its lines.
+    if llr < cfg.min_log_likelihood_ratio && e_a {
+        return Some(Err(ambiguous(cfg, (w.pose, c_w), (a_pose, c_a))));
+    }
+    w.alternative = a_pose;
+    w.log_likelihood_ratio = llr;
+    w.searched_on = sub.obs.len();
+    w.iterations += a_its;
+    Some(Ok(w))
 }
 
 /// [`solve_once`]'s starts (they do not depend on [`OursConfig::shaft_position`]): the
@@ -1710,14 +1845,7 @@ fn solve_from(
     let best_pose = pose_of(&best.r, &best.t);
     // A runner-up that does not explain the shafts is no rival, however likely its lines.
     if from.is_none() && llr < cfg.min_log_likelihood_ratio && explains_shafts(set, &alt_pose) {
-        return Err(OursError::Ambiguous {
-            best: Box::new(Candidate { pose: best_pose, nll: c_best }),
-            runner_up: Box::new(Candidate { pose: alt_pose, nll: c_alt }),
-            log_likelihood_ratio: llr,
-            min: cfg.min_log_likelihood_ratio,
-            angle_deg: (best_pose.rotation.inverse() * alt_pose.rotation).angle().to_degrees(),
-            distance_mm: (best_pose.translation.vector - alt_pose.translation.vector).norm() * 1e3,
-        });
+        return Err(ambiguous(cfg, (best_pose, c_best), (alt_pose, c_alt)));
     }
     // The winner's own whitening for its covariance.
     let best = &Refined { whiten: whitening(set, cfg, &best.r, &best.t), ..*best };
@@ -1783,6 +1911,7 @@ fn solve_from(
         selection: None,
         selection_refused: None,
         noise_scale: None,
+        searched_on: set.obs.len(),
     })
 }
 

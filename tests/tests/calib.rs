@@ -465,3 +465,25 @@ fn a_large_dataset_is_searched_on_a_subsample_with_the_full_searchs_answer() {
     let r = solve_ours(&d.setup, &d.observations, &cfg).unwrap();
     assert_eq!(r.searched_on, d.observations.len());
 }
+
+/// A subset of a prepared set counts its own views, tool orientations and pencil ratio (the
+/// subsample search relies on them to fall back to all observations).
+#[test]
+fn a_subset_counts_its_own_views_and_orientations() {
+    let d = data(3, 3, 0.01, NoiseUnits::Millimetre, 7);
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    assert_eq!((set.views, set.orientations), (2, 3));
+    let o0 = set.obs[0].o_ec;
+    let one_view: Vec<Prepared> = set.obs.iter().filter(|o| (o.o_ec - o0).norm() < 1e-9).copied().collect();
+    assert!(!one_view.is_empty() && one_view.len() < set.obs.len());
+    let sub = set.with_observations(one_view);
+    assert_eq!(sub.views, 1);
+    let m0 = set.obs[0].m_t;
+    let one_direction: Vec<Prepared> = set.obs.iter().filter(|o| o.m_t.cross(&m0).norm() < 1e-9).copied().collect();
+    let sub = set.with_observations(one_direction);
+    assert_eq!(sub.orientations, 1);
+    assert!(sub.pencil_ratio < set.pencil_ratio, "{} {}", sub.pencil_ratio, set.pencil_ratio);
+    // The full set's own observations give its own figures.
+    let same = set.with_observations(set.obs.clone());
+    assert_eq!((same.views, same.orientations, same.pencil_ratio), (set.views, set.orientations, set.pencil_ratio));
+}

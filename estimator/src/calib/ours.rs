@@ -41,7 +41,7 @@ use super::paper::{
     PaperError, eq10_symmetric, kronecker_rotation, linear_translation, refine_quaternion, refine_quaternion_sym,
     translation_given_rotation, wxyz,
 };
-use super::prepare::{PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
+use super::prepare::{PENCIL_TOLERANCE, PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::residual::{damped_search, residual, residual_and_jacobian, residual_covariance};
 use super::selection::{
     SelectionConfig, SelectionError, kept_given_line_ln, moving_covariance_step, refine_selected_with, tip_well_inside,
@@ -1401,7 +1401,7 @@ fn subsample(set: &PreparedSet, n: usize) -> PreparedSet {
     const INV_PHI: f64 = 0.618_033_988_749_894_9;
     let f = n as f64 / set.obs.len().max(1) as f64;
     let obs = set.obs.iter().enumerate().filter(|(i, _)| (*i as f64 * INV_PHI).fract() < f).map(|(_, o)| *o).collect();
-    PreparedSet { obs, ..set.clone() }
+    set.with_observations(obs)
 }
 
 /// [`OursConfig::search_observations`]: the candidates searched on a subsample, the chosen
@@ -1414,6 +1414,11 @@ fn coarse_to_fine(
     n: usize,
 ) -> Option<Result<OursResult, OursError>> {
     let sub = subsample(set, n);
+    // A subsample that lost what the method needs (two views of robot 1, three tool
+    // orientations, lines not all in one pencil) cannot stand in for the data.
+    if sub.views < 2 || sub.orientations < 3 || sub.pencil_ratio.is_nan() || sub.pencil_ratio < PENCIL_TOLERANCE {
+        return None;
+    }
     let (best, alt) = match solve_from(&sub, cfg, None, starts) {
         Ok(x) => (x.pose, x.alternative),
         Err(OursError::Ambiguous { best, runner_up, .. }) => (best.pose, runner_up.pose),

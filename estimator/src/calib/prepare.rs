@@ -244,13 +244,7 @@ pub fn prepare_unchecked(setup: &Setup, observations: &[Observation]) -> Result<
             r2: f2.rotation.to_rotation_matrix().into_inner(),
         });
     }
-    let views = count_distinct(obs.iter().map(|p| p.o_ec), 2, |a, b| (a - b).norm() > SAME_VIEW_M);
-    let orientations =
-        count_distinct(obs.iter().map(|p| p.m_t), 3, |a, b| a.cross(b).norm() > SAME_ORIENTATION_RAD || a.dot(b) < 0.0);
-    let normals = obs.iter().fold(Matrix3::zeros(), |acc, p| acc + p.n_c * p.n_c.transpose());
-    let eig = normals.symmetric_eigen();
-    let (lmin, lmax) = (eig.eigenvalues.min(), eig.eigenvalues.max());
-    let pencil_ratio = if lmax > 0.0 { lmin.max(0.0) / lmax } else { 0.0 };
+    let (views, orientations, pencil_ratio) = counts(&obs);
     Ok(PreparedSet {
         pencil_ratio,
         obs,
@@ -275,6 +269,28 @@ pub fn inverse_adjoint(t: &Isometry3<f64>) -> Matrix6<f64> {
     ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(super::rcm_arms::skew(&xi.translation.vector) * rx));
     ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&rx);
     ad
+}
+
+impl PreparedSet {
+    /// This set with only `obs` (some of its observations), the solution-free checks' figures
+    /// ([`Self::views`], [`Self::orientations`], [`Self::pencil_ratio`]) counted on them.
+    pub fn with_observations(&self, obs: Vec<Prepared>) -> PreparedSet {
+        let (views, orientations, pencil_ratio) = counts(&obs);
+        PreparedSet { obs, views, orientations, pencil_ratio, ..*self }
+    }
+}
+
+/// Distinct views of robot 1 (up to 2), distinct tool orientations (up to 3) and the pencil
+/// ratio of the observations' plane normals ([`PreparedSet`]'s fields of the same names).
+fn counts(obs: &[Prepared]) -> (usize, usize, f64) {
+    let views = count_distinct(obs.iter().map(|p| p.o_ec), 2, |a, b| (a - b).norm() > SAME_VIEW_M);
+    let orientations =
+        count_distinct(obs.iter().map(|p| p.m_t), 3, |a, b| a.cross(b).norm() > SAME_ORIENTATION_RAD || a.dot(b) < 0.0);
+    let normals = obs.iter().fold(Matrix3::zeros(), |acc, p| acc + p.n_c * p.n_c.transpose());
+    let eig = normals.symmetric_eigen();
+    let (lmin, lmax) = (eig.eigenvalues.min(), eig.eigenvalues.max());
+    let pencil_ratio = if lmax > 0.0 { lmin.max(0.0) / lmax } else { 0.0 };
+    (views, orientations, pencil_ratio)
 }
 
 /// Counts distinct items (pairwise `differ`), stopping at `enough`.

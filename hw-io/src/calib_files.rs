@@ -353,6 +353,11 @@ pub struct PipelineResultJson {
     /// subsample when the dataset is large; the result itself is refined and judged on all).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub searched_on: Option<usize>,
+    /// Ours: `true` when the first search's answer fitted the data worse than the noise model
+    /// predicts and the candidates were searched again from a cover of rotation space (this
+    /// is that search's answer; `docs/calibration.md`, "Our pipeline").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cover_searched: Option<bool>,
 }
 
 /// Our pipeline's selection-aware stage in a result file (`docs/calibration.md`).

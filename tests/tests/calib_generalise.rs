@@ -3,7 +3,7 @@
 //! shaft-position likelihood (shaft ends, its gradients, metre-noise data the lines alone
 //! cannot calibrate), the best's mirror as a standing candidate, the left-out lines' likelihood,
 //! the moving-covariance step (off by default), the likelihood descent of candidates the
-//! refinement left unexplained.
+//! refinement left unexplained, the search again from a cover of rotations when the fit is poor.
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -521,9 +521,22 @@ fn a_candidate_the_refinement_walks_out_of_the_physical_region_descends_back() {
     assert!(e.rotation_rad.to_degrees() < 10.0, "{e:?}");
     assert!(explains_shafts(&set, &o.pose));
     assert!(o.selection.is_some(), "the selection stage was refused: {:?}", o.selection_refused);
-    // Without the descent: the mirror (the case this guards against).
-    let off = solve_ours_prepared(&set, &OursConfig { likelihood_descent: false, ..cfg }).unwrap();
-    assert!(pose_errors(&off.pose, &d.truth).rotation_rad.to_degrees() > 90.0);
+    // Without the descent (and without the search from the cover of rotations, the other
+    // defence): the mirror (the case this guards against).
+    let off = solve_ours_prepared(&set, &OursConfig { likelihood_descent: false, cover_search_scale: None, ..cfg });
+    assert!(pose_errors(&off.unwrap().pose, &d.truth).rotation_rad.to_degrees() > 90.0);
+    // Without the descent, the mirror fits worse than the noise model predicts, and the
+    // search from the cover of rotations does not answer with it (it finds a pose 25° off whose
+    // selection-aware stage is refused: a non-zero exit, not a confident wrong answer).
+    match solve_ours_prepared(&set, &OursConfig { likelihood_descent: false, ..cfg }) {
+        Ok(x) => {
+            assert!(x.cover_searched);
+            let e = pose_errors(&x.pose, &d.truth);
+            assert!(e.rotation_rad.to_degrees() < 90.0, "{e:?}");
+            assert!(e.rotation_rad.to_degrees() < 10.0 || x.selection_refused.is_some(), "{e:?}");
+        }
+        Err(e) => assert!(!matches!(e, OursError::Prepare(_)), "{e}"),
+    }
 }
 
 #[test]
@@ -546,4 +559,34 @@ fn every_basin_is_judged_at_its_descended_likelihood() {
     // Without it: the mirror.
     let off = solve_ours_prepared(&set, &OursConfig { descend_every_basin: false, ..cfg }).unwrap();
     assert!(pose_errors(&off.pose, &d.truth).rotation_rad.to_degrees() > 90.0);
+}
+
+#[test]
+fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations() {
+    // Tuning geometry 9038 (undistorted), metre reading, σ = 0.02, trial seed 1011: the linear
+    // start, its 180° turns, the other minima of Eq. 10 and the best's mirrors all miss the
+    // true basin, and the search answers with a mirror that fits 1.6 times worse than the
+    // noise model predicts (only the selection-aware stage's move test refused it). Searched
+    // again from the cover of rotation space, the true basin is found and is the answer.
+    let d = generate_calibration(&protocol(9038, false, 0.02, NoiseUnits::Metre, 1011)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
+    let limit = cfg.cover_search_scale.expect("on by default");
+    let narrow = solve_ours_prepared(&set, &OursConfig { cover_search_scale: None, ..cfg }).unwrap();
+    assert!(!narrow.cover_searched);
+    assert!(narrow.scale > limit, "the case is not the one documented: scale {}", narrow.scale);
+    let e = pose_errors(&narrow.pose, &d.truth);
+    assert!(e.rotation_rad.to_degrees() > 170.0, "the case is not the one documented: {e:?}");
+    let o = solve_ours_prepared(&set, &cfg).unwrap();
+    assert!(o.cover_searched);
+    let e = pose_errors(&o.pose, &d.truth);
+    assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");
+    assert!(o.scale < narrow.scale, "{} against {}", o.scale, narrow.scale);
+    // A fit as good as the noise model predicts (same geometry, trial seed 1000) is not
+    // searched again.
+    let d = generate_calibration(&protocol(9038, false, 0.02, NoiseUnits::Metre, 1000)).unwrap();
+    let set = prepare(&d.setup, &d.observations).unwrap();
+    let o =
+        solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: None, ..OursConfig::default() }).unwrap();
+    assert!(o.scale <= limit && !o.cover_searched, "scale {}", o.scale);
 }

@@ -19,7 +19,9 @@
 //! unexplained candidates off (`OursConfig::likelihood_descent`). `BASIN=0` leaves the candidates that
 //! explain the shafts where their refinement ended (`OursConfig::descend_every_basin`). `FROM_TRUTH=1` adds the truth's rotation as a
 //! start (`OursConfig::initial_quaternion`). `SEARCH=<n>` searches the candidates on n observations
-//! (`OursConfig::search_observations`; 0: on all of them).
+//! (`OursConfig::search_observations`; 0: on all of them). `COVER=0` never searches again from a cover
+//! of rotation space (`OursConfig::cover_search_scale`), `COVER=<s>` does above robust scale s; a
+//! trial whose answer comes from that search is marked `cover`.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -155,6 +157,11 @@ fn main() {
                 let n: usize = v.parse().unwrap();
                 cfg.search_observations = (n > 0).then_some(n);
             }
+            // COVER=0: never searched again from a cover of rotation space; COVER=<s>: above s.
+            if let Ok(v) = std::env::var("COVER") {
+                let s: f64 = v.parse().unwrap();
+                cfg.cover_search_scale = (s > 0.0).then_some(s);
+            }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {
                 sel.influence_move_test = v != "0";
@@ -222,8 +229,11 @@ fn main() {
                     let xt = shaft_explanation(&set, &d.truth, SHAFT_MARGIN);
                     let (tb, to) = (xt.behind, xt.off_shaft);
                     format!(
-                        "et {et:.4} mm er {er:.5} deg llr {:.2} kept {} scale {:.2} behind {b} off {o} truth {tb} {to} | {stage}",
-                        r.log_likelihood_ratio, r.guard_kept, r.scale
+                        "et {et:.4} mm er {er:.5} deg llr {:.2} kept {} scale {:.2} behind {b} off {o} truth {tb} {to}{} | {stage}",
+                        r.log_likelihood_ratio,
+                        r.guard_kept,
+                        r.scale,
+                        if r.cover_searched { " cover" } else { "" }
                     )
                 }
                 Err(e) => format!("error {e}"),

@@ -149,6 +149,7 @@ pub fn result_json(
         selection_stage: ours.and_then(selection_json),
         noise_scale: ours.and_then(|o| o.noise_scale),
         searched_on: ours.map(|o| o.searched_on),
+        cover_searched: ours.map(|o| o.cover_searched),
     }
 }
 
@@ -173,6 +174,7 @@ mod tests {
             selection_refused,
             noise_scale: None,
             searched_on: 0,
+            cover_searched: false,
         }
     }
 

@@ -160,6 +160,17 @@ pub struct OursConfig {
     /// error other than [`OursError::Ambiguous`], a basin that fails on all observations) is
     /// searched again on all observations. `None`: always search on all observations.
     pub search_observations: Option<usize>,
+    /// With a noise model: when the search's answer fits the data this many times worse than
+    /// the noise model predicts (its robust scale [`OursResult::scale`] above this,
+    /// dimensionless), the candidates are searched again from a cover of rotation space (the
+    /// 24 rotations of the cube group applied to the linear start, each a start of its own
+    /// with its own translation, beside the usual starts), and that search's outcome, answer
+    /// or refusal, is the pipeline's. The usual starts are the linear start, its 180° turns
+    /// and the other minima of Eq. 10: on the tuning geometries (metres, σ = 0.02) they all
+    /// missed the true basin in 5 of 1 200 trials, each answered by a mirror (178-180° off,
+    /// robust scale 1.6-3.0) that only the selection-aware stage's move test refused. A fit
+    /// that good data give (robust scale about 1) costs nothing more. `None`: never.
+    pub cover_search_scale: Option<f64>,
 }
 
 /// The bounds of the noise scale [`OursConfig::estimate_noise_scale`] applies
@@ -182,12 +193,19 @@ impl Default for OursConfig {
             likelihood_descent: true,
             descend_every_basin: true,
             search_observations: Some(DEFAULT_SEARCH_OBSERVATIONS),
+            cover_search_scale: Some(DEFAULT_COVER_SEARCH_SCALE),
         }
     }
 }
 
 /// [`OursConfig::search_observations`]'s default.
 pub const DEFAULT_SEARCH_OBSERVATIONS: usize = 240;
+
+/// [`OursConfig::cover_search_scale`]'s default (dimensionless): a fit 1.5 times worse than
+/// the noise model predicts. On the tuning geometries at σ = 0.02 in metres, 2.8 % of the
+/// trials (33 of 1 200) were above it, the five mirrors among them; answers near the truth
+/// reach 1.5 only where the noise model's linearisation is poor (2 % of them).
+pub const DEFAULT_COVER_SEARCH_SCALE: f64 = 1.5;
 
 /// Why our pipeline failed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -327,6 +345,10 @@ pub struct OursResult {
     /// ([`OursConfig::search_observations`]): all of them, or the subsample's size (the
     /// result itself is then refined and judged on all of them).
     pub searched_on: usize,
+    /// The candidates were searched again from a cover of rotation space because the first
+    /// search's answer fitted the data worse than the noise model predicts
+    /// ([`OursConfig::cover_search_scale`]); this is the cover search's answer.
+    pub cover_searched: bool,
 }
 
 /// One candidate solution and its negative log-likelihood.
@@ -1186,6 +1208,7 @@ fn solve_as_stated(set: &PreparedSet, cfg: &OursConfig) -> Result<OursResult, Ou
                 next.alternative = result.alternative;
                 next.log_likelihood_ratio = result.log_likelihood_ratio;
                 next.searched_on = result.searched_on;
+                next.cover_searched = result.cover_searched;
                 result = next;
             }
             Err(_) => break,
@@ -1372,13 +1395,38 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         return Err(OursError::NoiseModel);
     }
     let starts = start_rotations(set, cfg, from)?;
+    let first = search(set, cfg, from, &starts);
+    // A fit much worse than the noise model predicts: searched again from a cover of
+    // rotation space ([`OursConfig::cover_search_scale`]).
+    if from.is_none()
+        && cfg.noise.is_some()
+        && let Ok(x) = &first
+        && cfg.cover_search_scale.is_some_and(|limit| x.scale > limit)
+        && let Some(cover) = starts.cover()
+    {
+        return search(set, cfg, None, &cover).map(|mut y| {
+            y.cover_searched = true;
+            y
+        });
+    }
+    first
+}
+
+/// [`solve_once`]'s search from `starts`: on a subsample first when the dataset is large
+/// ([`OursConfig::search_observations`]), else on all observations.
+fn search(
+    set: &PreparedSet,
+    cfg: &OursConfig,
+    from: Option<&Isometry3<f64>>,
+    starts: &Starts,
+) -> Result<OursResult, OursError> {
     if from.is_none()
         && let Some(n) = cfg.search_observations.filter(|n| *n >= 12 && set.obs.len() >= 2 * n)
-        && let Some(result) = coarse_to_fine(set, cfg, &starts, n)
+        && let Some(result) = coarse_to_fine(set, cfg, starts, n)
     {
         return result;
     }
-    solve_from(set, cfg, from, &starts)
+    solve_from(set, cfg, from, starts)
 }
 
 /// [`OursError::Ambiguous`] between `best` and `runner_up` (each a pose and its negative
@@ -1504,6 +1552,23 @@ struct Starts {
     t0: Vector3<f64>,
     starts: Vec<Matrix3<f64>>,
     extra: Vec<Matrix3<f64>>,
+    /// The linear start (Eq. 8-10), when there is one.
+    linear: Option<Matrix3<f64>>,
+}
+
+impl Starts {
+    /// These starts with the cover of rotation space ([`OursConfig::cover_search_scale`]) in
+    /// place of the other minima of Eq. 10: the 24 rotations of the cube group applied to
+    /// the linear start (its own among them). `None` without a linear start.
+    fn cover(&self) -> Option<Starts> {
+        let r_lin = self.linear?;
+        Some(Starts {
+            t0: self.t0,
+            starts: self.starts.clone(),
+            extra: cube_group().into_iter().map(|g| g * r_lin).collect(),
+            linear: self.linear,
+        })
+    }
 }
 
 /// [`Starts`] of [`solve_once`].
@@ -1568,7 +1633,7 @@ fn start_rotations(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<
         }
         None => {}
     }
-    Ok(Starts { t0, starts, extra })
+    Ok(Starts { t0, starts, extra, linear })
 }
 
 /// [`solve_once`] from its [`Starts`].
@@ -1578,7 +1643,7 @@ fn solve_from(
     from: Option<&Isometry3<f64>>,
     st: &Starts,
 ) -> Result<OursResult, OursError> {
-    let Starts { t0, starts, extra } = st;
+    let Starts { t0, starts, extra, .. } = st;
     let t0 = *t0;
     // Each start and its 180° turns about the line of sight to robot 2's RCM and about the
     // three axes of the mean tool direction's frame (the tool axis, its component across the
@@ -1917,6 +1982,7 @@ fn solve_from(
         selection_refused: None,
         noise_scale: None,
         searched_on: set.obs.len(),
+        cover_searched: false,
     })
 }
 

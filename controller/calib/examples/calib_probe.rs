@@ -20,7 +20,8 @@
 //! explain the shafts where their refinement ended (`OursConfig::descend_every_basin`). `FROM_TRUTH=1` adds the truth's rotation as a
 //! start (`OursConfig::initial_quaternion`). `SEARCH=<n>` searches the candidates on n observations
 //! (`OursConfig::search_observations`; 0: on all of them). `COVER=0` never searches again from a cover
-//! of rotation space (`OursConfig::cover_search_scale`), `COVER=<s>` does above robust scale s; a
+//! of rotation space (`OursConfig::cover_search_scale`), `COVER=<s>` does above robust scale s (`COVER=always`: every
+//! search is from the cover); a
 //! trial whose answer comes from that search is marked `cover`.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
@@ -159,8 +160,10 @@ fn main() {
             }
             // COVER=0: never searched again from a cover of rotation space; COVER=<s>: above s.
             if let Ok(v) = std::env::var("COVER") {
-                let s: f64 = v.parse().unwrap();
-                cfg.cover_search_scale = (s > 0.0).then_some(s);
+                cfg.cover_search_scale = match v.as_str() {
+                    "always" => Some(0.0),
+                    _ => Some(v.parse::<f64>().unwrap()).filter(|s| *s > 0.0),
+                };
             }
             // INFLUENCE=1/0: the stage's move test with the measured covariance of the move.
             if let (Ok(v), Some(sel)) = (std::env::var("INFLUENCE"), cfg.selection.as_mut()) {

@@ -169,7 +169,8 @@ pub struct OursConfig {
     /// and the other minima of Eq. 10: on the tuning geometries (metres, σ = 0.02) they all
     /// missed the true basin in 5 of 1 200 trials, each answered by a mirror (178-180° off,
     /// robust scale 1.6-3.0) that only the selection-aware stage's move test refused. A fit
-    /// that good data give (robust scale about 1) costs nothing more. `None`: never.
+    /// that good data give (robust scale about 1) costs nothing more. `None`: never; `Some(0.0)`
+    /// (or below): always, the cover search being the only one.
     pub cover_search_scale: Option<f64>,
 }
 
@@ -1395,6 +1396,20 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         return Err(OursError::NoiseModel);
     }
     let starts = start_rotations(set, cfg, from)?;
+    let cover_searched = |r: Result<OursResult, OursError>| {
+        r.map(|mut y| {
+            y.cover_searched = true;
+            y
+        })
+    };
+    // A limit of 0: every search is from the cover.
+    if from.is_none()
+        && cfg.noise.is_some()
+        && cfg.cover_search_scale.is_some_and(|limit| limit <= 0.0)
+        && let Some(cover) = starts.cover()
+    {
+        return cover_searched(search(set, cfg, None, &cover));
+    }
     let first = search(set, cfg, from, &starts);
     // A fit much worse than the noise model predicts: searched again from a cover of
     // rotation space ([`OursConfig::cover_search_scale`]).
@@ -1404,10 +1419,7 @@ fn solve_once(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<f64>>
         && cfg.cover_search_scale.is_some_and(|limit| x.scale > limit)
         && let Some(cover) = starts.cover()
     {
-        return search(set, cfg, None, &cover).map(|mut y| {
-            y.cover_searched = true;
-            y
-        });
+        return cover_searched(search(set, cfg, None, &cover));
     }
     first
 }

@@ -11,7 +11,9 @@
     reason = "test code (helpers too): a panic is a failed test"
 )]
 
-use estimator::calib::ours::{DEFAULT_MIN_LOG_LIKELIHOOD_RATIO, OursConfig, OursError, solve_ours_prepared};
+use estimator::calib::ours::{
+    DEFAULT_MIN_LOG_LIKELIHOOD_RATIO, OursConfig, OursError, POOR_FIT_SCALE, solve_ours_prepared,
+};
 use estimator::calib::paper::{PaperConfig, PaperError, solve_paper_prepared};
 use estimator::calib::prepare::{PENCIL_TOLERANCE, prepare};
 use estimator::calib::selection::swept_box_probability;
@@ -292,11 +294,13 @@ fn shaft_ends_are_recognised_and_place_the_tool() {
 fn the_shaft_positions_calibrate_where_the_lines_alone_cannot() {
     use estimator::calib::ours::explains_shafts;
     // Tuning geometry 9000, metre reading, σ = 0.01, trial seed 1000: every line-model optimum
-    // puts over a tenth of the shafts behind the camera (refused); where the shafts were seen
-    // along the lines places the tool.
+    // the usual starts find puts over a tenth of the shafts behind the camera (refused); where
+    // the shafts were seen along the lines places the tool. (The search from the cover of
+    // rotations, the default since session 30, finds a line-model optimum in front of the
+    // camera here, 20 mm and 0.5° off: the lines alone are compared from the usual starts.)
     let d = generate_calibration(&protocol(9000, false, 0.01, NoiseUnits::Metre, 1000)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
-    let lines = OursConfig { noise: d.noise, shaft_position: false, ..OursConfig::default() };
+    let lines = OursConfig { noise: d.noise, shaft_position: false, cover_search_scale: None, ..OursConfig::default() };
     let r = solve_ours_prepared(&set, &lines);
     assert!(matches!(r, Err(OursError::ShaftsNotExplained { .. })), "{r:?}");
     let o = solve_ours_prepared(&set, &OursConfig { noise: d.noise, ..OursConfig::default() }).unwrap();
@@ -546,10 +550,17 @@ fn every_basin_is_judged_at_its_descended_likelihood() {
     // candidate of the true basin explains the shafts, so none descended, and the refinement
     // had left them 1 800-3 000 nats less likely than the truth; the mirror won by 670 nats
     // (its stage refused: a non-zero exit, but the guarded fit was the mirror). Descended,
-    // the true basin is the more likely by over 1 000 nats.
+    // the true basin is the more likely by over 1 000 nats. From the usual starts: searched from
+    // the cover of rotations (the default since session 30), a still more likely candidate puts
+    // 186 of 393 shafts behind the camera and the data are refused (`ShaftsNotExplained`).
     let d = generate_calibration(&protocol(9005, true, 0.02, NoiseUnits::Metre, 1014)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
-    let cfg = OursConfig { noise: d.noise, ..OursConfig::default() };
+    let cfg = OursConfig { noise: d.noise, cover_search_scale: None, ..OursConfig::default() };
+    // Either way, no confident wrong answer.
+    match solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(0.0), ..cfg }) {
+        Ok(x) => assert!(pose_errors(&x.pose, &d.truth).rotation_rad.to_degrees() < 10.0, "{:?}", x.pose),
+        Err(e) => assert!(matches!(e, OursError::ShaftsNotExplained { .. } | OursError::Ambiguous { .. }), "{e}"),
+    }
     assert!(cfg.descend_every_basin, "on by default");
     let o = solve_ours_prepared(&set, &cfg).unwrap();
     let e = pose_errors(&o.pose, &d.truth);
@@ -567,11 +578,17 @@ fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations(
     // start, its 180° turns, the other minima of Eq. 10 and the best's mirrors all miss the
     // true basin, and the search answers with a mirror that fits 1.6 times worse than the
     // noise model predicts (only the selection-aware stage's move test refused it). Searched
-    // again from the cover of rotation space, the true basin is found and is the answer.
+    // again from the cover of rotation space (the poor-fit trigger, `POOR_FIT_SCALE`), the
+    // true basin is found and is the answer; the default, the cover every time, finds it too.
     let d = generate_calibration(&protocol(9038, false, 0.02, NoiseUnits::Metre, 1011)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
-    let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
-    let limit = cfg.cover_search_scale.expect("on by default");
+    let default = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
+    let o = solve_ours_prepared(&set, &default).unwrap();
+    assert!(o.cover_searched);
+    let e = pose_errors(&o.pose, &d.truth);
+    assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");
+    let limit = POOR_FIT_SCALE;
+    let cfg = OursConfig { cover_search_scale: Some(limit), ..default };
     let narrow = solve_ours_prepared(&set, &OursConfig { cover_search_scale: None, ..cfg }).unwrap();
     assert!(!narrow.cover_searched);
     assert!(narrow.scale > limit, "the case is not the one documented: scale {}", narrow.scale);
@@ -586,8 +603,7 @@ fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations(
     // searched again.
     let d = generate_calibration(&protocol(9038, false, 0.02, NoiseUnits::Metre, 1000)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
-    let o =
-        solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: None, ..OursConfig::default() }).unwrap();
+    let o = solve_ours_prepared(&set, &OursConfig { noise: d.noise, selection: None, ..cfg }).unwrap();
     assert!(o.scale <= limit && !o.cover_searched, "scale {}", o.scale);
 }
 
@@ -595,18 +611,19 @@ fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations(
 fn a_search_from_the_cover_every_time_finds_a_basin_the_usual_starts_miss_under_a_good_fit() {
     // Tuning geometry 9093 (distorted), metre reading, σ = 0.02, trial seed 1002: the usual
     // starts miss the true basin and the mirror they find fits about as well as the noise model
-    // predicts (robust scale under the default limit), so the default does not search again,
-    // and the mirror is the answer (its selection-aware stage applied: exit 0). Searched from
-    // the cover every time (`cover_search_scale: Some(0.0)`), the true basin is found, the
-    // more likely.
+    // predicts (robust scale under the poor-fit trigger `POOR_FIT_SCALE`, session 29's
+    // default), so that trigger does not search again, and the mirror is the answer (its
+    // selection-aware stage applied: exit 0). Searched from the cover every time (the default
+    // since session 30), the true basin is found, the more likely.
     let d = generate_calibration(&protocol(9093, true, 0.02, NoiseUnits::Metre, 1002)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
     let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
-    let usual = solve_ours_prepared(&set, &cfg).unwrap();
+    assert_eq!(cfg.cover_search_scale, Some(0.0), "the cover every time by default");
+    let usual = solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(POOR_FIT_SCALE), ..cfg }).unwrap();
     assert!(!usual.cover_searched, "scale {}", usual.scale);
     let e = pose_errors(&usual.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() > 170.0, "the case is not the one documented: {e:?}");
-    let always = solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(0.0), ..cfg }).unwrap();
+    let always = solve_ours_prepared(&set, &cfg).unwrap();
     assert!(always.cover_searched);
     let e = pose_errors(&always.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");

@@ -19,9 +19,9 @@
 //! unexplained candidates off (`OursConfig::likelihood_descent`). `BASIN=0` leaves the candidates that
 //! explain the shafts where their refinement ended (`OursConfig::descend_every_basin`). `FROM_TRUTH=1` adds the truth's rotation as a
 //! start (`OursConfig::initial_quaternion`). `SEARCH=<n>` searches the candidates on n observations
-//! (`OursConfig::search_observations`; 0: on all of them). `COVER=0` never searches again from a cover
-//! of rotation space (`OursConfig::cover_search_scale`), `COVER=<s>` does above robust scale s (`COVER=always`: every
-//! search is from the cover); a
+//! (`OursConfig::search_observations`; 0: on all of them). The default searches from a cover of
+//! rotation space every time (`OursConfig::cover_search_scale`); `COVER=0` never does, `COVER=<s>` only
+//! when the usual starts' answer has a robust scale above s (`COVER=always`: the default); a
 //! trial whose answer comes from that search is marked `cover`.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
@@ -158,7 +158,8 @@ fn main() {
                 let n: usize = v.parse().unwrap();
                 cfg.search_observations = (n > 0).then_some(n);
             }
-            // COVER=0: never searched again from a cover of rotation space; COVER=<s>: above s.
+            // COVER=0: never searched from a cover of rotation space; COVER=<s>: when the usual
+            // starts' answer's robust scale is above s; COVER=always: every time (the default).
             if let Ok(v) = std::env::var("COVER") {
                 cfg.cover_search_scale = match v.as_str() {
                     "always" => Some(0.0),

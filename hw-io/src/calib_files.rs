@@ -353,9 +353,10 @@ pub struct PipelineResultJson {
     /// subsample when the dataset is large; the result itself is refined and judged on all).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub searched_on: Option<usize>,
-    /// Ours: `true` when the first search's answer fitted the data worse than the noise model
-    /// predicts and the candidates were searched again from a cover of rotation space (this
-    /// is that search's answer; `docs/calibration.md`, "Our pipeline").
+    /// Ours: `true` when the answer comes from a search from a cover of rotation space: under
+    /// the default, when the first search's answer fitted the data worse than the noise model
+    /// predicts; with the cover every time, every solve with a noise model and a linear start
+    /// (`docs/calibration.md`, "Our pipeline").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cover_searched: Option<bool>,
 }

@@ -296,8 +296,8 @@ fn the_shaft_positions_calibrate_where_the_lines_alone_cannot() {
     // Tuning geometry 9000, metre reading, σ = 0.01, trial seed 1000: every line-model optimum
     // the usual starts find puts over a tenth of the shafts behind the camera (refused); where
     // the shafts were seen along the lines places the tool. (The search from the cover of
-    // rotations, the default since session 30, finds a line-model optimum in front of the
-    // camera here, 20 mm and 0.5° off: the lines alone are compared from the usual starts.)
+    // rotations every time finds a line-model optimum in front of the camera here, 20 mm and
+    // 0.5° off: the lines alone are compared from the usual starts.)
     let d = generate_calibration(&protocol(9000, false, 0.01, NoiseUnits::Metre, 1000)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
     let lines = OursConfig { noise: d.noise, shaft_position: false, cover_search_scale: None, ..OursConfig::default() };
@@ -551,8 +551,8 @@ fn every_basin_is_judged_at_its_descended_likelihood() {
     // had left them 1 800-3 000 nats less likely than the truth; the mirror won by 670 nats
     // (its stage refused: a non-zero exit, but the guarded fit was the mirror). Descended,
     // the true basin is the more likely by over 1 000 nats. From the usual starts: searched from
-    // the cover of rotations (the default since session 30), a still more likely candidate puts
-    // 186 of 393 shafts behind the camera and the data are refused (`ShaftsNotExplained`).
+    // the cover of rotations every time, a still more likely candidate puts 186 of 393 shafts
+    // behind the camera and the data are refused (`ShaftsNotExplained`).
     let d = generate_calibration(&protocol(9005, true, 0.02, NoiseUnits::Metre, 1014)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
     let cfg = OursConfig { noise: d.noise, cover_search_scale: None, ..OursConfig::default() };
@@ -578,17 +578,17 @@ fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations(
     // start, its 180° turns, the other minima of Eq. 10 and the best's mirrors all miss the
     // true basin, and the search answers with a mirror that fits 1.6 times worse than the
     // noise model predicts (only the selection-aware stage's move test refused it). Searched
-    // again from the cover of rotation space (the poor-fit trigger, `POOR_FIT_SCALE`), the
-    // true basin is found and is the answer; the default, the cover every time, finds it too.
+    // again from the cover of rotation space (the poor-fit trigger, `POOR_FIT_SCALE`, the
+    // default), the true basin is found and is the answer; the cover every time finds it too.
     let d = generate_calibration(&protocol(9038, false, 0.02, NoiseUnits::Metre, 1011)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
-    let default = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
-    let o = solve_ours_prepared(&set, &default).unwrap();
-    assert!(o.cover_searched);
-    let e = pose_errors(&o.pose, &d.truth);
-    assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");
+    let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
     let limit = POOR_FIT_SCALE;
-    let cfg = OursConfig { cover_search_scale: Some(limit), ..default };
+    assert_eq!(cfg.cover_search_scale, Some(limit), "the poor-fit trigger by default");
+    let always = solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(0.0), ..cfg }).unwrap();
+    assert!(always.cover_searched);
+    let e = pose_errors(&always.pose, &d.truth);
+    assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");
     let narrow = solve_ours_prepared(&set, &OursConfig { cover_search_scale: None, ..cfg }).unwrap();
     assert!(!narrow.cover_searched);
     assert!(narrow.scale > limit, "the case is not the one documented: scale {}", narrow.scale);
@@ -613,17 +613,16 @@ fn a_search_from_the_cover_every_time_finds_a_basin_the_usual_starts_miss_under_
     // starts miss the true basin and the mirror they find fits about as well as the noise model
     // predicts (robust scale under the poor-fit trigger `POOR_FIT_SCALE`, session 29's
     // default), so that trigger does not search again, and the mirror is the answer (its
-    // selection-aware stage applied: exit 0). Searched from the cover every time (the default
-    // since session 30), the true basin is found, the more likely.
+    // selection-aware stage applied: exit 0). Searched from the cover every time
+    // (`cover_search_scale: Some(0.0)`), the true basin is found, the more likely.
     let d = generate_calibration(&protocol(9093, true, 0.02, NoiseUnits::Metre, 1002)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
     let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
-    assert_eq!(cfg.cover_search_scale, Some(0.0), "the cover every time by default");
     let usual = solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(POOR_FIT_SCALE), ..cfg }).unwrap();
     assert!(!usual.cover_searched, "scale {}", usual.scale);
     let e = pose_errors(&usual.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() > 170.0, "the case is not the one documented: {e:?}");
-    let always = solve_ours_prepared(&set, &cfg).unwrap();
+    let always = solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(0.0), ..cfg }).unwrap();
     assert!(always.cover_searched);
     let e = pose_errors(&always.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");

@@ -174,7 +174,7 @@ pub struct OursConfig {
     /// 0.02) they did in 5 of 1 200 trials (9020-9059) with a mirror that fits poorly (robust
     /// scale 1.6-3.0), which the trigger catches, and in 5 of 1 200 (9060-9099) with a mirror
     /// that fits as well as the noise model predicts (1.06-1.44), one of them returned with
-    /// exit 0, which only the cover every time finds, at about 1.7-1.9 times the usual search.
+    /// exit 0, which only the cover every time finds, at about twice the solve time.
     /// That was not made the default: on the held-out geometries it left their one metre
     /// mirror with exit 0 where it was (docs/calibration.md, session 30).
     pub cover_search_scale: Option<f64>,

@@ -159,7 +159,7 @@ fn guest_side_by_side_eyes_are_the_two_halves() {
     let still: Vec<usize> = (0..h as usize)
         .filter(|r| mono[2..].iter().all(|(_, a)| a[r * row..(r + 1) * row] == b[r * row..(r + 1) * row]))
         .collect();
-    assert!(still.len() > h as usize / 2, "only {} of {h} rows are the same in two frames", still.len());
+    assert!(still.len() > h as usize / 2, "only {} of {h} rows are the same in twelve frames", still.len());
 
     let mut src = V4l2Source::open(&config(CaptureFormat::Rgb24, w, h, Stereo::SideBySide)).unwrap();
     let f = src.format();

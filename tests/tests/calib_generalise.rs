@@ -611,8 +611,8 @@ fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations(
 fn a_search_from_the_cover_every_time_finds_a_basin_the_usual_starts_miss_under_a_good_fit() {
     // Tuning geometry 9093 (distorted), metre reading, σ = 0.02, trial seed 1002: the usual
     // starts miss the true basin and the mirror they find fits about as well as the noise model
-    // predicts (robust scale under the poor-fit trigger `POOR_FIT_SCALE`, session 29's
-    // default), so that trigger does not search again, and the mirror is the answer (its
+    // predicts (robust scale under the poor-fit trigger `POOR_FIT_SCALE`, the default), so
+    // the trigger does not search again, and the mirror is the answer (its
     // selection-aware stage applied: exit 0). Searched from the cover every time
     // (`cover_search_scale: Some(0.0)`), the true basin is found, the more likely.
     let d = generate_calibration(&protocol(9093, true, 0.02, NoiseUnits::Metre, 1002)).unwrap();

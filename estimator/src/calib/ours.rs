@@ -1561,31 +1561,35 @@ fn coarse_to_fine(
 
 /// [`solve_once`]'s starts (they do not depend on [`OursConfig::shaft_position`]): the
 /// translation `t0` (Eq. 5, or `from`'s), the starting rotations (`from`'s, or the configured
-/// one and the linear start) and the other minima of Eq. 10.
+/// one and the linear start) and the other minima of Eq. 10, or in their place the cover of
+/// rotation space ([`Starts::extra`]).
 #[derive(Clone)]
 struct Starts {
     t0: Vector3<f64>,
     starts: Vec<Matrix3<f64>>,
-    extra: Vec<Matrix3<f64>>,
+    /// The other minima of Eq. 10.
+    eq10: Vec<Matrix3<f64>>,
     /// The linear start (Eq. 8-10), when there is one.
     linear: Option<Matrix3<f64>>,
-    /// The other minima of Eq. 10 (`extra` itself, except in a cover's starts).
-    eq10: Vec<Matrix3<f64>>,
+    /// The cover of rotation space replaces [`Starts::eq10`] ([`Starts::cover`]).
+    cover: bool,
 }
 
 impl Starts {
     /// These starts with the cover of rotation space ([`OursConfig::cover_search_scale`]) in
-    /// place of the other minima of Eq. 10: the 24 rotations of the cube group applied to
-    /// the linear start (its own among them). `None` without a linear start.
+    /// place of the other minima of Eq. 10. `None` without a linear start.
     fn cover(&self) -> Option<Starts> {
-        let r_lin = self.linear?;
-        Some(Starts {
-            t0: self.t0,
-            starts: self.starts.clone(),
-            extra: cube_group().into_iter().map(|g| g * r_lin).collect(),
-            linear: self.linear,
-            eq10: self.eq10.clone(),
-        })
+        self.linear.map(|_| Starts { cover: true, ..self.clone() })
+    }
+
+    /// The starts beside the linear start and its turns: the other minima of Eq. 10, or with
+    /// the cover, the 24 rotations of the cube group applied to the linear start (its own
+    /// among them).
+    fn extra(&self) -> Vec<Matrix3<f64>> {
+        match (self.cover, self.linear) {
+            (true, Some(r_lin)) => cube_group().into_iter().map(|g| g * r_lin).collect(),
+            _ => self.eq10.clone(),
+        }
     }
 }
 
@@ -1651,7 +1655,7 @@ fn start_rotations(set: &PreparedSet, cfg: &OursConfig, from: Option<&Isometry3<
         }
         None => {}
     }
-    Ok(Starts { t0, starts, eq10: extra.clone(), extra, linear })
+    Ok(Starts { t0, starts, eq10: extra, linear, cover: false })
 }
 
 /// [`solve_once`] from its [`Starts`].
@@ -1661,7 +1665,8 @@ fn solve_from(
     from: Option<&Isometry3<f64>>,
     st: &Starts,
 ) -> Result<OursResult, OursError> {
-    let Starts { t0, starts, extra, .. } = st;
+    let Starts { t0, starts, .. } = st;
+    let extra = st.extra();
     let t0 = *t0;
     // Each start and its 180° turns about the line of sight to robot 2's RCM and about the
     // three axes of the mean tool direction's frame (the tool axis, its component across the
@@ -1714,7 +1719,7 @@ fn solve_from(
         // time for the lines' own solution cost 1.3-1.4 times the refinements and, on the tuning
         // geometries 9060-9099 (metres, σ = 0.02), answered fewer trials (523 against 538 of
         // 1 200) with the same guarded mirrors (docs/calibration.md, session 30).
-        let usual = Starts { extra: st.eq10.clone(), ..st.clone() };
+        let usual = Starts { cover: false, ..st.clone() };
         let pose = match solve_from(set, &lines_cfg, None, &usual) {
             Ok(x) => Some(x.pose),
             Err(OursError::ShaftsNotExplained { pose, .. }) => Some(*pose),

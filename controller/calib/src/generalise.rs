@@ -69,6 +69,20 @@ pub enum GeneralisationError {
     /// No valid geometry could be drawn for a seed.
     #[error(transparent)]
     Geometry(#[from] RandomGeometryError),
+    /// The held-out and tuning geometry seeds overlap: a geometry would be in both sets.
+    #[error(
+        "the held-out geometries (seeds {held_out}..{}) and the tuning geometries (seeds {tuning}..{}) overlap",
+        held_out + n,
+        tuning + n
+    )]
+    Overlap {
+        /// The held-out set's first seed.
+        held_out: u64,
+        /// The tuning set's first seed.
+        tuning: u64,
+        /// Geometries per set.
+        n: u64,
+    },
     /// A file could not be written.
     #[error("cannot write {path}: {source}")]
     Write {
@@ -359,6 +373,12 @@ pub fn run_generalisation(
     dir: &Path,
     command: &str,
 ) -> Result<String, GeneralisationError> {
+    let n = opts.geometries as u64;
+    if opts.held_out_seed < opts.tuning_seed.saturating_add(n)
+        && opts.tuning_seed < opts.held_out_seed.saturating_add(n)
+    {
+        return Err(GeneralisationError::Overlap { held_out: opts.held_out_seed, tuning: opts.tuning_seed, n });
+    }
     std::fs::create_dir_all(dir).map_err(|source| GeneralisationError::Write { path: dir.to_owned(), source })?;
     let started = Instant::now();
     let held_out = draw_set(opts.held_out_seed, opts.geometries)?;

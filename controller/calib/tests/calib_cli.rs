@@ -450,3 +450,24 @@ fn estimate_noise_scale_finds_a_noise_model_stated_too_large() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(r.results[0].noise_scale, None);
 }
+
+/// `--held-out-seed` draws another held-out set (named in the report), and a held-out set that
+/// overlaps the tuning set is refused before anything runs.
+#[test]
+fn the_held_out_set_can_be_drawn_afresh_and_never_overlaps_the_tuning_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["sweep", "--geometries", "1", "--trials", "1", "--held-out-only", "--held-out-seed", "7100"];
+    run_ok(bin().args(args).arg("--out-dir").arg(dir.path()));
+    let md = std::fs::read_to_string(dir.path().join("generalisation.md")).unwrap();
+    assert!(md.contains("held-out geometries: seeds 7100..7101"), "{md}");
+    let out = bin()
+        .args(["sweep", "--geometries", "5", "--held-out-seed", "9003"])
+        .arg("--out-dir")
+        .arg(dir.path().join("overlap"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("seeds 9003..9008") && err.contains("overlap"), "{err}");
+    assert!(!dir.path().join("overlap").exists(), "nothing written");
+}

@@ -44,11 +44,12 @@ use super::paper::{
 use super::prepare::{PENCIL_TOLERANCE, PrepareError, Prepared, PreparedSet, SAME_ORIENTATION_RAD, prepare};
 use super::residual::{damped_search, residual, residual_and_jacobian, residual_covariance};
 use super::selection::{
-    SelectionConfig, SelectionError, kept_given_line_ln, moving_covariance_step, refine_selected_with, tip_well_inside,
+    SelectionConfig, SelectionError, kept_given_line_ln_at, moving_covariance_step, noise_at, refine_selected_with,
+    tip_well_inside,
 };
 use super::shaft_position::{
-    ShaftModel, axis_seen_at, model_and_residuals_at, model_and_residuals_into, residuals_at_with, stage_terms,
-    translation_from_shaft_ends,
+    ShaftModel, axis_seen_at, model_and_residuals_at, model_and_residuals_into, model_and_residuals_noise_at,
+    residuals_at_with, stage_terms, translation_from_shaft_ends,
 };
 use super::{Observation, Setup, par};
 
@@ -796,23 +797,25 @@ fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<
     // log-determinant and its detector's-rule term; summed in order below.
     let per_obs = par::map(&set.obs, |o| {
         let res = residual(set, o, r, t);
-        let shaft = cfg.noise.as_ref().filter(|_| cfg.shaft_position).map(|noise| {
+        // The noise model's quantities at this pose, once for the three terms below.
+        let at = cfg.noise.as_ref().map(|noise| (noise, noise_at(set, o, r, t, noise)));
+        let shaft = at.as_ref().filter(|_| cfg.shaft_position).map(|(noise, at)| {
             // [`super::shaft_position::shaft_position_residuals`] with the line residuals shared.
-            model_and_residuals_at(set, o, r, t, noise, false, Some((&res, &no_jacobian))).1
+            model_and_residuals_noise_at(set, o, r, t, noise, false, Some((&res, &no_jacobian)), at).1
         });
-        let (e, logdet) = match &cfg.noise {
-            Some(noise) => {
-                let cov = residual_covariance(set, o, r, t, noise);
-                let det = cov.determinant();
+        let (e, logdet) = match &at {
+            Some((_, at)) => {
+                let det = at.cov.determinant();
                 let logdet = if det.is_finite() && det > 0.0 { det.ln() } else { 0.0 };
-                ((whitener(&cov) * res).norm(), logdet)
+                ((whitener(&at.cov) * res).norm(), logdet)
             }
             None => (res.norm(), 0.0),
         };
         // With a noise model: that this line was recorded at all, given where this pose puts
         // the tool (the detector's rule; −ln P(kept | line), 0 where the first-order model
         // does not apply, a bounded penalty for a tip behind the camera).
-        let kept = cfg.noise.as_ref().map(|noise| kept_given_line_ln(set, o, r, t, noise, &SelectionConfig::default()));
+        let kept =
+            at.as_ref().map(|(noise, at)| kept_given_line_ln_at(set, o, noise, &SelectionConfig::default(), at, &res));
         (e, shaft, logdet, kept)
     });
     let mut norms = Vec::with_capacity(set.obs.len());
@@ -858,8 +861,10 @@ fn likelihood_metric(
     let shaft_noise = cfg.noise.as_ref().filter(|_| cfg.shaft_position);
     let per_obs = par::map(&set.obs, |o| {
         let (res, jac) = residual_and_jacobian(set, o, r, t);
-        let w = match &cfg.noise {
-            Some(noise) => whitener(&residual_covariance(set, o, r, t, noise)),
+        // The noise model's quantities at this pose, once for the whitening and the shaft terms.
+        let at = cfg.noise.as_ref().map(|noise| noise_at(set, o, r, t, noise));
+        let w = match &at {
+            Some(at) => whitener(&at.cov),
             None => Matrix2::identity(),
         };
         let (e, j) = (w * res, w * jac);
@@ -871,8 +876,8 @@ fn likelihood_metric(
         let lw = if n <= c { 1.0 } else { c / n };
         let mut h = j.transpose() * j * (lw / s2);
         let mut g = j.transpose() * e * (lw / s2);
-        if let Some(noise) = shaft_noise {
-            let (_, es, js) = model_and_residuals_at(set, o, r, t, noise, true, Some((&res, &jac)));
+        if let (Some(noise), Some(at)) = (shaft_noise, &at) {
+            let (_, es, js) = model_and_residuals_noise_at(set, o, r, t, noise, true, Some((&res, &jac)), at);
             for (e, j) in es.iter().zip(&js) {
                 if *e != 0.0 {
                     // In standard deviations: weighs `huber(e · s_ref, c) / s_ref²`.

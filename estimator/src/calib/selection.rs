@@ -258,24 +258,91 @@ pub(crate) fn tip_end_model_and_pixel(
     }
     // Which end is the tip's first (cheap: no noise derivatives), then the depth check.
     let pixel = tip_pixel(set, o, r, t)?;
-    let mut u = (o.px[1] - o.px[0]).try_normalize(1e-12)?;
-    if u.dot(&shaft_dir_px(o, r, &pixel.proj)) < 0.0 {
-        u = -u;
-    }
-    // Along `u` (tip toward the RCM) from the first point: the tip's end is the smaller.
-    let s1 = (o.px[1] - o.px[0]).dot(&u);
-    let (point, s_obs) = if s1 < 0.0 { (1, s1) } else { (0, 0.0) };
-    if !o.shaft_end[point] {
-        return None;
-    }
+    let (u, point, s_obs) = tip_end_of(o, &shaft_dir_px(o, r, &pixel.proj))?;
     let tp = tip_projection_from(o, r, pixel);
     if relative_depth_sd(&tp, noise) > depth_ratio {
         return None;
     }
     let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
-    let tg = tip_given_line(&s4)?;
+    tip_end_model_with(u, point, s_obs, &s4).map(|m| (m, tp.pixel))
+}
+
+/// [`tip_end_model_and_pixel`] from the noise quantities already computed at the pose
+/// ([`noise_at`]): the same values.
+pub(crate) fn tip_end_model_at(
+    o: &Prepared,
+    noise: &KinematicNoise,
+    depth_ratio: f64,
+    at: &NoiseAt,
+) -> Option<(TipEndModel, TipPixel)> {
+    if !(o.shaft_end[0] || o.shaft_end[1]) {
+        return None;
+    }
+    let (tp, s4) = (at.tp.as_ref()?, at.s4.as_ref()?);
+    // `tp.dir_px` is `shaft_dir_px` at the tip's projection derivative, as above.
+    let (u, point, s_obs) = tip_end_of(o, &tp.dir_px)?;
+    if relative_depth_sd(tp, noise) > depth_ratio {
+        return None;
+    }
+    tip_end_model_with(u, point, s_obs, s4).map(|m| (m, tp.pixel))
+}
+
+/// The observed line's unit direction `u` from its tip end toward robot 2's RCM (`dir_px`:
+/// the shaft's predicted image direction, the same way), the point at the tip's end and its
+/// position along `u` from the first point (pixels); `None` when the line has no length or
+/// that point is not a shaft end.
+fn tip_end_of(o: &Prepared, dir_px: &Vector2<f64>) -> Option<(Vector2<f64>, usize, f64)> {
+    let mut u = (o.px[1] - o.px[0]).try_normalize(1e-12)?;
+    if u.dot(dir_px) < 0.0 {
+        u = -u;
+    }
+    // Along `u` (tip toward the RCM) from the first point: the tip's end is the smaller.
+    let s1 = (o.px[1] - o.px[0]).dot(&u);
+    let (point, s_obs) = if s1 < 0.0 { (1, s1) } else { (0, 0.0) };
+    o.shaft_end[point].then_some((u, point, s_obs))
+}
+
+/// The tip-end model from the joint covariance `s4` of [`line_tip_noise`].
+fn tip_end_model_with(u: Vector2<f64>, point: usize, s_obs: f64, s4: &Matrix4<f64>) -> Option<TipEndModel> {
+    let tg = tip_given_line(s4)?;
     let sd_px = u.dot(&(tg.cond * u)).max(1e-12).sqrt();
-    sd_px.is_finite().then_some((TipEndModel { point, u, s_obs, gain: tg.gain, sd_px }, tp.pixel))
+    sd_px.is_finite().then_some(TipEndModel { point, u, s_obs, gain: tg.gain, sd_px })
+}
+
+/// One observation's noise-model quantities at a pose `(R, t)`, computed once for every
+/// likelihood term that needs them ([`noise_at`]).
+#[derive(Clone, Debug)]
+pub(crate) struct NoiseAt {
+    /// The tip's projection; `None` when the tip is less than 1 mm in front of the optical
+    /// centre.
+    pub tp: Option<TipProjection>,
+    /// The joint covariance (pixels²) of the line residuals and the tip's pixel
+    /// ([`line_tip_noise`]); present with `tp`.
+    pub s4: Option<Matrix4<f64>>,
+    /// The line residuals' covariance (pixels²): [`residual_covariance`]'s value, bit for bit.
+    pub cov: Matrix2<f64>,
+}
+
+/// [`NoiseAt`] of observation `o` at pose `(R, t)` under `noise`: one noise Jacobian where
+/// the likelihood's line, shaft-end and detector's-rule terms each computed their own.
+pub(crate) fn noise_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+) -> NoiseAt {
+    match tip_projection(set, o, r, t) {
+        Some(tp) => {
+            let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
+            // The first two rows of `line_tip_noise`'s Jacobian are the negated noise
+            // Jacobian, and `(−x)(−y) = xy` exactly: this block is `residual_covariance`'s
+            // value, the same sums in the same order.
+            let cov = s4.fixed_view::<2, 2>(0, 0).into_owned();
+            NoiseAt { tp: Some(tp), s4: Some(s4), cov }
+        }
+        None => NoiseAt { tp: None, s4: None, cov: residual_covariance(set, o, r, t, noise) },
+    }
 }
 
 impl TipEndModel {
@@ -1017,7 +1084,12 @@ fn selected_model(
     tp: &TipProjection,
 ) -> Model {
     let (_, s4) = line_tip_noise(set, o, r, t, tp, noise);
-    let Some(TipGivenLine { srr_inv, stt, gain, cond }) = tip_given_line(&s4) else { return Model::Out };
+    selected_model_with(set, o, tp, &s4)
+}
+
+/// [`selected_model`] from the joint covariance `s4` of [`line_tip_noise`] at the pose.
+fn selected_model_with(set: &PreparedSet, o: &Prepared, tp: &TipProjection, s4: &Matrix4<f64>) -> Model {
+    let Some(TipGivenLine { srr_inv, stt, gain, cond }) = tip_given_line(s4) else { return Model::Out };
     let (lo, hi) = kept_box(set, &tp.dir_px, &tp.pixel.px);
     let Some(mut u) = (o.px[1] - o.px[0]).try_normalize(1e-12) else { return Model::Plain(srr_inv) };
     if u.dot(&tp.dir_px) < 0.0 {
@@ -1057,12 +1129,38 @@ pub fn kept_given_line_ln(
     if relative_depth_sd(&tp, noise) > cfg.depth_ratio {
         return 0.0;
     }
-    match selected_model(set, o, r, t, noise, &tp) {
+    let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
+    kept_ln_with(set, o, &tp, &s4, &residual(set, o, r, t))
+}
+
+/// [`kept_given_line_ln`] from the noise quantities already computed at the pose
+/// ([`noise_at`]) and the line residuals `res` there ([`residual`]): the same value.
+pub(crate) fn kept_given_line_ln_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    noise: &KinematicNoise,
+    cfg: &SelectionConfig,
+    at: &NoiseAt,
+    res: &Vector2<f64>,
+) -> f64 {
+    let Some(tp) = &at.tp else { return P_FLOOR.ln() };
+    if relative_depth_sd(tp, noise) > cfg.depth_ratio {
+        return 0.0;
+    }
+    match &at.s4 {
+        Some(s4) => kept_ln_with(set, o, tp, s4, res),
+        None => 0.0,
+    }
+}
+
+/// `ln P(kept | r)` once the tip's first-order model is trusted: `s4` from
+/// [`line_tip_noise`], `res` the line residuals at the pose.
+fn kept_ln_with(set: &PreparedSet, o: &Prepared, tp: &TipProjection, s4: &Matrix4<f64>, res: &Vector2<f64>) -> f64 {
+    match selected_model_with(set, o, tp, s4) {
         Model::Out | Model::Plain(_) => 0.0,
         Model::Selected { gain, cond, segment: (u, s_lo, s_hi), .. } => {
             // The tip's pixel at `(R, t)`, as [`tip_pixel`] gives it.
             let tp = tp.pixel;
-            let res = residual(set, o, r, t);
             let s_mean = (tp.px + gain * res - o.px[0]).dot(&u);
             let s_sd = u.dot(&(cond * u)).max(1e-12).sqrt();
             let p = normal_mass(((s_lo - s_mean) / s_sd).max(-40.0), ((s_hi - s_mean) / s_sd).min(40.0));

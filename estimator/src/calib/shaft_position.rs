@@ -35,7 +35,9 @@ use super::KinematicNoise;
 use super::prepare::{Prepared, PreparedSet};
 use super::rcm_arms::skew;
 use super::residual::{Jac6, residual, residual_and_jacobian};
-use super::selection::{TipEndModel, tip_end_model, tip_end_model_and_pixel, tip_px};
+use super::selection::{
+    NoiseAt, TipEndModel, TipPixel, tip_end_model, tip_end_model_and_pixel, tip_end_model_at, tip_px,
+};
 
 /// Where the tool axis is seen at an observed line point: for the ray through ideal pixel `u`
 /// (camera frame, direction `K⁻¹ [u, 1]ᵀ`, unit depth) and the tool axis of pose `(R, t)`
@@ -199,6 +201,41 @@ pub(crate) fn model_and_residuals_into(
     line: Option<(&Vector2<f64>, &Jac6)>,
     out: (&mut ShaftModel, &mut [f64; TERMS], &mut [Vector6<f64>; TERMS]),
 ) {
+    let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
+    model_and_residuals_with_tip(set, o, r, t, noise, grad, line, tip, out);
+}
+
+/// [`model_and_residuals_at`] with the noise quantities already computed at the pose
+/// ([`super::selection::noise_at`]): the same values, the tip's model not computed again.
+pub(crate) fn model_and_residuals_noise_at(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    grad: bool,
+    line: Option<(&Vector2<f64>, &Jac6)>,
+    at: &NoiseAt,
+) -> (ShaftModel, [f64; TERMS], [Vector6<f64>; TERMS]) {
+    let mut out = (ShaftModel::default(), [0.0; TERMS], [Vector6::zeros(); TERMS]);
+    let tip = tip_end_model_at(o, noise, TIP_DEPTH_RATIO, at);
+    model_and_residuals_with_tip(set, o, r, t, noise, grad, line, tip, (&mut out.0, &mut out.1, &mut out.2));
+    out
+}
+
+/// [`model_and_residuals_into`] with the tip's model and pixel at the pose given.
+#[allow(clippy::too_many_arguments, reason = "model_and_residuals_into's arguments and the tip's model")]
+fn model_and_residuals_with_tip(
+    set: &PreparedSet,
+    o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    noise: &KinematicNoise,
+    grad: bool,
+    line: Option<(&Vector2<f64>, &Jac6)>,
+    tip: Option<(TipEndModel, TipPixel)>,
+    out: (&mut ShaftModel, &mut [f64; TERMS], &mut [Vector6<f64>; TERMS]),
+) {
     let (m_out, e, g) = out;
     let focal = focal_px(set);
     let ends = with_end_precision(set, noise);
@@ -211,7 +248,6 @@ pub(crate) fn model_and_residuals_into(
         seen[j] = closest_approach(v, &p, &d);
         sds[j] = seen[j].and_then(|(depth, s)| sd_of_unit(&ends, focal, o.insertion_m, v_unit, &d_unit, depth, s));
     }
-    let tip = tip_end_model_and_pixel(set, o, r, t, noise, TIP_DEPTH_RATIO);
     *m_out = ShaftModel { sds, tip: tip.map(|x| x.0) };
     *e = metric_residuals(o, &seen, &sds, m_out.tip.map(|x| x.point));
     *g = [Vector6::zeros(); TERMS];

@@ -207,6 +207,7 @@ pub(crate) fn model_and_residuals_into(
 
 /// [`model_and_residuals_at`] with the noise quantities already computed at the pose
 /// ([`super::selection::noise_at`]): the same values, the tip's model not computed again.
+#[allow(clippy::too_many_arguments, reason = "model_and_residuals_at's arguments and the noise quantities")]
 pub(crate) fn model_and_residuals_noise_at(
     set: &PreparedSet,
     o: &Prepared,

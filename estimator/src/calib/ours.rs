@@ -48,8 +48,8 @@ use super::selection::{
     tip_well_inside,
 };
 use super::shaft_position::{
-    ShaftModel, axis_seen_at, model_and_residuals_at, model_and_residuals_into, model_and_residuals_noise_at,
-    residuals_at_with, stage_terms, translation_from_shaft_ends,
+    ShaftModel, TIP_DEPTH_RATIO, axis_seen_at, model_and_residuals_at, model_and_residuals_into,
+    model_and_residuals_noise_at, residuals_at_with, stage_terms, translation_from_shaft_ends,
 };
 use super::{Observation, Setup, par};
 
@@ -793,12 +793,15 @@ impl NllParts {
 fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<f64>) -> NllParts {
     // Unused by the shaft terms without their gradients ([`model_and_residuals_at`]).
     let no_jacobian = super::residual::Jac6::zeros();
+    // The detector's rule, and the deepest tip any term below conditions on its line.
+    let kept_rule = SelectionConfig::default();
+    let depth_ratio = kept_rule.depth_ratio.max(TIP_DEPTH_RATIO);
     // Per observation ([`par`]): its whitened norm, its shaft-position residuals, its
     // log-determinant and its detector's-rule term; summed in order below.
     let per_obs = par::map(&set.obs, |o| {
         let res = residual(set, o, r, t);
         // The noise model's quantities at this pose, once for the three terms below.
-        let at = cfg.noise.as_ref().map(|noise| (noise, noise_at(set, o, r, t, noise)));
+        let at = cfg.noise.as_ref().map(|noise| (noise, noise_at(set, o, r, t, noise, depth_ratio)));
         let shaft = at.as_ref().filter(|_| cfg.shaft_position).map(|(noise, at)| {
             // [`super::shaft_position::shaft_position_residuals`] with the line residuals shared.
             model_and_residuals_noise_at(set, o, r, t, noise, false, Some((&res, &no_jacobian)), at).1
@@ -814,8 +817,7 @@ fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<
         // With a noise model: that this line was recorded at all, given where this pose puts
         // the tool (the detector's rule; −ln P(kept | line), 0 where the first-order model
         // does not apply, a bounded penalty for a tip behind the camera).
-        let kept =
-            at.as_ref().map(|(noise, at)| kept_given_line_ln_at(set, o, noise, &SelectionConfig::default(), at, &res));
+        let kept = at.as_ref().map(|(noise, at)| kept_given_line_ln_at(set, o, r, t, noise, &kept_rule, at, &res));
         (e, shaft, logdet, kept)
     });
     let mut norms = Vec::with_capacity(set.obs.len());
@@ -862,7 +864,7 @@ fn likelihood_metric(
     let per_obs = par::map(&set.obs, |o| {
         let (res, jac) = residual_and_jacobian(set, o, r, t);
         // The noise model's quantities at this pose, once for the whitening and the shaft terms.
-        let at = cfg.noise.as_ref().map(|noise| noise_at(set, o, r, t, noise));
+        let at = cfg.noise.as_ref().map(|noise| noise_at(set, o, r, t, noise, TIP_DEPTH_RATIO));
         let w = match &at {
             Some(at) => whitener(&at.cov),
             None => Matrix2::identity(),

@@ -269,8 +269,12 @@ pub(crate) fn tip_end_model_and_pixel(
 
 /// [`tip_end_model_and_pixel`] from the noise quantities already computed at the pose
 /// ([`noise_at`]): the same values.
+#[allow(clippy::too_many_arguments, reason = "tip_end_model_and_pixel's arguments and the noise quantities")]
 pub(crate) fn tip_end_model_at(
+    set: &PreparedSet,
     o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
     noise: &KinematicNoise,
     depth_ratio: f64,
     at: &NoiseAt,
@@ -278,13 +282,14 @@ pub(crate) fn tip_end_model_at(
     if !(o.shaft_end[0] || o.shaft_end[1]) {
         return None;
     }
-    let (tp, s4) = (at.tp.as_ref()?, at.s4.as_ref()?);
+    let tp = at.tp.as_ref()?;
     // `tp.dir_px` is `shaft_dir_px` at the tip's projection derivative, as above.
     let (u, point, s_obs) = tip_end_of(o, &tp.dir_px)?;
     if relative_depth_sd(tp, noise) > depth_ratio {
         return None;
     }
-    tip_end_model_with(u, point, s_obs, s4).map(|m| (m, tp.pixel))
+    let s4 = at.s4.unwrap_or_else(|| line_tip_noise(set, o, r, t, tp, noise).1);
+    tip_end_model_with(u, point, s_obs, &s4).map(|m| (m, tp.pixel))
 }
 
 /// The observed line's unit direction `u` from its tip end toward robot 2's RCM (`dir_px`:
@@ -317,23 +322,27 @@ pub(crate) struct NoiseAt {
     /// centre.
     pub tp: Option<TipProjection>,
     /// The joint covariance (pixels²) of the line residuals and the tip's pixel
-    /// ([`line_tip_noise`]); present with `tp`.
+    /// ([`line_tip_noise`]); present with `tp` when the tip's depth is known well enough for
+    /// a term to use it ([`noise_at`]'s `depth_ratio`).
     pub s4: Option<Matrix4<f64>>,
     /// The line residuals' covariance (pixels²): [`residual_covariance`]'s value, bit for bit.
     pub cov: Matrix2<f64>,
 }
 
 /// [`NoiseAt`] of observation `o` at pose `(R, t)` under `noise`: one noise Jacobian where
-/// the likelihood's line, shaft-end and detector's-rule terms each computed their own.
+/// the likelihood's line, shaft-end and detector's-rule terms each computed their own. The
+/// joint covariance only where the tip's relative depth uncertainty is at most `depth_ratio`
+/// (the largest of the terms' own limits; beyond it no term conditions the tip on the line).
 pub(crate) fn noise_at(
     set: &PreparedSet,
     o: &Prepared,
     r: &Matrix3<f64>,
     t: &Vector3<f64>,
     noise: &KinematicNoise,
+    depth_ratio: f64,
 ) -> NoiseAt {
     match tip_projection(set, o, r, t) {
-        Some(tp) => {
+        Some(tp) if relative_depth_sd(&tp, noise) <= depth_ratio => {
             let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
             // The first two rows of `line_tip_noise`'s Jacobian are the negated noise
             // Jacobian, and `(−x)(−y) = xy` exactly: this block is `residual_covariance`'s
@@ -341,7 +350,7 @@ pub(crate) fn noise_at(
             let cov = s4.fixed_view::<2, 2>(0, 0).into_owned();
             NoiseAt { tp: Some(tp), s4: Some(s4), cov }
         }
-        None => NoiseAt { tp: None, s4: None, cov: residual_covariance(set, o, r, t, noise) },
+        tp => NoiseAt { tp, s4: None, cov: residual_covariance(set, o, r, t, noise) },
     }
 }
 
@@ -1135,9 +1144,12 @@ pub fn kept_given_line_ln(
 
 /// [`kept_given_line_ln`] from the noise quantities already computed at the pose
 /// ([`noise_at`]) and the line residuals `res` there ([`residual`]): the same value.
+#[allow(clippy::too_many_arguments, reason = "kept_given_line_ln's arguments, the noise quantities and the residuals")]
 pub(crate) fn kept_given_line_ln_at(
     set: &PreparedSet,
     o: &Prepared,
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
     noise: &KinematicNoise,
     cfg: &SelectionConfig,
     at: &NoiseAt,
@@ -1147,10 +1159,8 @@ pub(crate) fn kept_given_line_ln_at(
     if relative_depth_sd(tp, noise) > cfg.depth_ratio {
         return 0.0;
     }
-    match &at.s4 {
-        Some(s4) => kept_ln_with(set, o, tp, s4, res),
-        None => 0.0,
-    }
+    let s4 = at.s4.unwrap_or_else(|| line_tip_noise(set, o, r, t, tp, noise).1);
+    kept_ln_with(set, o, tp, &s4, res)
 }
 
 /// `ln P(kept | r)` once the tip's first-order model is trusted: `s4` from

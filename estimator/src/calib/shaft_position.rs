@@ -127,7 +127,7 @@ pub const TERMS: usize = 5;
 
 /// The first-order tip model is used up to this relative depth standard deviation (the
 /// selection stage's default, [`super::selection::SelectionConfig::default`]).
-const TIP_DEPTH_RATIO: f64 = 0.3;
+pub(crate) const TIP_DEPTH_RATIO: f64 = 0.3;
 
 /// An observation's shaft-position noise model at one pose, held fixed while a refinement
 /// moves (as the line residuals' whitening is): each line point's [`position_sd_m`] (`None`:
@@ -219,7 +219,7 @@ pub(crate) fn model_and_residuals_noise_at(
     at: &NoiseAt,
 ) -> (ShaftModel, [f64; TERMS], [Vector6<f64>; TERMS]) {
     let mut out = (ShaftModel::default(), [0.0; TERMS], [Vector6::zeros(); TERMS]);
-    let tip = tip_end_model_at(o, noise, TIP_DEPTH_RATIO, at);
+    let tip = tip_end_model_at(set, o, r, t, noise, TIP_DEPTH_RATIO, at);
     model_and_residuals_with_tip(set, o, r, t, noise, grad, line, tip, (&mut out.0, &mut out.1, &mut out.2));
     out
 }

@@ -354,9 +354,9 @@ pub struct PipelineResultJson {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub searched_on: Option<usize>,
     /// Ours: `true` when the answer comes from a search from a cover of rotation space: under
-    /// the default, when the first search's answer fitted the data worse than the noise model
-    /// predicts; with the cover every time, every solve with a noise model and a linear start
-    /// (`docs/calibration.md`, "Our pipeline").
+    /// the default, every solve with a noise model and a linear start; with a poor-fit
+    /// trigger, when the first search's answer fitted the data worse than the noise model
+    /// predicts (`docs/calibration.md`, "Our pipeline").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cover_searched: Option<bool>,
 }

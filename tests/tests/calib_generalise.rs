@@ -578,14 +578,15 @@ fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations(
     // start, its 180° turns, the other minima of Eq. 10 and the best's mirrors all miss the
     // true basin, and the search answers with a mirror that fits 1.6 times worse than the
     // noise model predicts (only the selection-aware stage's move test refused it). Searched
-    // again from the cover of rotation space (the poor-fit trigger, `POOR_FIT_SCALE`, the
-    // default), the true basin is found and is the answer; the cover every time finds it too.
+    // again from the cover of rotation space (the poor-fit trigger, `POOR_FIT_SCALE`), the
+    // true basin is found and is the answer; the cover every time (the default) finds it too.
     let d = generate_calibration(&protocol(9038, false, 0.02, NoiseUnits::Metre, 1011)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
-    let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
+    let default = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
+    assert_eq!(default.cover_search_scale, Some(0.0), "the cover every time by default");
     let limit = POOR_FIT_SCALE;
-    assert_eq!(cfg.cover_search_scale, Some(limit), "the poor-fit trigger by default");
-    let always = solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(0.0), ..cfg }).unwrap();
+    let cfg = OursConfig { cover_search_scale: Some(limit), ..default };
+    let always = solve_ours_prepared(&set, &default).unwrap();
     assert!(always.cover_searched);
     let e = pose_errors(&always.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");
@@ -611,10 +612,10 @@ fn a_fit_worse_than_the_noise_model_is_searched_again_from_a_cover_of_rotations(
 fn a_search_from_the_cover_every_time_finds_a_basin_the_usual_starts_miss_under_a_good_fit() {
     // Tuning geometry 9093 (distorted), metre reading, σ = 0.02, trial seed 1002: the usual
     // starts miss the true basin and the mirror they find fits about as well as the noise model
-    // predicts (robust scale under the poor-fit trigger `POOR_FIT_SCALE`, the default), so
-    // the trigger does not search again, and the mirror is the answer (its
-    // selection-aware stage applied: exit 0). Searched from the cover every time
-    // (`cover_search_scale: Some(0.0)`), the true basin is found, the more likely.
+    // predicts (robust scale under the poor-fit trigger `POOR_FIT_SCALE`, the default until
+    // session 31), so the trigger does not search again, and the mirror is the answer (its
+    // selection-aware stage applied: exit 0). Searched from the cover every time (the
+    // default), the true basin is found, the more likely.
     let d = generate_calibration(&protocol(9093, true, 0.02, NoiseUnits::Metre, 1002)).unwrap();
     let set = prepare(&d.setup, &d.observations).unwrap();
     let cfg = OursConfig { noise: d.noise, selection: None, ..OursConfig::default() };
@@ -622,7 +623,7 @@ fn a_search_from_the_cover_every_time_finds_a_basin_the_usual_starts_miss_under_
     assert!(!usual.cover_searched, "scale {}", usual.scale);
     let e = pose_errors(&usual.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() > 170.0, "the case is not the one documented: {e:?}");
-    let always = solve_ours_prepared(&set, &OursConfig { cover_search_scale: Some(0.0), ..cfg }).unwrap();
+    let always = solve_ours_prepared(&set, &cfg).unwrap();
     assert!(always.cover_searched);
     let e = pose_errors(&always.pose, &d.truth);
     assert!(e.rotation_rad.to_degrees() < 5.0 && e.translation_m < 0.05, "{e:?}");

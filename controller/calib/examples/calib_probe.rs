@@ -19,10 +19,11 @@
 //! unexplained candidates off (`OursConfig::likelihood_descent`). `BASIN=0` leaves the candidates that
 //! explain the shafts where their refinement ended (`OursConfig::descend_every_basin`). `FROM_TRUTH=1` adds the truth's rotation as a
 //! start (`OursConfig::initial_quaternion`). `SEARCH=<n>` searches the candidates on n observations
-//! (`OursConfig::search_observations`; 0: on all of them). The default searches again from a cover of
-//! rotation space when the usual starts' answer has a robust scale above 1.5 (`OursConfig::cover_search_scale`);
-//! `COVER=0` never does, `COVER=<s>` above robust scale s, `COVER=always` every time (the cover is the
-//! search); a trial whose answer comes from that search is marked `cover`.
+//! (`OursConfig::search_observations`; 0: on all of them). The default searches from a cover of
+//! rotation space every time (`OursConfig::cover_search_scale`, since session 31); `COVER=0` never
+//! does, `COVER=<s>` only when the usual starts' answer has a robust scale above s (1.5: the default
+//! until session 31), `COVER=always` every time; a trial whose answer comes from that search is
+//! marked `cover`.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "diagnostic tool: a panic is a bug report")]
 
 use estimator::calib::ours::{OursConfig, SHAFT_MARGIN, shaft_explanation, solve_ours_prepared};
@@ -159,7 +160,7 @@ fn main() {
                 cfg.search_observations = (n > 0).then_some(n);
             }
             // COVER=0: never searched from a cover of rotation space; COVER=<s>: when the usual
-            // starts' answer's robust scale is above s (the default: 1.5); COVER=always: every time.
+            // starts' answer's robust scale is above s; COVER=always: every time (the default).
             if let Ok(v) = std::env::var("COVER") {
                 cfg.cover_search_scale = match v.as_str() {
                     "always" => Some(0.0),

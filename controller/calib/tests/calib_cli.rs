@@ -312,11 +312,13 @@ fn both_writes_each_result_or_failure_and_exits_non_zero_only_when_all_failed() 
 #[test]
 fn a_selection_stage_that_cannot_model_the_data_fails_loudly_unless_accepted() {
     let dir = tempfile::tempdir().unwrap();
-    // The metre reading at σ = 0.03 (30 mm per frame), seed 17: the guarded fit explains the
-    // shafts, the selection-aware stage's pose puts some behind the camera (115 of 368).
+    // The metre reading at σ = 0.03 (30 mm per frame), seed 8: the guarded fit explains the
+    // shafts, the selection-aware stage's pose puts some behind the camera (45 of 366). (Seeds
+    // were chosen again in session 31: with the search from the cover of rotations every time,
+    // seeds 17, 1 and 27 below are answered, or refused for another reason.)
     run_ok(
         bin()
-            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "17"])
+            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "8"])
             .arg("--dataset")
             .arg(dir.path().join("wild.json"))
             .arg("--truth")
@@ -343,14 +345,15 @@ fn a_selection_stage_that_cannot_model_the_data_fails_loudly_unless_accepted() {
         assert!(x > limit, "refused with statistic {x} within its limit {limit}");
         Some(limit)
     };
-    // Seed 1: the stage moves from the guarded fit beyond their noise (the move test).
+    // Seed 16: the stage moves from the guarded fit beyond their noise (the move test,
+    // statistic 47.9).
     run_ok(
         bin()
-            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "1"])
+            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "16"])
             .arg("--dataset")
             .arg(dir.path().join("moved.json"))
             .arg("--truth")
-            .arg(dir.path().join("t1.json")),
+            .arg(dir.path().join("t16.json")),
     );
     let (_, r) = calibrate(dir.path(), "moved.json", "ours", &["--accept-unrefined"]);
     let default_limit = refused_limit(&r).expect("refused at the default, with its limit");
@@ -372,15 +375,15 @@ fn a_selection_stage_that_cannot_model_the_data_fails_loudly_unless_accepted() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("strictly between 0 and 1"));
     assert!(!dir.path().join("never.json").exists());
-    // The metre reading at σ = 0.03, seed 27: no candidate puts the shafts where an instrument
+    // The metre reading at σ = 0.03, seed 19: no candidate puts the shafts where an instrument
     // can be; a typed failure, non-zero even with --accept-unrefined, no pose.
     run_ok(
         bin()
-            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "27"])
+            .args(["generate", "--sigma", "0.03", "--units", "m", "--seed", "19"])
             .arg("--dataset")
             .arg(dir.path().join("lost.json"))
             .arg("--truth")
-            .arg(dir.path().join("t27.json")),
+            .arg(dir.path().join("t19.json")),
     );
     let (out, r) = calibrate(dir.path(), "lost.json", "ours", &["--accept-unrefined"]);
     assert!(!out.status.success());

@@ -165,19 +165,21 @@ pub struct OursConfig {
     /// cube group applied to the linear start (every rotation is within 62.8° of one), each a
     /// start of its own with its own translation, in place of the other minima of Eq. 10
     /// beside the linear start and its 180° turns (the lines-only start is still found from
-    /// the usual starts). `Some(s)` with `s > 0` ([`POOR_FIT_SCALE`] by default): the usual
-    /// starts are searched first, and the cover only when that answer fits the data more than
-    /// `s` times worse than the noise model predicts (its robust scale [`OursResult::scale`],
-    /// dimensionless), its outcome, answer or refusal, then being the pipeline's. `Some(0.0)`
-    /// (or below): the cover is the search, every time. `None`: never (the usual starts only).
+    /// the usual starts). `Some(0.0)` (or below), the default: the cover is the search, every
+    /// time. `Some(s)` with `s > 0` (e.g. [`POOR_FIT_SCALE`], the default until session 31):
+    /// the usual starts are searched first, and the cover only when that answer fits the data
+    /// more than `s` times worse than the noise model predicts (its robust scale
+    /// [`OursResult::scale`], dimensionless), its outcome, answer or refusal, then being the
+    /// pipeline's. `None`: never (the usual starts only).
     ///
-    /// The usual starts can all miss the true basin. On the tuning geometries (metres, σ =
-    /// 0.02) they did in 5 of 1 200 trials (9020-9059) with a mirror that fits poorly (robust
-    /// scale 1.6-3.0), which the trigger catches, and in 5 of 1 200 (9060-9099) with a mirror
-    /// that fits as well as the noise model predicts (1.06-1.44), one of them returned with
-    /// exit 0, which only the cover every time finds, at about twice the solve time.
-    /// That was not made the default: on the held-out geometries it left their one metre
-    /// mirror with exit 0 where it was (docs/calibration.md, session 30).
+    /// Why every time: the usual starts can all miss the true basin, and the mirror they then
+    /// find can fit as well as the noise model predicts, which no trigger on the fit sees. On
+    /// the tuning geometries (metres, σ = 0.02) the trigger returned such a mirror with exit 0
+    /// in 1 of 1 200 trials (9060-9099, none in 4 800 more), the cover every time none, and it
+    /// answers more trials (e.g. 479 against 453 of 1 000 on 9140-9189). On a fresh held-out
+    /// set (geometries 7100-7119, session 31) both returned no mirror, no millimetre refusal,
+    /// and the cover answered more metre trials at every σ. It costs about twice the solve
+    /// time (docs/calibration.md, sessions 30 and 31).
     pub cover_search_scale: Option<f64>,
 }
 
@@ -201,7 +203,7 @@ impl Default for OursConfig {
             likelihood_descent: true,
             descend_every_basin: true,
             search_observations: Some(DEFAULT_SEARCH_OBSERVATIONS),
-            cover_search_scale: Some(POOR_FIT_SCALE),
+            cover_search_scale: Some(0.0),
         }
     }
 }
@@ -209,8 +211,8 @@ impl Default for OursConfig {
 /// [`OursConfig::search_observations`]'s default.
 pub const DEFAULT_SEARCH_OBSERVATIONS: usize = 240;
 
-/// The poor-fit trigger of [`OursConfig::cover_search_scale`] (dimensionless), its default:
-/// a fit 1.5 times worse than the noise model predicts. On the tuning
+/// A poor-fit trigger for [`OursConfig::cover_search_scale`] (dimensionless; its default
+/// until session 31): a fit 1.5 times worse than the noise model predicts. On the tuning
 /// geometries 9020-9059 at σ = 0.02 in metres, 21 of 1 200 trials were searched again, the
 /// five mirrors among them; answers near the truth reach 1.5 only where the noise model's
 /// linearisation is poor (2 % of them).
@@ -355,9 +357,9 @@ pub struct OursResult {
     /// result itself is then refined and judged on all of them).
     pub searched_on: usize,
     /// This answer comes from a search from a cover of rotation space
-    /// ([`OursConfig::cover_search_scale`]): with the poor-fit trigger (the default), when the
-    /// first search's answer fitted the data worse than the noise model predicts; with the
-    /// cover every time, every solve with a noise model and a linear start.
+    /// ([`OursConfig::cover_search_scale`]): with the cover every time (the default), every
+    /// solve with a noise model and a linear start; with a poor-fit trigger, when the first
+    /// search's answer fitted the data worse than the noise model predicts.
     pub cover_searched: bool,
 }
 

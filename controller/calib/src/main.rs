@@ -280,8 +280,9 @@ enum Command {
         #[arg(long)]
         held_out_only: bool,
         /// With --geometries: the held-out set's first geometry seed (geometry `i` drawn with
-        /// seed + i). 7000 is the set every report so far used; another seed draws a fresh
-        /// held-out set, never looked at, for a choice that was made on the first one.
+        /// seed + i). 7000: the first held-out set (reported since session 8); 7100: the
+        /// second (session 31); another seed draws a fresh set, never looked at, for a choice
+        /// made after those were studied.
         #[arg(long, default_value_t = 7000)]
         held_out_seed: u64,
         /// With --geometries: the tuning set's first geometry seed.

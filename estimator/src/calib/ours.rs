@@ -175,8 +175,9 @@ pub struct OursConfig {
     /// Why every time: the usual starts can all miss the true basin, and the mirror they then
     /// find can fit as well as the noise model predicts, which no trigger on the fit sees. On
     /// the tuning geometries (metres, σ = 0.02) the trigger returned such a mirror with exit 0
-    /// in 1 of 1 200 trials (9060-9099, none in 4 800 more), the cover every time none, and it
-    /// answers more trials (e.g. 479 against 453 of 1 000 on 9140-9189). On a fresh held-out
+    /// in 1 of 1 200 trials (9060-9099, none in 4 000 more), the cover every time none in
+    /// 4 200, and it answers more trials in every pool (e.g. 479 against 453 of 1 000 on
+    /// 9140-9189). On a fresh held-out
     /// set (geometries 7100-7119, session 31) both returned no mirror, no millimetre refusal,
     /// and the cover answered more metre trials at every σ. It costs about twice the solve
     /// time (docs/calibration.md, sessions 30 and 31).

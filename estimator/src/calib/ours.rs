@@ -804,7 +804,7 @@ fn nll_parts(set: &PreparedSet, cfg: &OursConfig, r: &Matrix3<f64>, t: &Vector3<
     let per_obs = par::map(&set.obs, |o| {
         let res = residual(set, o, r, t);
         // The noise model's quantities at this pose, once for the three terms below.
-        let at = cfg.noise.as_ref().map(|noise| (noise, noise_at(set, o, r, t, noise, depth_ratio)));
+        let at = cfg.noise.as_ref().map(|noise| (noise, noise_at(set, o, r, t, noise, Some(depth_ratio))));
         let shaft = at.as_ref().filter(|_| cfg.shaft_position).map(|(noise, at)| {
             // [`super::shaft_position::shaft_position_residuals`] with the line residuals shared.
             model_and_residuals_noise_at(set, o, r, t, noise, false, Some((&res, &no_jacobian)), at).1
@@ -867,7 +867,7 @@ fn likelihood_metric(
     let per_obs = par::map(&set.obs, |o| {
         let (res, jac) = residual_and_jacobian(set, o, r, t);
         // The noise model's quantities at this pose, once for the whitening and the shaft terms.
-        let at = cfg.noise.as_ref().map(|noise| noise_at(set, o, r, t, noise, TIP_DEPTH_RATIO));
+        let at = cfg.noise.as_ref().map(|noise| noise_at(set, o, r, t, noise, shaft_noise.map(|_| TIP_DEPTH_RATIO)));
         let w = match &at {
             Some(at) => whitener(&at.cov),
             None => Matrix2::identity(),

@@ -319,7 +319,7 @@ fn tip_end_model_with(u: Vector2<f64>, point: usize, s_obs: f64, s4: &Matrix4<f6
 #[derive(Clone, Debug)]
 pub(crate) struct NoiseAt {
     /// The tip's projection; `None` when the tip is less than 1 mm in front of the optical
-    /// centre.
+    /// centre (or when it was not asked for, [`noise_at`]).
     pub tp: Option<TipProjection>,
     /// The joint covariance (pixels²) of the line residuals and the tip's pixel
     /// ([`line_tip_noise`]); present with `tp` when the tip's depth is known well enough for
@@ -332,15 +332,19 @@ pub(crate) struct NoiseAt {
 /// [`NoiseAt`] of observation `o` at pose `(R, t)` under `noise`: one noise Jacobian where
 /// the likelihood's line, shaft-end and detector's-rule terms each computed their own. The
 /// joint covariance only where the tip's relative depth uncertainty is at most `depth_ratio`
-/// (the largest of the terms' own limits; beyond it no term conditions the tip on the line).
+/// (the largest of the terms' own limits; beyond it no term conditions the tip on the line);
+/// `None`: no term needs the tip (its projection is not computed, `tp` is `None`).
 pub(crate) fn noise_at(
     set: &PreparedSet,
     o: &Prepared,
     r: &Matrix3<f64>,
     t: &Vector3<f64>,
     noise: &KinematicNoise,
-    depth_ratio: f64,
+    depth_ratio: Option<f64>,
 ) -> NoiseAt {
+    let Some(depth_ratio) = depth_ratio else {
+        return NoiseAt { tp: None, s4: None, cov: residual_covariance(set, o, r, t, noise) };
+    };
     match tip_projection(set, o, r, t) {
         Some(tp) if relative_depth_sd(&tp, noise) <= depth_ratio => {
             let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);

@@ -1135,15 +1135,9 @@ pub fn kept_given_line_ln(
     noise: &KinematicNoise,
     cfg: &SelectionConfig,
 ) -> f64 {
-    // [`model_at`], without what does not change the value: behind the camera, the floor;
-    // where the first-order model is not trusted (tip too close to the camera, a plain line
-    // or one left out, or a singular noise), no information.
-    let Some(tp) = tip_projection(set, o, r, t) else { return P_FLOOR.ln() };
-    if relative_depth_sd(&tp, noise) > cfg.depth_ratio {
-        return 0.0;
-    }
-    let (_, s4) = line_tip_noise(set, o, r, t, &tp, noise);
-    kept_ln_with(set, o, &tp, &s4, &residual(set, o, r, t))
+    // The noise quantities at the pose, as the likelihood shares them ([`noise_at`]).
+    let at = noise_at(set, o, r, t, noise, Some(cfg.depth_ratio));
+    kept_given_line_ln_at(set, o, r, t, noise, cfg, &at, &residual(set, o, r, t))
 }
 
 /// [`kept_given_line_ln`] from the noise quantities already computed at the pose
@@ -1159,6 +1153,9 @@ pub(crate) fn kept_given_line_ln_at(
     at: &NoiseAt,
     res: &Vector2<f64>,
 ) -> f64 {
+    // [`model_at`], without what does not change the value: behind the camera, the floor;
+    // where the first-order model is not trusted (tip too close to the camera, a plain line
+    // or one left out, or a singular noise), no information.
     let Some(tp) = &at.tp else { return P_FLOOR.ln() };
     if relative_depth_sd(tp, noise) > cfg.depth_ratio {
         return 0.0;
